@@ -1,0 +1,133 @@
+"""Every tunable of the system in one small tree of typed dataclasses.
+
+Defaults are the values of the authors' public C++/CUDA code (Kintinuous, ElasticFusion)
+and the paper; where the paper and the code disagree the field's comment
+says which one the default follows. Dependent values (truncation from the volume size) are derived
+in one place, `VolumeConfig.truncation`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from typing import Any
+
+from kintinuous_ref.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class VolumeConfig:
+    resolution: int = 256  # voxels per side (the paper: 512)
+    size: float = 3.0  # side of the cube in metres (the paper: 6 m)
+    max_weight: float = 128.0  # weight cap of the running average
+    colour: bool = True  # keep a colour volume beside the TSDF (paper VI)
+    shift_threshold: int = 14  # voxels from the basis before the volume shifts (1..16)
+    min_extract_weight: float = 8.0  # zero crossings lighter than this are not extracted
+
+    @property
+    def voxel_size(self) -> float:
+        return self.size / self.resolution
+
+    @property
+    def truncation(self) -> float:
+        """max(0.01 m, side / 100): 0.06 m at 6 m, 0.03 m at 3 m."""
+        return max(0.01, self.size / 100.0)
+
+    def validate(self) -> None:
+        if self.resolution < 8 or self.resolution > 1024:
+            raise ConfigError(f"volume resolution must be in 8..1024, got {self.resolution}")
+        if not self.size > 0:
+            raise ConfigError(f"volume size must be positive, got {self.size} m")
+        if not 1 <= self.shift_threshold <= 16:
+            raise ConfigError(f"shift threshold must be 1..16 voxels, got {self.shift_threshold}")
+        if not self.max_weight >= 1:
+            raise ConfigError(f"max weight must be >= 1, got {self.max_weight}")
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    bilateral_sigma_space: float = 4.5  # pixels
+    bilateral_sigma_depth: float = 0.03  # metres
+    bilateral_radius: int = 6  # 13x13 window
+    pyramid_levels: int = 4
+    pyramid_depth_cutoff: float = 0.09  # 3 sigma_depth: neighbours beyond it are ignored
+    gradient_blur_sigma: float = 0.8  # 3x3 Gaussian before the Sobel (paper IV-A.1)
+    max_depth: float = 6.0  # metres; farther measurements are dropped
+    discontinuity_window: int = 7  # paper VI-B: 7x7 neighbourhood
+    discontinuity_jump: float = 0.2  # metres
+    discontinuity_max_bad: int = 5  # more bad neighbours than this: no colour update
+
+
+@dataclass(frozen=True)
+class IcpConfig:
+    iterations: tuple[int, ...] = (10, 5, 4)  # finest to coarsest
+    distance_threshold: float = 0.10  # metres
+    angle_threshold_deg: float = 20.0
+
+
+@dataclass(frozen=True)
+class RgbdConfig:
+    iterations: tuple[int, ...] = (10, 7, 7, 7)  # finest to coarsest, RGB-D alone
+    combined_iterations: tuple[int, ...] = (10, 5, 4)  # when combined with ICP
+    min_gradient: tuple[float, ...] = (12.0, 5.0, 3.0, 1.0)  # per level, finest to coarsest
+    max_depth_change: float = 0.07  # the paper's d_s, metres
+    max_depth: float = 6.0
+    max_translation_jump: float = 0.3  # metres; a larger increment is a tracking failure
+
+
+@dataclass(frozen=True)
+class CombinedConfig:
+    rgbd_weight: float = 0.1  # the paper's w in eq. 11
+    # "paper": A = J_icp^T J_icp + w J_rgbd^T J_rgbd (eq. 12-13);
+    # "original-code": A = A_rgbd + 100 A_icp, b = b_rgbd + 10 b_icp (the public code's scaling)
+    weighting: str = "paper"
+
+
+@dataclass(frozen=True)
+class FovisConfig:
+    switch_threshold: float = 0.03  # mu of the switching rule (paper V-A), metres
+    fast_threshold: int = 20
+    max_features: int = 600
+    patch_radius: int = 4  # 9x9 descriptor patches
+    clique_tolerance: float = 0.05  # metres: 3D distances preserved to within this
+
+
+@dataclass(frozen=True)
+class ColourConfig:
+    angle_weighting: bool = True  # weight colour updates by cos(theta) = n_z (eq. 15)
+    discontinuity_check: bool = True  # no colour update near depth edges (paper VI-B)
+    max_weight: float = 255.0
+
+
+@dataclass(frozen=True)
+class Config:
+    volume: VolumeConfig = field(default_factory=VolumeConfig)
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    icp: IcpConfig = field(default_factory=IcpConfig)
+    rgbd: RgbdConfig = field(default_factory=RgbdConfig)
+    combined: CombinedConfig = field(default_factory=CombinedConfig)
+    fovis: FovisConfig = field(default_factory=FovisConfig)
+    colour: ColourConfig = field(default_factory=ColourConfig)
+
+    def validate(self) -> Config:
+        self.volume.validate()
+        return self
+
+
+def with_overrides(config: Any, overrides: dict[str, Any]) -> Any:
+    """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}."""
+    grouped: dict[str, dict[str, Any]] = {}
+    direct: dict[str, Any] = {}
+    for key, value in overrides.items():
+        head, _, rest = key.partition(".")
+        if head not in {f.name for f in fields(config)}:
+            raise ConfigError(f"unknown configuration key {key!r}")
+        if rest:
+            grouped.setdefault(head, {})[rest] = value
+        else:
+            direct[head] = value
+    for head, sub in grouped.items():
+        child = getattr(config, head)
+        if not is_dataclass(child):
+            raise ConfigError(f"{head!r} has no sub-keys")
+        direct[head] = with_overrides(child, sub)
+    return replace(config, **direct)

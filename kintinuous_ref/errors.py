@@ -1,0 +1,17 @@
+"""Errors meant for people: each says what went wrong and where, in one line."""
+
+
+class KintinuousError(Exception):
+    """Base of every error the command line reports as a one-line message."""
+
+
+class DatasetError(KintinuousError):
+    """A sequence on disk that cannot be read: missing, corrupt or inconsistent files."""
+
+
+class ConfigError(KintinuousError):
+    """A parameter outside its sensible range."""
+
+
+class TrackingError(KintinuousError):
+    """A tracker that cannot produce a trustworthy pose."""
