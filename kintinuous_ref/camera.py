@@ -143,5 +143,7 @@ def parse_intrinsics(text: str, width: int = 640, height: int = 480) -> Intrinsi
     try:
         fx, fy, cx, cy = (float(part) for part in text.split(","))
     except ValueError:
-        raise ConfigError(f"--intrinsics expects fx,fy,cx,cy (four numbers), got {text!r}") from None
+        raise ConfigError(
+            f"--intrinsics expects fx,fy,cx,cy (four numbers), got {text!r}"
+        ) from None
     return Intrinsics(fx, fy, cx, cy, width, height)

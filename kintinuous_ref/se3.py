@@ -145,7 +145,9 @@ def check_pose(pose: np.ndarray, tolerance: float = 1e-6) -> None:
         or abs(np.linalg.det(rotation) - 1.0) > tolerance
         or np.abs(pose[3] - [0.0, 0.0, 0.0, 1.0]).max() > tolerance
     ):
-        raise PoseError("pose is not a rigid motion (rotation not orthonormal or last row not 0001)")
+        raise PoseError(
+            "pose is not a rigid motion (rotation not orthonormal or last row not 0001)"
+        )
 
 
 def orthonormalize(rotation: np.ndarray) -> np.ndarray:

@@ -71,8 +71,9 @@ def test_inverse_and_compose(rng):
     for _ in range(50):
         a, b = se3.exp(random_twist(rng)), se3.exp(random_twist(rng))
         np.testing.assert_allclose(se3.compose(a, se3.inverse(a)), np.eye(4), atol=1e-12)
-        np.testing.assert_allclose(se3.inverse(se3.compose(a, b)),
-                                   se3.compose(se3.inverse(b), se3.inverse(a)), atol=1e-12)
+        np.testing.assert_allclose(
+            se3.inverse(se3.compose(a, b)), se3.compose(se3.inverse(b), se3.inverse(a)), atol=1e-12
+        )
 
 
 def test_tum_round_trip(rng):
