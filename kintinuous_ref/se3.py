@@ -133,7 +133,7 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def check_pose(pose: np.ndarray, tolerance: float = 1e-6) -> None:
-    """Raise PoseError unless `pose` is a 4x4 rigid motion (orthonormal R, det +1, last row 0001)."""
+    """Raise PoseError unless `pose` is a 4x4 rigid motion (orthonormal R, det +1, row 0001)."""
     pose = np.asarray(pose)
     if pose.shape != (4, 4):
         raise PoseError(f"a pose is a 4x4 matrix, got shape {pose.shape}")
