@@ -1,0 +1,1 @@
+"""Camera trackers: one estimator per module."""
