@@ -89,6 +89,13 @@ class FovisConfig:
     max_features: int = 600
     patch_radius: int = 4  # 9x9 descriptor patches
     clique_tolerance: float = 0.05  # metres: 3D distances preserved to within this
+    feature_levels: int = 3  # pyramid levels searched for FAST corners (Huang et al.: 3)
+    bucket_size: int = 80  # level-0 pixels per side of a bucket (Huang et al.: 80x80)
+    search_radius: float = 16.0  # pixels of the feature's level around its predicted position
+    initial_rotation: bool = True  # predict positions by aligning the coarsest images (rotation)
+    subpixel_refinement: bool = True  # parabola fit of the patch SSD around each match
+    reprojection_threshold: float = 1.5  # pixels of the feature's level; larger: outlier
+    min_inliers: int = 10  # fewer: FOVIS reports failure
 
 
 @dataclass(frozen=True)
