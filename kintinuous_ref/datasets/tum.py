@@ -1,17 +1,29 @@
-"""TUM RGB-D folders and trajectories.
+"""TUM RGB-D folders and trajectories (Sturm et al., IROS 2012).
 
 A trajectory file has one pose per line, `timestamp tx ty tz qx qy qz qw`, camera-to-world;
-lines starting with '#' are comments (Sturm et al., IROS 2012).
+lines starting with '#' are comments. A sequence folder holds `rgb.txt` and `depth.txt`
+(`timestamp filename` per line) or `associations.txt` (`t_rgb rgb_file t_depth depth_file`),
+colour images (PNG or JPEG), 16-bit depth PNGs (raw / 5000 = metres), optionally
+`groundtruth.txt` and `intrinsics.json`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from kintinuous_ref import se3
+from kintinuous_ref.camera import (
+    TUM_DEPTH_SCALE,
+    Intrinsics,
+    camera_from_folder_name,
+    load_intrinsics_json,
+    parse_intrinsics,
+)
 from kintinuous_ref.errors import DatasetError
 
 
@@ -72,3 +84,267 @@ def read_trajectory(path: Path) -> Trajectory:
     if not timestamps:
         raise DatasetError(f"{path}: trajectory has no poses")
     return Trajectory(np.array(timestamps), np.array(poses))
+
+
+# --- Timestamp association -------------------------------------------------------------------
+
+# TUM's associate.py pairs colour and depth (and poses) closer than 0.02 s (Sturm et al. 2012).
+MAX_TIME_DIFFERENCE = 0.02
+
+
+def associate(
+    first: np.ndarray, second: np.ndarray, max_difference: float = MAX_TIME_DIFFERENCE
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pair two timestamp lists one-to-one, as TUM's associate.py does.
+
+    Candidate pairs closer than `max_difference` are accepted greedily in order of increasing
+    |dt|, each timestamp used at most once. Returns index arrays (into `first`, into `second`)
+    sorted by the first timestamp.
+    """
+    first = np.asarray(first, dtype=np.float64).reshape(-1)
+    second = np.asarray(second, dtype=np.float64).reshape(-1)
+    order = np.argsort(second, kind="stable")
+    sorted_second = second[order]
+    # Only the candidates within the window are ever compared: O(n log n), not an n x m matrix.
+    low = np.searchsorted(sorted_second, first - max_difference, side="left")
+    high = np.searchsorted(sorted_second, first + max_difference, side="right")
+    counts = high - low
+    rows = np.repeat(np.arange(len(first)), counts)
+    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    columns = order[np.repeat(low, counts) + offsets]
+    differences = np.abs(first[rows] - second[columns])
+    keep = differences <= max_difference
+    rows, columns, differences = rows[keep], columns[keep], differences[keep]
+
+    used_first = np.zeros(len(first), dtype=bool)
+    used_second = np.zeros(len(second), dtype=bool)
+    pairs = []
+    for k in np.argsort(differences, kind="stable"):
+        i, j = rows[k], columns[k]
+        if not used_first[i] and not used_second[j]:
+            used_first[i] = used_second[j] = True
+            pairs.append((i, j))
+    pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    pairs = pairs[np.argsort(first[pairs[:, 0]], kind="stable")]
+    return pairs[:, 0], pairs[:, 1]
+
+
+def nearest_indices(
+    queries: np.ndarray, timestamps: np.ndarray, max_difference: float = MAX_TIME_DIFFERENCE
+) -> np.ndarray:
+    """Index of the timestamp nearest to each query, or -1 where none lies within max_difference."""
+    queries = np.asarray(queries, dtype=np.float64).reshape(-1)
+    timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if len(timestamps) == 0:
+        return np.full(len(queries), -1, dtype=np.int64)
+    order = np.argsort(timestamps, kind="stable")
+    ordered = timestamps[order]
+    right = np.clip(np.searchsorted(ordered, queries), 0, len(ordered) - 1)
+    left = np.clip(right - 1, 0, len(ordered) - 1)
+    take_left = np.abs(queries - ordered[left]) <= np.abs(ordered[right] - queries)
+    best = np.where(take_left, left, right)
+    result = order[best]
+    result[np.abs(ordered[best] - queries) > max_difference] = -1
+    return result
+
+
+# --- TUM RGB-D folders -----------------------------------------------------------------------
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame: colour (H, W, 3) uint8 RGB, depth (H, W) float32 metres (0 = none)."""
+
+    index: int
+    timestamp: float
+    colour: np.ndarray
+    depth: np.ndarray
+
+
+@dataclass(frozen=True)
+class _FramePaths:
+    timestamp: float  # of the colour image: estimated trajectories carry these (TUM convention)
+    colour: Path
+    depth: Path
+
+
+class TumSequence:
+    """A TUM RGB-D folder; frames are read from disk only when asked for (lazily)."""
+
+    def __init__(
+        self,
+        path: Path,
+        camera: Intrinsics,
+        entries: list[_FramePaths],
+        groundtruth: Trajectory | None,
+    ) -> None:
+        self.path = Path(path)
+        self.name = self.path.resolve().name
+        self.camera = camera
+        self._entries = entries
+        self.timestamps = np.array([entry.timestamp for entry in entries], dtype=np.float64)
+        self.groundtruth = groundtruth
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
+
+    def __getitem__(self, index: int) -> Frame:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"{self.path}: frame {index} out of range (0..{len(self) - 1})")
+        index = index % len(self)
+        entry = self._entries[index]
+        colour = _read_colour(entry.colour)
+        depth = _read_depth(entry.depth, self.camera.depth_scale)
+        if colour.shape[:2] != depth.shape:
+            raise DatasetError(
+                f"{entry.depth}: depth is {depth.shape[1]}x{depth.shape[0]} but colour image "
+                f"{entry.colour.name} is {colour.shape[1]}x{colour.shape[0]}"
+            )
+        if depth.shape != (self.camera.height, self.camera.width):
+            raise DatasetError(
+                f"{entry.depth}: image is {depth.shape[1]}x{depth.shape[0]} but the camera is "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        return Frame(index=index, timestamp=entry.timestamp, colour=colour, depth=depth)
+
+    def frames(self, start: int = 0, count: int | None = None) -> Iterator[Frame]:
+        """Frames start, start+1, ... (count of them, or up to the end), read one at a time."""
+        stop = len(self) if count is None else min(len(self), start + count)
+        for index in range(start, stop):
+            yield self[index]
+
+    def groundtruth_for_frames(self, max_difference: float = MAX_TIME_DIFFERENCE) -> Trajectory:
+        """One ground-truth pose per frame: the one nearest in time (within max_difference)."""
+        if self.groundtruth is None:
+            raise DatasetError(f"{self.path}: sequence has no groundtruth.txt")
+        nearest = nearest_indices(self.timestamps, self.groundtruth.timestamps, max_difference)
+        missing = np.flatnonzero(nearest < 0)
+        if len(missing):
+            first = missing[0]
+            raise DatasetError(
+                f"{self.path / 'groundtruth.txt'}: no pose within {max_difference} s of frame "
+                f"{first} (t = {self.timestamps[first]:.6f}); {len(missing)} frames lack one"
+            )
+        return Trajectory(self.timestamps.copy(), self.groundtruth.poses[nearest])
+
+
+def open_sequence(path: Path, intrinsics: str | None = None) -> TumSequence:
+    """Open a TUM RGB-D folder (rgb.txt + depth.txt or associations.txt, optional groundtruth.txt).
+
+    The camera is, in order of precedence: `intrinsics` (the command line's `fx,fy,cx,cy`, or a
+    path to an intrinsics JSON file), the folder's `intrinsics.json`, the TUM camera named in the
+    folder name (freiburg1/2/3). Nothing but the list files is read here; images are read per frame.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise DatasetError(f"{path}: sequence folder not found")
+    entries = _frame_entries(path)
+    if not entries:
+        raise DatasetError(f"{path}: sequence has no frames (no colour/depth pair within 0.02 s)")
+    for entry in entries:
+        for image in (entry.colour, entry.depth):
+            if not image.is_file():
+                raise DatasetError(f"{image}: listed image not found")
+    camera = _choose_camera(path, intrinsics, entries[0].depth)
+    groundtruth_path = path / "groundtruth.txt"
+    groundtruth = read_trajectory(groundtruth_path) if groundtruth_path.is_file() else None
+    return TumSequence(path, camera, entries, groundtruth)
+
+
+def _choose_camera(path: Path, intrinsics: str | None, first_depth: Path) -> Intrinsics:
+    if intrinsics is not None:
+        if Path(intrinsics).suffix == ".json" or Path(intrinsics).is_file():
+            return load_intrinsics_json(Path(intrinsics))
+        # fx,fy,cx,cy says nothing about the image size: take it from the first depth image.
+        height, width = _read_depth(first_depth, TUM_DEPTH_SCALE).shape
+        return parse_intrinsics(intrinsics, width=width, height=height)
+    if (path / "intrinsics.json").is_file():
+        return load_intrinsics_json(path / "intrinsics.json")
+    camera = camera_from_folder_name(path)
+    if camera is None:
+        raise DatasetError(
+            f"{path}: unknown camera: add intrinsics.json, name the folder after a TUM camera "
+            "(freiburg1/2/3) or pass --intrinsics fx,fy,cx,cy"
+        )
+    return camera
+
+
+def _frame_entries(path: Path) -> list[_FramePaths]:
+    """Colour/depth file pairs from associations.txt, else associated from rgb.txt + depth.txt."""
+    associations = path / "associations.txt"
+    if associations.is_file():
+        entries = []
+        for number, fields in _read_list(associations, columns=4):
+            try:
+                t_first, t_second = float(fields[0]), float(fields[2])
+            except ValueError:
+                raise DatasetError(
+                    f"{associations}:{number}: expected 't_rgb rgb_file t_depth depth_file'"
+                ) from None
+            first, second = fields[1], fields[3]
+            # associate.py writes its two inputs in the order given; accept depth-first lists too.
+            if Path(first).parts[0] == "depth" and Path(second).parts[0] == "rgb":
+                t_first, first, second = t_second, second, first
+            entries.append(_FramePaths(t_first, path / first, path / second))
+        return sorted(entries, key=lambda entry: entry.timestamp)
+    colour_list = _read_timestamped_files(path / "rgb.txt")
+    depth_list = _read_timestamped_files(path / "depth.txt")
+    colour_indices, depth_indices = associate(
+        np.array([t for t, _ in colour_list]), np.array([t for t, _ in depth_list])
+    )
+    return [
+        _FramePaths(colour_list[i][0], path / colour_list[i][1], path / depth_list[j][1])
+        for i, j in zip(colour_indices, depth_indices, strict=True)
+    ]
+
+
+def _read_list(path: Path, columns: int) -> Iterator[tuple[int, list[str]]]:
+    """(line number, first `columns` fields) of each non-comment line of a TUM list file."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: list file not found")
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        if len(fields) < columns:
+            raise DatasetError(
+                f"{path}:{number}: expected {columns} fields, found {len(fields)}: {line!r}"
+            )
+        yield number, fields[:columns]
+
+
+def _read_timestamped_files(path: Path) -> list[tuple[float, str]]:
+    """The `timestamp filename` lines of rgb.txt or depth.txt."""
+    entries = []
+    for number, (stamp, name) in _read_list(path, columns=2):
+        try:
+            entries.append((float(stamp), name))
+        except ValueError:
+            raise DatasetError(f"{path}:{number}: timestamp {stamp!r} is not a number") from None
+    return entries
+
+
+def _read_colour(path: Path) -> np.ndarray:
+    """A PNG or JPEG colour image as (H, W, 3) uint8 RGB (OpenCV reads BGR)."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise DatasetError(f"{path}: cannot read colour image (missing or not an image)")
+    return np.ascontiguousarray(image[..., ::-1])
+
+
+def _read_depth(path: Path, depth_scale: float) -> np.ndarray:
+    """A 16-bit single-channel PNG as float32 metres (raw / depth_scale); 0 stays 0 (no depth)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise DatasetError(f"{path}: cannot read depth image (missing or not an image)")
+    if raw.ndim != 2:
+        raise DatasetError(
+            f"{path}: depth image has {raw.shape[2]} channels, expected one 16-bit channel"
+        )
+    if raw.dtype != np.uint16:
+        raise DatasetError(f"{path}: depth image is {raw.dtype}, expected 16-bit (uint16)")
+    return (raw.astype(np.float32) / np.float32(depth_scale)).astype(np.float32)
