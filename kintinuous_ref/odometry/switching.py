@@ -36,7 +36,8 @@ def choose_increment(
     _check_increment(fovis_increment, "FOVIS increment")
     _check_increment(other_increment, "other estimator's increment")
     disagreement = abs(
-        float(np.linalg.norm(fovis_increment[:3, 3])) - float(np.linalg.norm(other_increment[:3, 3]))
+        float(np.linalg.norm(fovis_increment[:3, 3]))
+        - float(np.linalg.norm(other_increment[:3, 3]))
     )
     if disagreement > mu:
         return fovis_increment, FOVIS
