@@ -82,6 +82,9 @@ class CombinedConfig:
     weighting: str = "paper"
 
 
+    # grad I in the Jacobian: "current" = current image at p (paper, Steinbruecker, OpenCV),
+    # "warped" = previous image sampled at the warped p' (the cost's exact derivative)
+    gradient: str = "current"
 @dataclass(frozen=True)
 class FovisConfig:
     switch_threshold: float = 0.03  # mu of the switching rule (paper V-A), metres
@@ -90,6 +93,21 @@ class FovisConfig:
     patch_radius: int = 4  # 9x9 descriptor patches
     clique_tolerance: float = 0.05  # metres: 3D distances preserved to within this
     feature_levels: int = 3  # pyramid levels searched for FAST corners (Huang et al.: 3)
+    original_code_icp_scale: float = 10.0  # "original-code": A_rgbd + s^2 A_icp, b_rgbd + s b_icp
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Failure detection and recovery shared by every tracker (odometry/__init__.py)."""
+
+    max_translation_jump: float = 0.3  # metres per frame; larger is implausible (a failure)
+    max_rotation_jump_deg: float = 20.0  # degrees per frame
+    min_correspondences: int = 50  # fewer pairs in any Gauss-Newton step: a failure
+    # fewer ICP pairs per valid vertex (or RGB-D pairs per interest point) at the finest level
+    min_inlier_fraction: float = 0.1
+    # what a failed frame's pose becomes: "constant-velocity" (previous pose times the last good
+    # increment) or "previous" (the previous pose)
+    fallback: str = "constant-velocity"
     bucket_size: int = 80  # level-0 pixels per side of a bucket (Huang et al.: 80x80)
     search_radius: float = 16.0  # pixels of the feature's level around its predicted position
     initial_rotation: bool = True  # predict positions by aligning the coarsest images (rotation)
@@ -124,6 +142,7 @@ def with_overrides(config: Any, overrides: dict[str, Any]) -> Any:
     """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}."""
     grouped: dict[str, dict[str, Any]] = {}
     direct: dict[str, Any] = {}
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     for key, value in overrides.items():
         head, _, rest = key.partition(".")
         if head not in {f.name for f in fields(config)}:

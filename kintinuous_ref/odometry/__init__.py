@@ -1,1 +1,254 @@
-"""Camera trackers: one estimator per module."""
+"""Camera trackers (paper sections IV and V): one estimator per module, one factory here.
+
+    icp            KinectFusion frame-to-model ICP (icp.py)
+    rgbd           Steinbruecker et al.'s dense RGB-D odometry, frame-to-frame (rgbd.py)
+    icp+rgbd       both in one joint system per iteration (combined.py), the default
+    fovis          sparse FAST-feature visual odometry (fovis.py, engineer F)
+    fovis/X        FOVIS switching (switching.py, paper V-A): X's increment unless FOVIS disagrees
+                   about the translation length by more than mu
+
+Every tracker returns a TrackingResult. Failure is expected and never raises: a singular system,
+too few correspondences, too small a fraction of inliers, or an implausible jump (config.tracking)
+give ok=False with a one-line reason and a safe pose - by default the previous pose times the last
+good increment (constant velocity), or the previous pose itself - and the pipeline does not fuse
+that frame. Poses are never NaN.
+
+"Increment" everywhere is the current camera in the previous camera's frame:
+increment = inverse(previous_pose) @ current_pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from kintinuous_ref import se3
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import Config
+from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.odometry.combined import CombinedProblem
+from kintinuous_ref.odometry.icp import IcpProblem
+from kintinuous_ref.odometry.rgbd import RgbdProblem
+from kintinuous_ref.odometry.solve import implausible_motion, refine
+
+if TYPE_CHECKING:
+    from kintinuous_ref.preprocess import PreprocessedFrame
+    from kintinuous_ref.raycast import ModelPrediction
+
+METHODS = ("icp", "rgbd", "fovis", "fovis/icp", "fovis/rgbd", "icp+rgbd", "fovis/icp+rgbd")
+DEFAULT_METHOD = "icp+rgbd"
+DENSE_METHODS = ("icp", "rgbd", "icp+rgbd")
+FALLBACKS = ("constant-velocity", "previous")
+
+
+@dataclass
+class TrackingResult:
+    pose: np.ndarray  # camera-to-world estimate of the current frame (never NaN)
+    ok: bool  # False: the pipeline does not fuse the frame
+    reason: str = ""  # one line, '' when ok
+    used: str = ""  # which estimator's increment was used, e.g. "icp+rgbd" or "fovis"
+
+
+class Tracker(Protocol):
+    def track(
+        self,
+        previous: PreprocessedFrame,
+        current: PreprocessedFrame,
+        model: ModelPrediction | None,
+        previous_pose: np.ndarray,
+    ) -> TrackingResult: ...
+
+
+class _Recovery:
+    """Remembers the last good increment and builds the fallback pose of a failed frame."""
+
+    def __init__(self, fallback: str) -> None:
+        if fallback not in FALLBACKS:
+            raise ConfigError(f"tracking.fallback must be one of {FALLBACKS}, got {fallback!r}")
+        self.fallback = fallback
+        self.last_increment = np.eye(4)
+
+    def success(self, pose: np.ndarray, previous_pose: np.ndarray, used: str) -> TrackingResult:
+        self.last_increment = se3.inverse(previous_pose) @ pose
+        return TrackingResult(pose, True, "", used)
+
+    def failure(self, previous_pose: np.ndarray, reason: str) -> TrackingResult:
+        if self.fallback == "constant-velocity":
+            pose = previous_pose @ self.last_increment
+        else:
+            pose = previous_pose.copy()
+        # Keep the failed frame's motion out of the next fallback: a second failure in a row
+        # then holds the pose still instead of extrapolating a guess.
+        self.last_increment = np.eye(4)
+        return TrackingResult(pose, False, reason, "")
+
+
+class DenseTracker:
+    """ICP, RGB-D or ICP+RGB-D: coarse-to-fine Gauss-Newton from the previous pose."""
+
+    def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
+        if method not in DENSE_METHODS:
+            raise ConfigError(f"unknown dense odometry {method!r}; choose from {DENSE_METHODS}")
+        self.method = method
+        self.config = config
+        self.camera = camera
+        self.recovery = _Recovery(config.tracking.fallback)
+
+    @property
+    def iterations(self) -> tuple[int, ...]:
+        if self.method == "icp":
+            return tuple(self.config.icp.iterations)
+        if self.method == "rgbd":
+            return tuple(self.config.rgbd.iterations)
+        return tuple(self.config.rgbd.combined_iterations)
+
+    def _problem(
+        self,
+        previous: PreprocessedFrame,
+        current: PreprocessedFrame,
+        model: ModelPrediction | None,
+        previous_pose: np.ndarray,
+    ) -> IcpProblem | RgbdProblem | CombinedProblem:
+        levels = len(self.iterations)
+        icp = rgbd = None
+        if self.method in ("icp", "icp+rgbd"):
+            from kintinuous_ref.preprocess import model_pyramid
+
+            icp = IcpProblem(
+                current.levels,
+                model_pyramid(model.vertices, model.normals, levels),
+                model.pose,
+                self.config.icp.distance_threshold,
+                self.config.icp.angle_threshold_deg,
+            )
+        if self.method in ("rgbd", "icp+rgbd"):
+            rgbd = RgbdProblem(
+                previous.levels,
+                current.levels,
+                previous_pose,
+                self.config.rgbd.min_gradient,
+                self.config.rgbd.max_depth_change,
+                self.config.rgbd.max_depth,
+                self.config.rgbd.gradient,
+            )
+        if icp is not None and rgbd is not None:
+            combined = self.config.combined
+            return CombinedProblem(
+                icp,
+                rgbd,
+                combined.rgbd_weight,
+                combined.weighting,
+                combined.original_code_icp_scale,
+            )
+        return icp if icp is not None else rgbd
+
+    def estimate(
+        self,
+        previous: PreprocessedFrame,
+        current: PreprocessedFrame,
+        model: ModelPrediction | None,
+        previous_pose: np.ndarray,
+    ) -> tuple[np.ndarray, str]:
+        """(pose, '') or (best pose so far, reason for failure); never raises on bad data."""
+        needs_model = self.method != "rgbd"
+        if needs_model and model is None:
+            return previous_pose, "no model prediction to track against"
+        levels = len(self.iterations)
+        for name, frame in (("previous", previous), ("current", current)):
+            if frame is not None and len(frame.levels) < levels:
+                return (
+                    previous_pose,
+                    f"{name} frame has {len(frame.levels)} pyramid levels, {levels} needed",
+                )
+        tracking = self.config.tracking
+        problem = self._problem(previous, current, model, previous_pose)
+        pose, reason = refine(
+            previous_pose.copy(), problem.system, self.iterations, tracking.min_correspondences
+        )
+        if reason:
+            return pose, reason
+        fraction = problem.inlier_fraction(pose)
+        if fraction < tracking.min_inlier_fraction:
+            return pose, (
+                f"too few inliers ({100 * fraction:.1f}% < {100 * tracking.min_inlier_fraction:g}%)"
+            )
+        max_translation = tracking.max_translation_jump
+        if self.method != "icp":
+            max_translation = min(max_translation, self.config.rgbd.max_translation_jump)
+        reason = implausible_motion(
+            se3.inverse(previous_pose) @ pose, max_translation, tracking.max_rotation_jump_deg
+        )
+        return pose, reason
+
+    def track(
+        self,
+        previous: PreprocessedFrame,
+        current: PreprocessedFrame,
+        model: ModelPrediction | None,
+        previous_pose: np.ndarray,
+    ) -> TrackingResult:
+        pose, reason = self.estimate(previous, current, model, previous_pose)
+        if reason:
+            return self.recovery.failure(previous_pose, f"{self.method}: {reason}")
+        return self.recovery.success(pose, previous_pose, self.method)
+
+
+class FovisTracker:
+    """FOVIS alone, or FOVIS switching with a dense estimator (paper V-A)."""
+
+    def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
+        self.method = method
+        self.config = config
+        self.camera = camera
+        other = method.partition("/")[2]
+        self.dense = DenseTracker(other, config, camera) if other else None
+        self.recovery = _Recovery(config.tracking.fallback)
+
+    def track(
+        self,
+        previous: PreprocessedFrame,
+        current: PreprocessedFrame,
+        model: ModelPrediction | None,
+        previous_pose: np.ndarray,
+    ) -> TrackingResult:
+        from kintinuous_ref.odometry import fovis, switching
+
+        tracking = self.config.tracking
+        sparse = fovis.estimate_motion(previous, current, self.camera, self.config.fovis)
+        fovis_reason = sparse.reason or "failed"
+        if sparse.ok:
+            fovis_reason = implausible_motion(
+                sparse.increment, tracking.max_translation_jump, tracking.max_rotation_jump_deg
+            )
+        fovis_ok = sparse.ok and not fovis_reason
+        if self.dense is None:
+            if not fovis_ok:
+                return self.recovery.failure(previous_pose, f"fovis: {fovis_reason}")
+            return self.recovery.success(previous_pose @ sparse.increment, previous_pose, "fovis")
+
+        pose, dense_reason = self.dense.estimate(previous, current, model, previous_pose)
+        dense_increment = se3.inverse(previous_pose) @ pose
+        if dense_reason and not fovis_ok:
+            return self.recovery.failure(
+                previous_pose, f"fovis: {fovis_reason}; {self.dense.method}: {dense_reason}"
+            )
+        if dense_reason:  # the dense estimator failed: FOVIS is all there is
+            return self.recovery.success(previous_pose @ sparse.increment, previous_pose, "fovis")
+        increment, chosen = switching.choose_increment_or_fallback(
+            sparse.increment, fovis_ok, dense_increment, self.config.fovis.switch_threshold
+        )
+        used = "fovis" if chosen == switching.FOVIS else self.dense.method
+        new_pose = previous_pose @ increment
+        new_pose[:3, :3] = se3.orthonormalize(new_pose[:3, :3])
+        return self.recovery.success(new_pose, previous_pose, used)
+
+
+def make_tracker(method: str, config: Config, camera: Intrinsics) -> Tracker:
+    """The tracker for `method` (one of METHODS); `groundtruth` is the pipeline's business."""
+    if method in DENSE_METHODS:
+        return DenseTracker(method, config, camera)
+    if method in METHODS:
+        return FovisTracker(method, config, camera)
+    raise ConfigError(f"unknown odometry method {method!r}; choose from {', '.join(METHODS)}")
