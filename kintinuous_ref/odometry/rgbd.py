@@ -50,9 +50,9 @@ class InterestPoints:
     """Algorithm 1's output for one level of the current frame, with what iterating needs."""
 
     indices: np.ndarray  # (N,) int64 flat pixel indices into the level's image
-    points: np.ndarray  # (N, 3) float64 camera-frame 3D points of the current frame
+    points: np.ndarray  # (3, N) float64 camera-frame 3D points of the current frame (columns)
     intensity: np.ndarray  # (N,) float64 current intensity I_{n+1}(p)
-    gradient: np.ndarray  # (N, 2) float64 current (dI/dx, dI/dy) at p, units per pixel
+    gradient: np.ndarray  # (2, N) float64 current (dI/dx, dI/dy) at p, units per pixel
 
 
 def interest_points(
@@ -79,9 +79,9 @@ def prepare_level(
     indices, z = indices[has_depth], z[has_depth]
     width = depth.shape[1]
     u, v = indices % width, indices // width
-    points = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], axis=1)
+    points = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z])
     gradient = np.stack(
-        [intensity_dx.reshape(-1)[indices], intensity_dy.reshape(-1)[indices]], axis=1
+        [intensity_dx.reshape(-1)[indices], intensity_dy.reshape(-1)[indices]]
     ).astype(np.float64)
     return InterestPoints(
         indices, points, intensity.reshape(-1)[indices].astype(np.float64), gradient
@@ -104,10 +104,10 @@ def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
 class Correspondences:
     """Algorithm 2's output: the kept pairs (p, p', I_{n+1}(p) - I_n(p')) and what J needs."""
 
-    world: np.ndarray  # (N, 3) p = T X, current points in the world under the current estimate
-    warped: np.ndarray  # (N, 3) X' = T_rel X, in the previous camera's frame
+    world: np.ndarray  # (3, N) p = T X, current points in the world under the current estimate
+    warped: np.ndarray  # (3, N) X' = T_rel X, in the previous camera's frame
     residuals: np.ndarray  # (N,) I_n(p') - I_{n+1}(p)
-    gradient: np.ndarray  # (N, 2) the image gradient used in J
+    gradient: np.ndarray  # (2, N) the image gradient used in J
     kept: np.ndarray  # (N,) indices into the InterestPoints arrays
 
 
@@ -128,11 +128,11 @@ def correspond(
     otherwise the current image's at p.
     """
     relative = np.linalg.inv(previous_pose) @ pose
-    warped = points.points @ relative[:3, :3].T + relative[:3, 3]
-    z = warped[:, 2]
+    warped = relative[:3, :3] @ points.points + relative[:3, 3:4]
+    x, y, z = warped
     safe_z = np.where(z > 1e-6, z, 1.0)
-    u = camera.fx * warped[:, 0] / safe_z + camera.cx
-    v = camera.fy * warped[:, 1] / safe_z + camera.cy
+    u = camera.fx * x / safe_z + camera.cx
+    v = camera.fy * y / safe_z + camera.cy
     height, width = previous_depth.shape
     # Inside the image with room for the bilinear 2x2 neighbourhood.
     inside = (z > 1e-6) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
@@ -146,28 +146,27 @@ def correspond(
     residuals = sample_bilinear(previous_intensity, u, v) - points.intensity[kept]
     if previous_dx is not None and previous_dy is not None:
         gradient = np.stack(
-            [sample_bilinear(previous_dx, u, v), sample_bilinear(previous_dy, u, v)], axis=1
+            [sample_bilinear(previous_dx, u, v), sample_bilinear(previous_dy, u, v)]
         )
     else:
-        gradient = points.gradient[kept]
-    world = points.points[kept] @ pose[:3, :3].T + pose[:3, 3]
-    return Correspondences(world, warped[kept], residuals, gradient, kept)
+        gradient = np.take(points.gradient, kept, axis=1)
+    world = pose[:3, :3] @ np.take(points.points, kept, axis=1) + pose[:3, 3:4]
+    return Correspondences(world, np.take(warped, kept, axis=1), residuals, gradient, kept)
 
 
 def photometric_rows(
     correspondences: Correspondences, previous_pose: np.ndarray, camera: Intrinsics
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Unweighted Jacobian rows (N, 6) and residuals (N,) of the intensity differences at xi = 0."""
-    x, y, z = correspondences.warped.T
-    gx, gy = correspondences.gradient.T
-    # a = grad I . dpi/dX' (a row per pair, previous camera frame) ...
+    """Unweighted Jacobian (6, N) and residuals (N,) of the intensity differences at xi = 0."""
+    x, y, z = correspondences.warped
+    gx, gy = correspondences.gradient
+    # a = grad I . dpi/dX' (one column per pair, previous camera frame) ...
     a = np.stack(
-        [gx * camera.fx / z, gy * camera.fy / z, -(gx * camera.fx * x + gy * camera.fy * y) / z**2],
-        axis=1,
+        [gx * camera.fx / z, gy * camera.fy / z, -(gx * camera.fx * x + gy * camera.fy * y) / z**2]
     )
     # ... turned into the world frame, c = R_prev a; then c . (omega x p + u) = omega.(p x c) + u.c
-    c = a @ previous_pose[:3, :3].T
-    jacobian = np.concatenate([np.cross(correspondences.world, c), c], axis=1)
+    c = previous_pose[:3, :3] @ a
+    jacobian = np.concatenate([np.cross(correspondences.world, c, axis=0), c], axis=0)
     return jacobian, correspondences.residuals
 
 
@@ -223,9 +222,9 @@ def photometric_residuals(
 
     moved = se3.exp(xi) @ pose
     relative = np.linalg.inv(previous_pose) @ moved
-    warped = points.points[kept] @ relative[:3, :3].T + relative[:3, 3]
-    u = camera.fx * warped[:, 0] / warped[:, 2] + camera.cx
-    v = camera.fy * warped[:, 1] / warped[:, 2] + camera.cy
+    x, y, z = relative[:3, :3] @ points.points[:, kept] + relative[:3, 3:4]
+    u = camera.fx * x / z + camera.cx
+    v = camera.fy * y / z + camera.cy
     return sample_bilinear(previous_intensity, u, v) - points.intensity[kept]
 
 

@@ -61,20 +61,16 @@ class LinearSystem:
 def accumulate(
     jacobian: np.ndarray, residuals: np.ndarray, weights: np.ndarray | None = None
 ) -> LinearSystem:
-    """Normal equations of the rows `jacobian` (N, 6) and `residuals` (N,), in float64.
+    """Normal equations of the Jacobian `jacobian` (6, N) and `residuals` (N,), in float64.
 
-    `weights` (N,) multiply each squared residual (IRLS weights); None means all ones.
+    The Jacobian is stored as columns, one per correspondence (the layout the estimators build
+    it in). `weights` (N,) multiply each squared residual (IRLS weights); None means all ones.
+    One product of the (7, N) matrix [J^T; r^T] with itself gives A, b and the cost at once.
     """
-    jacobian = np.asarray(jacobian, dtype=np.float64)
-    residuals = np.asarray(residuals, dtype=np.float64)
-    if weights is None:
-        weighted = jacobian
-        cost = float(residuals @ residuals)
-    else:
-        weights = np.asarray(weights, dtype=np.float64)
-        weighted = jacobian * weights[:, None]
-        cost = float((weights * residuals) @ residuals)
-    return LinearSystem(weighted.T @ jacobian, weighted.T @ residuals, len(residuals), cost)
+    stacked = np.vstack([jacobian, residuals[None, :]]).astype(np.float64, copy=False)
+    weighted = stacked if weights is None else stacked * weights[None, :]
+    product = weighted @ stacked.T
+    return LinearSystem(product[:6, :6], product[:6, 6], len(residuals), float(product[6, 6]))
 
 
 def solve(system: LinearSystem, min_count: int = 6) -> tuple[np.ndarray | None, str]:
