@@ -111,7 +111,7 @@ class TrackingConfig:
     bucket_size: int = 80  # level-0 pixels per side of a bucket (Huang et al.: 80x80)
     search_radius: float = 16.0  # pixels of the feature's level around its predicted position
     initial_rotation: bool = True  # predict positions by aligning the coarsest images (rotation)
-    subpixel_refinement: bool = True  # parabola fit of the patch SSD around each match
+    subpixel_refinement: bool = True  # align each matched patch to sub-pixel accuracy
     reprojection_threshold: float = 1.5  # pixels of the feature's level; larger: outlier
     min_inliers: int = 10  # fewer: FOVIS reports failure
 

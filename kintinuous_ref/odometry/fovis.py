@@ -14,7 +14,7 @@ Per frame pair the steps are:
 3. Matching: for each feature, the descriptor nearest in L2 among the features of the other frame on
    the same level inside the search window; a match is kept only if it is the best in both
    directions (mutual consistency). The current feature's position is then refined to sub-pixel
-   accuracy by a parabola fit of the patch SSD.
+   accuracy by aligning its patch to the previous one (Lucas-Kanade on the 2D shift).
 4. Inliers: two matches are consistent when the rigid motion preserves the distance between their
    3D points. The largest set of mutually consistent matches (a clique of the consistency graph) is
    grown greedily from the best-connected match (Howard 2008).
@@ -27,8 +27,9 @@ previous camera's frame, so that p_previous = increment @ p_current and
 current_pose = previous_pose @ increment.
 
 Simplifications against the original: a fixed FAST threshold (FOVIS adapts it to hold a feature
-count), the initial rotation by plain Gauss-Newton instead of ESM, no keyframes (always the
-previous frame) and the reprojection refinement by scipy's least squares on the 6-DOF twist.
+count), the initial rotation and the sub-pixel alignment by plain Gauss-Newton instead of ESM, no
+keyframes (always the previous frame) and the reprojection refinement by scipy's least squares on
+the 6-DOF twist.
 """
 
 from __future__ import annotations
@@ -46,7 +47,8 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import FovisConfig
 from kintinuous_ref.errors import TrackingError
 
-# Sub-pixel refinement compares patches at integer offsets up to this many pixels from the match.
+# Sub-pixel refinement: Gauss-Newton steps, and how far (pixels) a patch may slide from its corner.
+_SUBPIXEL_ITERATIONS = 6
 _SUBPIXEL_REACH = 2
 # Bilinear depth at a sub-pixel position only where the 4 neighbours agree to this fraction; across
 # a depth edge the interpolated depth belongs to neither surface.
@@ -102,23 +104,21 @@ class Features:
 
 def detect_features(frame: _Frame, camera: Intrinsics, config: FovisConfig) -> Features:
     """FAST corners with valid depth and patch descriptors on the first feature_levels levels."""
+    full_depth = frame.levels[0].depth
     parts = []
     for level in range(min(config.feature_levels, len(frame.levels))):
-        pyramid_level = frame.levels[level]
         parts.append(
-            _detect_on_level(
-                pyramid_level.intensity,
-                pyramid_level.depth,
-                camera.at_level(level),
-                level,
-                config,
-            )
+            _detect_on_level(frame.levels[level].intensity, full_depth, camera, level, config)
         )
     return Features(*(np.concatenate(arrays) for arrays in zip(*parts, strict=True)))
 
 
 def _detect_on_level(
-    intensity: np.ndarray, depth: np.ndarray, camera: Intrinsics, level: int, config: FovisConfig
+    intensity: np.ndarray,
+    full_depth: np.ndarray,
+    camera: Intrinsics,
+    level: int,
+    config: FovisConfig,
 ) -> tuple[np.ndarray, ...]:
     height, width = intensity.shape
     pixels, responses = fast_corners(intensity, config.fast_threshold)
@@ -127,7 +127,9 @@ def _detect_on_level(
     u, v = pixels[:, 0], pixels[:, 1]
     inside = (u >= margin) & (u < width - margin) & (v >= margin) & (v < height - margin)
     pixels, responses = pixels[inside], responses[inside]
-    z = depth[pixels[:, 1], pixels[:, 0]].astype(np.float64)
+    # As in FOVIS, a corner of any level takes its depth from the full-resolution depth image at
+    # its level-0 position (2^l u, 2^l v): a smoothed coarse depth would blend across creases.
+    z = full_depth[pixels[:, 1] << level, pixels[:, 0] << level].astype(np.float64)
     has_depth = z > 0
     pixels, responses, z = pixels[has_depth], responses[has_depth], z[has_depth]
 
@@ -137,7 +139,7 @@ def _detect_on_level(
     keep = bucket_strongest(pixels, responses, cell, budget, (height, width))
     pixels, responses, z = pixels[keep], responses[keep], z[keep]
 
-    points = _backproject_points(pixels.astype(np.float64), z, camera)
+    points = _backproject_points(pixels * 2.0**level, z, camera)
     descriptors = patch_descriptors(intensity, pixels, config.patch_radius)
     return (
         np.full(len(pixels), level, dtype=np.int64),
@@ -329,50 +331,65 @@ def refine_subpixel(
     """Move matched current features to the sub-pixel position that best fits the previous patch.
 
     FAST corners sit on integer pixels in each image independently, so a match is off by up to
-    half a pixel. The SSD between the previous patch and current patches at integer offsets is
-    fitted by a parabola along u and v around its minimum. The 3D point follows from the depth
-    interpolated at the new position. `previous` and `current` are aligned row by row (matched
-    pairs); returns the refined current features and a mask of matches that kept a valid depth.
+    half a pixel. Like FOVIS (which uses ESM), each current patch is aligned to its previous
+    patch by Gauss-Newton on the translation d (Lucas-Kanade), all matches at once:
+
+        min_d  sum_patch ( I_cur(x + d) - mean - T(x) )^2,   T = previous patch minus its mean,
+
+    sampling I_cur bilinearly. The 3D point follows from the depth interpolated at the new
+    position. `previous` and `current` are aligned row by row (matched pairs); returns the refined
+    current features and a mask of matches that converged near the corner and kept a valid depth.
     """
     pixels = current.pixels.copy()
     points = current.points.copy()
     valid = np.ones(len(current), dtype=bool)
-    reach = _SUBPIXEL_REACH
-    offsets = np.arange(-reach, reach + 1)
+    offsets = np.arange(-patch_radius, patch_radius + 1, dtype=np.float32)
+    dv, du = (grid.ravel() for grid in np.meshgrid(offsets, offsets, indexing="ij"))
     for level in np.unique(current.levels):
         rows = np.flatnonzero(current.levels == level)
-        intensity = current_levels[level].intensity
-        base = current.pixels[rows].astype(np.int64)
-        ssd = np.empty((len(rows), len(offsets), len(offsets)))
-        for i, dv in enumerate(offsets):
-            for j, du in enumerate(offsets):
-                patches = patch_descriptors(intensity, base + [du, dv], patch_radius)
-                ssd[:, i, j] = ((patches - previous.descriptors[rows]) ** 2).sum(axis=1)
-        flat = ssd.reshape(len(rows), -1).argmin(axis=1)
-        best_v, best_u = np.unravel_index(flat, ssd.shape[1:])
-        # A parabola needs a neighbour on both sides: minima on the rim stay on integer offsets.
-        interior = (best_u > 0) & (best_u < 2 * reach) & (best_v > 0) & (best_v < 2 * reach)
-        shift = np.stack([offsets[best_u], offsets[best_v]], axis=1).astype(np.float64)
-        k = np.flatnonzero(interior)
-        bu, bv = best_u[k], best_v[k]
-        shift[k, 0] += _parabola_vertex(ssd[k, bv, bu - 1], ssd[k, bv, bu], ssd[k, bv, bu + 1])
-        shift[k, 1] += _parabola_vertex(ssd[k, bv - 1, bu], ssd[k, bv, bu], ssd[k, bv + 1, bu])
-        refined = base + shift
-        depth = _interpolate_depth(current_levels[level].depth, refined)
+        intensity = current_levels[level].intensity.astype(np.float32)
+        grad_u, grad_v = _central_differences(intensity)
+        start = current.pixels[rows]
+        shift = np.zeros_like(start)
+        template = previous.descriptors[rows]
+        for _ in range(_SUBPIXEL_ITERATIONS):
+            map_u = (start[:, 0] + shift[:, 0])[:, None].astype(np.float32) + du
+            map_v = (start[:, 1] + shift[:, 1])[:, None].astype(np.float32) + dv
+            patch, gu, gv = (
+                cv2.remap(image, map_u, map_v, cv2.INTER_LINEAR).astype(np.float64)
+                for image in (intensity, grad_u, grad_v)
+            )
+            # Subtracting the mean is linear, so the Jacobian is the mean-free gradient.
+            residual = patch - patch.mean(axis=1, keepdims=True) - template
+            gu -= gu.mean(axis=1, keepdims=True)
+            gv -= gv.mean(axis=1, keepdims=True)
+            a, b, c = (gu * gu).sum(1), (gu * gv).sum(1), (gv * gv).sum(1)
+            ru, rv = (gu * residual).sum(1), (gv * residual).sum(1)
+            determinant = a * c - b * b
+            # An edge or a flat patch constrains at most one direction: leave it where it is.
+            solvable = determinant > 1e-6 * (a + c) ** 2 + 1e-12
+            safe = np.where(solvable, determinant, 1.0)
+            step = np.stack([-(c * ru - b * rv) / safe, -(a * rv - b * ru) / safe], axis=1)
+            shift = np.clip(
+                shift + np.where(solvable[:, None], step, 0.0), -_SUBPIXEL_REACH, _SUBPIXEL_REACH
+            )
+        # A patch that slid to the edge of its reach locked onto something else: drop the match.
+        converged = np.abs(shift).max(axis=1) < _SUBPIXEL_REACH
+        refined = start + shift
+        base = refined * 2.0**level  # level-0 position, where the depth is read (see detection)
+        depth = _interpolate_depth(current_levels[0].depth, base)
         pixels[rows] = refined
-        points[rows] = _backproject_points(refined, depth, camera.at_level(int(level)))
-        valid[rows] = depth > 0
+        points[rows] = _backproject_points(base, depth, camera)
+        valid[rows] = converged & (depth > 0)
     refined_features = Features(
         current.levels, pixels, points, current.descriptors, current.responses
     )
     return refined_features, valid
 
 
-def _parabola_vertex(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> np.ndarray:
-    curvature = left - 2.0 * centre + right
-    with np.errstate(divide="ignore", invalid="ignore"):
-        vertex = np.where(curvature > 0, 0.5 * (left - right) / curvature, 0.0)
-    return np.clip(vertex, -0.5, 0.5)
+def _central_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    kernel = np.array([[-0.5, 0.0, 0.5]], dtype=np.float32)
+    return cv2.filter2D(image, -1, kernel), cv2.filter2D(image, -1, kernel.T)
 
 
 def _interpolate_depth(depth: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -584,7 +601,7 @@ def _reprojects_well(
 
 
 def _failure(reason: str) -> FovisResult:
-    return FovisResult(increment=np.eye(4), ok=False, reason=f"FOVIS: {reason}")
+    return FovisResult(increment=np.eye(4), ok=False, reason=reason)
 
 
 def _check_frame(frame: _Frame, camera: Intrinsics, name: str) -> None:
