@@ -23,6 +23,9 @@ WALLS = [
     (np.array([1.0, 0.0, 0.0]), -1.5),  # left wall x = -1.5
     (np.array([-1.0, 0.0, 0.0]), -1.4),  # right wall x = 1.4
 ]
+# A corridor along z: floor, ceiling and side walls only, no wall ahead within view. ICP
+# cannot see motion along z here (every normal is perpendicular to it); the texture can.
+CORRIDOR = [WALLS[1], WALLS[2], WALLS[3], WALLS[4]]
 # Texture: I(p) = 128 + sum a_i sin(k_i . p + phase_i), wave vectors in rad/m.
 _WAVES = [
     (55.0, np.array([31.0, 7.0, 19.0]), 0.3),
@@ -40,24 +43,28 @@ def texture(points: np.ndarray) -> np.ndarray:
     return value
 
 
-def render(pose: np.ndarray, camera: Intrinsics, dark: float = 1.0):
-    """Exact depth (h, w), camera-frame normals (h, w, 3) and intensity (h, w) at a pose."""
+def render(pose: np.ndarray, camera: Intrinsics, dark: float = 1.0, walls=None, far: float = 8.0):
+    """Exact depth (h, w), camera-frame normals (h, w, 3) and intensity (h, w) at a pose.
+
+    Pixels whose ray hits nothing within `far` metres have depth 0, NaN normals, intensity 0.
+    """
     rays = camera.ray_directions().reshape(-1, 3)  # camera frame, z = 1
     world_rays = rays @ pose[:3, :3].T
     origin = pose[:3, 3]
     best_t = np.full(len(rays), np.inf)
     best_normal = np.zeros((len(rays), 3))
-    for normal, offset in WALLS:
+    for normal, offset in WALLS if walls is None else walls:
         denominator = world_rays @ normal
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (offset - origin @ normal) / denominator
         hit = (denominator < 0) & (t > 0) & (t < best_t)
         best_t[hit] = t[hit]
         best_normal[hit] = normal
-    depth = best_t  # rays have z = 1 in the camera frame, so t is the depth
-    world = origin + world_rays * best_t[:, None]
-    intensity = 128.0 + dark * (texture(world) - 128.0)
-    normals = best_normal @ pose[:3, :3]  # world -> camera: R^T n
+    hit = best_t <= far
+    depth = np.where(hit, best_t, 0.0)  # rays have z = 1 in the camera frame, so t is the depth
+    world = origin + world_rays * np.where(hit, best_t, 0.0)[:, None]
+    intensity = np.where(hit, 128.0 + dark * (texture(world) - 128.0), 0.0)
+    normals = np.where(hit[:, None], best_normal @ pose[:3, :3], np.nan)  # world -> camera: R^T n
     shape = (camera.height, camera.width)
     return (
         depth.reshape(shape).astype(np.float32),
@@ -91,31 +98,32 @@ def gradients(intensity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def frame(
-    pose: np.ndarray, camera: Intrinsics = CAMERA, levels: int = 4, dark: float = 1.0
+    pose: np.ndarray, camera: Intrinsics = CAMERA, levels: int = 4, dark: float = 1.0, walls=None
 ) -> Frame:
     """A preprocessed-frame stand-in: exact geometry per level, Gaussian intensity pyramid."""
     result = []
     intensity = None
     for level in range(levels):
         level_camera = camera.at_level(level)
-        depth, normals, exact_intensity = render(pose, level_camera, dark)
+        depth, normals, exact_intensity = render(pose, level_camera, dark, walls)
         # Geometry is exact at every level; the intensity pyramid is a 5x5 Gaussian pyrDown of
         # the level above (point-sampling the texture at a coarse level would alias).
         intensity = exact_intensity if intensity is None else cv2.pyrDown(intensity)
         dx, dy = gradients(intensity)
-        result.append(
-            Level(level_camera, depth, level_camera.backproject(depth), normals, intensity, dx, dy)
-        )
+        vertices = level_camera.backproject(depth)
+        vertices[depth == 0] = np.nan
+        result.append(Level(level_camera, depth, vertices, normals, intensity, dx, dy))
     return Frame(result)
 
 
-def model(pose: np.ndarray, camera: Intrinsics = CAMERA, levels: int = 3):
+def model(pose: np.ndarray, camera: Intrinsics = CAMERA, levels: int = 3, walls=None):
     """World-frame (vertices, normals) per level: what a perfect raycast from `pose` gives."""
     pyramid = []
     for level in range(levels):
         level_camera = camera.at_level(level)
-        depth, normals, _ = render(pose, level_camera)
+        depth, normals, _ = render(pose, level_camera, walls=walls)
         vertices = level_camera.backproject(depth).astype(np.float64)
+        vertices[depth == 0] = np.nan
         world = vertices @ pose[:3, :3].T + pose[:3, 3]
         world_normals = normals.astype(np.float64) @ pose[:3, :3].T
         pyramid.append((world.astype(np.float32), world_normals.astype(np.float32)))
