@@ -1,0 +1,198 @@
+"""make_tracker and the trackers' failure handling: every method through the public interface on an
+analytic room with known poses; diverging inputs (no depth, a different scene, an implausible jump)
+are flagged with a reason and a finite fallback pose, never a crash or NaN."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import odometry_scene as scene
+import pytest
+
+from kintinuous_ref import se3
+from kintinuous_ref.config import Config, with_overrides
+from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.odometry import METHODS, TrackingResult, make_tracker
+
+
+@dataclass
+class Model:
+    """The fields of raycast.ModelPrediction the trackers read."""
+
+    pose: np.ndarray
+    vertices: np.ndarray
+    normals: np.ndarray
+
+
+def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    difference = se3.inverse(truth) @ estimate
+    return 1000 * float(np.linalg.norm(difference[:3, 3])), float(
+        np.degrees(se3.rotation_angle(difference[:3, :3]))
+    )
+
+
+MOTION = se3.exp(np.array([0.01, -0.02, 0.015, 0.02, -0.01, 0.03]))
+
+
+@pytest.fixture(scope="module")
+def room():
+    previous = scene.look_pose([0.1, -0.1, 0.2], 5, -10)
+    current = previous @ MOTION
+    vertices, normals = scene.model(previous, levels=1)[0]
+    return (
+        previous,
+        current,
+        scene.frame(previous),
+        scene.frame(current),
+        Model(previous, vertices, normals),
+    )
+
+
+def test_method_names():
+    assert METHODS == (
+        "icp",
+        "rgbd",
+        "fovis",
+        "fovis/icp",
+        "fovis/rgbd",
+        "icp+rgbd",
+        "fovis/icp+rgbd",
+    )
+    with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
+        make_tracker("kinfu", Config(), scene.CAMERA)
+
+
+@pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])
+def test_dense_trackers_recover_a_known_motion(room, method):
+    previous, current, previous_frame, current_frame, model = room
+    result = make_tracker(method, Config(), scene.CAMERA).track(
+        previous_frame, current_frame, model, previous
+    )
+    assert isinstance(result, TrackingResult)
+    assert result.ok and result.reason == "" and result.used == method
+    translation_mm, rotation_deg = pose_error(result.pose, current)
+    assert translation_mm < 1.0 and rotation_deg < 0.1  # noise-free: 1 mm / 0.1 degree
+
+
+@pytest.mark.parametrize("method", ["fovis", "fovis/icp", "fovis/rgbd", "fovis/icp+rgbd"])
+def test_fovis_trackers_follow_the_switching_rule(room, method):
+    previous, current, previous_frame, current_frame, model = room
+    result = make_tracker(method, Config(), scene.CAMERA).track(
+        previous_frame, current_frame, model, previous
+    )
+    assert result.ok
+    translation_mm, rotation_deg = pose_error(result.pose, current)
+    if method == "fovis":
+        assert result.used == "fovis"
+        # Sparse corners on a 320x240 image: a few millimetres is what FOVIS can do.
+        assert translation_mm < 10.0 and rotation_deg < 0.5
+    else:
+        # FOVIS and the dense estimator agree on the translation length far within mu = 3 cm,
+        # so the paper's rule keeps the dense increment.
+        assert result.used == method.partition("/")[2]
+        assert translation_mm < 1.0 and rotation_deg < 0.1
+
+
+def test_fovis_wins_when_the_lengths_disagree(room):
+    # With mu = 0 any difference in translation length hands the increment to FOVIS.
+    previous, _, previous_frame, current_frame, model = room
+    config = with_overrides(Config(), {"fovis.switch_threshold": 0.0})
+    result = make_tracker("fovis/icp", config, scene.CAMERA).track(
+        previous_frame, current_frame, model, previous
+    )
+    assert result.ok and result.used == "fovis"
+
+
+@pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])
+def test_a_frame_without_depth_is_flagged(room, method):
+    previous, _, previous_frame, current_frame, model = room
+    empty = scene.Frame(
+        [
+            scene.Level(
+                level.camera,
+                np.zeros_like(level.depth),
+                np.full_like(level.vertices, np.nan),
+                np.full_like(level.normals, np.nan),
+                level.intensity,
+                level.intensity_dx,
+                level.intensity_dy,
+            )
+            for level in current_frame.levels
+        ]
+    )
+    result = make_tracker(method, Config(), scene.CAMERA).track(
+        previous_frame, empty, model, previous
+    )
+    assert not result.ok
+    assert "too few correspondences" in result.reason
+    # No good increment yet: the fallback is the previous pose, finite.
+    np.testing.assert_array_equal(result.pose, previous)
+
+
+@pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])
+def test_a_frame_of_another_scene_is_flagged(room, method):
+    # The camera turned round by 150 degrees: nothing it sees overlaps the previous view.
+    previous, _, previous_frame, _, model = room
+    elsewhere = scene.frame(scene.look_pose([0.0, 0.0, 1.0], 150, 0))
+    result = make_tracker(method, Config(), scene.CAMERA).track(
+        previous_frame, elsewhere, model, previous
+    )
+    assert not result.ok and result.reason
+    assert np.isfinite(result.pose).all()
+
+
+def test_an_implausible_jump_is_flagged(room):
+    # The true motion is 2.5 cm; a 1 cm limit makes it "implausible".
+    previous, _, previous_frame, current_frame, model = room
+    config = with_overrides(Config(), {"tracking.max_translation_jump": 0.01})
+    result = make_tracker("icp", config, scene.CAMERA).track(
+        previous_frame, current_frame, model, previous
+    )
+    assert not result.ok and "implausible jump" in result.reason
+
+
+def test_missing_model_is_flagged_for_icp(room):
+    previous, _, previous_frame, current_frame, _ = room
+    result = make_tracker("icp+rgbd", Config(), scene.CAMERA).track(
+        previous_frame, current_frame, None, previous
+    )
+    assert not result.ok and "no model" in result.reason
+
+
+def test_constant_velocity_recovery(room):
+    previous, current, previous_frame, current_frame, model = room
+    tracker = make_tracker("icp", Config(), scene.CAMERA)
+    good = tracker.track(previous_frame, current_frame, model, previous)
+    assert good.ok
+    increment = se3.inverse(previous) @ good.pose
+    # The next frame has no depth: the pose continues with the last good increment ...
+    blind = scene.Frame(
+        [
+            scene.Level(
+                lv.camera,
+                lv.depth * 0,
+                lv.vertices * np.nan,
+                lv.normals * np.nan,
+                lv.intensity,
+                lv.intensity_dx,
+                lv.intensity_dy,
+            )
+            for lv in current_frame.levels
+        ]
+    )
+    first = tracker.track(current_frame, blind, model, good.pose)
+    assert not first.ok
+    np.testing.assert_allclose(first.pose, good.pose @ increment, atol=1e-12)
+    # ... and a second failure in a row holds still rather than extrapolating a guess.
+    second = tracker.track(blind, blind, model, first.pose)
+    assert not second.ok
+    np.testing.assert_allclose(second.pose, first.pose, atol=1e-12)
+    # With fallback "previous" the first failure already holds still.
+    still = make_tracker(
+        "icp", with_overrides(Config(), {"tracking.fallback": "previous"}), scene.CAMERA
+    )
+    assert still.track(previous_frame, current_frame, model, previous).ok
+    np.testing.assert_array_equal(
+        still.track(current_frame, blind, model, good.pose).pose, good.pose
+    )
