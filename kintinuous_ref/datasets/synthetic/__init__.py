@@ -1,0 +1,243 @@
+"""Synthetic RGB-D sequences with exact ground truth: scenes of simple solids, ray cast.
+
+    scenario = make_scenario("corridor", frames=90, width=160, height=120, noise=False)
+    colour, depth = scenario.render(10)          # (H, W, 3) uint8 RGB, (H, W) float32 m, 0 = none
+    scenario.trajectory.poses[10]                # its exact camera-to-world pose
+    write_scenario("desk", "out/desk")           # a TUM folder + scene.ply
+
+Modules: solids (closed-form ray intersections), textures (procedural multi-scale textures),
+scene (ray casting and shading), sensor (the Kinect error model), trajectories (hand-held paths),
+scenarios (the five layouts).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.datasets.synthetic.scenarios import SCENARIOS
+from kintinuous_ref.datasets.synthetic.scene import Scene, rotate
+from kintinuous_ref.datasets.synthetic.sensor import SensorModel, measure_colour, measure_depth
+from kintinuous_ref.datasets.synthetic.trajectories import FRAME_RATE, START_TIME, hand_held
+from kintinuous_ref.datasets.tum import Trajectory, write_trajectory
+from kintinuous_ref.errors import ConfigError, DatasetError
+
+if TYPE_CHECKING:
+    import pyvista
+
+__all__ = [
+    "KINECT_CAMERA",
+    "Scenario",
+    "SensorModel",
+    "list_scenarios",
+    "make_scenario",
+    "write_scenario",
+]
+
+# The usual nominal Kinect v1 calibration at 640 x 480; other sizes scale it (Intrinsics.resized).
+KINECT_CAMERA = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+def list_scenarios() -> dict[str, str]:
+    """Scenario name -> one-line summary."""
+    return {name: spec.summary for name, spec in SCENARIOS.items()}
+
+
+class Scenario:
+    """A scene, a camera, a ground-truth trajectory at 30 Hz and a sensor model."""
+
+    def __init__(
+        self,
+        name: str,
+        scene: Scene,
+        camera: Intrinsics,
+        trajectory: Trajectory,
+        brightness: np.ndarray,
+        sensor: SensorModel,
+        seed: int = 0,
+    ) -> None:
+        self.name = name
+        self.scene = scene
+        self.camera = camera
+        self.trajectory = trajectory
+        self.brightness = brightness  # (frames,) light level per frame, 1 = normal
+        self.sensor = sensor
+        self.seed = seed
+
+    def __len__(self) -> int:
+        return len(self.trajectory)
+
+    @property
+    def noise(self) -> bool:
+        return self.sensor != SensorModel.exact()
+
+    def render(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame `index`: (colour (H, W, 3) uint8 RGB, depth (H, W) float32 metres, 0 = none)."""
+        if not 0 <= index < len(self):
+            raise DatasetError(f"scenario '{self.name}' has frames 0..{len(self) - 1}, not {index}")
+        rng = np.random.default_rng([self.seed, 1, index])
+        return self._render(self.trajectory.poses[index], self.sensor, self.brightness[index], rng)
+
+    def render_at(
+        self, pose: np.ndarray, noise: bool | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The scene seen from any camera-to-world `pose` under normal light.
+
+        noise None: the scenario's own sensor; False: exact; True: the Kinect-like sensor.
+        """
+        pose = np.asarray(pose, dtype=np.float64)
+        sensor = self.sensor if noise is None else (SensorModel() if noise else SensorModel.exact())
+        # noise depends only on the seed and the pose, so the same call gives the same image
+        entropy = np.frombuffer(np.ascontiguousarray(pose).tobytes(), dtype=np.uint32)
+        rng = np.random.default_rng([self.seed, 2, *entropy.tolist()])
+        return self._render(pose, sensor, 1.0, rng)
+
+    def _render(
+        self, pose: np.ndarray, sensor: SensorModel, brightness: float, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        hits = self.scene.raycast(self.camera, pose)
+        # metres per pixel on the surface (for texture anti-aliasing): z / f, stretched when oblique
+        focal = 0.5 * (self.camera.fx + self.camera.fy)
+        cos_incidence = hits.cos_incidence.ravel()[hits.pixels]
+        footprint = hits.depth.ravel()[hits.pixels] / (focal * np.maximum(cos_incidence, 0.25))
+        colour = self.scene.shade(hits, footprint)
+        depth = measure_depth(hits.depth, hits.cos_incidence, sensor, self.camera.depth_scale, rng)
+        return measure_colour(colour, brightness, sensor, rng), depth
+
+    def surface_mesh(self, spacing: float = 0.05) -> pyvista.PolyData:
+        """The ground-truth surface: a coloured triangle mesh in world coordinates.
+
+        Point array "rgb" (uint8) holds each vertex's colour under normal light; triangle edges
+        are at most about `spacing` metres.
+        """
+        import pyvista
+
+        points, triangles, colours = [], [], []
+        offset = 0
+        for index, solid in enumerate(self.scene.solids):
+            part = solid.mesh(spacing)
+            world = rotate(part.points, solid.pose[:3, :3]) + solid.pose[:3, 3]
+            normals = rotate(part.normals, solid.pose[:3, :3])
+            surface = self.scene.surface_offsets[index] + part.face
+            colours.append(self.scene.colour_at(surface, part.uv, normals, spacing))
+            points.append(world)
+            triangles.append(part.triangles + offset)
+            offset += len(world)
+        triangles = np.concatenate(triangles)
+        cells = np.column_stack([np.full(len(triangles), 3), triangles]).ravel()
+        mesh = pyvista.PolyData(np.concatenate(points), cells)
+        rgb = np.clip(np.round(np.concatenate(colours) * 255.0), 0, 255).astype(np.uint8)
+        mesh.point_data["rgb"] = rgb
+        return mesh
+
+
+def make_scenario(
+    name: str,
+    frames: int = 300,
+    width: int = 640,
+    height: int = 480,
+    seed: int = 0,
+    noise: bool = True,
+) -> Scenario:
+    """Build scenario `name` (see list_scenarios) with `frames` poses at 30 Hz; renders lazily."""
+    if name not in SCENARIOS:
+        raise ConfigError(f"unknown scenario '{name}'; choose one of {', '.join(SCENARIOS)}")
+    if frames < 1:
+        raise ConfigError(f"frames must be at least 1, got {frames}")
+    if width < 8 or height < 8:
+        raise ConfigError(f"image size must be at least 8x8, got {width}x{height}")
+    rng = np.random.default_rng([seed, 0])
+    scene, path, brightness = SCENARIOS[name].build(rng, seed, frames)
+    poses = hand_held(path, frames, np.random.default_rng([seed, 3]))
+    timestamps = START_TIME + np.arange(frames) / FRAME_RATE
+    camera = (
+        KINECT_CAMERA.resized(width, height) if (width, height) != (640, 480) else KINECT_CAMERA
+    )
+    sensor = SensorModel() if noise else SensorModel.exact()
+    return Scenario(name, scene, camera, Trajectory(timestamps, poses), brightness, sensor, seed)
+
+
+def _prepare_folder(out: Path) -> None:
+    """Create `out`, or reuse it if empty or an earlier synth output (its old frames removed)."""
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        if not (out / "scenario.json").is_file():
+            raise DatasetError(f"{out}: folder is not empty and not an earlier synth output")
+        for sub in ("rgb", "depth"):
+            shutil.rmtree(out / sub, ignore_errors=True)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+
+
+def write_scenario(
+    name: str,
+    out: Path | str,
+    frames: int = 300,
+    width: int = 640,
+    height: int = 480,
+    seed: int = 0,
+    noise: bool = True,
+    progress: bool = False,
+) -> Path:
+    """Render a scenario into a TUM-layout folder; returns the folder.
+
+    Writes rgb/*.png (8-bit colour), depth/*.png (uint16, 1/5000 m, 0 = none), rgb.txt, depth.txt,
+    associations.txt, groundtruth.txt (camera-to-world, TUM format), intrinsics.json,
+    scene.ply (ground-truth surface, binary PLY with per-vertex RGB) and scenario.json.
+    """
+    import cv2
+
+    scenario = make_scenario(name, frames, width, height, seed, noise)
+    out = Path(out)
+    _prepare_folder(out)
+    names = [f"{t:.6f}.png" for t in scenario.trajectory.timestamps]
+    indices = range(frames)
+    if progress:
+        from tqdm import tqdm
+
+        indices = tqdm(indices, desc=f"synth {name}", unit="frame")
+    for index in indices:
+        colour, depth = scenario.render(index)
+        units = np.round(depth.astype(np.float64) * scenario.camera.depth_scale)
+        units[units > np.iinfo(np.uint16).max] = 0  # beyond what uint16 holds: no measurement
+        if not cv2.imwrite(str(out / "rgb" / names[index]), colour[..., ::-1]):
+            raise DatasetError(f"{out / 'rgb' / names[index]}: cannot write image")
+        cv2.imwrite(str(out / "depth" / names[index]), units.astype(np.uint16))
+
+    def listing(kind: str) -> str:
+        lines = [f"# {kind} images of synthetic scenario '{name}'", "# timestamp filename"]
+        lines += [
+            f"{t:.6f} {kind}/{n}"
+            for t, n in zip(scenario.trajectory.timestamps, names, strict=True)
+        ]
+        return "\n".join(lines) + "\n"
+
+    (out / "rgb.txt").write_text(listing("rgb").replace("# rgb images", "# color images"))
+    (out / "depth.txt").write_text(listing("depth"))
+    pairs = [
+        f"{t:.6f} rgb/{n} {t:.6f} depth/{n}"
+        for t, n in zip(scenario.trajectory.timestamps, names, strict=True)
+    ]
+    (out / "associations.txt").write_text("\n".join(pairs) + "\n")
+    write_trajectory(out / "groundtruth.txt", scenario.trajectory)
+    (out / "intrinsics.json").write_text(json.dumps(scenario.camera.to_json(), indent=2) + "\n")
+    scenario.surface_mesh().save(str(out / "scene.ply"), binary=True, texture="rgb")
+    dark = np.flatnonzero(scenario.brightness < 1.0)
+    meta = {
+        "scenario": name,
+        "summary": SCENARIOS[name].summary,
+        "frames": frames,
+        "seed": seed,
+        "noise": noise,
+        "frame_rate": FRAME_RATE,
+        "dark_frames": [int(dark[0]), int(dark[-1])] if len(dark) else None,
+        "sensor": {k: v for k, v in vars(scenario.sensor).items()},
+    }
+    (out / "scenario.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return out
