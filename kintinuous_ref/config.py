@@ -22,6 +22,10 @@ class VolumeConfig:
     colour: bool = True  # keep a colour volume beside the TSDF (paper VI)
     shift_threshold: int = 14  # voxels from the basis before the volume shifts (1..16)
     min_extract_weight: float = 8.0  # zero crossings lighter than this are not extracted
+    # where the volume sits relative to the first camera (tsdf.volume_origin): "ahead" = the
+    # camera at the centre of the face it looks through (KinectFusion), "centred" = at the centre
+    placement: str = "ahead"
+    truncation_distance: float | None = None  # metres; None = derived (see `truncation`)
 
     @property
     def voxel_size(self) -> float:
@@ -29,8 +33,12 @@ class VolumeConfig:
 
     @property
     def truncation(self) -> float:
-        """max(0.01 m, side / 100): 0.06 m at 6 m, 0.03 m at 3 m."""
-        return max(0.01, self.size / 100.0)
+        """max(0.01 m, side / 100): 0.06 m at 6 m, 0.03 m at 3 m; never below 2 voxels, since a
+        thinner band leaves voxel columns with no negative sample and the raycast with holes
+        (only coarse volumes such as 64^3 over 1 m are affected). `truncation_distance` wins."""
+        if self.truncation_distance is not None:
+            return self.truncation_distance
+        return max(0.01, self.size / 100.0, 2.0 * self.voxel_size)
 
     def validate(self) -> None:
         if self.resolution < 8 or self.resolution > 1024:
@@ -39,6 +47,8 @@ class VolumeConfig:
             raise ConfigError(f"volume size must be positive, got {self.size} m")
         if not 1 <= self.shift_threshold <= 16:
             raise ConfigError(f"shift threshold must be 1..16 voxels, got {self.shift_threshold}")
+        if self.truncation_distance is not None and not self.truncation_distance > 0:
+            raise ConfigError(f"truncation must be positive, got {self.truncation_distance} m")
         if not self.max_weight >= 1:
             raise ConfigError(f"max weight must be >= 1, got {self.max_weight}")
 
