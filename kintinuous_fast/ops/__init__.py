@@ -1,0 +1,30 @@
+"""Per-element maths written once and compiled for both targets.
+
+Each module here has a factory `build_ops(jit)` that defines scalar functions (filter one pixel,
+update one voxel, ...) with the decorator it is given and returns them in a namespace. The CPU
+backend calls it with `numba.njit(cache=True)` and loops over pixels with `prange`; the CUDA
+backend calls it with `cuda.jit(device=True)` and launches one thread per pixel. The functions
+may call each other: they are closures over the factory's scope, compiled with the same target.
+
+Arithmetic rule (so that all targets, numba's CUDA simulator included, round alike): values read
+from arrays are converted with float() where the reference computes in float64, and with
+np.float32() where the reference computes in float32, so no result depends on how a target
+promotes mixed float32/float64 expressions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numba
+
+# The CPU decorator: compiled on first use and cached on disk (compile time counts in the tests).
+cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
+
+
+def cuda_device_jit() -> Callable[[Any], Any]:
+    """The CUDA decorator for device functions (imported lazily: numba.cuda is optional)."""
+    from numba import cuda
+
+    return cuda.jit(device=True)
