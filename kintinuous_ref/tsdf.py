@@ -135,7 +135,7 @@ def make_volume(
 # Sampling
 
 
-def _corners(
+def corner_weights(
     shape: tuple[int, ...], coordinates: np.ndarray
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """(flat index, trilinear weight) of the 8 voxels around each continuous coordinate (M, 3).
@@ -162,7 +162,7 @@ def trilinear(grid: np.ndarray, coordinates: np.ndarray) -> np.ndarray:
     """Trilinear interpolation of a (N, N, N[, C]) grid at continuous voxel coordinates (M, 3)."""
     flat_grid = grid.reshape(-1, *grid.shape[3:])
     result = np.zeros((len(coordinates), *grid.shape[3:]))
-    for index, w in _corners(grid.shape, coordinates):
+    for index, w in corner_weights(grid.shape, coordinates):
         result += (w[:, None] if grid.ndim == 4 else w) * flat_grid[index]
     return result.astype(np.float32)
 
@@ -180,7 +180,7 @@ def sample_tsdf(volume: TsdfVolume, coordinates: np.ndarray) -> np.ndarray:
     tsdf, weight = volume.tsdf.reshape(-1), volume.weight.reshape(-1)
     total = np.zeros(len(coordinates))
     coverage = np.zeros(len(coordinates))
-    for index, w in _corners(volume.tsdf.shape, coordinates):
+    for index, w in corner_weights(volume.tsdf.shape, coordinates):
         w = w * (weight[index] > 0)
         total += w * tsdf[index]
         coverage += w

@@ -1,0 +1,271 @@
+"""Surface extraction, PLY output, preview pictures, and scoring a mesh against the truth.
+
+The triangle mesh is the TSDF's zero level set, extracted by VTK's flying-edges marching cubes
+(pyvista `ImageData.contour`); the TSDF and the colours are ours. Only observed space yields
+surface: a vertex is kept when every voxel that its position interpolates from has weight > 0
+(marching cubes would otherwise draw surfaces against the 0 of never-seen voxels). Vertex colours
+are the colour volume's trilinear interpolation at the vertex (paper VI-A).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from kintinuous_ref.colour import surface_colour
+from kintinuous_ref.tsdf import TsdfVolume, corner_weights
+
+if TYPE_CHECKING:
+    import pyvista
+
+    from kintinuous_ref.camera import Intrinsics
+
+
+@dataclass
+class Mesh:
+    points: np.ndarray  # (V, 3) float32 world
+    triangles: np.ndarray  # (T, 3) int64 vertex indices
+    colours: np.ndarray  # (V, 3) uint8 RGB
+
+    def to_pyvista(self) -> pyvista.PolyData:
+        import pyvista
+
+        cells = np.column_stack([np.full(len(self.triangles), 3), self.triangles]).ravel()
+        mesh = pyvista.PolyData(self.points.astype(np.float32), cells if len(cells) else None)
+        mesh.point_data["rgb"] = self.colours
+        return mesh
+
+
+def _interpolates_observed(volume: TsdfVolume, points: np.ndarray, min_weight: float) -> np.ndarray:
+    """True where every voxel with a non-zero trilinear weight at the point has weight above
+    min_weight (a vertex on a cell edge depends only on the edge's two voxels)."""
+    coords = volume.world_to_voxel(points)
+    ok = np.ones(len(points), dtype=bool)
+    weight = volume.weight.reshape(-1)
+    for index, w in corner_weights(volume.weight.shape, coords):
+        ok &= (w < 1e-4) | (weight[index] > min_weight)
+    return ok
+
+
+def extract_mesh(volume: TsdfVolume | None, min_weight: float = 0.0) -> Mesh:
+    """The zero level set of the TSDF as a coloured triangle mesh (world frame)."""
+    empty = Mesh(
+        np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8)
+    )
+    if volume is None or not (volume.weight > min_weight).any():
+        return empty
+    import pyvista
+
+    n = volume.resolution
+    grid = pyvista.ImageData(
+        dimensions=(n, n, n), spacing=(volume.voxel_size,) * 3, origin=tuple(volume.origin)
+    )
+    # VTK orders points with x fastest; our arrays are [x, y, z], hence Fortran order.
+    grid.point_data["tsdf"] = volume.tsdf.ravel(order="F")
+    surface = grid.contour([0.0], scalars="tsdf", method="flying_edges", compute_normals=False)
+    if surface.n_points == 0:
+        return empty
+    points = np.asarray(surface.points, dtype=np.float64)
+    triangles = surface.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+    keep = _interpolates_observed(volume, points, min_weight)
+    triangles = triangles[keep[triangles].all(axis=1)]
+    # Renumber the surviving vertices.
+    used = np.zeros(len(points), dtype=bool)
+    used[triangles.ravel()] = True
+    new_index = np.cumsum(used) - 1
+    points = points[used]
+    return Mesh(
+        points=points.astype(np.float32),
+        triangles=new_index[triangles],
+        colours=surface_colour(volume, points),
+    )
+
+
+def write_ply(path: Path, mesh: Mesh) -> None:
+    """Binary little-endian PLY: float x y z and uchar red green blue per vertex, triangles."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    vertex = np.zeros(
+        len(mesh.points),
+        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")],
+    )
+    for i, axis in enumerate("xyz"):
+        vertex[axis] = mesh.points[:, i]
+    for i, channel in enumerate("rgb"):
+        vertex[channel] = mesh.colours[:, i]
+    face = np.zeros(len(mesh.triangles), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    face["n"] = 3
+    face["v"] = mesh.triangles
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment kintinuous reconstruction\n"
+        f"element vertex {len(vertex)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    with open(path, "wb") as out:
+        out.write(header.encode("ascii"))
+        out.write(vertex.tobytes())
+        out.write(face.tobytes())
+
+
+def render_preview(
+    mesh: Mesh,
+    path: Path,
+    view_pose: np.ndarray | None = None,
+    size: tuple[int, int] = (960, 720),
+) -> None:
+    """An off-screen picture of the coloured mesh (VTK through EGL or OSMesa, no display needed).
+
+    With `view_pose` (camera-to-world, e.g. the first camera) the picture is taken from a little
+    behind and above that camera, looking at the mesh's centre, so it resembles the first frame.
+    """
+    import pyvista
+    import vtk
+
+    vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_ERROR)  # no X-server chatter
+    plotter = pyvista.Plotter(off_screen=True, window_size=size)
+    plotter.set_background("white")
+    if len(mesh.triangles):
+        plotter.add_mesh(mesh.to_pyvista(), scalars="rgb", rgb=True, lighting=False)
+        if view_pose is not None:
+            # Look at the mesh's centre along the first camera's direction, from a little above,
+            # then back off until the whole mesh fits.
+            centre = mesh.points.mean(axis=0)
+            direction = view_pose[:3, 2] + 0.3 * view_pose[:3, 1]
+            plotter.camera_position = [
+                tuple(centre - direction),
+                tuple(centre),
+                tuple(-view_pose[:3, 1]),
+            ]
+            plotter.reset_camera()
+            plotter.camera.zoom(1.2)
+        else:
+            plotter.view_isometric()
+    plotter.screenshot(str(path))
+    plotter.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# Scoring against a ground-truth surface
+
+
+def sample_surface(truth: pyvista.PolyData, spacing: float, seed: int = 0) -> np.ndarray:
+    """Points spread uniformly over a triangle mesh, about one per spacing^2 of area."""
+    triangles = truth.triangulate().faces.reshape(-1, 4)[:, 1:]
+    corners = np.asarray(truth.points, dtype=np.float64)[triangles]  # (T, 3, 3)
+    areas = 0.5 * np.linalg.norm(
+        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
+    )
+    rng = np.random.default_rng(seed)
+    count = int(np.ceil(areas.sum() / spacing**2))
+    chosen = rng.choice(len(areas), size=count, p=areas / areas.sum())
+    a, b = rng.random(count), rng.random(count)
+    flip = a + b > 1  # fold the unit square onto the triangle
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    c = corners[chosen]
+    return c[:, 0] + a[:, None] * (c[:, 1] - c[:, 0]) + b[:, None] * (c[:, 2] - c[:, 0])
+
+
+def visible_from(
+    points: np.ndarray,
+    depths: list[np.ndarray],
+    poses: list[np.ndarray],
+    camera: Intrinsics,
+    tolerance: float = 0.02,
+) -> np.ndarray:
+    """True for points that some camera saw: they project into its depth map where the
+    measured depth is within `tolerance` of their own (not occluded, not missing)."""
+    seen = np.zeros(len(points), dtype=bool)
+    for depth, pose in zip(depths, poses, strict=True):
+        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        z = local[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.rint(camera.fx * local[:, 0] / z + camera.cx)
+            v = np.rint(camera.fy * local[:, 1] / z + camera.cy)
+        inside = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        measured = np.zeros(len(points))
+        measured[inside] = depth[v[inside].astype(int), u[inside].astype(int)]
+        seen |= inside & (measured > 0) & (np.abs(measured - z) < tolerance)
+    return seen
+
+
+def closest_on(
+    surface: pyvista.PolyData, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(distance, closest point, cell index) from each point to a triangle mesh (exact)."""
+    if len(points) == 0:
+        return np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=int)
+    cells, closest = surface.find_closest_cell(points, return_closest_point=True)
+    return np.linalg.norm(points - closest, axis=1), closest, cells
+
+
+def _colour_at(truth: pyvista.PolyData, closest: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Barycentric interpolation of the truth's vertex colours ("rgb") at points on its cells."""
+    triangles = truth.faces.reshape(-1, 4)[:, 1:][cells]
+    corners = np.asarray(truth.points, dtype=np.float64)[triangles]
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    d = closest - corners[:, 0]
+    d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    d1, d2 = (d * e1).sum(1), (d * e2).sum(1)
+    det = d11 * d22 - d12 * d12
+    b1 = (d22 * d1 - d12 * d2) / det
+    b2 = (d11 * d2 - d12 * d1) / det
+    rgb = np.asarray(truth.point_data["rgb"], dtype=np.float64)[triangles]
+    return (1 - b1 - b2)[:, None] * rgb[:, 0] + b1[:, None] * rgb[:, 1] + b2[:, None] * rgb[:, 2]
+
+
+@dataclass
+class SurfaceScore:
+    accuracy: float  # mean distance from reconstructed vertices to the true surface, metres
+    accuracy_median: float
+    completeness: float  # share of visible true surface within `completeness_radius` of the mesh
+    completeness_radius: float
+    colour_error: float  # mean absolute RGB difference (0..255) of coloured vertices vs the truth
+    uncoloured: float  # share of vertices that received no colour
+    vertices: int
+    visible_samples: int
+
+    def as_dict(self) -> dict:
+        return dict(vars(self))
+
+
+def surface_accuracy(
+    mesh: Mesh,
+    truth: pyvista.PolyData,
+    visible_samples: np.ndarray,
+    completeness_radius: float = 0.01,
+) -> SurfaceScore:
+    """Score a reconstruction against the true surface (with its "rgb" vertex colours).
+
+    accuracy: mean distance from each reconstructed vertex to the true surface;
+    completeness: share of `visible_samples` (true-surface points some camera saw, see
+    sample_surface and visible_from) lying within `completeness_radius` of the mesh;
+    colour error: mean absolute per-channel difference between each coloured vertex and the true
+    colour at its closest true-surface point.
+    """
+    distance, closest, cells = closest_on(truth, mesh.points.astype(np.float64))
+    coloured = mesh.colours.astype(int).sum(axis=1) > 0
+    if coloured.any():
+        true_colour = _colour_at(truth, closest[coloured], cells[coloured])
+        colour_error = float(np.abs(mesh.colours[coloured] - true_colour).mean())
+    else:
+        colour_error = float("nan")
+    if len(mesh.triangles) and len(visible_samples):
+        to_mesh, _, _ = closest_on(mesh.to_pyvista(), visible_samples)
+        completeness = float((to_mesh <= completeness_radius).mean())
+    else:
+        completeness = 0.0
+    return SurfaceScore(
+        accuracy=float(distance.mean()) if len(distance) else float("nan"),
+        accuracy_median=float(np.median(distance)) if len(distance) else float("nan"),
+        completeness=completeness,
+        completeness_radius=completeness_radius,
+        colour_error=colour_error,
+        uncoloured=float(1.0 - coloured.mean()) if len(coloured) else 0.0,
+        vertices=len(mesh.points),
+        visible_samples=len(visible_samples),
+    )

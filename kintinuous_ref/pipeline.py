@@ -1,0 +1,328 @@
+"""The per-frame loop of the system as one "algorithm box" (paper III-V, design.md).
+
+    for each RGB-D frame:
+        1. preprocess        metric depth, filters, pyramids, vertex/normal maps (IV-A.1)
+        2. odometry          pose from the ground truth, or tracker.track(previous, current,
+                             model, previous_pose) (IV, V); a failed frame is not fused
+        3. integrate         depth into the TSDF, colour into the colour volume (III, VI)
+        4. raycast           the model seen from the new pose, for the next frame's ICP (III)
+        5. record            pose and per-stage timings; report progress
+
+The backend is a parameter: any object whose `preprocess`, `tsdf` and `raycast` attributes offer
+kintinuous_ref's functions of those modules (kintinuous_ref itself, or a kintinuous_fast backend).
+
+Volume placement and the tracker's start need the first pose: with ground-truth odometry it is
+the ground truth; with a tracker it is the first ground-truth pose when the dataset has one (so
+trajectories are comparable with it), else the identity.
+
+Ctrl-C (KeyboardInterrupt) ends the loop cleanly: the result holds the poses so far and the
+volume of what was fused, with `interrupted` set.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+import kintinuous_ref
+import kintinuous_ref.preprocess
+import kintinuous_ref.raycast
+import kintinuous_ref.tsdf
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.colour import colour_weights
+from kintinuous_ref.config import Config
+from kintinuous_ref.datasets.tum import Frame, Trajectory, TumSequence
+from kintinuous_ref.errors import ConfigError, DatasetError
+from kintinuous_ref.raycast import ModelPrediction
+from kintinuous_ref.tsdf import TsdfVolume, check_volume_config
+
+GROUNDTRUTH = "groundtruth"
+STAGES = ("preprocess", "odometry", "integrate", "raycast", "total")
+
+
+@dataclass
+class PipelineResult:
+    timestamps: list[float] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)  # camera-to-world, one per frame
+    fused: list[bool] = field(default_factory=list)  # False where tracking failed
+    timings_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
+    tracking_failures: int = 0
+    failure_reasons: list[str] = field(default_factory=list)  # "frame i: reason"
+    volume: TsdfVolume | None = None
+    model: ModelPrediction | None = None  # the last prediction, if any was made
+    interrupted: bool = False
+
+    @property
+    def frames(self) -> int:
+        return len(self.poses)
+
+    @property
+    def trajectory(self) -> Trajectory:
+        return Trajectory(np.array(self.timestamps), np.array(self.poses).reshape(-1, 4, 4))
+
+    def timing_summary(self) -> dict[str, dict[str, float | None]]:
+        """{stage: {mean, median, max}} in milliseconds; None for a stage that never ran."""
+        summary: dict[str, dict[str, float | None]] = {}
+        for stage, values in self.timings_ms.items():
+            if values:
+                summary[stage] = {
+                    "mean": float(np.mean(values)),
+                    "median": float(np.median(values)),
+                    "max": float(np.max(values)),
+                }
+            else:
+                summary[stage] = {"mean": None, "median": None, "max": None}
+        return summary
+
+
+def check_run(config: Config, odometry: str, groundtruth: Trajectory | None) -> None:
+    """Refuse, before any work, a run that cannot succeed (one-line KintinuousError)."""
+    config.validate()
+    check_volume_config(config.volume)
+    if odometry == GROUNDTRUTH and groundtruth is None:
+        raise ConfigError("--odometry groundtruth needs a dataset with ground-truth poses")
+    if odometry != GROUNDTRUTH:
+        from kintinuous_ref.odometry import METHODS
+
+        if odometry not in METHODS:
+            choices = ", ".join((GROUNDTRUTH, *METHODS))
+            raise ConfigError(f"unknown odometry {odometry!r}; choose one of {choices}")
+
+
+def run(
+    frames: Iterable[Frame],
+    camera: Intrinsics,
+    config: Config,
+    odometry: str = GROUNDTRUTH,
+    groundtruth: Trajectory | None = None,
+    backend: ModuleType | Any = kintinuous_ref,
+    progress: Callable[[PipelineResult], None] | None = None,
+    predict_model: bool | None = None,
+) -> PipelineResult:
+    """Reconstruct a sequence. `groundtruth` holds one pose per frame INDEX of the sequence
+    (TumSequence.groundtruth_for_frames()). `predict_model` None: raycast only when a tracker
+    needs the model (ground-truth odometry does not). `progress` is called after every frame."""
+    check_run(config, odometry, groundtruth)
+    if predict_model is None:
+        predict_model = odometry != GROUNDTRUTH
+    tracker = None
+    if odometry != GROUNDTRUTH:
+        from kintinuous_ref.odometry import make_tracker
+
+        tracker = make_tracker(odometry, config, camera)
+    result = PipelineResult()
+    previous = None
+    try:
+        for frame in frames:
+            clock = _Clock()
+            # 1. Preprocess (IV-A.1).
+            current = backend.preprocess.preprocess_frame(
+                frame.colour, frame.depth, camera, config.preprocess
+            )
+            clock.lap("preprocess")
+            # 2. Odometry (IV, V): where is this camera?
+            ok, reason = True, ""
+            if odometry == GROUNDTRUTH:
+                pose = groundtruth.poses[frame.index]
+            elif previous is None:
+                pose = groundtruth.poses[frame.index] if groundtruth is not None else np.eye(4)
+            else:
+                tracked = tracker.track(previous, current, result.model, result.poses[-1])
+                pose, ok, reason = tracked.pose, tracked.ok, tracked.reason
+            clock.lap("odometry")
+            if result.volume is None:
+                result.volume = backend.tsdf.make_volume(
+                    config.volume, pose, config.colour.max_weight
+                )
+            # 3. Integrate depth and colour (III, VI); a frame whose tracking failed is not fused.
+            if ok:
+                backend.tsdf.integrate(
+                    result.volume,
+                    current.depth,
+                    pose,
+                    camera,
+                    current.colour,
+                    colour_weights(current, config.colour),
+                )
+            else:
+                result.tracking_failures += 1
+                result.failure_reasons.append(f"frame {frame.index}: {reason}")
+            clock.lap("integrate")
+            # 4. Predict the model surface for the next frame's ICP (III).
+            if predict_model:
+                result.model = backend.raycast.raycast(result.volume, pose, camera)
+                clock.lap("raycast")
+            # 5. Record.
+            clock.total()
+            for stage, milliseconds in clock.laps.items():
+                result.timings_ms[stage].append(milliseconds)
+            result.timestamps.append(frame.timestamp)
+            result.poses.append(np.asarray(pose, dtype=np.float64))
+            result.fused.append(ok)
+            previous = current
+            if progress is not None:
+                progress(result)
+    except KeyboardInterrupt:
+        result.interrupted = True
+    return result
+
+
+class _Clock:
+    """Milliseconds per stage of one frame."""
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.laps: dict[str, float] = {}
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.laps[stage] = 1000.0 * (now - self.last)
+        self.last = now
+
+    def total(self) -> None:
+        self.laps["total"] = 1000.0 * (time.perf_counter() - self.start)
+
+
+# ----------------------------------------------------------------------------------------------
+# `kintinuous reconstruct`: a dataset in, a folder of results out.
+
+DEFAULT_DATASET = "desk"
+SCENARIO_FRAMES = 300  # length of a built-in scenario generated into the cache
+
+
+def cache_folder() -> Path:
+    """Where generated scenarios are kept: $KINTINUOUS_CACHE, else ~/.cache/kintinuous."""
+    root = os.environ.get("KINTINUOUS_CACHE")
+    return Path(root) if root else Path.home() / ".cache" / "kintinuous"
+
+
+def open_dataset(
+    dataset: str | None, intrinsics: str | None = None, progress: bool = False
+) -> TumSequence:
+    """A TUM folder, or a built-in synthetic scenario by name (rendered into the cache on first
+    use; `desk` when `dataset` is None)."""
+    from kintinuous_ref.datasets import synthetic, tum
+
+    dataset = dataset or DEFAULT_DATASET
+    path = Path(dataset)
+    if path.is_dir():
+        return tum.open_sequence(path, intrinsics)
+    scenarios = synthetic.list_scenarios()
+    if dataset not in scenarios:
+        raise DatasetError(
+            f"{dataset}: neither a dataset folder nor a scenario ({', '.join(scenarios)})"
+        )
+    folder = cache_folder() / dataset
+    if not (folder / "associations.txt").is_file():  # written last: a complete folder
+        synthetic.write_scenario(dataset, folder, frames=SCENARIO_FRAMES, progress=progress)
+    return tum.open_sequence(folder, intrinsics)
+
+
+def write_outputs(
+    result: PipelineResult, out: Path, report: dict[str, Any], preview: bool = True
+) -> dict[str, Any]:
+    """mesh.ply, trajectory.txt, preview.png and report.json in `out`; returns the report."""
+    from kintinuous_ref import mesh as meshing
+    from kintinuous_ref.datasets.tum import write_trajectory
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_trajectory(out / "trajectory.txt", result.trajectory)
+    surface = meshing.extract_mesh(result.volume)
+    meshing.write_ply(out / "mesh.ply", surface)
+    if preview:
+        first = result.poses[0] if result.poses else None
+        meshing.render_preview(surface, out / "preview.png", view_pose=first)
+    report = {
+        **report,
+        "frames": result.frames,
+        "fused_frames": int(np.sum(result.fused)),
+        "tracking_failures": result.tracking_failures,
+        "failure_reasons": result.failure_reasons[:50],
+        "interrupted": result.interrupted,
+        "timing_ms": result.timing_summary(),
+        "mesh": {"vertices": len(surface.points), "triangles": len(surface.triangles)},
+    }
+    if result.volume is not None:
+        report["volume"] = {
+            "resolution": result.volume.resolution,
+            "size_m": result.volume.size,
+            "voxel_m": result.volume.voxel_size,
+            "truncation_m": result.volume.truncation,
+            "origin": result.volume.origin.tolist(),
+        }
+    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report
+
+
+def reconstruct(
+    sequence: TumSequence,
+    out: Path,
+    config: Config,
+    odometry: str = GROUNDTRUTH,
+    start: int = 0,
+    count: int | None = None,
+    backend_name: str = "ref",
+    show_progress: bool = True,
+    predict_model: bool | None = None,
+) -> dict[str, Any]:
+    """Run the pipeline over frames start.. of a sequence and write the outputs into `out`.
+
+    Everything that can be checked is checked before the first frame is read. An interrupted run
+    (Ctrl-C) still writes what it has and then re-raises KeyboardInterrupt.
+    """
+    if backend_name != "ref":
+        raise ConfigError(f"backend {backend_name!r} is not available yet; use --backend ref")
+    if not 0 <= start < len(sequence):
+        raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
+    if count is not None and count <= 0:
+        raise ConfigError(f"--frames must be positive, got {count}")
+    groundtruth = None
+    if sequence.groundtruth is not None:
+        try:
+            groundtruth = sequence.groundtruth_for_frames()
+        except DatasetError:
+            if odometry == GROUNDTRUTH:
+                raise
+    if odometry == GROUNDTRUTH and groundtruth is None:
+        raise ConfigError(
+            f"{sequence.path}: no groundtruth.txt, so --odometry groundtruth cannot run"
+        )
+    check_run(config, odometry, groundtruth)
+    total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
+    bar = None
+    if show_progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, unit="frame", desc="reconstruct")
+    result = run(
+        sequence.frames(start, total),
+        sequence.camera,
+        config,
+        odometry,
+        groundtruth,
+        progress=(lambda _: bar.update(1)) if bar is not None else None,
+        predict_model=predict_model,
+    )
+    if bar is not None:
+        bar.close()
+    report = write_outputs(
+        result,
+        Path(out),
+        {
+            "dataset": str(sequence.path),
+            "odometry": odometry,
+            "backend": backend_name,
+            "start": start,
+        },
+    )
+    if result.interrupted:
+        raise KeyboardInterrupt
+    return report
