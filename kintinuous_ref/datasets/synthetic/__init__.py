@@ -175,6 +175,26 @@ def _prepare_folder(out: Path) -> None:
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
 
+def _write_frames(
+    out: Path, names: list[str], indices: range, build: tuple, scenario: Scenario | None = None
+) -> int:
+    """Render and write frames `indices` (in a worker process: builds its own scenario)."""
+    import cv2
+
+    scenario = scenario or make_scenario(*build)
+    for index in indices:
+        colour, depth = scenario.render(index)
+        units = np.round(depth.astype(np.float64) * scenario.camera.depth_scale)
+        units[units > np.iinfo(np.uint16).max] = 0  # beyond what uint16 holds: no measurement
+        for path, image in (
+            (out / "rgb" / names[index], colour[..., ::-1]),  # OpenCV writes BGR
+            (out / "depth" / names[index], units.astype(np.uint16)),
+        ):
+            if not cv2.imwrite(str(path), image):
+                raise DatasetError(f"{path}: cannot write image")
+    return len(indices)
+
+
 def write_scenario(
     name: str,
     out: Path | str,
@@ -184,60 +204,71 @@ def write_scenario(
     seed: int = 0,
     noise: bool = True,
     progress: bool = False,
+    workers: int = 1,
 ) -> Path:
     """Render a scenario into a TUM-layout folder; returns the folder.
 
     Writes rgb/*.png (8-bit colour), depth/*.png (uint16, 1/5000 m, 0 = none), rgb.txt, depth.txt,
     associations.txt, groundtruth.txt (camera-to-world, TUM format), intrinsics.json,
     scene.ply (ground-truth surface, binary PLY with per-vertex RGB) and scenario.json.
+    workers > 1 renders frames in that many processes.
     """
-    import cv2
-
-    scenario = make_scenario(name, frames, width, height, seed, noise)
+    build = (name, frames, width, height, seed, noise)
+    scenario = make_scenario(*build)
     out = Path(out)
     _prepare_folder(out)
-    names = [f"{t:.6f}.png" for t in scenario.trajectory.timestamps]
-    indices = range(frames)
-    if progress:
-        from tqdm import tqdm
-
-        indices = tqdm(indices, desc=f"synth {name}", unit="frame")
-    for index in indices:
-        colour, depth = scenario.render(index)
-        units = np.round(depth.astype(np.float64) * scenario.camera.depth_scale)
-        units[units > np.iinfo(np.uint16).max] = 0  # beyond what uint16 holds: no measurement
-        if not cv2.imwrite(str(out / "rgb" / names[index]), colour[..., ::-1]):
-            raise DatasetError(f"{out / 'rgb' / names[index]}: cannot write image")
-        cv2.imwrite(str(out / "depth" / names[index]), units.astype(np.uint16))
-
-    def listing(kind: str) -> str:
-        lines = [f"# {kind} images of synthetic scenario '{name}'", "# timestamp filename"]
-        lines += [
-            f"{t:.6f} {kind}/{n}"
-            for t, n in zip(scenario.trajectory.timestamps, names, strict=True)
-        ]
-        return "\n".join(lines) + "\n"
-
-    (out / "rgb.txt").write_text(listing("rgb").replace("# rgb images", "# color images"))
-    (out / "depth.txt").write_text(listing("depth"))
-    pairs = [
-        f"{t:.6f} rgb/{n} {t:.6f} depth/{n}"
-        for t, n in zip(scenario.trajectory.timestamps, names, strict=True)
-    ]
-    (out / "associations.txt").write_text("\n".join(pairs) + "\n")
-    write_trajectory(out / "groundtruth.txt", scenario.trajectory)
-    (out / "intrinsics.json").write_text(json.dumps(scenario.camera.to_json(), indent=2) + "\n")
-    scenario.surface_mesh().save(str(out / "scene.ply"), binary=True, texture="rgb")
     dark = np.flatnonzero(scenario.brightness < 1.0)
     meta = {
         "scenario": name,
         "summary": SCENARIOS[name].summary,
         "frames": frames,
+        "width": scenario.camera.width,
+        "height": scenario.camera.height,
         "seed": seed,
         "noise": noise,
         "frame_rate": FRAME_RATE,
         "dark_frames": [int(dark[0]), int(dark[-1])] if len(dark) else None,
-        "sensor": {k: v for k, v in vars(scenario.sensor).items()},
+        "sensor": dict(vars(scenario.sensor)),
     }
+    # first, so that an interrupted run's folder is recognised (and reused) as ours
     (out / "scenario.json").write_text(json.dumps(meta, indent=2) + "\n")
+    timestamps = scenario.trajectory.timestamps
+    names = [f"{t:.6f}.png" for t in timestamps]
+
+    chunk = 10
+    chunks = [range(i, min(i + chunk, frames)) for i in range(0, frames, chunk)]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=frames, desc=f"synth {name}", unit="frame")
+    if workers > 1 and len(chunks) > 1:
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = [pool.submit(_write_frames, out, names, c, build) for c in chunks]
+            for future in as_completed(futures):
+                done = future.result()
+                if bar is not None:
+                    bar.update(done)
+    else:
+        for c in chunks:
+            done = _write_frames(out, names, c, build, scenario)
+            if bar is not None:
+                bar.update(done)
+    if bar is not None:
+        bar.close()
+
+    def listing(kind: str) -> str:
+        lines = [f"# {kind} images of synthetic scenario '{name}'", "# timestamp filename"]
+        lines += [f"{t:.6f} {kind}/{n}" for t, n in zip(timestamps, names, strict=True)]
+        return "\n".join(lines) + "\n"
+
+    (out / "rgb.txt").write_text(listing("rgb").replace("# rgb images", "# color images"))
+    (out / "depth.txt").write_text(listing("depth"))
+    pairs = [f"{t:.6f} rgb/{n} {t:.6f} depth/{n}" for t, n in zip(timestamps, names, strict=True)]
+    (out / "associations.txt").write_text("\n".join(pairs) + "\n")
+    write_trajectory(out / "groundtruth.txt", scenario.trajectory)
+    (out / "intrinsics.json").write_text(json.dumps(scenario.camera.to_json(), indent=2) + "\n")
+    scenario.surface_mesh().save(str(out / "scene.ply"), binary=True, texture="rgb")
     return out
