@@ -28,6 +28,9 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-noise", action="store_true", help="exact depth and colour")
+    parser.add_argument(
+        "--workers", type=int, default=2, help="processes rendering frames (default 2)"
+    )
     parser.set_defaults(handler=_run_synth)
 
 
@@ -49,6 +52,7 @@ def _run_synth(args: argparse.Namespace) -> None:
         seed=args.seed,
         noise=not args.no_noise,
         progress=True,
+        workers=max(1, args.workers),
     )
     print(f"wrote {args.frames} frames of '{args.scenario}' to {args.out}")
 
