@@ -31,6 +31,12 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--workers", type=int, default=2, help="processes rendering frames (default 2)"
     )
+    parser.add_argument(
+        "--mesh-spacing",
+        type=float,
+        default=0.05,
+        help="edge length of the ground-truth mesh scene.ply in metres (default 0.05)",
+    )
     parser.set_defaults(handler=_run_synth)
 
 
@@ -53,6 +59,7 @@ def _run_synth(args: argparse.Namespace) -> None:
         noise=not args.no_noise,
         progress=True,
         workers=max(1, args.workers),
+        mesh_spacing=args.mesh_spacing,
     )
     print(f"wrote {args.frames} frames of '{args.scenario}' to {args.out}")
 

@@ -512,3 +512,22 @@ def test_bad_input_is_reported():
     scenario = synthetic.make_scenario("desk", frames=2, width=32, height=24)
     with pytest.raises(KintinuousError, match="frames 0..1"):
         scenario.render(2)
+
+
+def test_tiny_desk_fixture_is_what_the_generator_makes():
+    # data/tiny_desk (see data/README.md) = synth desk, 10 frames, 160x120, --no-noise.
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parent.parent / "data" / "tiny_desk"
+    if not folder.is_dir():
+        pytest.skip("data/tiny_desk not present")
+    sequence = tum.open_sequence(folder)
+    scenario = synthetic.make_scenario("desk", frames=10, width=160, height=120, noise=False)
+    assert len(sequence) == 10 and sequence.camera == scenario.camera
+    np.testing.assert_allclose(sequence.groundtruth.poses, scenario.trajectory.poses, atol=1e-8)
+    for index in (0, 9):
+        colour, depth = scenario.render(index)
+        frame = sequence[index]
+        # other numpy / OpenCV builds may round a texel differently: 1 level, 0.2 mm (1 unit)
+        assert np.abs(frame.colour.astype(int) - colour).max() <= 1
+        assert np.abs(frame.depth - depth).max() <= 2.1e-4
