@@ -151,6 +151,27 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     )
 
 
+def _add_info(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser("info", help="which compute backends work on this machine")
+    parser.set_defaults(handler=_run_info)
+
+
+def _run_info(args: argparse.Namespace) -> None:
+    import kintinuous_fast
+
+    status = kintinuous_fast.backend_status()
+    notes = {"ref": "NumPy reference", "cpu": "numba parallel CPU loops", "cuda": "numba.cuda"}
+    if kintinuous_fast.cuda_is_simulated():
+        notes["cuda"] += " (SIMULATOR: NUMBA_ENABLE_CUDASIM=1, for tests only)"
+    print(f"kintinuous {__version__}")
+    for name in ("ref", "cpu", "cuda"):
+        if status[name]:
+            print(f"{name:5s} no    {status[name]}")
+        else:
+            print(f"{name:5s} yes   {notes[name]}")
+    print(f"auto -> {kintinuous_fast.resolve_backend_name('auto')}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kintinuous",
@@ -158,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"kintinuous {__version__}")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for add in (_add_synth, _add_evaluate, _add_reconstruct):
+    for add in (_add_synth, _add_evaluate, _add_reconstruct, _add_info):
         add(commands)
     return parser
 

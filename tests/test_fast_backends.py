@@ -1,0 +1,96 @@
+"""Backend selection, the `kintinuous info` command, and the CUDA equivalence tests run on numba's
+CUDA simulator in a child process (the simulator must be enabled before numba is imported)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import kintinuous_fast
+from kintinuous_fast import available_backends, backend_status, select_backend
+from kintinuous_ref import cli
+from kintinuous_ref.errors import ConfigError
+
+TESTS = Path(__file__).parent
+
+
+def test_backends_that_always_work():
+    status = backend_status()
+    assert set(status) == {"ref", "cpu", "cuda"}
+    assert status["ref"] == "" and status["cpu"] == ""
+    names = available_backends()
+    assert names[-2:] == ["cpu", "ref"]
+    assert ("cuda" in names) == (status["cuda"] == "")
+
+
+def test_select_backend_modules_and_auto():
+    import kintinuous_fast.cpu.preprocess
+    import kintinuous_ref.preprocess
+
+    assert select_backend("ref").preprocess is kintinuous_ref.preprocess
+    assert select_backend("cpu").preprocess is kintinuous_fast.cpu.preprocess
+    auto = select_backend("auto")
+    assert auto.name == ("cuda" if "cuda" in available_backends() else "cpu")
+    with pytest.raises(AttributeError):
+        select_backend("cpu").odometry_nonsense  # noqa: B018
+
+
+def test_select_backend_errors_are_one_line():
+    with pytest.raises(ConfigError, match="unknown backend 'gpu'; choose one of ref, cpu, cuda"):
+        select_backend("gpu")
+    if "cuda" not in available_backends():
+        with pytest.raises(ConfigError, match="backend 'cuda' does not work on this machine"):
+            select_backend("cuda")
+
+
+def test_info_command_lists_the_backends(capsys):
+    assert cli.main(["info"]) == 0
+    out = capsys.readouterr().out
+    status = backend_status()
+    for name in ("ref", "cpu", "cuda"):
+        line = next(line for line in out.splitlines() if line.split()[:1] == [name])
+        assert ("yes" in line) == (status[name] == ""), line
+    auto = "cuda" if not status["cuda"] else "cpu"
+    assert f"auto -> {auto}" in out
+
+
+@pytest.mark.skipif(
+    not kintinuous_fast.cuda_status() == "" or kintinuous_fast.cuda_is_simulated(),
+    reason="real GPU only (the simulator case is below)",
+)
+def test_cuda_is_a_real_gpu_here():
+    from numba import cuda
+
+    assert cuda.is_available()
+
+
+@pytest.mark.skipif(
+    kintinuous_fast.cuda_status() == "",
+    reason="CUDA works in this process: tests/test_fast_cuda.py runs directly",
+)
+@pytest.mark.parametrize("stage", ["preprocess"])
+def test_equivalence_cuda_in_simulator(stage):
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            str(TESTS / "test_fast_cuda.py"),
+            "-k",
+            stage,
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=TESTS.parent,
+    )
+    tail = (result.stdout + result.stderr)[-4000:]
+    assert result.returncode == 0, tail
+    assert " passed" in tail and "skipped" not in tail.splitlines()[-1], tail

@@ -1,0 +1,94 @@
+"""Equivalence of kintinuous_fast's CUDA kernels with kintinuous_ref, on a GPU or on numba's CUDA
+simulator.
+
+Without a GPU these tests are skipped in the main pytest process and run instead in a child
+process with NUMBA_ENABLE_CUDASIM=1 (tests/test_fast_backends.py starts it: the simulator must
+be switched on before numba is imported). The simulator runs every CUDA thread as a Python
+thread, about 10^4 times slower than a CPU loop, so its frames are tiny (32x24; kernels with
+barriers about 80x60) and the bilateral window is 7x7; on a GPU the sizes of the CPU tests are
+used. Cases and tolerances: tests/fast_equivalence.py.
+"""
+
+import fast_equivalence as fe
+import numpy as np
+import pytest
+
+from kintinuous_fast import cuda_is_simulated, cuda_status
+from kintinuous_ref import preprocess as ref
+from kintinuous_ref.config import PreprocessConfig
+
+pytestmark = pytest.mark.skipif(
+    bool(cuda_status()),
+    reason="no CUDA GPU: runs in the simulator subprocess of test_fast_backends.py",
+)
+
+SIMULATED = cuda_is_simulated()
+fe.QUICK = SIMULATED
+SIZES = [(24, 32)] if SIMULATED else [(60, 80), (120, 160)]
+RADIUS = 3 if SIMULATED else 6
+SIM_CONFIG = PreprocessConfig(bilateral_radius=RADIUS, pyramid_levels=3)
+
+
+@pytest.fixture(scope="module")
+def gpu():
+    from kintinuous_fast.cuda import preprocess
+
+    return preprocess
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[1]}x{s[0]}")
+@pytest.mark.parametrize(
+    "check",
+    [
+        fe.check_metric_depth,
+        fe.check_pyramid_down,
+        fe.check_vertex_normal_maps,
+        fe.check_intensity,
+        fe.check_discontinuity_mask,
+    ],
+    ids=lambda check: check.__name__.removeprefix("check_"),
+)
+def test_equivalence_cuda_preprocess(gpu, check, size):
+    check(gpu, *size)
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[1]}x{s[0]}")
+def test_equivalence_cuda_preprocess_bilateral_filter(gpu, size):
+    fe.check_bilateral_filter(gpu, *size, radius=RADIUS)
+
+
+def test_equivalence_cuda_preprocess_frame_host_arrays(gpu):
+    # NumPy images in, NumPy frame out (uploaded once, downloaded at the end). On the simulator
+    # a 24x16 frame with 2 levels; the device-array test below covers the stages at full size.
+    if SIMULATED:
+        fe.check_preprocess_frame(
+            gpu, 16, 24, PreprocessConfig(bilateral_radius=2, pyramid_levels=2)
+        )
+    else:
+        for size in SIZES:
+            fe.check_preprocess_frame(gpu, *size)
+
+
+def test_equivalence_cuda_preprocess_frame_on_device(gpu):
+    # Device images in: every array of the frame is a device array, equal to the reference.
+    from numba import cuda
+
+    from kintinuous_fast.cuda import is_device
+
+    height, width = SIZES[-1]
+    config = SIM_CONFIG if SIMULATED else PreprocessConfig()
+    camera = fe.camera_for(height, width)
+    colour, depth = fe.scene_colour(height, width), fe.raw_depth(height, width)
+    frame = gpu.preprocess_frame(cuda.to_device(colour), cuda.to_device(depth), camera, config)
+    arrays = [frame.colour, frame.depth, frame.colour_mask]
+    for level in frame.levels:
+        arrays += [level.depth, level.vertices, level.normals, level.intensity]
+        arrays += [level.intensity_dx, level.intensity_dy]
+    assert all(is_device(array) for array in arrays)
+    fe.compare_frames(gpu.frame_to_host(frame), ref.preprocess_frame(colour, depth, camera, config))
+    # model_pyramid subsamples device maps without a copy to the host
+    pyramid = gpu.model_pyramid(frame.levels[0].vertices, frame.levels[0].normals, 2)
+    assert is_device(pyramid[1][0])
+    np.testing.assert_array_equal(
+        pyramid[1][0].copy_to_host(), frame.levels[0].vertices.copy_to_host()[::2, ::2]
+    )
