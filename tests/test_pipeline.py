@@ -156,21 +156,6 @@ def test_reconstruct_command_writes_its_outputs(desk_folder, tmp_path):
     assert (picture != 255).any(axis=-1).mean() > 0.05  # the mesh covers part of the picture
 
 
-def test_ply_round_trip(tmp_path):
-    import pyvista
-
-    surface = mesh.Mesh(
-        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
-        np.array([[0, 1, 2], [0, 2, 3]]),
-        np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [9, 9, 9]], np.uint8),
-    )
-    mesh.write_ply(tmp_path / "m.ply", surface)
-    back = pyvista.read(tmp_path / "m.ply")
-    np.testing.assert_array_equal(back.points, surface.points)
-    np.testing.assert_array_equal(back.faces.reshape(-1, 4)[:, 1:], surface.triangles)
-    np.testing.assert_array_equal(back.point_data["RGB"], surface.colours)
-
-
 def test_reconstruct_command_bad_input(desk_folder, tmp_path, capsys, monkeypatch):
     from kintinuous_ref import tsdf
 
