@@ -14,6 +14,19 @@ from pathlib import Path
 from kintinuous_ref import __version__
 from kintinuous_ref.errors import KintinuousError
 
+# The names of kintinuous_ref.odometry.METHODS, spelled out so that --help needs no NumPy import
+# (tests/test_trackers.py checks that the two agree).
+ODOMETRY_CHOICES = (
+    "groundtruth",
+    "icp",
+    "rgbd",
+    "fovis",
+    "fovis/icp",
+    "fovis/rgbd",
+    "icp+rgbd",
+    "fovis/icp+rgbd",
+)
+
 
 def _add_synth(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
@@ -99,13 +112,29 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument(
-        "--odometry", default="groundtruth", help="groundtruth (known poses) or a tracker method"
+        "--odometry",
+        default="groundtruth",
+        choices=ODOMETRY_CHOICES,
+        help="groundtruth (known poses) or a tracker (docs/odometry.md); default groundtruth",
     )
     parser.add_argument("--frames", type=int, help="number of frames (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
     parser.add_argument("--backend", choices=["ref"], default="ref")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help='JSON file of configuration values, nested ({"icp": {...}}) or dotted keys',
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one configuration value, e.g. --set combined.rgbd_weight=0.2 "
+        "(value parsed as JSON when it can be; repeatable; applied after --config)",
+    )
     parser.add_argument("--intrinsics", help="fx,fy,cx,cy (overrides the dataset's camera)")
     parser.add_argument(
         "--no-colour-weighting",
@@ -122,7 +151,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
 
 def _run_reconstruct(args: argparse.Namespace) -> None:
     from kintinuous_ref import pipeline
-    from kintinuous_ref.config import ColourConfig, Config, VolumeConfig
+    from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, with_overrides
 
     config = Config(
         volume=VolumeConfig(resolution=args.resolution, size=args.volume_size),
@@ -131,6 +160,7 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
             discontinuity_check=not args.no_colour_weighting,
         ),
     )
+    config = with_overrides(config, _config_overrides(args.config, args.set))
     pipeline.check_volume_config(config.volume)  # before generating or reading anything
     sequence = pipeline.open_dataset(args.dataset, args.intrinsics, progress=True)
     report = pipeline.reconstruct(
@@ -149,6 +179,41 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
         f"({total:.0f} ms per frame); wrote {args.out}/mesh.ply with "
         f"{report['mesh']['vertices']} vertices"
     )
+
+
+def _config_overrides(path: Path | None, settings: list[str]) -> dict:
+    """Dotted-key overrides from a JSON file (nested or dotted) and from KEY=VALUE strings."""
+
+    def flatten(values: dict, prefix: str = "") -> dict:
+        flat = {}
+        for key, value in values.items():
+            if isinstance(value, dict):
+                flat.update(flatten(value, f"{prefix}{key}."))
+            else:
+                flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+        return flat
+
+    overrides: dict = {}
+    if path is not None:
+        try:
+            values = json.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise KintinuousError(f"{path}: configuration file not found") from None
+        except json.JSONDecodeError as err:
+            raise KintinuousError(f"{path}: not valid JSON ({err})") from None
+        if not isinstance(values, dict):
+            raise KintinuousError(f"{path}: a configuration file holds one JSON object")
+        overrides.update(flatten(values))
+    for setting in settings:
+        key, equals, text = setting.partition("=")
+        if not equals or not key:
+            raise KintinuousError(f"--set expects KEY=VALUE, got {setting!r}")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text  # a bare word such as original-code
+        overrides[key.strip()] = tuple(value) if isinstance(value, list) else value
+    return overrides
 
 
 def _add_info(commands: argparse._SubParsersAction) -> None:

@@ -196,3 +196,24 @@ def test_constant_velocity_recovery(room):
     np.testing.assert_array_equal(
         still.track(current_frame, blind, model, good.pose).pose, good.pose
     )
+
+
+def test_command_line_offers_every_method_and_config_overrides(tmp_path):
+    from kintinuous_ref import cli
+
+    assert cli.ODOMETRY_CHOICES == ("groundtruth", *METHODS)
+    args = cli.build_parser().parse_args(
+        ["reconstruct", "desk", "--out", str(tmp_path), "--odometry", "fovis/icp+rgbd"]
+    )
+    assert args.odometry == "fovis/icp+rgbd"
+    config_file = tmp_path / "config.json"
+    config_file.write_text('{"icp": {"iterations": [5, 3, 2]}, "combined.rgbd_weight": 0.5}')
+    overrides = cli._config_overrides(
+        config_file, ["combined.weighting=original-code", "combined.rgbd_weight=0.2"]
+    )
+    config = with_overrides(Config(), overrides)
+    assert config.icp.iterations == (5, 3, 2)
+    assert config.combined.weighting == "original-code"
+    assert config.combined.rgbd_weight == 0.2  # --set wins over the file
+    with pytest.raises(ConfigError, match="unknown configuration key"):
+        with_overrides(Config(), cli._config_overrides(None, ["icp.nonsense=1"]))
