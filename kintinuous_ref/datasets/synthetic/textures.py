@@ -21,7 +21,6 @@ TILE_SIZE = 256  # texels per side of the periodic noise tile
 TILE_WAVELENGTH = 16.0  # texels per noise wavelength inside the tile
 OCTAVES = 7  # wavelengths base, base/2, ..., base/64
 _REMAP_WIDTH = 1024
-_OCTAVE_ANGLE = 2.399963  # golden angle: rotates each octave so the tile axes never line up
 
 
 @lru_cache(maxsize=1)
@@ -44,22 +43,50 @@ def noise_tile() -> np.ndarray:
     return ((ranks + 0.5) / ranks.size).reshape(TILE_SIZE, TILE_SIZE).astype(np.float32)
 
 
-def sample_tile(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of the periodic tile at texel coordinates (any shape, wrapped).
+def wrap(x: np.ndarray) -> np.ndarray:
+    """Texel coordinates moved into [0, TILE_SIZE) (the tile is periodic), float32."""
+    x = np.asarray(x, dtype=np.float32)
+    return x - np.floor(x * np.float32(1.0 / TILE_SIZE)) * np.float32(TILE_SIZE)
 
-    The coordinates are wrapped into the tile first: cv2.remap converts them to 16-bit fixed point.
+
+def _wrap_in_place(x: np.ndarray) -> None:
+    x -= np.floor(x * np.float32(1.0 / TILE_SIZE)) * np.float32(TILE_SIZE)
+
+
+class _TileSampler:
+    """Bilinear lookups of the periodic tile for a fixed number of points.
+
+    cv2.remap wants 2D maps below 32767 rows and columns, so the points' coordinates live in
+    padded (rows, 1024) buffers `x`, `y`. They must lie inside the tile: remap handles
+    BORDER_WRAP correctly beyond it, but ten times slower.
     """
-    count = x.size
-    rows = -(-count // _REMAP_WIDTH)  # remap wants images below 32767 rows and columns
-    maps = []
-    for coordinate in (x, y):
-        wrapped = np.zeros(rows * _REMAP_WIDTH, dtype=np.float32)
-        flat = coordinate.ravel().astype(np.float32, copy=False)
-        # x mod TILE_SIZE, as x - floor(x / size) size (np.mod is several times slower)
-        wrapped[:count] = flat - np.floor(flat * np.float32(1.0 / TILE_SIZE)) * TILE_SIZE
-        maps.append(wrapped.reshape(rows, _REMAP_WIDTH))
-    values = cv2.remap(noise_tile(), maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-    return values.ravel()[:count].reshape(x.shape)
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        rows = max(1, -(-count // _REMAP_WIDTH))
+        self._x = np.zeros((rows, _REMAP_WIDTH), dtype=np.float32)
+        self._y = np.zeros((rows, _REMAP_WIDTH), dtype=np.float32)
+        self.x = self._x.reshape(-1)[:count]  # views: write coordinates here
+        self.y = self._y.reshape(-1)[:count]
+
+    def sample(self) -> np.ndarray:
+        values = cv2.remap(
+            noise_tile(), self._x, self._y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
+        )
+        return values.reshape(-1)[: self.count]
+
+    def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Samples at texel coordinates x, y (any values)."""
+        self.x[:] = x
+        self.y[:] = y
+        _wrap_in_place(self.x)
+        _wrap_in_place(self.y)
+        return self.sample()
+
+
+def sample_tile(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of the periodic tile at texel coordinates (any shape, any values)."""
+    return _TileSampler(np.size(x))(np.ravel(x), np.ravel(y)).reshape(np.shape(x))
 
 
 @dataclass(frozen=True)
@@ -141,38 +168,42 @@ def build_table(materials: list[Material], rng: np.random.Generator) -> Material
     return table
 
 
-def _fade(wavelength: np.ndarray, footprint: np.ndarray) -> np.ndarray:
-    """Weight of a pattern of this wavelength: 1 at >= 4 pixels per period, 0 at <= 2 (Nyquist)."""
-    return np.clip(wavelength / (2.0 * footprint) - 1.0, 0.0, 1.0)
-
-
-def _octave_sum(
+def _octave_noise(
     u: np.ndarray,
     v: np.ndarray,
-    wavelength: np.ndarray,
+    reach: np.ndarray,
     persistence: np.ndarray,
-    footprint: np.ndarray,
-    offset: np.ndarray,
+    sampler: _TileSampler,
 ) -> np.ndarray:
-    """Sum of OCTAVES noise octaves in [0, 1]; faded octaves contribute their mean, 0.5."""
-    total = np.zeros_like(u)
-    weight_sum = np.zeros_like(u)
-    amplitude = np.ones_like(u)
+    """Sum of OCTAVES value-noise octaves, normalised to [0, 1] around its mean 0.5.
+
+    u, v: coordinates in octave-0 texels (already offset per surface). Octave k samples the tile
+    at 2^k (u, v) + c_k (c_k = 2 c_(k-1) + (37, 91): each octave its own part of the tile), i.e.
+    at wavelength / 2^k, with amplitude persistence^k. The coordinates are doubled in place and
+    kept inside the tile, which repeats itself.
+    reach = wavelength / (2 footprint): the octave's fade weight is clip(reach / 2^k - 1, 0, 1),
+    1 at four or more pixels per period and 0 at two or fewer (Nyquist), where it contributes
+    its mean instead (a cheap mip-map: no aliasing, no flicker from frame to frame).
+    """
+    total = np.zeros_like(reach)
+    amplitude = np.ones_like(reach)
+    sampler.x[:] = u
+    sampler.y[:] = v
     for k in range(OCTAVES):
-        lam = wavelength * np.float32(0.5**k)
-        fade = _fade(lam, footprint)
-        if fade.any():  # octaves finer than every pixel are skipped (most of them when small)
-            angle = k * _OCTAVE_ANGLE
-            cos_a, sin_a = np.float32(np.cos(angle)), np.float32(np.sin(angle))
-            scale = np.float32(TILE_WAVELENGTH) / lam
-            x = (cos_a * u - sin_a * v) * scale + offset[:, 0] + np.float32(37.0 * k)
-            y = (sin_a * u + cos_a * v) * scale + offset[:, 1] + np.float32(91.0 * k)
-            total += amplitude * (fade * (sample_tile(x, y) - 0.5) + 0.5)
-        else:
-            total += amplitude * 0.5
-        weight_sum += amplitude
-        amplitude = amplitude * persistence
-    return total / weight_sum
+        fade = np.clip(reach * np.float32(0.5**k) - 1.0, 0.0, 1.0)
+        if not fade.any():
+            break  # finer octaves fade even sooner
+        if k > 0:
+            for coordinate, shift in ((sampler.x, 37.0), (sampler.y, 91.0)):
+                coordinate *= np.float32(2.0)
+                coordinate += np.float32(shift)
+        _wrap_in_place(sampler.x)
+        _wrap_in_place(sampler.y)
+        total += amplitude * fade * (sampler.sample() - np.float32(0.5))
+        amplitude *= persistence
+    # normalise by the sum of all amplitudes, faded or not, so that fading keeps the contrast
+    amplitude_sum = (1.0 - persistence**OCTAVES) / (1.0 - persistence)
+    return np.float32(0.5) + total / amplitude_sum
 
 
 def _line_mask(
@@ -181,17 +212,9 @@ def _line_mask(
     """Coverage in [0, 1] of lines of `width` every `period`, box-filtered over the footprint."""
     distance = np.abs(coordinate - period * np.round(coordinate / period))
     effective = np.maximum(width, footprint)
-    edge = np.clip(0.5 + (effective / 2.0 - distance) / np.maximum(footprint, 1e-6), 0.0, 1.0)
+    edge = np.clip(0.5 + (effective / 2.0 - distance) / footprint, 0.0, 1.0)
     # wider than the line itself when the pixel is: keep the mean coverage width / period
     return edge * (width / effective)
-
-
-def _where(per_surface: np.ndarray, surface: np.ndarray) -> np.ndarray | slice | None:
-    """The points whose surface has the property: a slice when all do, None when none do."""
-    if per_surface.all():
-        return slice(None)
-    points = np.flatnonzero(per_surface[surface])
-    return points if len(points) else None
 
 
 def evaluate(
@@ -202,47 +225,52 @@ def evaluate(
     `footprint` (N,) is the size of one pixel on the surface in metres (for anti-aliasing).
     """
     surface = np.asarray(surface)
-    footprint = np.asarray(footprint, dtype=np.float32)
-    cos_r, sin_r = np.cos(table.rotation), np.sin(table.rotation)
+
+    def per_point(values: np.ndarray) -> np.ndarray:
+        return np.take(values, surface, axis=0)
+
+    footprint = np.maximum(np.asarray(footprint, dtype=np.float32), np.float32(1e-6))
     u0, v0 = uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32)
-    u = cos_r[surface] * u0 - sin_r[surface] * v0
-    v = sin_r[surface] * u0 + cos_r[surface] * v0
-    offset = table.offsets[surface]
-    noise = _octave_sum(
-        u, v, table.wavelength[surface], table.persistence[surface], footprint, offset
+    cos_r, sin_r = per_point(np.cos(table.rotation)), per_point(np.sin(table.rotation))
+    u_rot, v_rot = cos_r * u0 - sin_r * v0, sin_r * u0 + cos_r * v0
+    sampler = _TileSampler(len(surface))
+    offset = per_point(table.offsets)
+
+    to_texels = per_point(np.float32(TILE_WAVELENGTH) / table.wavelength)
+    reach = per_point(table.wavelength / 2) / footprint
+    noise = _octave_noise(
+        u_rot * to_texels + offset[:, 0],
+        v_rot * to_texels + offset[:, 1],
+        reach,
+        per_point(table.persistence),
+        sampler,
     )
     # veins: thin dark iso-lines of the noise at its median, wiggly at every octave's scale
-    veins = np.clip(1.0 - np.abs(noise - 0.5) / table.vein_width[surface], 0.0, 1.0)
-    noise = np.clip(0.5 + table.contrast[surface] * (noise - 0.5), 0.0, 1.0)
-    albedo = np.take(table.lut.reshape(-1, 3), surface * 256 + (noise * 255.0).astype(np.intp), 0)
-
-    albedo *= (1.0 - table.vein_darkness[surface] * veins)[:, None]
+    veins = np.clip(1.0 - np.abs(noise - 0.5) / per_point(table.vein_width), 0.0, 1.0)
+    noise = np.clip(0.5 + per_point(table.contrast) * (noise - 0.5), 0.0, 1.0)
+    palette_index = surface * 256 + (noise * 255.0).astype(np.intp)
+    albedo = np.take(table.lut.reshape(-1, 3), palette_index, axis=0)
+    albedo *= (1.0 - per_point(table.vein_darkness) * veins)[:, None]
 
     # blobs: one more low-frequency noise sample, thresholded with a footprint-wide soft edge
-    some = _where(table.blob_amount > 0, surface)
-    if some is not None:
-        ids = surface[some]
-        scale = np.float32(TILE_WAVELENGTH) / table.blob_wavelength[ids]
-        blob_noise = sample_tile(
-            u[some] * scale + offset[some, 1] + np.float32(13.0),
-            v[some] * scale + offset[some, 0] + np.float32(29.0),
-        )
-        softness = np.float32(0.01) + np.float32(0.5) * footprint[some] / table.blob_wavelength[ids]
-        blob = np.clip((blob_noise - table.blob_threshold[ids]) / softness + 0.5, 0.0, 1.0)
-        albedo[some] += (table.blob_colour[ids] - albedo[some]) * blob[:, None]
+    if np.any(table.blob_amount[np.unique(surface)] > 0):
+        blob_lam = per_point(table.blob_wavelength)
+        to_texels = np.float32(TILE_WAVELENGTH) / blob_lam
+        blob_noise = sampler(u_rot * to_texels + offset[:, 1], v_rot * to_texels + offset[:, 0])
+        softness = np.float32(0.01) + np.float32(0.5) * footprint / blob_lam
+        blob = np.clip((blob_noise - per_point(table.blob_threshold)) / softness + 0.5, 0.0, 1.0)
+        blob *= per_point(table.blob_amount)
+        albedo += (per_point(table.blob_colour) - albedo) * blob[:, None]
 
     # lines: grid = grout along u and v (tiles), stripes = joints across v (planks)
-    some = _where(table.line_kind > 0, surface)
-    if some is not None:
-        ids = surface[some]
-        period, width = table.line_period[ids], table.line_width[ids]
-        lines = _line_mask(v0[some], period, width, footprint[some])
-        grid = table.line_kind[ids] == 1
-        lines[grid] = np.maximum(
-            lines[grid],
-            _line_mask(u0[some][grid], period[grid], width[grid], footprint[some][grid]),
-        )
-        albedo[some] *= 1.0 - (table.line_darkness[ids] * lines)[:, None]
+    kind = per_point(table.line_kind)
+    if kind.any():
+        width = np.where(kind > 0, per_point(table.line_width), 0.0).astype(np.float32)
+        period = per_point(table.line_period)
+        lines = _line_mask(v0, period, width, footprint)
+        grid = np.where(kind == 1, width, 0.0).astype(np.float32)
+        lines = np.maximum(lines, _line_mask(u0, period, grid, footprint))
+        albedo *= (1.0 - per_point(table.line_darkness) * lines)[:, None]
     return albedo
 
 
