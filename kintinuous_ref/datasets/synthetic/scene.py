@@ -102,7 +102,8 @@ class Scene:
         # pixel ray (x_u, y_v, 1): x depends on the column only, y on the row only
         ray_x, ray_y = rays[0, :, 0], rays[:, 0, 1]
         depth = np.full((height, width), np.inf)
-        winner = np.full((height, width), -1, dtype=np.intp)
+        # int16 owners: numpy's stable argsort is then a radix sort (linear time)
+        winner = np.full((height, width), -1, dtype=np.int16)
         local_from_camera = []
         for index, solid in enumerate(self.solids):
             transform = self._local_from_world[index] @ pose  # camera frame -> solid frame
@@ -122,7 +123,12 @@ class Scene:
         owners = winner.ravel()[pixels]
         order = np.argsort(owners, kind="stable")
         pixels, owners = pixels[order], owners[order]
-        camera_points = rays.reshape(-1, 3)[pixels] * depth.ravel()[pixels, None]
+        hit_depth = depth.ravel()[pixels]
+        camera_points = rays.reshape(-1, 3)[pixels] * hit_depth[:, None]
+        # |camera point| = depth |ray|, for the angle of incidence
+        distance = hit_depth * np.sqrt(
+            1.0 + ray_x[pixels % width] ** 2 + ray_y[pixels // width] ** 2
+        )
         surface = np.empty(len(pixels), dtype=np.intp)
         uv = np.empty((len(pixels), 2))
         light = np.empty(len(pixels))
@@ -132,14 +138,13 @@ class Scene:
             index = owners[first]
             solid, transform = self.solids[index], local_from_camera[index]
             eye = transform[:3, 3]  # the camera centre in the solid's frame
-            local = rotate(camera_points[first:last], transform[:3, :3]) + eye
-            face, normals, uv[first:last] = solid.surface(local)
+            view = rotate(camera_points[first:last], transform[:3, :3])  # eye -> hit, local
+            face, normals, uv[first:last] = solid.surface(view + eye)
             surface[first:last] = self.surface_offsets[index] + face
             # Face the camera (rectangles are two-sided): flip normals that point along the ray.
-            view = local - eye
             along = np.einsum("ni,ni->n", normals, view)
             normals *= np.where(along > 0, -1.0, 1.0)[:, None]
-            cos_incidence[pixels[first:last]] = np.abs(along) / np.linalg.norm(view, axis=1)
+            cos_incidence[pixels[first:last]] = np.abs(along) / distance[first:last]
             light_in_solid = solid.pose[:3, :3].T @ self.light_direction
             light[first:last] = np.einsum("ni,i->n", normals, light_in_solid)
         return RayHits(depth, cos_incidence.reshape(height, width), pixels, surface, uv, light)
@@ -174,8 +179,8 @@ def _pixel_window(
     """Rows and columns of the pixels whose rays can hit `solid` (a conservative rectangle).
 
     The solid lies inside a sphere; the sphere lies inside an axis-aligned cube in the camera frame,
-    and x/z, y/z over that cube are extreme at its corners. None: the solid is behind the camera
-    or outside the image.
+    and x/z, y/z over that cube are extreme at its corners. None: the sphere is entirely outside
+    the viewing frustum (behind the camera or beside the image).
     """
     full = (slice(0, camera.height), slice(0, camera.width))
     radius = solid.bounding_radius
@@ -185,6 +190,13 @@ def _pixel_window(
     centre = camera_from_local[:3, 3]
     if centre[2] + radius <= 0:
         return None
+    # the four side planes of the frustum pass through the camera centre and the image borders
+    x_min, x_max = (-0.5 - camera.cx) / camera.fx, (camera.width - 0.5 - camera.cx) / camera.fx
+    y_min, y_max = (-0.5 - camera.cy) / camera.fy, (camera.height - 0.5 - camera.cy) / camera.fy
+    for inward in ((1.0, 0.0, -x_min), (-1.0, 0.0, x_max), (0.0, 1.0, -y_min), (0.0, -1.0, y_max)):
+        normal = np.asarray(inward)
+        if normal @ centre < -radius * np.linalg.norm(normal):
+            return None
     if centre[2] - radius <= 1e-3:
         return full
     z_near, z_far = centre[2] - radius, centre[2] + radius
