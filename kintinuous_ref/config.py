@@ -82,6 +82,9 @@ class RgbdConfig:
     max_depth_change: float = 0.07  # the paper's d_s, metres
     max_depth: float = 6.0
     max_translation_jump: float = 0.3  # metres; a larger increment is a tracking failure
+    # grad I in the Jacobian: "current" = current image at p (paper, Steinbruecker, OpenCV),
+    # "warped" = previous image sampled at the warped p' (the cost's exact derivative)
+    gradient: str = "current"
 
 
 @dataclass(frozen=True)
@@ -90,19 +93,6 @@ class CombinedConfig:
     # "paper": A = J_icp^T J_icp + w J_rgbd^T J_rgbd (eq. 12-13);
     # "original-code": A = A_rgbd + 100 A_icp, b = b_rgbd + 10 b_icp (the public code's scaling)
     weighting: str = "paper"
-
-
-    # grad I in the Jacobian: "current" = current image at p (paper, Steinbruecker, OpenCV),
-    # "warped" = previous image sampled at the warped p' (the cost's exact derivative)
-    gradient: str = "current"
-@dataclass(frozen=True)
-class FovisConfig:
-    switch_threshold: float = 0.03  # mu of the switching rule (paper V-A), metres
-    fast_threshold: int = 20
-    max_features: int = 600
-    patch_radius: int = 4  # 9x9 descriptor patches
-    clique_tolerance: float = 0.05  # metres: 3D distances preserved to within this
-    feature_levels: int = 3  # pyramid levels searched for FAST corners (Huang et al.: 3)
     original_code_icp_scale: float = 10.0  # "original-code": A_rgbd + s^2 A_icp, b_rgbd + s b_icp
 
 
@@ -118,6 +108,16 @@ class TrackingConfig:
     # what a failed frame's pose becomes: "constant-velocity" (previous pose times the last good
     # increment) or "previous" (the previous pose)
     fallback: str = "constant-velocity"
+
+
+@dataclass(frozen=True)
+class FovisConfig:
+    switch_threshold: float = 0.03  # mu of the switching rule (paper V-A), metres
+    fast_threshold: int = 20
+    max_features: int = 600
+    patch_radius: int = 4  # 9x9 descriptor patches
+    clique_tolerance: float = 0.05  # metres: 3D distances preserved to within this
+    feature_levels: int = 3  # pyramid levels searched for FAST corners (Huang et al.: 3)
     bucket_size: int = 80  # level-0 pixels per side of a bucket (Huang et al.: 80x80)
     search_radius: float = 16.0  # pixels of the feature's level around its predicted position
     initial_rotation: bool = True  # predict positions by aligning the coarsest images (rotation)
@@ -142,6 +142,7 @@ class Config:
     combined: CombinedConfig = field(default_factory=CombinedConfig)
     fovis: FovisConfig = field(default_factory=FovisConfig)
     colour: ColourConfig = field(default_factory=ColourConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self) -> Config:
         self.volume.validate()
@@ -152,7 +153,6 @@ def with_overrides(config: Any, overrides: dict[str, Any]) -> Any:
     """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}."""
     grouped: dict[str, dict[str, Any]] = {}
     direct: dict[str, Any] = {}
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     for key, value in overrides.items():
         head, _, rest = key.partition(".")
         if head not in {f.name for f in fields(config)}:
