@@ -233,3 +233,180 @@ def compare_frames(fast: ref.PreprocessedFrame, reference: ref.PreprocessedFrame
         assert_equivalent(f"level {index} intensity", a.intensity, b.intensity)
         assert_equivalent(f"level {index} intensity_dx", a.intensity_dx, b.intensity_dx)
         assert_equivalent(f"level {index} intensity_dy", a.intensity_dy, b.intensity_dy)
+
+
+# ----------------------------------------------------------------------------------------------
+# TSDF integration and raycasting. The fast volume stores int16 TSDF (units of 1/32767), integer
+# weights and uint8 colour + integer colour weight (8 bytes per voxel); the reference keeps
+# float32. Weights are integers in both (+1 per frame), so they must agree exactly; each TSDF
+# update rounds to the nearest 1/32767 (<= 0.5 unit) and earlier rounding errors are carried
+# with the factor W / (W + 1) < 1, so after n frames |F_fast - F_ref| <= 0.5 n / 32767 (plus
+# float32 arithmetic, 1e-7). The same argument bounds the colour (uint8 rounding) by 0.5 n
+# levels when every colour weight is 1.
+
+
+def moving_poses(frames: int) -> list[np.ndarray]:
+    """Camera-to-world poses sliding sideways 1 cm and turning 1 degree per frame."""
+    poses = []
+    for n in range(frames):
+        angle = np.radians(1.0 * n)
+        pose = np.eye(4)
+        pose[:3, :3] = [
+            [np.cos(angle), 0, np.sin(angle)],
+            [0, 1, 0],
+            [-np.sin(angle), 0, np.cos(angle)],
+        ]
+        pose[:3, 3] = [0.01 * n, 0.005 * n, 0.0]
+        poses.append(pose)
+    return poses
+
+
+def fused_volumes(
+    tsdf_impl: ModuleType,
+    height: int,
+    width: int,
+    resolution: int,
+    frames: int,
+    weighted: bool,
+) -> tuple:
+    """(fast volume, reference volume) after fusing `frames` frames of the scene."""
+    from kintinuous_ref import colour as ref_colour
+    from kintinuous_ref import tsdf as ref_tsdf
+    from kintinuous_ref.config import ColourConfig, VolumeConfig
+
+    camera = camera_for(height, width)
+    config = VolumeConfig(resolution=resolution, size=3.0)
+    poses = moving_poses(frames)
+    fast = tsdf_impl.make_volume(config, poses[0])
+    reference = ref_tsdf.make_volume(config, poses[0])
+    colour = scene_colour(height, width)
+    for index, pose in enumerate(poses):
+        depth = scene_depth(height, width, seed=index)
+        weights = None
+        if weighted:
+            frame = ref.preprocess_frame(colour, depth, camera, PreprocessConfig(pyramid_levels=1))
+            weights = ref_colour.colour_weights(frame, ColourConfig())
+        tsdf_impl.integrate(fast, depth, pose, camera, colour, weights)
+        ref_tsdf.integrate(reference, depth, pose, camera, colour, weights)
+    return fast, reference
+
+
+def check_integrate(tsdf_impl: ModuleType, height: int, width: int, resolution: int) -> None:
+    from kintinuous_fast._volume import to_reference_volume
+
+    frames = 3
+    fast, reference = fused_volumes(tsdf_impl, height, width, resolution, frames, weighted=False)
+    back = to_reference_volume(fast)
+    assert np.count_nonzero(reference.weight) > 0.02 * reference.weight.size  # a real test
+    assert_equivalent("weight", back.weight, reference.weight)
+    assert_equivalent("tsdf", back.tsdf, reference.tsdf, atol=0.5 * frames / 32767 + 1e-7)
+    assert_equivalent("colour weight > 0", back.colour_weight > 0, reference.colour_weight > 0)
+    coloured = reference.colour_weight > 0
+    np.testing.assert_allclose(back.colour[coloured], reference.colour[coloured], atol=0.5 * frames)
+    np.testing.assert_array_equal(back.colour_weight, reference.colour_weight)  # all weights 1
+
+
+def check_integrate_weighted_colour(
+    tsdf_impl: ModuleType, height: int, width: int, resolution: int
+) -> None:
+    # Fractional colour weights (cos theta, paper eq. 15) are stored rounded to integers (at
+    # least 1): the first observation is exact (C = rgb for any weight), later ones mix with
+    # ratios w / (W' + w) instead of w / (W + w), |W' - W| <= 1. With this scene's colour
+    # differences between frames (a few levels) that moves the colour by a few levels at most.
+    from kintinuous_fast._volume import to_reference_volume
+
+    fast, reference = fused_volumes(tsdf_impl, height, width, resolution, 1, weighted=True)
+    back = to_reference_volume(fast)
+    coloured = reference.colour_weight > 0
+    assert_equivalent("colour weight > 0", back.colour_weight > 0, coloured)
+    np.testing.assert_allclose(back.colour[coloured], reference.colour[coloured], atol=0.5)
+    fast, reference = fused_volumes(tsdf_impl, height, width, resolution, 3, weighted=True)
+    back = to_reference_volume(fast)
+    coloured = reference.colour_weight > 0
+    difference = np.abs(back.colour[coloured] - reference.colour[coloured])
+    assert difference.max() <= 8.0 and difference.mean() <= 0.5, (
+        difference.max(),
+        difference.mean(),
+    )
+
+
+def check_integrate_degenerate(tsdf_impl: ModuleType, height: int, width: int) -> None:
+    """No depth, a camera looking away from the volume, a wrong-sized image."""
+    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_ref.config import VolumeConfig
+    from kintinuous_ref.errors import DatasetError
+
+    camera = camera_for(height, width)
+    config = VolumeConfig(resolution=16, size=1.0)
+    volume = tsdf_impl.make_volume(config, np.eye(4))
+    tsdf_impl.integrate(volume, np.zeros((height, width), np.float32), np.eye(4), camera)
+    away = np.eye(4)
+    away[:3, :3] = np.diag([-1.0, 1.0, -1.0])  # turned round: the volume is behind the camera
+    tsdf_impl.integrate(
+        volume, scene_depth(height, width), away, camera, scene_colour(height, width)
+    )
+    back = to_reference_volume(volume)
+    assert not back.weight.any() and not back.colour_weight.any()
+    try:
+        tsdf_impl.integrate(volume, np.zeros((height + 1, width), np.float32), np.eye(4), camera)
+    except DatasetError as err:
+        assert "depth image is" in str(err)
+    else:
+        raise AssertionError("a wrong-sized depth image was accepted")
+
+
+def check_sample_tsdf(tsdf_impl: ModuleType, height: int, width: int, resolution: int) -> None:
+    # Same float64 arithmetic on the same (dequantised) values: equal to the last bit.
+    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_ref import tsdf as ref_tsdf
+
+    fast, _ = fused_volumes(tsdf_impl, height, width, resolution, 1, weighted=False)
+    rng = np.random.default_rng(3)
+    coordinates = rng.uniform(-1.0, resolution, (500, 3))
+    coordinates[:3] = [[0, 0, 0], [resolution - 1] * 3, [np.nan, 1, 1]]
+    assert_equivalent(
+        "sample_tsdf",
+        np.asarray(tsdf_impl.sample_tsdf(fast, coordinates)),
+        ref_tsdf.sample_tsdf(to_reference_volume(fast), coordinates),
+    )
+
+
+def check_raycast(
+    tsdf_impl: ModuleType, raycast_impl: ModuleType, height: int, width: int, resolution: int
+) -> None:
+    """Raycast the fast volume and the reference on the same (dequantised) volume from the
+    fused poses, from a pose looking away, and from inside an empty volume.
+
+    Tolerances: ray directions come from R K^-1 [u, v, 1] evaluated in the kernel, the
+    reference's from a BLAS matrix product: they may differ in the last bit (1e-16), which moves
+    samples by ~1e-16 m; vertices (float32) by 1 ulp, normals by 1e-6 at most. A ray that
+    grazes a zero crossing could flip between hit and miss: at most 0.2% of the pixels may.
+    """
+    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_ref import raycast as ref_raycast
+
+    fast, _ = fused_volumes(tsdf_impl, height, width, resolution, 2, weighted=False)
+    back = to_reference_volume(fast)
+    camera = camera_for(height, width)
+    away = np.eye(4)
+    away[:3, :3] = np.diag([-1.0, 1.0, -1.0])
+    for name, pose in (
+        ("first", moving_poses(2)[0]),
+        ("second", moving_poses(2)[1]),
+        ("away", away),
+    ):
+        got = raycast_impl.raycast(fast, pose, camera)
+        want = ref_raycast.raycast(back, pose, camera)
+        hit_got, hit_want = ~np.isnan(got.vertices[..., 0]), ~np.isnan(want.vertices[..., 0])
+        flipped = np.count_nonzero(hit_got != hit_want)
+        assert flipped <= 0.002 * hit_want.size, f"raycast {name}: {flipped} pixels flip"
+        if name != "away":
+            assert hit_want.mean() > 0.3, f"raycast {name}: the surface is not in view"
+        else:
+            assert not hit_want.any()
+        both = hit_got & hit_want
+        np.testing.assert_allclose(got.vertices[both], want.vertices[both], atol=1e-5, rtol=0)
+        np.testing.assert_allclose(got.normals[both], want.normals[both], atol=1e-5, rtol=0)
+        assert np.abs(got.colours[both].astype(int) - want.colours[both]).max(initial=0) <= 1
+        assert not got.colours[~hit_got].any()
+        np.testing.assert_array_equal(got.pose, want.pose)

@@ -70,7 +70,7 @@ def test_cuda_is_a_real_gpu_here():
     kintinuous_fast.cuda_status() == "",
     reason="CUDA works in this process: tests/test_fast_cuda.py runs directly",
 )
-@pytest.mark.parametrize("stage", ["preprocess"])
+@pytest.mark.parametrize("stage", ["preprocess", "volume"])
 def test_equivalence_cuda_in_simulator(stage):
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
     result = subprocess.run(

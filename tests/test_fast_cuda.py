@@ -92,3 +92,50 @@ def test_equivalence_cuda_preprocess_frame_on_device(gpu):
     np.testing.assert_array_equal(
         pyramid[1][0].copy_to_host(), frame.levels[0].vertices.copy_to_host()[::2, ::2]
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# TSDF + colour integration, sampling and raycasting (the "volume" stage)
+
+VOLUME_SIZES = [(24, 32, 16)] if SIMULATED else [(60, 80, 32), (120, 160, 48)]
+
+
+@pytest.fixture(scope="module")
+def gpu_volume():
+    from kintinuous_fast.cuda import raycast, tsdf
+
+    return tsdf, raycast
+
+
+@pytest.mark.parametrize("size", VOLUME_SIZES, ids=lambda s: f"{s[1]}x{s[0]}-{s[2]}^3")
+def test_equivalence_cuda_volume_integrate(gpu_volume, size):
+    fe.check_integrate(gpu_volume[0], *size)
+
+
+def test_equivalence_cuda_volume_integrate_weighted_colour(gpu_volume):
+    fe.check_integrate_weighted_colour(gpu_volume[0], *VOLUME_SIZES[0])
+
+
+def test_equivalence_cuda_volume_integrate_degenerate(gpu_volume):
+    fe.check_integrate_degenerate(gpu_volume[0], *VOLUME_SIZES[0][:2])
+
+
+@pytest.mark.filterwarnings("ignore:invalid value encountered in cast")  # ref, NaN input
+def test_equivalence_cuda_volume_sample_tsdf(gpu_volume):
+    fe.check_sample_tsdf(gpu_volume[0], *VOLUME_SIZES[0])
+
+
+@pytest.mark.parametrize("size", VOLUME_SIZES, ids=lambda s: f"{s[1]}x{s[0]}-{s[2]}^3")
+def test_equivalence_cuda_volume_raycast(gpu_volume, size):
+    fe.check_raycast(*gpu_volume, *size)
+
+
+def test_equivalence_cuda_volume_stays_on_device(gpu_volume):
+    from kintinuous_fast.cuda import is_device
+
+    tsdf, raycast = gpu_volume
+    height, width, resolution = VOLUME_SIZES[0]
+    volume, _ = fe.fused_volumes(tsdf, height, width, resolution, 1, weighted=False)
+    assert is_device(volume.tsdf_weight) and is_device(volume.colour)
+    prediction = raycast.raycast(volume, np.eye(4), fe.camera_for(height, width), download=False)
+    assert is_device(prediction.vertices) and is_device(prediction.normals)

@@ -1,3 +1,4 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
 """kintinuous_ref.preprocess on the CPU: one prange loop per stage around kintinuous_fast.ops.
 
 Same names, signatures and results as the reference (see tests/test_fast_preprocess.py for the
@@ -56,56 +57,56 @@ _loop = numba.njit(parallel=True, cache=True)
 
 
 @_loop
-def _metric_depth_loop(raw, integer, depth_scale, max_depth, out):  # noqa: ANN001
+def _metric_depth_loop(raw, integer, depth_scale, max_depth, out):
     for v in prange(raw.shape[0]):
         for u in range(raw.shape[1]):
             out[v, u] = metric_value(raw[v, u], integer, depth_scale, max_depth)
 
 
 @_loop
-def _bilateral_loop(depth, spatial, radius, two_sigma_d2, out):  # noqa: ANN001
+def _bilateral_loop(depth, spatial, radius, two_sigma_d2, out):
     for v in prange(depth.shape[0]):
         for u in range(depth.shape[1]):
             out[v, u] = bilateral_pixel(depth, v, u, spatial, radius, two_sigma_d2)
 
 
 @_loop
-def _pyrdown_depth_loop(depth, cutoff, out):  # noqa: ANN001
+def _pyrdown_depth_loop(depth, cutoff, out):
     for v in prange(out.shape[0]):
         for u in range(out.shape[1]):
             out[v, u] = pyrdown_depth_pixel(depth, v, u, cutoff)
 
 
 @_loop
-def _pyrdown_intensity_loop(image, out):  # noqa: ANN001
+def _pyrdown_intensity_loop(image, out):
     for v in prange(out.shape[0]):
         for u in range(out.shape[1]):
             out[v, u] = pyrdown_intensity_pixel(image, v, u)
 
 
 @_loop
-def _vertex_loop(depth, fx, fy, cx, cy, out):  # noqa: ANN001
+def _vertex_loop(depth, fx, fy, cx, cy, out):
     for v in prange(depth.shape[0]):
         for u in range(depth.shape[1]):
             out[v, u, 0], out[v, u, 1], out[v, u, 2] = vertex_pixel(depth, v, u, fx, fy, cx, cy)
 
 
 @_loop
-def _normal_loop(vertices, out):  # noqa: ANN001
+def _normal_loop(vertices, out):
     for v in prange(vertices.shape[0]):
         for u in range(vertices.shape[1]):
             out[v, u, 0], out[v, u, 1], out[v, u, 2] = normal_pixel(vertices, v, u)
 
 
 @_loop
-def _intensity_loop(colour, out):  # noqa: ANN001
+def _intensity_loop(colour, out):
     for v in prange(colour.shape[0]):
         for u in range(colour.shape[1]):
             out[v, u] = intensity_pixel(colour[v, u, 0], colour[v, u, 1], colour[v, u, 2])
 
 
 @_loop
-def _gradient_loop(intensity, blur, sobel_x, sobel_y, blurred, dx, dy):  # noqa: ANN001
+def _gradient_loop(intensity, blur, sobel_x, sobel_y, blurred, dx, dy):
     # Two passes over the image: the float64 blur first (as the reference), then both Sobels.
     for v in prange(intensity.shape[0]):
         for u in range(intensity.shape[1]):
@@ -117,7 +118,7 @@ def _gradient_loop(intensity, blur, sobel_x, sobel_y, blurred, dx, dy):  # noqa:
 
 
 @_loop
-def _discontinuity_loop(depth, radius, jump, max_bad, out):  # noqa: ANN001
+def _discontinuity_loop(depth, radius, jump, max_bad, out):
     for v in prange(depth.shape[0]):
         for u in range(depth.shape[1]):
             out[v, u] = discontinuity_pixel(depth, v, u, radius, jump, max_bad)

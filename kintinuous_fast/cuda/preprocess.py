@@ -1,3 +1,4 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
 """kintinuous_ref.preprocess as CUDA kernels: one thread per output pixel around
 kintinuous_fast.ops (the same scalar functions the CPU backend loops over).
 
@@ -57,35 +58,35 @@ discontinuity_pixel = _ops.discontinuity_pixel
 
 
 @cuda.jit
-def _metric_depth_kernel(raw, integer, depth_scale, max_depth, out):  # noqa: ANN001
+def _metric_depth_kernel(raw, integer, depth_scale, max_depth, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = metric_value(raw[v, u], integer, depth_scale, max_depth)
 
 
 @cuda.jit
-def _bilateral_kernel(depth, spatial, radius, two_sigma_d2, out):  # noqa: ANN001
+def _bilateral_kernel(depth, spatial, radius, two_sigma_d2, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = bilateral_pixel(depth, v, u, spatial, radius, two_sigma_d2)
 
 
 @cuda.jit
-def _pyrdown_depth_kernel(depth, cutoff, out):  # noqa: ANN001
+def _pyrdown_depth_kernel(depth, cutoff, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = pyrdown_depth_pixel(depth, v, u, cutoff)
 
 
 @cuda.jit
-def _pyrdown_intensity_kernel(image, out):  # noqa: ANN001
+def _pyrdown_intensity_kernel(image, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = pyrdown_intensity_pixel(image, v, u)
 
 
 @cuda.jit
-def _vertex_kernel(depth, fx, fy, cx, cy, out):  # noqa: ANN001
+def _vertex_kernel(depth, fx, fy, cx, cy, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         x, y, z = vertex_pixel(depth, v, u, fx, fy, cx, cy)
@@ -95,7 +96,7 @@ def _vertex_kernel(depth, fx, fy, cx, cy, out):  # noqa: ANN001
 
 
 @cuda.jit
-def _normal_kernel(vertices, out):  # noqa: ANN001
+def _normal_kernel(vertices, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         x, y, z = normal_pixel(vertices, v, u)
@@ -105,21 +106,21 @@ def _normal_kernel(vertices, out):  # noqa: ANN001
 
 
 @cuda.jit
-def _intensity_kernel(colour, out):  # noqa: ANN001
+def _intensity_kernel(colour, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = intensity_pixel(colour[v, u, 0], colour[v, u, 1], colour[v, u, 2])
 
 
 @cuda.jit
-def _correlate_kernel(image, kernel, out):  # noqa: ANN001
+def _correlate_kernel(image, kernel, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = correlate3x3_pixel(image, v, u, kernel)
 
 
 @cuda.jit
-def _sobel_kernel(blurred, sobel_x, sobel_y, dx, dy):  # noqa: ANN001
+def _sobel_kernel(blurred, sobel_x, sobel_y, dx, dy):
     u, v = cuda.grid(2)
     if v < dx.shape[0] and u < dx.shape[1]:
         dx[v, u] = correlate3x3_pixel(blurred, v, u, sobel_x)
@@ -127,7 +128,7 @@ def _sobel_kernel(blurred, sobel_x, sobel_y, dx, dy):  # noqa: ANN001
 
 
 @cuda.jit
-def _discontinuity_kernel(depth, radius, jump, max_bad, out):  # noqa: ANN001
+def _discontinuity_kernel(depth, radius, jump, max_bad, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = discontinuity_pixel(depth, v, u, radius, jump, max_bad)

@@ -1,0 +1,85 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
+"""kintinuous_ref.raycast on the CPU: one ray per pixel in a prange loop around
+kintinuous_fast.ops.volume (plain march; the reference's empty-space skipping is exact, so the
+answer is the same)."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import prange
+
+from kintinuous_fast._volume import FastTsdfVolume
+from kintinuous_fast.ops import cpu_jit
+from kintinuous_fast.ops.volume import build_ops
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
+
+__all__ = ["STEP_FRACTION", "ModelPrediction", "raycast"]
+
+_ops = build_ops(cpu_jit)
+raycast_pixel = _ops.raycast_pixel
+
+
+@numba.njit(parallel=True, cache=True)
+def _raycast_loop(
+    tsdf_weight,
+    colour_volume,
+    has_colour,
+    camera,
+    rotation,
+    origin,
+    volume_origin,
+    voxel_size,
+    step,
+    vertices,
+    normals,
+    colours,
+):
+    for v in prange(vertices.shape[0]):
+        for u in range(vertices.shape[1]):
+            raycast_pixel(
+                tsdf_weight,
+                colour_volume,
+                has_colour,
+                u,
+                v,
+                camera,
+                rotation,
+                origin,
+                volume_origin,
+                voxel_size,
+                step,
+                vertices,
+                normals,
+                colours,
+            )
+
+
+def raycast(
+    volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics, skip_empty: bool = True
+) -> ModelPrediction:
+    """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
+    `skip_empty` is accepted for the reference's signature; the plain march gives its answer."""
+    shape = (camera.height, camera.width)
+    vertices = np.full((*shape, 3), np.nan, dtype=np.float32)
+    normals = np.full((*shape, 3), np.nan, dtype=np.float32)
+    colours = np.zeros((*shape, 3), dtype=np.uint8)
+    has_colour = volume.colour is not None
+    colour_volume = volume.colour if has_colour else np.zeros((1, 1, 1, 4), np.uint8)
+    pose = np.asarray(pose, dtype=np.float64)
+    _raycast_loop(
+        volume.tsdf_weight,
+        colour_volume,
+        has_colour,
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
+        np.ascontiguousarray(pose[:3, :3]),
+        np.ascontiguousarray(pose[:3, 3]),
+        np.asarray(volume.origin, dtype=np.float64),
+        float(volume.voxel_size),
+        STEP_FRACTION * volume.truncation,
+        vertices,
+        normals,
+        colours,
+    )
+    return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)

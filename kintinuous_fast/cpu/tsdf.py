@@ -1,0 +1,170 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
+"""kintinuous_ref.tsdf on the CPU: integration as a prange loop over voxel slabs around
+kintinuous_fast.ops.volume, into the 8-byte-per-voxel FastTsdfVolume (kintinuous_fast._volume).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import prange
+
+from kintinuous_fast._volume import (
+    FastTsdfVolume,
+    camera_frame_steps,
+    check_depth,
+    check_volume_config,
+    from_reference_volume,
+    frustum_box,
+    memory_bytes,
+    projection_constants,
+    to_reference_volume,
+    volume_header,
+)
+from kintinuous_fast.ops import cpu_jit
+from kintinuous_fast.ops.volume import build_ops
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import VolumeConfig
+from kintinuous_ref.tsdf import volume_origin
+
+__all__ = [
+    "FastTsdfVolume",
+    "check_volume_config",
+    "from_reference_volume",
+    "integrate",
+    "make_volume",
+    "memory_bytes",
+    "sample_tsdf",
+    "to_reference_volume",
+    "volume_origin",
+]
+
+_ops = build_ops(cpu_jit)
+integrate_voxel = _ops.integrate_voxel
+ray_distance_pixel = _ops.ray_distance_pixel
+sample_tsdf_at = _ops.sample_tsdf_at
+
+_loop = numba.njit(parallel=True, cache=True)
+
+
+@_loop
+def _ray_distance_loop(depth, fx, fy, cx, cy, out):
+    for v in prange(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            out[v, u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+
+
+@_loop
+def _integrate_loop(
+    tsdf_weight,
+    colour_volume,
+    lo,
+    hi,
+    base,
+    steps,
+    intrinsics,
+    ray_distance,
+    truncation,
+    max_weight,
+    colour,
+    colour_weights,
+    fuse_colour,
+    colour_max_weight,
+):
+    for i in prange(lo[0], hi[0]):
+        for j in range(lo[1], hi[1]):
+            for k in range(lo[2], hi[2]):
+                integrate_voxel(
+                    tsdf_weight,
+                    colour_volume,
+                    i,
+                    j,
+                    k,
+                    base,
+                    steps,
+                    intrinsics,
+                    ray_distance,
+                    truncation,
+                    max_weight,
+                    colour,
+                    colour_weights,
+                    fuse_colour,
+                    colour_max_weight,
+                )
+
+
+@_loop
+def _sample_loop(tsdf_weight, coordinates, out):
+    for m in prange(coordinates.shape[0]):
+        out[m] = sample_tsdf_at(
+            tsdf_weight, coordinates[m, 0], coordinates[m, 1], coordinates[m, 2]
+        )
+
+
+def make_volume(
+    config: VolumeConfig, first_pose: np.ndarray, colour_max_weight: float = 255.0
+) -> FastTsdfVolume:
+    """An empty volume placed for the first camera pose (all weights 0)."""
+    check_volume_config(config)
+    n = config.resolution
+    return FastTsdfVolume(
+        tsdf_weight=np.zeros((n, n, n, 2), dtype=np.int16),
+        colour=np.zeros((n, n, n, 4), dtype=np.uint8) if config.colour else None,
+        **volume_header(config, first_pose, colour_max_weight),
+    )
+
+
+def integrate(
+    volume: FastTsdfVolume,
+    depth: np.ndarray,
+    pose: np.ndarray,
+    camera: Intrinsics,
+    colour: np.ndarray | None = None,
+    colour_weights: np.ndarray | None = None,
+) -> None:
+    """Fuse one depth map (and optionally its colour) into the volume, in place (paper III, VI);
+    the update rule is kintinuous_ref.tsdf.integrate's, rounded to the stored types."""
+    check_depth(depth, camera)
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    valid = depth[depth > 0]
+    box = frustum_box(volume, float(valid.max()) if valid.size else 0.0, pose, camera)
+    if box is None:
+        return
+    ray_distance = np.empty(depth.shape, dtype=np.float32)
+    _ray_distance_loop(depth, camera.fx, camera.fy, camera.cx, camera.cy, ray_distance)
+    fuse_colour = colour is not None and volume.colour is not None
+    if fuse_colour:
+        colour = np.ascontiguousarray(colour, dtype=np.uint8)
+        if colour_weights is None:
+            colour_weights = (depth > 0).astype(np.float32)
+        colour_weights = np.ascontiguousarray(colour_weights, dtype=np.float32)
+    else:  # typed placeholders: the loop never reads them
+        colour = np.zeros((1, 1, 3), np.uint8)
+        colour_weights = np.zeros((1, 1), np.float32)
+    colour_volume = volume.colour if volume.colour is not None else np.zeros((1, 1, 1, 4), np.uint8)
+    base, steps = camera_frame_steps(volume, pose)
+    _integrate_loop(
+        volume.tsdf_weight,
+        colour_volume,
+        box[0],
+        box[1],
+        base,
+        steps,
+        projection_constants(camera),
+        ray_distance,
+        np.float32(volume.truncation),
+        np.float32(volume.max_weight),
+        colour,
+        colour_weights,
+        fuse_colour,
+        np.float32(volume.colour_max_weight),
+    )
+
+
+def sample_tsdf(volume: FastTsdfVolume, coordinates: np.ndarray) -> np.ndarray:
+    """Trilinear TSDF over observed voxels at continuous voxel coordinates (M, 3); NaN where
+    none of the 8 is observed or outside the grid (kintinuous_ref.tsdf.sample_tsdf)."""
+    coordinates = np.ascontiguousarray(coordinates, dtype=np.float64).reshape(-1, 3)
+    out = np.empty(len(coordinates), dtype=np.float64)
+    _sample_loop(volume.tsdf_weight, coordinates, out)
+    return out

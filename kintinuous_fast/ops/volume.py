@@ -1,0 +1,351 @@
+"""Per-voxel and per-ray maths of kintinuous_ref.tsdf, .raycast and .colour, written once for the
+CPU and the CUDA target.
+
+The fast volume stores what the GPU design of Kintinuous stores, 8 bytes per voxel (1 GiB at
+512^3): `tsdf_weight` (N, N, N, 2) int16 holds round(F * 32767) and the integer weight W (the
+reference's weights are integers too: +1 per frame, capped), and `colour` (N, N, N, 4) uint8 holds
+R, G, B and the colour weight rounded to an integer (at least 1 once any colour arrived). The
+reference keeps float32 for all of them; the arithmetic below is the reference's, in the same
+precision and order, with a rounding to the stored type at the end of each update.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+TSDF_SCALE = 32767.0  # int16 units per unit of normalised TSDF
+
+
+def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """The scalar functions of integration and raycasting compiled with `jit`."""
+
+    @jit
+    def dequantise(q: Any) -> Any:
+        """float32 TSDF of a stored int16 (the same division to_reference_volume does)."""
+        return np.float32(q) / np.float32(TSDF_SCALE)
+
+    @jit
+    def quantise(f: Any) -> int:
+        """Nearest int16 of F * 32767, F in [-1, 1]."""
+        q = round(float(f) * TSDF_SCALE)
+        return min(max(q, -32767), 32767)
+
+    @jit
+    def ray_distance_pixel(
+        d: Any, u: int, v: int, fx: float, fy: float, cx: float, cy: float
+    ) -> Any:
+        """lambda D: the measured distance along pixel (u, v)'s ray (float32 as the reference)."""
+        x = (u - cx) * 1.0 / fx
+        y = (v - cy) * 1.0 / fy
+        return np.float32(float(d) * math.sqrt(x * x + y * y + 1.0))
+
+    @jit
+    def integrate_voxel(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        i: int,
+        j: int,
+        k: int,
+        base: Any,
+        steps: Any,
+        intrinsics: Any,
+        ray_distance: Any,
+        truncation: Any,
+        max_weight: Any,
+        colour: Any,
+        colour_weights: Any,
+        fuse_colour: bool,
+        colour_max_weight: Any,
+    ) -> None:
+        """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place.
+
+        p_c = base + i a_x + j a_y + k a_z (float32), pixel = round(pi(p_c)),
+        sdf = lambda D - |p_c|; update if D > 0 and sdf >= -mu: running average of min(1, sdf/mu)
+        with weight W + 1 (capped); colour where |sdf| < mu and the pixel's colour weight > 0.
+        `intrinsics` is float32 (fx, fy, cx, cy), as NumPy 2 computes the reference's projection.
+        """
+        fi, fj, fk = np.float32(i), np.float32(j), np.float32(k)
+        x = ((base[0] + fi * steps[0, 0]) + fj * steps[1, 0]) + fk * steps[2, 0]
+        y = ((base[1] + fi * steps[0, 1]) + fj * steps[1, 1]) + fk * steps[2, 1]
+        z = ((base[2] + fi * steps[0, 2]) + fj * steps[1, 2]) + fk * steps[2, 2]
+        if not z > 0:
+            return
+        uf = intrinsics[0] * x / z + intrinsics[2]
+        vf = intrinsics[1] * y / z + intrinsics[3]
+        height, width = ray_distance.shape
+        # range check before converting to an integer (uf may be huge or NaN)
+        if not (uf > -1.0 and uf < width + 1.0 and vf > -1.0 and vf < height + 1.0):
+            return
+        u = round(uf)  # half to even, as np.rint
+        v = round(vf)
+        if u < 0 or u >= width or v < 0 or v >= height:
+            return
+        measured = ray_distance[v, u]
+        sdf = measured - np.float32(math.sqrt(np.float32(np.float32(x * x) + y * y) + z * z))
+        if not (measured > 0 and sdf >= -truncation):
+            return
+        observed = min(np.float32(1.0), np.float32(sdf / truncation))
+        w_old = np.float32(tsdf_weight[i, j, k, 1])
+        f_old = dequantise(tsdf_weight[i, j, k, 0])
+        f_new = (f_old * w_old + observed) / (w_old + np.float32(1.0))
+        tsdf_weight[i, j, k, 0] = quantise(f_new)
+        tsdf_weight[i, j, k, 1] = min(w_old + np.float32(1.0), max_weight)
+        if not fuse_colour:
+            return
+        w_c = colour_weights[v, u]
+        if not (abs(sdf) < truncation and w_c > 0):
+            return
+        cw_old = np.float32(colour_volume[i, j, k, 3])
+        for channel in range(3):
+            rgb = np.float32(colour[v, u, channel])
+            c_old = np.float32(colour_volume[i, j, k, channel])
+            c_new = (c_old * cw_old + rgb * w_c) / (cw_old + w_c)
+            colour_volume[i, j, k, channel] = min(max(round(float(c_new)), 0), 255)
+        cw_new = round(float(min(cw_old + w_c, colour_max_weight)))
+        colour_volume[i, j, k, 3] = min(max(cw_new, 1), 255)
+
+    @jit
+    def sample_tsdf_at(tsdf_weight: Any, cx: float, cy: float, cz: float) -> float:
+        """Trilinear TSDF over the OBSERVED corners only (weights renormalised), float64;
+        NaN outside [0, N-1]^3 or when no corner is observed (kintinuous_ref.tsdf.sample_tsdf)."""
+        n = tsdf_weight.shape[0]
+        if not (cx >= 0 and cx <= n - 1 and cy >= 0 and cy <= n - 1 and cz >= 0 and cz <= n - 1):
+            return np.nan
+        bx = min(max(int(math.floor(cx)), 0), n - 2)
+        by = min(max(int(math.floor(cy)), 0), n - 2)
+        bz = min(max(int(math.floor(cz)), 0), n - 2)
+        fx = min(max(cx - bx, 0.0), 1.0)
+        fy = min(max(cy - by, 0.0), 1.0)
+        fz = min(max(cz - bz, 0.0), 1.0)
+        total = 0.0
+        coverage = 0.0
+        for a in range(2):
+            wa = fx if a else 1.0 - fx
+            for b in range(2):
+                wb = fy if b else 1.0 - fy
+                for c in range(2):
+                    wc = fz if c else 1.0 - fz
+                    if tsdf_weight[bx + a, by + b, bz + c, 1] > 0:
+                        w = wa * wb * wc
+                        total += w * float(dequantise(tsdf_weight[bx + a, by + b, bz + c, 0]))
+                        coverage += w
+        if not coverage > 1e-6:
+            return np.nan
+        return total / coverage
+
+    @jit
+    def trilinear_tsdf(tsdf_weight: Any, cx: float, cy: float, cz: float) -> Any:
+        """Plain trilinear TSDF (unobserved voxels count as 0), float32 like tsdf.trilinear."""
+        n = tsdf_weight.shape[0]
+        bx = min(max(int(math.floor(cx)), 0), n - 2)
+        by = min(max(int(math.floor(cy)), 0), n - 2)
+        bz = min(max(int(math.floor(cz)), 0), n - 2)
+        fx = min(max(cx - bx, 0.0), 1.0)
+        fy = min(max(cy - by, 0.0), 1.0)
+        fz = min(max(cz - bz, 0.0), 1.0)
+        total = 0.0
+        for a in range(2):
+            wa = fx if a else 1.0 - fx
+            for b in range(2):
+                wb = fy if b else 1.0 - fy
+                for c in range(2):
+                    wc = fz if c else 1.0 - fz
+                    value = float(dequantise(tsdf_weight[bx + a, by + b, bz + c, 0]))
+                    total += wa * wb * wc * value
+        return np.float32(total)
+
+    @jit
+    def clip(c: float, limit: float) -> float:
+        return min(max(c, 0.0), limit)
+
+    @jit
+    def gradient_normal(tsdf_weight: Any, cx: float, cy: float, cz: float) -> tuple:
+        """Unit TSDF gradient by central differences one voxel apart (raycast._gradient_normals);
+        NaN when it vanishes."""
+        limit = tsdf_weight.shape[0] - 1.0
+        px, py, pz = clip(cx, limit), clip(cy, limit), clip(cz, limit)
+        gx = trilinear_tsdf(tsdf_weight, clip(cx + 1.0, limit), py, pz) - trilinear_tsdf(
+            tsdf_weight, clip(cx - 1.0, limit), py, pz
+        )
+        gy = trilinear_tsdf(tsdf_weight, px, clip(cy + 1.0, limit), pz) - trilinear_tsdf(
+            tsdf_weight, px, clip(cy - 1.0, limit), pz
+        )
+        gz = trilinear_tsdf(tsdf_weight, px, py, clip(cz + 1.0, limit)) - trilinear_tsdf(
+            tsdf_weight, px, py, clip(cz - 1.0, limit)
+        )
+        gx, gy, gz = float(gx), float(gy), float(gz)
+        length = math.sqrt(gx * gx + gy * gy + gz * gz)
+        if not length > 0:
+            return np.nan, np.nan, np.nan
+        return gx / length, gy / length, gz / length
+
+    @jit
+    def surface_colour_at(colour_volume: Any, cx: float, cy: float, cz: float) -> tuple:
+        """RGB at continuous voxel coordinates by trilinear interpolation over the voxels that
+        received colour (colour.surface_colour); black where none or outside the grid."""
+        n = colour_volume.shape[0]
+        if not (cx >= 0 and cx <= n - 1 and cy >= 0 and cy <= n - 1 and cz >= 0 and cz <= n - 1):
+            return 0, 0, 0
+        bx = min(max(int(math.floor(cx)), 0), n - 2)
+        by = min(max(int(math.floor(cy)), 0), n - 2)
+        bz = min(max(int(math.floor(cz)), 0), n - 2)
+        fx, fy, fz = cx - bx, cy - by, cz - bz
+        r = 0.0
+        g = 0.0
+        b_ = 0.0
+        coverage = 0.0
+        for a in range(2):
+            wa = fx if a else 1.0 - fx
+            for b in range(2):
+                wb = fy if b else 1.0 - fy
+                for c in range(2):
+                    wc = fz if c else 1.0 - fz
+                    if colour_volume[bx + a, by + b, bz + c, 3] > 0:
+                        w = wa * wb * wc
+                        r += w * float(colour_volume[bx + a, by + b, bz + c, 0])
+                        g += w * float(colour_volume[bx + a, by + b, bz + c, 1])
+                        b_ += w * float(colour_volume[bx + a, by + b, bz + c, 2])
+                        coverage += w
+        if not coverage > 1e-6:
+            return 0, 0, 0
+        return (
+            min(max(round(r / coverage), 0), 255),
+            min(max(round(g / coverage), 0), 255),
+            min(max(round(b_ / coverage), 0), 255),
+        )
+
+    @jit
+    def axis_interval(o: float, d: float, lower: float, upper: float) -> tuple:
+        """(t_min, t_max) of one slab [lower, upper] along one axis (infinite when parallel)."""
+        if d == 0:
+            if o >= lower and o <= upper:
+                return -np.inf, np.inf
+            return np.inf, -np.inf
+        t0 = (lower - o) / d
+        t1 = (upper - o) / d
+        return min(t0, t1), max(t0, t1)
+
+    @jit
+    def zero_crossing(t0: float, f0: float, t1: float, f1: float) -> float:
+        return t0 + (t1 - t0) * f0 / (f0 - f1)
+
+    @jit
+    def sample_along(
+        tsdf_weight: Any,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        t: float,
+        volume_origin: Any,
+        voxel_size: float,
+    ) -> float:
+        cx = (origin[0] + t * d0 - volume_origin[0]) / voxel_size
+        cy = (origin[1] + t * d1 - volume_origin[1]) / voxel_size
+        cz = (origin[2] + t * d2 - volume_origin[2]) / voxel_size
+        return sample_tsdf_at(tsdf_weight, cx, cy, cz)
+
+    @jit
+    def march_ray(
+        tsdf_weight: Any,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+    ) -> float:
+        """Ray parameter of the first + to - crossing (regula-falsi refined), NaN if none; the
+        samples lie at entry + m step (kintinuous_ref.raycast.march without skipping, whose
+        empty-space skipping is exact and so returns the same)."""
+        upper_offset = (tsdf_weight.shape[0] - 1) * voxel_size
+        lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
+        lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
+        lo2, hi2 = axis_interval(origin[2], d2, volume_origin[2], volume_origin[2] + upper_offset)
+        entry = max(max(max(lo0, lo1), lo2), 0.0)
+        exit_ = min(min(hi0, hi1), hi2)
+        if not entry < exit_:
+            return np.nan
+        previous = np.nan
+        m = 0
+        while True:
+            t = entry + m * step
+            value = sample_along(tsdf_weight, origin, d0, d1, d2, t, volume_origin, voxel_size)
+            if previous > 0 and value < 0:
+                t0 = t - step
+                estimate = zero_crossing(t0, previous, t, value)
+                f = sample_along(
+                    tsdf_weight, origin, d0, d1, d2, estimate, volume_origin, voxel_size
+                )
+                if f > 0:
+                    return zero_crossing(estimate, f, t, value)
+                if f < 0:
+                    return zero_crossing(t0, previous, estimate, f)
+                return estimate
+            if previous < 0 and value > 0:
+                return np.nan  # a back face
+            previous = value
+            m += 1
+            if not entry + m * step <= exit_:
+                return np.nan
+
+    @jit
+    def raycast_pixel(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        has_colour: bool,
+        u: int,
+        v: int,
+        camera: Any,
+        rotation: Any,
+        origin: Any,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+    ) -> None:
+        """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast).
+        `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0 beforehand."""
+        rx = (u - camera[2]) * 1.0 / camera[0]
+        ry = (v - camera[3]) * 1.0 / camera[1]
+        d0 = rotation[0, 0] * rx + rotation[0, 1] * ry + rotation[0, 2]
+        d1 = rotation[1, 0] * rx + rotation[1, 1] * ry + rotation[1, 2]
+        d2 = rotation[2, 0] * rx + rotation[2, 1] * ry + rotation[2, 2]
+        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+        t = march_ray(tsdf_weight, origin, d0, d1, d2, volume_origin, voxel_size, step)
+        if not math.isfinite(t):
+            return
+        px, py, pz = origin[0] + t * d0, origin[1] + t * d1, origin[2] + t * d2
+        cx = (px - volume_origin[0]) / voxel_size
+        cy = (py - volume_origin[1]) / voxel_size
+        cz = (pz - volume_origin[2]) / voxel_size
+        nx, ny, nz = gradient_normal(tsdf_weight, cx, cy, cz)
+        if math.isnan(nx):
+            return  # no usable normal: no use to ICP, dropped
+        vertices[v, u, 0], vertices[v, u, 1], vertices[v, u, 2] = px, py, pz
+        normals[v, u, 0], normals[v, u, 1], normals[v, u, 2] = nx, ny, nz
+        if has_colour:
+            r, g, b = surface_colour_at(colour_volume, cx, cy, cz)
+            colours[v, u, 0], colours[v, u, 1], colours[v, u, 2] = r, g, b
+
+    return SimpleNamespace(
+        dequantise=dequantise,
+        quantise=quantise,
+        ray_distance_pixel=ray_distance_pixel,
+        integrate_voxel=integrate_voxel,
+        sample_tsdf_at=sample_tsdf_at,
+        trilinear_tsdf=trilinear_tsdf,
+        gradient_normal=gradient_normal,
+        surface_colour_at=surface_colour_at,
+        march_ray=march_ray,
+        raycast_pixel=raycast_pixel,
+    )

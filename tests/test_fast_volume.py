@@ -1,0 +1,59 @@
+"""Equivalence of kintinuous_fast's CPU TSDF + colour integration, TSDF sampling and raycasting
+with kintinuous_ref (tsdf.py, raycast.py) on small frames and volumes. Cases and tolerances
+(int16 TSDF, uint8 colour) are in tests/fast_equivalence.py; the CUDA twin is test_fast_cuda.py.
+"""
+
+import fast_equivalence as fe
+import numpy as np
+import pytest
+
+from kintinuous_fast import _volume
+from kintinuous_fast.cpu import raycast as cpu_raycast
+from kintinuous_fast.cpu import tsdf as cpu_tsdf
+from kintinuous_ref import tsdf as ref_tsdf
+from kintinuous_ref.config import VolumeConfig
+from kintinuous_ref.errors import ConfigError
+
+SIZES = [(60, 80, 32), (120, 160, 48)]
+IDS = ["80x60-32^3", "160x120-48^3"]
+
+
+@pytest.mark.parametrize("size", SIZES, ids=IDS)
+def test_equivalence_cpu_integrate(size):
+    fe.check_integrate(cpu_tsdf, *size)
+
+
+def test_equivalence_cpu_integrate_weighted_colour():
+    fe.check_integrate_weighted_colour(cpu_tsdf, 60, 80, 32)
+
+
+def test_equivalence_cpu_integrate_degenerate():
+    fe.check_integrate_degenerate(cpu_tsdf, 60, 80)
+
+
+@pytest.mark.filterwarnings("ignore:invalid value encountered in cast")  # ref, NaN input
+def test_equivalence_cpu_sample_tsdf():
+    fe.check_sample_tsdf(cpu_tsdf, 60, 80, 32)
+
+
+@pytest.mark.parametrize("size", SIZES, ids=IDS)
+def test_equivalence_cpu_raycast(size):
+    fe.check_raycast(cpu_tsdf, cpu_raycast, *size)
+
+
+def test_fast_volume_is_eight_bytes_per_voxel_and_round_trips():
+    config = VolumeConfig(resolution=512, size=6.0)
+    assert _volume.memory_bytes(config) == 2**30  # the paper's 512^3 in 1 GiB
+    assert ref_tsdf.memory_bytes(config) == 3 * 2**30
+    reference, _ = fe.fused_volumes(cpu_tsdf, 60, 80, 32, 1, weighted=False)
+    back = _volume.to_reference_volume(reference)
+    again = _volume.to_reference_volume(_volume.from_reference_volume(back))
+    np.testing.assert_array_equal(again.tsdf, back.tsdf)
+    np.testing.assert_array_equal(again.colour, back.colour)
+
+
+def test_fast_make_volume_refuses_what_cannot_fit():
+    with pytest.raises(ConfigError, match="needs .* GiB but only"):
+        _volume.check_volume_config(VolumeConfig(resolution=1024), available=2**30)
+    with pytest.raises(ConfigError, match="placement"):
+        cpu_tsdf.make_volume(VolumeConfig(resolution=16, placement="behind"), np.eye(4))
