@@ -124,6 +124,7 @@ class FovisConfig:
     subpixel_refinement: bool = True  # align each matched patch to sub-pixel accuracy
     reprojection_threshold: float = 1.5  # pixels of the feature's level; larger: outlier
     min_inliers: int = 10  # fewer: FOVIS reports failure
+    patch_depth_variation: float = 0.10  # depth spread (fraction) over a patch: a silhouette
 
 
 @dataclass(frozen=True)

@@ -321,6 +321,19 @@ def test_bucketing_spreads_features_over_the_grid():
     np.testing.assert_array_equal(kept, [0, 6, 7])
 
 
+def test_corners_on_silhouettes_are_masked():
+    """A 9x9 patch touching a 2 m -> 3 m step, or a hole, is masked; a tilted plane is not."""
+    depth = np.tile(np.linspace(2.0, 2.1, 40, dtype=np.float32), (30, 1))  # 2.5 mm per pixel
+    depth[:, 30:] = 3.0
+    depth[25:, :8] = 0.0
+    mask = fovis.smooth_depth_mask(depth, radius=4, variation=0.10)
+    columns_reaching_the_step = np.arange(26, 34)  # within 4 pixels of the columns 29 | 30 edge
+    assert not mask[:, columns_reaching_the_step].any()
+    assert mask[:20, 4:26].all()  # the tilted plane: 2.2 % spread over a patch
+    assert mask[:20, 34:].all()  # the far plane
+    assert not mask[21:, :12].any()  # patches reaching the hole (rows >= 25, columns < 8)
+
+
 def test_patch_descriptor_is_the_patch_minus_its_mean():
     image = np.arange(100, dtype=np.float32).reshape(10, 10) ** 1.5
     descriptor = fovis.patch_descriptors(image, np.array([[5, 4]]), radius=1)[0]

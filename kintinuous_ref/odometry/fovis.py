@@ -5,9 +5,9 @@ motion between two RGB-D frames from FAST corners. It runs on the CPU, as in the
 Per frame pair the steps are:
 
 1. Features: FAST corners on each level of the Gaussian intensity pyramid, spread over the image by
-   bucketing (at most a few of the strongest per grid cell), kept only where the depth is valid. The
-   descriptor is the 9x9 patch of intensities around the corner minus its mean (illumination offsets
-   cancel).
+   bucketing (at most a few of the strongest per grid cell), kept only where the depth is valid and
+   smooth over the patch. The descriptor is the 9x9 patch of intensities around the corner minus
+   its mean (illumination offsets cancel).
 2. Initial rotation: the coarsest images are aligned by a 3-DOF rotation (Gauss-Newton on the
    photometric error under a pure-rotation homography K R K^-1) so that each feature's search
    window is centred where it is expected to move.
@@ -29,7 +29,11 @@ current_pose = previous_pose @ increment.
 Simplifications against the original: a fixed FAST threshold (FOVIS adapts it to hold a feature
 count), the initial rotation and the sub-pixel alignment by plain Gauss-Newton instead of ESM, no
 keyframes (always the previous frame) and the reprojection refinement by scipy's least squares on
-the 6-DOF twist.
+the 6-DOF twist. One addition: corners whose patch straddles a depth discontinuity are dropped.
+Such a corner (an object's silhouette against the background) is not a fixed point of the scene:
+under motion the background slides behind it, its patch alignment is pulled towards the
+background's smaller parallax, and its depth belongs to either side. On noise-free synthetic
+sequences these corners biased every increment the same way (about 3 % too short).
 """
 
 from __future__ import annotations
@@ -108,7 +112,16 @@ def detect_features(frame: _Frame, camera: Intrinsics, config: FovisConfig) -> F
     parts = []
     for level in range(min(config.feature_levels, len(frame.levels))):
         parts.append(
-            _detect_on_level(frame.levels[level].intensity, full_depth, camera, level, config)
+            _detect_on_level(
+                frame.levels[level].intensity,
+                full_depth,
+                smooth_depth_mask(
+                    frame.levels[level].depth, config.patch_radius, config.patch_depth_variation
+                ),
+                camera,
+                level,
+                config,
+            )
         )
     return Features(*(np.concatenate(arrays) for arrays in zip(*parts, strict=True)))
 
@@ -116,6 +129,7 @@ def detect_features(frame: _Frame, camera: Intrinsics, config: FovisConfig) -> F
 def _detect_on_level(
     intensity: np.ndarray,
     full_depth: np.ndarray,
+    smooth_depth: np.ndarray,
     camera: Intrinsics,
     level: int,
     config: FovisConfig,
@@ -130,7 +144,7 @@ def _detect_on_level(
     # As in FOVIS, a corner of any level takes its depth from the full-resolution depth image at
     # its level-0 position (2^l u, 2^l v): a smoothed coarse depth would blend across creases.
     z = full_depth[pixels[:, 1] << level, pixels[:, 0] << level].astype(np.float64)
-    has_depth = z > 0
+    has_depth = (z > 0) & smooth_depth[pixels[:, 1], pixels[:, 0]]
     pixels, responses, z = pixels[has_depth], responses[has_depth], z[has_depth]
 
     # Coarser levels cover the same image with 4x fewer pixels: a 4x smaller feature budget.
@@ -148,6 +162,19 @@ def _detect_on_level(
         descriptors,
         responses,
     )
+
+
+def smooth_depth_mask(depth: np.ndarray, radius: int, variation: float) -> np.ndarray:
+    """True where the depth inside the (2r+1)^2 patch is complete and free of discontinuities.
+
+    Min and max filters of the level's depth: a hole (0) or a spread of more than `variation`
+    (a fraction of the depth) marks a silhouette; a tilted plane stays well inside 10 % (Kinect
+    noise of about 1 % at 2 m too).
+    """
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    depth = depth.astype(np.float32)
+    nearest, farthest = cv2.erode(depth, kernel), cv2.dilate(depth, kernel)
+    return (nearest > 0) & (farthest - nearest <= variation * farthest)
 
 
 def fast_corners(intensity: np.ndarray, threshold: int) -> tuple[np.ndarray, np.ndarray]:
