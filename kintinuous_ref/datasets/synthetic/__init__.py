@@ -106,7 +106,9 @@ class Scenario:
         cos_incidence = hits.cos_incidence.ravel()[hits.pixels]
         footprint = hits.depth.ravel()[hits.pixels] / (focal * np.maximum(cos_incidence, 0.25))
         colour = self.scene.shade(hits, footprint)
-        depth = measure_depth(hits.depth, hits.cos_incidence, sensor, self.camera.depth_scale, rng)
+        depth = measure_depth(
+            hits.depth, hits.cos_incidence, sensor, self.camera.depth_scale, rng, focal
+        )
         return measure_colour(colour, brightness, sensor, rng), depth
 
     def surface_mesh(self, spacing: float = 0.05) -> pyvista.PolyData:

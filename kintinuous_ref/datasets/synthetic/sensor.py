@@ -74,13 +74,19 @@ def measure_depth(
     model: SensorModel,
     depth_scale: float,
     rng: np.random.Generator,
+    focal: float = 525.0,
 ) -> np.ndarray:
-    """Sensor depth (H, W) float32 metres, 0 = no measurement, from exact depth (inf = no hit)."""
+    """Sensor depth (H, W) float32 metres, 0 = no measurement, from exact depth (inf = no hit).
+
+    `focal` (pixels): on a plane seen at angle a the depth changes by about tan(a) / focal
+    (relative) per pixel, so small images need a larger jump before it counts as an edge.
+    """
     valid = np.isfinite(depth) & (depth >= model.min_depth) & (depth <= model.max_depth)
     if model.grazing_angle_deg is not None:
         valid &= cos_incidence >= np.cos(np.radians(model.grazing_angle_deg))
     if model.edge_dropout is not None:
-        edges = depth_edges(depth, model.edge_jump)
+        max_slope = np.tan(np.radians(model.grazing_angle_deg or 80.0))
+        edges = depth_edges(depth, max(model.edge_jump, max_slope / focal))
         grown = cv2.dilate(edges.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         valid &= ~edges & ~(grown & (rng.random(depth.shape) < model.edge_dropout))
     measured = np.where(valid, depth, 0.0)
