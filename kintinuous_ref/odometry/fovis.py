@@ -329,23 +329,29 @@ def match_features(
 
     `predicted` holds each previous feature's expected position in the current image; candidates
     lie within search_radius (per axis, pixels of the level) of it. L2 distances come from one
-    matrix product, ||a-b||^2 = ||a||^2 + ||b||^2 - 2 a.b.
+    matrix product per level, ||a-b||^2 = ||a||^2 + ||b||^2 - 2 a.b.
     """
-    if len(previous) == 0 or len(current) == 0:
+    matched_previous, matched_current = [], []
+    for level in np.intersect1d(previous.levels, current.levels):
+        rows = np.flatnonzero(previous.levels == level)
+        columns = np.flatnonzero(current.levels == level)
+        a, b = previous.descriptors[rows], current.descriptors[columns]
+        distance = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
+        outside = (
+            np.abs(predicted[rows, 0, None] - current.pixels[None, columns, 0]) > search_radius
+        ) | (np.abs(predicted[rows, 1, None] - current.pixels[None, columns, 1]) > search_radius)
+        distance[outside] = np.inf
+        best_column = np.argmin(distance, axis=1)
+        best_row = np.argmin(distance, axis=0)
+        row_index = np.arange(len(rows))
+        mutual = (best_row[best_column] == row_index) & np.isfinite(
+            distance[row_index, best_column]
+        )
+        matched_previous.append(rows[mutual])
+        matched_current.append(columns[best_column[mutual]])
+    if not matched_previous:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    a = previous.descriptors.astype(np.float64)
-    b = current.descriptors.astype(np.float64)
-    distance = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T
-    offset = np.abs(predicted[:, None, :] - current.pixels[None, :, :]).max(axis=2)
-    allowed = (offset <= search_radius) & (previous.levels[:, None] == current.levels[None, :])
-    distance = np.where(allowed, distance, np.inf)
-    best_current = np.argmin(distance, axis=1)
-    best_previous = np.argmin(distance, axis=0)
-    previous_index = np.arange(len(previous))
-    mutual = (best_previous[best_current] == previous_index) & np.isfinite(
-        distance[previous_index, best_current]
-    )
-    return previous_index[mutual], best_current[mutual]
+    return np.concatenate(matched_previous), np.concatenate(matched_current)
 
 
 def refine_subpixel(
@@ -513,8 +519,10 @@ def reprojection_residuals(
     coarse feature's quantisation counts as much as a fine one's.
     """
     scale = 2.0 ** current.levels[:, None]
-    previous_in_current = se3.transform_points(se3.inverse(increment), previous.points)
-    current_in_previous = se3.transform_points(increment, current.points)
+    rotation, translation = increment[:3, :3], increment[:3, 3]
+    # x R^T = (R x)^T row by row; the inverse motion is x -> R^T (x - t), i.e. (x - t) R.
+    previous_in_current = (previous.points - translation) @ rotation
+    current_in_previous = current.points @ rotation.T + translation
     forward = _project(previous_in_current, camera) - current.pixels * scale
     backward = _project(current_in_previous, camera) - previous.pixels * scale
     return np.concatenate([forward, backward], axis=1) / scale
