@@ -509,9 +509,15 @@ def test_bad_input_is_reported():
         synthetic.make_scenario("attic")
     with pytest.raises(ConfigError, match="frames"):
         synthetic.make_scenario("desk", frames=0)
+    with pytest.raises(ConfigError, match="seed"):
+        synthetic.make_scenario("desk", seed=-1)
     scenario = synthetic.make_scenario("desk", frames=2, width=32, height=24)
     with pytest.raises(KintinuousError, match="frames 0..1"):
         scenario.render(2)
+    with pytest.raises(KintinuousError, match="rigid motion"):
+        scenario.render_at(np.diag([1.0, 2.0, 1.0, 1.0]))
+    with pytest.raises(ConfigError, match="spacing"):
+        scenario.surface_mesh(0.0)
 
 
 def test_tiny_desk_fixture_is_what_the_generator_makes():

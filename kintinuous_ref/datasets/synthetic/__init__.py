@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.datasets.synthetic.scenarios import SCENARIOS
 from kintinuous_ref.datasets.synthetic.scene import Scene, rotate
@@ -91,6 +92,7 @@ class Scenario:
         noise None: the scenario's own sensor; False: exact; True: the Kinect-like sensor.
         """
         pose = np.asarray(pose, dtype=np.float64)
+        se3.check_pose(pose)
         sensor = self.sensor if noise is None else (SensorModel() if noise else SensorModel.exact())
         # noise depends only on the seed and the pose, so the same call gives the same image
         entropy = np.frombuffer(np.ascontiguousarray(pose).tobytes(), dtype=np.uint32)
@@ -115,10 +117,13 @@ class Scenario:
         """The ground-truth surface: a coloured triangle mesh in world coordinates.
 
         Point array "rgb" (uint8) holds each vertex's colour under normal light; triangle edges
-        are at most about `spacing` metres.
+        are at most about `spacing` metres. (Saved as PLY with texture="rgb" and read back,
+        pyvista names the array "RGB".)
         """
         import pyvista
 
+        if not 0.001 <= spacing <= 10.0:
+            raise ConfigError(f"mesh spacing must be within 0.001..10 m, got {spacing}")
         points, triangles, colours = [], [], []
         offset = 0
         for index, solid in enumerate(self.scene.solids):
@@ -151,6 +156,8 @@ def make_scenario(
         raise ConfigError(f"unknown scenario '{name}'; choose one of {', '.join(SCENARIOS)}")
     if frames < 1:
         raise ConfigError(f"frames must be at least 1, got {frames}")
+    if seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {seed}")
     if width < 8 or height < 8:
         raise ConfigError(f"image size must be at least 8x8, got {width}x{height}")
     rng = np.random.default_rng([seed, 0])
@@ -220,6 +227,8 @@ def write_scenario(
     scene.ply (ground-truth surface, binary PLY with per-vertex RGB) and scenario.json.
     workers > 1 renders frames in that many processes; mesh_spacing: the mesh's edge length (m).
     """
+    if workers < 1:
+        raise ConfigError(f"workers must be at least 1, got {workers}")
     build = (name, frames, width, height, seed, noise)
     scenario = make_scenario(*build)
     out = Path(out)
