@@ -98,9 +98,10 @@ class Scene:
     def raycast(self, camera: Intrinsics, pose: np.ndarray) -> RayHits:
         """Exact nearest hits of all pixel rays of `camera` at camera-to-world `pose`."""
         height, width = camera.height, camera.width
-        rays = camera.ray_directions()  # (H, W, 3), z = 1: the hit parameter is the depth
-        # pixel ray (x_u, y_v, 1): x depends on the column only, y on the row only
-        ray_x, ray_y = rays[0, :, 0], rays[:, 0, 1]
+        # pixel (u, v) has the ray (x_u, y_v, 1) (camera.ray_directions): with z = 1 the hit
+        # parameter is the depth; x depends on the column only, y on the row only
+        ray_x = (np.arange(width) - camera.cx) / camera.fx
+        ray_y = (np.arange(height) - camera.cy) / camera.fy
         depth = np.full((height, width), np.inf)
         # int16 owners: numpy's stable argsort is then a radix sort (linear time)
         winner = np.full((height, width), -1, dtype=np.int16)
@@ -115,8 +116,8 @@ class Scene:
             directions = _rotated_rays(transform[:3, :3], ray_x[cols], ray_y[rows])
             t = solid.intersect(transform[:3, 3], directions)
             closer = t < depth[rows, cols]
-            depth[rows, cols][closer] = t[closer]
-            winner[rows, cols][closer] = index
+            np.copyto(depth[rows, cols], t, where=closer)
+            np.copyto(winner[rows, cols], index, where=closer)
 
         # Surface attributes, once per hit pixel, grouped by the solid that won it.
         pixels = np.flatnonzero(winner >= 0)
@@ -124,11 +125,10 @@ class Scene:
         order = np.argsort(owners, kind="stable")
         pixels, owners = pixels[order], owners[order]
         hit_depth = depth.ravel()[pixels]
-        camera_points = rays.reshape(-1, 3)[pixels] * hit_depth[:, None]
+        hit_x, hit_y = ray_x[pixels % width], ray_y[pixels // width]
+        camera_points = np.stack([hit_x * hit_depth, hit_y * hit_depth, hit_depth], axis=1)
         # |camera point| = depth |ray|, for the angle of incidence
-        distance = hit_depth * np.sqrt(
-            1.0 + ray_x[pixels % width] ** 2 + ray_y[pixels // width] ** 2
-        )
+        distance = hit_depth * np.sqrt(1.0 + hit_x**2 + hit_y**2)
         surface = np.empty(len(pixels), dtype=np.intp)
         uv = np.empty((len(pixels), 2))
         light = np.empty(len(pixels))
