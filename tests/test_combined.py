@@ -37,15 +37,22 @@ def test_joint_system_is_the_weighted_sum(room):
     # A pose between the two frames, so that both residuals are non-zero.
     pose = previous @ se3.exp(0.5 * se3.log(se3.inverse(previous) @ current))
     a, b = icp.system(1, pose), rgbd.system(1, pose)
+    # Default: E_icp / sigma_icp^2 + w E_rgbd, sigma_icp^2 the mean squared ICP residual.
+    sigma2 = a.cost / a.count
     joint = CombinedProblem(icp, rgbd, rgbd_weight=0.1).system(1, pose)
-    np.testing.assert_allclose(joint.A, a.A + 0.1 * b.A, rtol=1e-12)
-    np.testing.assert_allclose(joint.b, a.b + 0.1 * b.b, rtol=1e-12)
+    np.testing.assert_allclose(joint.A, a.A / sigma2 + 0.1 * b.A, rtol=1e-12)
+    np.testing.assert_allclose(joint.b, a.b / sigma2 + 0.1 * b.b, rtol=1e-12)
     assert joint.count == a.count + b.count
+    # "paper-metres": the literal sum with E_icp in square metres.
+    metres = CombinedProblem(icp, rgbd, 0.1, weighting="paper-metres").system(1, pose)
+    np.testing.assert_allclose(metres.A, a.A + 0.1 * b.A, rtol=1e-12)
+    np.testing.assert_allclose(metres.b, a.b + 0.1 * b.b, rtol=1e-12)
 
 
 def test_joint_system_equals_the_stacked_least_squares(room):
-    # Eq. 12: [J_icp; v J_rgbd] xi = -[r_icp; v r_rgbd] with v = sqrt(w), built here from the rows
-    # directly (the RGB-D rows carrying their robust weights 1 / (sigma' + |r|)).
+    # Eq. 12: [J_icp / s; v J_rgbd] xi = -[r_icp / s; v r_rgbd] with v = sqrt(w) and s the RMS ICP
+    # residual, built here from the rows directly (the RGB-D rows carrying their robust weights
+    # 1 / (sigma' + |r|)).
     previous, current, icp, rgbd = room
     pose = previous @ se3.exp(0.5 * se3.log(se3.inverse(previous) @ current))
     level = icp.current_levels[1]
@@ -61,8 +68,9 @@ def test_joint_system_equals_the_stacked_least_squares(room):
     sigma = np.sqrt(np.mean(r_rgbd**2))
     row_weight = 1.0 / (sigma + np.abs(r_rgbd))
     v = np.sqrt(0.1)
-    stacked_j = np.concatenate([j_icp.T, v * row_weight[:, None] * j_rgbd.T])
-    stacked_r = np.concatenate([r_icp, v * row_weight * r_rgbd])
+    icp_rms = np.sqrt(np.mean(r_icp**2))
+    stacked_j = np.concatenate([j_icp.T / icp_rms, v * row_weight[:, None] * j_rgbd.T])
+    stacked_r = np.concatenate([r_icp / icp_rms, v * row_weight * r_rgbd])
     expected_step = np.linalg.lstsq(stacked_j, -stacked_r, rcond=None)[0]
     joint = CombinedProblem(icp, rgbd, 0.1).system(1, pose)
     np.testing.assert_allclose(joint.A, stacked_j.T @ stacked_j, rtol=1e-9)
