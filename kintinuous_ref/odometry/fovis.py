@@ -39,7 +39,7 @@ sequences these corners biased every increment the same way (about 3 % too short
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -51,6 +51,9 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import FovisConfig
 from kintinuous_ref.errors import TrackingError
 
+if TYPE_CHECKING:
+    from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel
+
 # Sub-pixel refinement: Gauss-Newton steps, and how far (pixels) a patch may slide from its corner.
 _SUBPIXEL_ITERATIONS = 6
 _SUBPIXEL_REACH = 2
@@ -59,15 +62,6 @@ _SUBPIXEL_REACH = 2
 _DEPTH_AGREEMENT = 0.03
 # An initial rotation estimate larger than this (radians) is implausible at 30 Hz: ignore it.
 _MAX_INITIAL_ROTATION = 0.35
-
-
-class _Level(Protocol):
-    intensity: np.ndarray
-    depth: np.ndarray
-
-
-class _Frame(Protocol):
-    levels: list
 
 
 @dataclass
@@ -106,7 +100,7 @@ class Features:
 # --------------------------------------------------------------------------------------------
 
 
-def detect_features(frame: _Frame, camera: Intrinsics, config: FovisConfig) -> Features:
+def detect_features(frame: PreprocessedFrame, camera: Intrinsics, config: FovisConfig) -> Features:
     """FAST corners with valid depth and patch descriptors on the first feature_levels levels."""
     full_depth = frame.levels[0].depth
     parts = []
@@ -357,7 +351,7 @@ def match_features(
 def refine_subpixel(
     previous: Features,
     current: Features,
-    current_levels: list,
+    current_levels: list[PyramidLevel],
     camera: Intrinsics,
     patch_radius: int,
 ) -> tuple[Features, np.ndarray]:
@@ -556,7 +550,7 @@ def refine_motion(
 
 
 def estimate_motion(
-    previous: _Frame, current: _Frame, camera: Intrinsics, config: FovisConfig
+    previous: PreprocessedFrame, current: PreprocessedFrame, camera: Intrinsics, config: FovisConfig
 ) -> FovisResult:
     """FOVIS between two preprocessed frames; ok=False (with a reason) when it cannot tell."""
     _check_frame(previous, camera, "previous")
@@ -639,7 +633,7 @@ def _failure(reason: str) -> FovisResult:
     return FovisResult(increment=np.eye(4), ok=False, reason=reason)
 
 
-def _check_frame(frame: _Frame, camera: Intrinsics, name: str) -> None:
+def _check_frame(frame: PreprocessedFrame, camera: Intrinsics, name: str) -> None:
     levels = getattr(frame, "levels", None)
     if not levels:
         raise TrackingError(f"FOVIS: the {name} frame has no pyramid levels")
