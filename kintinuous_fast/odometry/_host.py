@@ -1,0 +1,281 @@
+"""Host-side code shared by the cpu and cuda odometry kernels: the per-call constants (relative
+poses computed exactly as the reference computes them), the unpacking of the accumulated partial
+sums into a LinearSystem, input checks, and the per-frame problems and trackers written once over
+"a module with the kernels" (odometry/cpu.py or odometry/cuda.py).
+
+The Gauss-Newton loop itself (solve: 6x6 Cholesky in float64, apply_increment, refine) is the
+reference's: it runs on the host in both backends, as in the paper (section IV-A.3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from kintinuous_ref import se3
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import Config
+from kintinuous_ref.errors import ConfigError, DatasetError
+from kintinuous_ref.odometry import DenseTracker as RefDenseTracker
+from kintinuous_ref.odometry import FovisTracker as RefFovisTracker
+from kintinuous_ref.odometry.combined import CombinedProblem
+from kintinuous_ref.odometry.rgbd import InterestPoints
+from kintinuous_ref.odometry.solve import LinearSystem
+
+from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, SLOT_EXTRA
+
+# Upper-triangle (i, j) pairs of A in the order of the accumulated vector (ops.add_row).
+_UPPER = [(i, j) for i in range(6) for j in range(i, 6)]
+
+
+def unpack(total: np.ndarray) -> tuple[LinearSystem, int]:
+    """(LinearSystem, the spare slot as an int) from the NV summed float64 values."""
+    A = np.empty((6, 6))
+    for k, (i, j) in enumerate(_UPPER):
+        A[i, j] = A[j, i] = total[k]
+    count = int(round(total[SLOT_COUNT]))
+    system = LinearSystem(A, total[SLOT_B : SLOT_B + 6].copy(), count, float(total[SLOT_COST]))
+    return system, int(round(total[SLOT_EXTRA]))
+
+
+def sum_partials(partials: np.ndarray) -> tuple[LinearSystem, int]:
+    """Sum per-chunk / per-block partials (rows, NV) in float64 on the host and unpack them."""
+    return unpack(np.asarray(partials, dtype=np.float64).reshape(-1, NV).sum(axis=0))
+
+
+def camera_constants(camera: Intrinsics) -> tuple[float, float, float, float]:
+    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+
+
+def icp_constants(
+    pose: np.ndarray, model_pose: np.ndarray, distance_threshold: float, angle_threshold_deg: float
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(pose, current camera to model camera, squared distance, cos angle) as `associate`."""
+    pose = np.ascontiguousarray(pose, dtype=np.float64)
+    to_model = np.ascontiguousarray(se3.inverse(model_pose) @ pose)
+    return (
+        pose,
+        to_model,
+        float(distance_threshold**2),
+        float(np.cos(np.radians(angle_threshold_deg))),
+    )
+
+
+def relative_pose(pose: np.ndarray, previous_pose: np.ndarray) -> np.ndarray:
+    """T_prev^-1 T exactly as `correspond` computes it (np.linalg.inv)."""
+    return np.ascontiguousarray(np.linalg.inv(previous_pose) @ pose, dtype=np.float64)
+
+
+def check_map(name: str, array: Any, camera: Intrinsics) -> None:
+    """A (h, w, 3) map of the camera's size, else a one-line DatasetError."""
+    expected = (camera.height, camera.width, 3)
+    if tuple(array.shape) != expected:
+        raise DatasetError(f"{name} is {tuple(array.shape)}, expected {expected} from the camera")
+
+
+def check_image(name: str, array: Any, shape: tuple[int, ...]) -> None:
+    if tuple(array.shape) != tuple(shape):
+        raise DatasetError(f"{name} is {tuple(array.shape)}, expected {tuple(shape)}")
+
+
+def chunks_for(count: int, chunks: int) -> int:
+    """How many fixed chunks a loop over `count` items is split into (>= 1)."""
+    return max(1, min(chunks, count))
+
+
+# ----------------------------------------------------------------------------------------------
+# Per-frame problems (the reference's IcpProblem / RgbdProblem with the kernels underneath)
+
+
+class IcpProblemBase:
+    """ICP for one frame: the current pyramid against the model pyramid, any pose estimate."""
+
+    kernels: ModuleType  # set by the backend module's subclass
+
+    def __init__(
+        self,
+        current_levels: Sequence,
+        model_levels: Sequence[tuple[Any, Any]],
+        model_pose: np.ndarray,
+        distance_threshold: float = 0.10,
+        angle_threshold_deg: float = 20.0,
+    ) -> None:
+        self.current_levels = current_levels
+        self.model_levels = model_levels
+        self.model_pose = model_pose
+        self.distance_threshold = distance_threshold
+        self.angle_threshold_deg = angle_threshold_deg
+        self._maps: dict[int, tuple[Any, Any, Any, Any]] = {}
+
+    def maps(self, level: int) -> tuple[Any, Any, Any, Any]:
+        """The level's current and model maps as the kernels take them, staged once."""
+        if level not in self._maps:
+            current = self.current_levels[level]
+            model_vertices, model_normals = self.model_levels[level]
+            stage = self.kernels.stage
+            self._maps[level] = (
+                stage(current.vertices),
+                stage(current.normals),
+                stage(model_vertices),
+                stage(model_normals),
+            )
+        return self._maps[level]
+
+    def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
+        return self.kernels.icp_system_and_valid(
+            *self.maps(level),
+            pose,
+            self.model_pose,
+            self.current_levels[level].camera,
+            self.distance_threshold,
+            self.angle_threshold_deg,
+        )
+
+    def system(self, level: int, pose: np.ndarray) -> LinearSystem:
+        return self.system_and_valid(level, pose)[0]
+
+    def inlier_fraction(self, pose: np.ndarray) -> float:
+        """Matched pairs per valid current vertex at full resolution (0 when none is valid)."""
+        system, valid = self.system_and_valid(0, pose)
+        return system.count / valid if valid else 0.0
+
+
+class RgbdProblemBase:
+    """RGB-D odometry for one frame pair: interest points once per level, then any pose."""
+
+    kernels: ModuleType
+
+    def __init__(
+        self,
+        previous_levels: Sequence,
+        current_levels: Sequence,
+        previous_pose: np.ndarray,
+        min_gradient: Sequence[float] = (12.0, 5.0, 3.0, 1.0),
+        max_depth_change: float = 0.07,
+        max_depth: float = 6.0,
+        gradient: str = "current",
+    ) -> None:
+        if gradient not in ("current", "warped"):
+            raise ConfigError(f"rgbd.gradient must be 'current' or 'warped', got {gradient!r}")
+        self.previous_levels = previous_levels
+        self.current_levels = current_levels
+        self.previous_pose = previous_pose
+        self.min_gradient = tuple(min_gradient)
+        self.max_depth_change = max_depth_change
+        self.max_depth = max_depth
+        self.gradient = gradient
+        self._points: dict[int, InterestPoints] = {}
+        self._previous: dict[int, tuple[Any, ...]] = {}
+
+    def points(self, level: int) -> InterestPoints:
+        """Algorithm 1 for a level of the current frame, computed on first use (kept where the
+        kernels keep it: device arrays for cuda)."""
+        if level not in self._points:
+            current = self.current_levels[level]
+            stage = self.kernels.stage
+            threshold = self.min_gradient[min(level, len(self.min_gradient) - 1)]
+            self._points[level] = self.kernels.prepare_level(
+                stage(current.depth),
+                stage(current.intensity),
+                stage(current.intensity_dx),
+                stage(current.intensity_dy),
+                current.camera,
+                threshold,
+                self.max_depth,
+            )
+        return self._points[level]
+
+    def previous(self, level: int) -> tuple[Any, ...]:
+        if level not in self._previous:
+            previous = self.previous_levels[level]
+            stage = self.kernels.stage
+            warped = self.gradient == "warped"
+            self._previous[level] = (
+                stage(previous.depth),
+                stage(previous.intensity),
+                stage(previous.intensity_dx) if warped else None,
+                stage(previous.intensity_dy) if warped else None,
+            )
+        return self._previous[level]
+
+    def system(self, level: int, pose: np.ndarray) -> LinearSystem:
+        depth, intensity, dx, dy = self.previous(level)
+        return self.kernels.rgbd_system(
+            self.points(level),
+            pose,
+            self.previous_pose,
+            depth,
+            intensity,
+            self.previous_levels[level].camera,
+            self.max_depth_change,
+            dx,
+            dy,
+        )
+
+    def inlier_fraction(self, pose: np.ndarray) -> float:
+        """Correspondences per interest point at full resolution (0 when there is none)."""
+        total = int(self.points(0).indices.shape[0])
+        return self.system(0, pose).count / total if total else 0.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Trackers: the reference's, with the fast problems underneath
+
+
+class FastDenseTracker(RefDenseTracker):
+    """kintinuous_ref.odometry.DenseTracker (same coarse-to-fine refine, failure checks and
+    recovery) whose ICP / RGB-D systems come from a kernels module (cpu or cuda)."""
+
+    def __init__(
+        self, method: str, config: Config, camera: Intrinsics, kernels: ModuleType
+    ) -> None:
+        super().__init__(method, config, camera)
+        self.kernels = kernels
+
+    def _problem(self, previous, current, model, previous_pose):  # noqa: ANN001, ANN202
+        from kintinuous_ref.preprocess import model_pyramid
+
+        levels = len(self.iterations)
+        icp = rgbd = None
+        if self.method in ("icp", "icp+rgbd"):
+            icp = self.kernels.IcpProblem(
+                current.levels,
+                model_pyramid(model.vertices, model.normals, levels),
+                model.pose,
+                self.config.icp.distance_threshold,
+                self.config.icp.angle_threshold_deg,
+            )
+        if self.method in ("rgbd", "icp+rgbd"):
+            rgbd = self.kernels.RgbdProblem(
+                previous.levels,
+                current.levels,
+                previous_pose,
+                self.config.rgbd.min_gradient,
+                self.config.rgbd.max_depth_change,
+                self.config.rgbd.max_depth,
+                self.config.rgbd.gradient,
+            )
+        if icp is not None and rgbd is not None:
+            combined = self.config.combined
+            return CombinedProblem(
+                icp,
+                rgbd,
+                combined.rgbd_weight,
+                combined.weighting,
+                combined.original_code_icp_scale,
+            )
+        return icp if icp is not None else rgbd
+
+
+class FastFovisTracker(RefFovisTracker):
+    """FOVIS (the reference's, on the CPU as in the paper) switching with a fast dense half."""
+
+    def __init__(
+        self, method: str, config: Config, camera: Intrinsics, kernels: ModuleType
+    ) -> None:
+        super().__init__(method, config, camera)
+        other = method.partition("/")[2]
+        self.dense = FastDenseTracker(other, config, camera, kernels) if other else None

@@ -1,0 +1,527 @@
+# ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
+"""kintinuous_ref.odometry on the CPU: numba prange loops around kintinuous_fast.odometry.ops.
+
+Same public names, signatures and results as the reference modules icp.py, rgbd.py, solve.py and
+combined.py (tests/test_fast_odometry.py states the tolerances). The normal equations are summed
+without racing: each loop is split into a FIXED number of chunks (CHUNKS, independent of the
+thread count), every chunk sums its rows into its own float64 row of partials, and the host adds
+the partials. Results are therefore the same on any number of threads, run after run. Lists
+(interest points, correspondences) come out in the reference's order.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numba
+import numpy as np
+from numba import prange
+
+from kintinuous_fast.ops import cpu_jit
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
+from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
+from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
+
+from . import _host
+from .ops import NV, build_ops
+
+__all__ = [
+    "CombinedProblem",
+    "Correspondences",
+    "IcpProblem",
+    "InterestPoints",
+    "LinearSystem",
+    "RgbdProblem",
+    "accumulate",
+    "apply_increment",
+    "associate",
+    "correspond",
+    "icp_scale",
+    "icp_system",
+    "interest_points",
+    "joint_system",
+    "photometric_rows",
+    "point_to_plane_rows",
+    "prepare_level",
+    "refine",
+    "rgbd_system",
+    "solve",
+]
+
+# Chunks per reduction loop: enough to keep every core busy, few enough that the partials cost
+# nothing to add up. Fixed, so that the order of summation never depends on the thread count.
+CHUNKS = 64
+
+_ops = build_ops(cpu_jit)
+# Module-level names: numba resolves the scalar functions as globals of the loops below.
+icp_match = _ops.icp_match
+map_point = _ops.map_point
+point_to_plane_row = _ops.point_to_plane_row
+is_interest = _ops.is_interest
+has_depth = _ops.has_depth
+backproject = _ops.backproject
+warp_point = _ops.warp_point
+photometric_row = _ops.photometric_row
+robust_weight = _ops.robust_weight
+add_row = _ops.add_row
+
+_loop = numba.njit(parallel=True, cache=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# Loops
+
+
+@_loop
+def _icp_loop(vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
+    """Association + point-to-plane row + accumulation over every pixel of the current map;
+    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points)."""
+    height, width = vertices.shape[0], vertices.shape[1]
+    n = height * width
+    chunks = out.shape[0]
+    for c in prange(chunks):
+        acc = out[c]
+        for i in range(c * n // chunks, (c + 1) * n // chunks):
+            v = i // width
+            u = i - v * width
+            ok, px, py, pz, nx, ny, nz = map_point(vertices, normals, v, u)
+            if not ok:
+                continue
+            acc[NV - 1] += 1.0
+            kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
+                px, py, pz, nx, ny, nz, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min
+            )
+            if kept:
+                j0, j1, j2, j3, j4, j5, r = point_to_plane_row(wx, wy, wz, qx, qy, qz, ux, uy, uz)
+                add_row(acc, j0, j1, j2, j3, j4, j5, r, 1.0)
+
+
+@_loop
+def _associate_loop(
+    points, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, keep, out
+):
+    for k in prange(points.shape[1]):
+        kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
+            points[0, k],
+            points[1, k],
+            points[2, k],
+            normals[0, k],
+            normals[1, k],
+            normals[2, k],
+            pose,
+            to_model,
+            mv,
+            mn,
+            fx,
+            fy,
+            cx,
+            cy,
+            dist2,
+            cos_min,
+        )
+        keep[k] = kept
+        out[0, k], out[1, k], out[2, k] = wx, wy, wz
+        out[3, k], out[4, k], out[5, k] = qx, qy, qz
+        out[6, k], out[7, k], out[8, k] = ux, uy, uz
+
+
+@_loop
+def _point_to_plane_loop(world, mv, mn, jacobian, residuals):
+    for k in prange(world.shape[1]):
+        j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
+            world[0, k], world[1, k], world[2, k], mv[0, k], mv[1, k], mv[2, k], mn[0, k],
+            mn[1, k], mn[2, k],
+        )  # fmt: skip
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+        residuals[k] = r
+
+
+@_loop
+def _accumulate_loop(jacobian, residuals, weights, weighted, out):
+    n = residuals.shape[0]
+    chunks = out.shape[0]
+    for c in prange(chunks):
+        acc = out[c]
+        for k in range(c * n // chunks, (c + 1) * n // chunks):
+            w = weights[k] if weighted else 1.0
+            add_row(
+                acc, jacobian[0, k], jacobian[1, k], jacobian[2, k], jacobian[3, k],
+                jacobian[4, k], jacobian[5, k], residuals[k], w,
+            )  # fmt: skip
+
+
+@_loop
+def _interest_mask_loop(dx, dy, depth, g2, use_depth, max_depth, mask):
+    for v in prange(dx.shape[0]):
+        for u in range(dx.shape[1]):
+            keep = is_interest(dx, dy, v, u, g2)
+            if keep and use_depth:
+                keep = has_depth(depth, v, u, max_depth)
+            mask[v, u] = keep
+
+
+@_loop
+def _interest_data_loop(indices, depth, intensity, dx, dy, fx, fy, cx, cy, points, values, grad):
+    width = depth.shape[1]
+    for k in prange(indices.shape[0]):
+        i = indices[k]
+        v = i // width
+        u = i - v * width
+        points[0, k], points[1, k], points[2, k] = backproject(
+            u, v, float(depth[v, u]), fx, fy, cx, cy
+        )
+        values[k] = float(intensity[v, u])
+        grad[0, k] = float(dx[v, u])
+        grad[1, k] = float(dy[v, u])
+
+
+@_loop
+def _correspond_loop(
+    points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy, warped,
+    fx, fy, cx, cy, max_change, residuals, world, warped_points, used_gradient, sums,
+):  # fmt: skip
+    """Algorithm 2 per interest point: residual (NaN = not kept) and what J needs; sums[c] =
+    (sum r^2, count) of chunk c for sigma'."""
+    n = residuals.shape[0]
+    chunks = sums.shape[0]
+    for c in prange(chunks):
+        for k in range(c * n // chunks, (c + 1) * n // chunks):
+            ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
+                points, intensity, gradient, k, relative, pose, depth, prev_i, prev_dx, prev_dy,
+                warped, fx, fy, cx, cy, max_change,
+            )  # fmt: skip
+            residuals[k] = r
+            world[0, k], world[1, k], world[2, k] = wx, wy, wz
+            warped_points[0, k], warped_points[1, k], warped_points[2, k] = x, y, z
+            used_gradient[0, k], used_gradient[1, k] = gx, gy
+            if ok:
+                sums[c, 0] += r * r
+                sums[c, 1] += 1.0
+
+
+@_loop
+def _photometric_loop(world, warped_points, gradient, previous_pose, fx, fy, jacobian):
+    for k in prange(world.shape[1]):
+        j0, j1, j2, j3, j4, j5 = photometric_row(
+            world[0, k], world[1, k], world[2, k], warped_points[0, k], warped_points[1, k],
+            warped_points[2, k], gradient[0, k], gradient[1, k], previous_pose, fx, fy,
+        )  # fmt: skip
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+
+
+@_loop
+def _rgbd_rows_loop(residuals, world, warped_points, gradient, previous_pose, fx, fy, sigma, out):
+    """Robustly weighted photometric rows of the kept pairs, summed per chunk."""
+    n = residuals.shape[0]
+    chunks = out.shape[0]
+    for c in prange(chunks):
+        acc = out[c]
+        for k in range(c * n // chunks, (c + 1) * n // chunks):
+            r = residuals[k]
+            if np.isnan(r):
+                continue
+            j0, j1, j2, j3, j4, j5 = photometric_row(
+                world[0, k], world[1, k], world[2, k], warped_points[0, k], warped_points[1, k],
+                warped_points[2, k], gradient[0, k], gradient[1, k], previous_pose, fx, fy,
+            )  # fmt: skip
+            w = robust_weight(r, sigma)
+            add_row(acc, j0, j1, j2, j3, j4, j5, r, w * w)
+
+
+# ----------------------------------------------------------------------------------------------
+# Host helpers
+
+
+def stage(array):
+    """Arrays as the loops take them: NumPy, any layout (device arrays are downloaded)."""
+    if array is None:
+        return None
+    if hasattr(array, "copy_to_host") and not isinstance(array, np.ndarray):
+        return array.copy_to_host()
+    return np.asarray(array)
+
+
+def _partials(count: int) -> np.ndarray:
+    return np.zeros((_host.chunks_for(count, CHUNKS), NV))
+
+
+# ----------------------------------------------------------------------------------------------
+# ICP (kintinuous_ref.odometry.icp)
+
+
+def icp_system_and_valid(
+    vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
+    distance_threshold, angle_threshold_deg,
+) -> tuple[LinearSystem, int]:  # fmt: skip
+    """icp_system and the number of valid current points (for the inlier fraction)."""
+    _host.check_map("current vertex map", vertices, camera)
+    _host.check_map("current normal map", normals, camera)
+    _host.check_map("model vertex map", model_vertices, camera)
+    _host.check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = _host.icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    out = _partials(camera.height * camera.width)
+    _icp_loop(
+        vertices, normals, pose, to_model, model_vertices, model_normals,
+        *_host.camera_constants(camera), dist2, cos_min, out,
+    )  # fmt: skip
+    return _host.sum_partials(out)
+
+
+def icp_system(
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    pose: np.ndarray,
+    model_vertices: np.ndarray,
+    model_normals: np.ndarray,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float = 0.10,
+    angle_threshold_deg: float = 20.0,
+) -> LinearSystem:
+    """The 6x6 point-to-plane normal equations of one ICP iteration at one level: association,
+    rows and sums in one pass over the current maps (nothing is stored per pair)."""
+    return icp_system_and_valid(
+        stage(vertices), stage(normals), stage(model_vertices), stage(model_normals),
+        pose, model_pose, camera, distance_threshold, angle_threshold_deg,
+    )[0]  # fmt: skip
+
+
+def associate(
+    points: np.ndarray,
+    point_normals: np.ndarray,
+    pose: np.ndarray,
+    model_vertices: np.ndarray,
+    model_normals: np.ndarray,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float,
+    angle_threshold_deg: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projective data association: (world point, model vertex, model normal) as (3, M) columns,
+    in the reference's order. Model maps as (3, h*w) columns (ref map_columns)."""
+    shape = (camera.height, camera.width, 3)
+    _host.check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
+    _host.check_image("model normal columns", model_normals, (3, camera.height * camera.width))
+    pose, to_model, dist2, cos_min = _host.icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    points = np.asarray(points, dtype=np.float64)
+    point_normals = np.asarray(point_normals, dtype=np.float64)
+    keep = np.empty(points.shape[1], dtype=np.bool_)
+    out = np.empty((9, points.shape[1]))
+    _associate_loop(
+        points, point_normals, pose, to_model,
+        np.asarray(model_vertices).T.reshape(shape), np.asarray(model_normals).T.reshape(shape),
+        *_host.camera_constants(camera), dist2, cos_min, keep, out,
+    )  # fmt: skip
+    kept = np.compress(keep, out, axis=1)
+    return kept[0:3], kept[3:6], kept[6:9]
+
+
+def point_to_plane_rows(
+    world: np.ndarray, model_vertices: np.ndarray, model_normals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobian (6, N) and residuals (N,) of the point-to-plane cost at xi = 0 (eq. 9)."""
+    n = world.shape[1]
+    jacobian = np.empty((6, n))
+    residuals = np.empty(n)
+    _point_to_plane_loop(
+        np.asarray(world, dtype=np.float64),
+        np.asarray(model_vertices, dtype=np.float64),
+        np.asarray(model_normals, dtype=np.float64),
+        jacobian,
+        residuals,
+    )
+    return jacobian, residuals
+
+
+# ----------------------------------------------------------------------------------------------
+# Normal equations (kintinuous_ref.odometry.solve)
+
+
+def accumulate(
+    jacobian: np.ndarray, residuals: np.ndarray, weights: np.ndarray | None = None
+) -> LinearSystem:
+    """Normal equations of the (6, N) Jacobian and (N,) residuals in float64, chunked sums."""
+    residuals = np.asarray(residuals, dtype=np.float64)
+    out = _partials(len(residuals))
+    weighted = weights is not None
+    _accumulate_loop(
+        np.asarray(jacobian, dtype=np.float64),
+        residuals,
+        np.asarray(weights, dtype=np.float64) if weighted else residuals,
+        weighted,
+        out,
+    )
+    return _host.sum_partials(out)[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# RGB-D (kintinuous_ref.odometry.rgbd)
+
+
+def _interest_mask(dx, dy, depth, min_gradient, max_depth) -> np.ndarray:
+    mask = np.empty(dx.shape, dtype=np.bool_)
+    use_depth = depth is not None
+    _interest_mask_loop(
+        dx, dy, depth if use_depth else dx, float(min_gradient) ** 2, use_depth,
+        float(max_depth), mask,
+    )  # fmt: skip
+    return mask
+
+
+def interest_points(
+    intensity_dx: np.ndarray, intensity_dy: np.ndarray, min_gradient: float
+) -> np.ndarray:
+    """Algorithm 1: flat indices (ascending) of the pixels with dx^2 + dy^2 >= g^2."""
+    dx, dy = stage(intensity_dx), stage(intensity_dy)
+    _host.check_image("intensity_dy", dy, dx.shape)
+    return np.flatnonzero(_interest_mask(dx, dy, None, min_gradient, 0.0))
+
+
+def prepare_level(
+    depth: np.ndarray,
+    intensity: np.ndarray,
+    intensity_dx: np.ndarray,
+    intensity_dy: np.ndarray,
+    camera: Intrinsics,
+    min_gradient: float,
+    max_depth: float,
+) -> InterestPoints:
+    """Interest points with valid depth and their 3D points, intensities and gradients."""
+    depth, intensity = stage(depth), stage(intensity)
+    dx, dy = stage(intensity_dx), stage(intensity_dy)
+    shape = (camera.height, camera.width)
+    for name, image in (("depth", depth), ("intensity", intensity), ("dx", dx), ("dy", dy)):
+        _host.check_image(f"current {name} image", image, shape)
+    indices = np.flatnonzero(_interest_mask(dx, dy, depth, min_gradient, max_depth))
+    n = len(indices)
+    points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
+    _interest_data_loop(
+        indices, depth, intensity, dx, dy, *_host.camera_constants(camera), points, values,
+        gradient,
+    )  # fmt: skip
+    return InterestPoints(indices, points, values, gradient)
+
+
+def _correspond_all(
+    points, pose, previous_pose, previous_depth, previous_intensity, camera, max_depth_change,
+    previous_dx, previous_dy,
+):  # fmt: skip
+    """Per interest point: (residuals with NaN = not kept, world, warped, gradient, sums)."""
+    previous_depth, previous_intensity = stage(previous_depth), stage(previous_intensity)
+    shape = (camera.height, camera.width)
+    _host.check_image("previous depth image", previous_depth, shape)
+    _host.check_image("previous intensity image", previous_intensity, shape)
+    warped = previous_dx is not None and previous_dy is not None
+    prev_dx = stage(previous_dx) if warped else previous_intensity
+    prev_dy = stage(previous_dy) if warped else previous_intensity
+    n = points.points.shape[1]
+    residuals, world = np.empty(n), np.empty((3, n))
+    warped_points, gradient = np.empty((3, n)), np.empty((2, n))
+    sums = np.zeros((_host.chunks_for(n, CHUNKS), 2))
+    _correspond_loop(
+        np.asarray(points.points, dtype=np.float64),
+        np.asarray(points.intensity, dtype=np.float64),
+        np.asarray(points.gradient, dtype=np.float64),
+        _host.relative_pose(pose, previous_pose),
+        np.ascontiguousarray(pose, dtype=np.float64),
+        previous_depth, previous_intensity, prev_dx, prev_dy, warped,
+        *_host.camera_constants(camera), float(max_depth_change),
+        residuals, world, warped_points, gradient, sums,
+    )  # fmt: skip
+    return residuals, world, warped_points, gradient, sums.sum(axis=0)
+
+
+def correspond(
+    points: InterestPoints,
+    pose: np.ndarray,
+    previous_pose: np.ndarray,
+    previous_depth: np.ndarray,
+    previous_intensity: np.ndarray,
+    camera: Intrinsics,
+    max_depth_change: float,
+    previous_dx: np.ndarray | None = None,
+    previous_dy: np.ndarray | None = None,
+) -> Correspondences:
+    """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
+    image and d_s tests, in the reference's order."""
+    residuals, world, warped_points, gradient, _ = _correspond_all(
+        points, pose, previous_pose, previous_depth, previous_intensity, camera,
+        max_depth_change, previous_dx, previous_dy,
+    )  # fmt: skip
+    kept = np.flatnonzero(~np.isnan(residuals))
+    return Correspondences(
+        np.take(world, kept, axis=1),
+        np.take(warped_points, kept, axis=1),
+        residuals[kept],
+        np.take(gradient, kept, axis=1),
+        kept,
+    )
+
+
+def photometric_rows(
+    correspondences: Correspondences, previous_pose: np.ndarray, camera: Intrinsics
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unweighted Jacobian (6, N) and residuals (N,) of the intensity differences at xi = 0."""
+    n = correspondences.world.shape[1]
+    jacobian = np.empty((6, n))
+    _photometric_loop(
+        np.asarray(correspondences.world, dtype=np.float64),
+        np.asarray(correspondences.warped, dtype=np.float64),
+        np.asarray(correspondences.gradient, dtype=np.float64),
+        np.ascontiguousarray(previous_pose, dtype=np.float64),
+        float(camera.fx),
+        float(camera.fy),
+        jacobian,
+    )
+    return jacobian, correspondences.residuals
+
+
+def rgbd_system(
+    points: InterestPoints,
+    pose: np.ndarray,
+    previous_pose: np.ndarray,
+    previous_depth: np.ndarray,
+    previous_intensity: np.ndarray,
+    camera: Intrinsics,
+    max_depth_change: float = 0.07,
+    previous_dx: np.ndarray | None = None,
+    previous_dy: np.ndarray | None = None,
+) -> LinearSystem:
+    """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted: pass 1
+    finds the pairs and sum r^2 (sigma'), pass 2 sums the weighted rows."""
+    residuals, world, warped_points, gradient, (squares, count) = _correspond_all(
+        points, pose, previous_pose, previous_depth, previous_intensity, camera,
+        max_depth_change, previous_dx, previous_dy,
+    )  # fmt: skip
+    if count == 0:
+        return LinearSystem.empty()
+    sigma = float(np.sqrt(squares / count))
+    out = _partials(len(residuals))
+    _rgbd_rows_loop(
+        residuals, world, warped_points, gradient,
+        np.ascontiguousarray(previous_pose, dtype=np.float64),
+        float(camera.fx), float(camera.fy), sigma, out,
+    )  # fmt: skip
+    return _host.sum_partials(out)[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# Per-frame problems
+
+
+class IcpProblem(_host.IcpProblemBase):
+    """kintinuous_ref.odometry.icp.IcpProblem with the CPU loops underneath."""
+
+
+class RgbdProblem(_host.RgbdProblemBase):
+    """kintinuous_ref.odometry.rgbd.RgbdProblem with the CPU loops underneath."""
+
+
+IcpProblem.kernels = RgbdProblem.kernels = sys.modules[__name__]

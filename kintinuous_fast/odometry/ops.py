@@ -1,0 +1,342 @@
+"""Per-correspondence maths of kintinuous_ref.odometry, written once for the CPU and CUDA targets.
+
+`build_ops(jit)` (the pattern of kintinuous_fast.ops) defines scalar functions - transform a
+point, round a projection, associate one ICP point, warp one RGB-D interest point, build one
+Jacobian row, add one row to the normal equations - compiled with the decorator it is given:
+`numba.njit(cache=True)` for the prange loops of odometry/cpu.py, `cuda.jit(device=True)` for the
+kernels of odometry/cuda.py.
+
+Precision: the reference computes every per-correspondence quantity in float64 (its maps are
+float32, converted once); so do these functions (values read from arrays go through float()).
+Each formula is written in the reference's order of operations, so the rows agree to the last bit
+up to FMA contraction and the order of the 3-term dot products inside NumPy's matrix products
+(~1 ulp). Only the sums over all rows differ in order (chunked partials here, BLAS in the
+reference): relative differences ~1e-15 of the largest terms.
+
+The normal equations travel as a vector of NV float64 values per thread / chunk / block:
+21 upper-triangle entries of A (row-major, i <= j), 6 entries of b, the cost r^T W r, the count
+of rows and one spare slot (the ICP kernels count the valid current points there, which the
+inlier fraction needs). The host sums the partials in float64 and unpacks them (odometry/_host.py).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+# Slots of the accumulated vector (see the module docstring).
+NV = 30
+SLOT_B = 21
+SLOT_COST = 27
+SLOT_COUNT = 28
+SLOT_EXTRA = 29
+
+
+def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """The scalar functions of dense odometry compiled with `jit` (see kintinuous_fast.ops)."""
+
+    @jit
+    def rint(x: float) -> float:
+        """Round half to even, as np.rint (exact: x - floor(x) has no rounding error here)."""
+        f = math.floor(x)
+        d = x - f
+        if d > 0.5:
+            return f + 1.0
+        if d < 0.5:
+            return f
+        return f + (f - 2.0 * math.floor(f * 0.5))  # halfway: to the even neighbour
+
+    @jit
+    def transform(m: Any, x: float, y: float, z: float) -> tuple[float, float, float]:
+        """The rigid transform of the 4x4 (or 3x4) float64 matrix m applied to (x, y, z)."""
+        return (
+            m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3],
+            m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3],
+            m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3],
+        )
+
+    @jit
+    def rotate(m: Any, x: float, y: float, z: float) -> tuple[float, float, float]:
+        """The rotation part of m applied to (x, y, z)."""
+        return (
+            m[0, 0] * x + m[0, 1] * y + m[0, 2] * z,
+            m[1, 0] * x + m[1, 1] * y + m[1, 2] * z,
+            m[2, 0] * x + m[2, 1] * y + m[2, 2] * z,
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # ICP (kintinuous_ref.odometry.icp)
+
+    @jit
+    def icp_match(
+        px: float,
+        py: float,
+        pz: float,
+        nx: float,
+        ny: float,
+        nz: float,
+        pose: Any,
+        to_model: Any,
+        model_vertices: Any,
+        model_normals: Any,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        dist2: float,
+        cos_min: float,
+    ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
+        """Projective association of one valid current point (ref `associate`): (kept, world
+        point p = T v, model vertex, model normal). Nearest pixel of the model's camera; rejected
+        without a model surface there (NaN fails both tests), farther than the distance threshold
+        or with normals more than the angle threshold apart."""
+        height = model_vertices.shape[0]
+        width = model_vertices.shape[1]
+        wx, wy, wz = transform(pose, px, py, pz)
+        mx, my, mz = transform(to_model, px, py, pz)
+        nan = math.nan
+        if not mz > 1e-6:
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        u = rint(fx * mx / mz + cx)
+        v = rint(fy * my / mz + cy)
+        if not (u >= 0 and u < width and v >= 0 and v < height):
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        iu = int(u)
+        iv = int(v)
+        qx = float(model_vertices[iv, iu, 0])
+        qy = float(model_vertices[iv, iu, 1])
+        qz = float(model_vertices[iv, iu, 2])
+        ux = float(model_normals[iv, iu, 0])
+        uy = float(model_normals[iv, iu, 1])
+        uz = float(model_normals[iv, iu, 2])
+        gx, gy, gz = rotate(pose, nx, ny, nz)
+        dx = wx - qx
+        dy = wy - qy
+        dz = wz - qz
+        squared = dx * dx + dy * dy + dz * dz
+        cos_angle = gx * ux + gy * uy + gz * uz
+        if squared <= dist2 and cos_angle >= cos_min:
+            return True, wx, wy, wz, qx, qy, qz, ux, uy, uz
+        return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+
+    @jit
+    def map_point(vertices: Any, normals: Any, v: int, u: int) -> tuple[bool, float, ...]:
+        """The current vertex and normal at (v, u) in float64; False where any is NaN/inf
+        (ref `valid_points`)."""
+        px = float(vertices[v, u, 0])
+        py = float(vertices[v, u, 1])
+        pz = float(vertices[v, u, 2])
+        nx = float(normals[v, u, 0])
+        ny = float(normals[v, u, 1])
+        nz = float(normals[v, u, 2])
+        ok = (
+            math.isfinite(px)
+            and math.isfinite(py)
+            and math.isfinite(pz)
+            and math.isfinite(nx)
+            and math.isfinite(ny)
+            and math.isfinite(nz)
+        )
+        return ok, px, py, pz, nx, ny, nz
+
+    @jit
+    def point_to_plane_row(
+        wx: float,
+        wy: float,
+        wz: float,
+        qx: float,
+        qy: float,
+        qz: float,
+        ux: float,
+        uy: float,
+        uz: float,
+    ) -> tuple[float, float, float, float, float, float, float]:
+        """J = [p x n_m, n_m] and r = (p - v_m) . n_m of one pair (eq. 9): (j0..j5, r)."""
+        r = (wx - qx) * ux + (wy - qy) * uy + (wz - qz) * uz
+        return wy * uz - wz * uy, wz * ux - wx * uz, wx * uy - wy * ux, ux, uy, uz, r
+
+    # ------------------------------------------------------------------------------------------
+    # RGB-D (kintinuous_ref.odometry.rgbd)
+
+    @jit
+    def is_interest(dx: Any, dy: Any, v: int, u: int, g2: float) -> bool:
+        """Algorithm 1's test dI/dx^2 + dI/dy^2 >= g^2, in float64 like the reference."""
+        gx = float(dx[v, u])
+        gy = float(dy[v, u])
+        return gx * gx + gy * gy >= g2
+
+    @jit
+    def has_depth(depth: Any, v: int, u: int, max_depth: float) -> bool:
+        """prepare_level's depth test: 0 < z <= max_depth and finite."""
+        z = float(depth[v, u])
+        return z > 0 and z <= max_depth and math.isfinite(z)
+
+    @jit
+    def backproject(
+        u: int, v: int, z: float, fx: float, fy: float, cx: float, cy: float
+    ) -> tuple[float, float, float]:
+        """X = z K^-1 (u, v, 1) as prepare_level computes it."""
+        return (u - cx) * z / fx, (v - cy) * z / fy, z
+
+    @jit
+    def sample_bilinear(image: Any, u: float, v: float) -> float:
+        """Bilinear interpolation at (u, v) inside [0, w-1] x [0, h-1] (ref sample_bilinear)."""
+        height = image.shape[0]
+        width = image.shape[1]
+        u0 = min(max(int(math.floor(u)), 0), width - 2)
+        v0 = min(max(int(math.floor(v)), 0), height - 2)
+        a = u - u0
+        b = v - v0
+        top = float(image[v0, u0]) * (1 - a) + float(image[v0, u0 + 1]) * a
+        bottom = float(image[v0 + 1, u0]) * (1 - a) + float(image[v0 + 1, u0 + 1]) * a
+        return top * (1 - b) + bottom * b
+
+    @jit
+    def warp_point(
+        points: Any,
+        intensity: Any,
+        gradient: Any,
+        k: int,
+        relative: Any,
+        pose: Any,
+        previous_depth: Any,
+        previous_intensity: Any,
+        previous_dx: Any,
+        previous_dy: Any,
+        warped_gradient: bool,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        max_depth_change: float,
+    ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
+        """Algorithm 2 for interest point k (ref `correspond`): (kept, r = I_n(p') - I_{n+1}(p),
+        world p = T X, warped X' = T_rel X, gradient used in J). Kept when p' lies inside the
+        image (room for the 2x2 bilinear neighbourhood) and the previous depth at the nearest
+        pixel agrees with z' to within d_s."""
+        height = previous_depth.shape[0]
+        width = previous_depth.shape[1]
+        px = points[0, k]
+        py = points[1, k]
+        pz = points[2, k]
+        x, y, z = transform(relative, px, py, pz)
+        nan = math.nan
+        if not z > 1e-6:
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        u = fx * x / z + cx
+        v = fy * y / z + cy
+        if not (u >= 0 and u <= width - 1 and v >= 0 and v <= height - 1):
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        d = float(previous_depth[int(rint(v)), int(rint(u))])
+        if not (d > 0 and abs(z - d) < max_depth_change):
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        r = sample_bilinear(previous_intensity, u, v) - intensity[k]
+        if warped_gradient:
+            gx = sample_bilinear(previous_dx, u, v)
+            gy = sample_bilinear(previous_dy, u, v)
+        else:
+            gx = gradient[0, k]
+            gy = gradient[1, k]
+        wx, wy, wz = transform(pose, px, py, pz)
+        return True, r, wx, wy, wz, x, y, z, gx, gy
+
+    @jit
+    def photometric_row(
+        wx: float,
+        wy: float,
+        wz: float,
+        x: float,
+        y: float,
+        z: float,
+        gx: float,
+        gy: float,
+        previous_pose: Any,
+        fx: float,
+        fy: float,
+    ) -> tuple[float, float, float, float, float, float]:
+        """J of one intensity difference (ref photometric_rows): a = grad I . dpi/dX', turned
+        into the world frame c = R_prev a, J = [p x c, c]."""
+        a0 = gx * fx / z
+        a1 = gy * fy / z
+        a2 = -(gx * fx * x + gy * fy * y) / (z * z)
+        c0, c1, c2 = rotate(previous_pose, a0, a1, a2)
+        return wy * c2 - wz * c1, wz * c0 - wx * c2, wx * c1 - wy * c0, c0, c1, c2
+
+    @jit
+    def robust_weight(r: float, sigma: float) -> float:
+        """w_k = 1 / (sigma' + |r_k|), 1 where that is 0 (ref robust_row_weights)."""
+        denominator = sigma + abs(r)
+        if denominator > 1e-12:
+            return 1.0 / denominator
+        return 1.0
+
+    # ------------------------------------------------------------------------------------------
+    # Normal equations
+
+    @jit
+    def add_row(
+        acc: Any,
+        j0: float,
+        j1: float,
+        j2: float,
+        j3: float,
+        j4: float,
+        j5: float,
+        r: float,
+        w: float,
+    ) -> None:
+        """acc += w [J^T J (upper triangle), J^T r, r^2, 1] for one row (ref accumulate)."""
+        a0 = w * j0
+        a1 = w * j1
+        a2 = w * j2
+        a3 = w * j3
+        a4 = w * j4
+        a5 = w * j5
+        acc[0] += a0 * j0
+        acc[1] += a0 * j1
+        acc[2] += a0 * j2
+        acc[3] += a0 * j3
+        acc[4] += a0 * j4
+        acc[5] += a0 * j5
+        acc[6] += a1 * j1
+        acc[7] += a1 * j2
+        acc[8] += a1 * j3
+        acc[9] += a1 * j4
+        acc[10] += a1 * j5
+        acc[11] += a2 * j2
+        acc[12] += a2 * j3
+        acc[13] += a2 * j4
+        acc[14] += a2 * j5
+        acc[15] += a3 * j3
+        acc[16] += a3 * j4
+        acc[17] += a3 * j5
+        acc[18] += a4 * j4
+        acc[19] += a4 * j5
+        acc[20] += a5 * j5
+        acc[21] += a0 * r
+        acc[22] += a1 * r
+        acc[23] += a2 * r
+        acc[24] += a3 * r
+        acc[25] += a4 * r
+        acc[26] += a5 * r
+        acc[27] += w * r * r
+        acc[28] += 1.0
+
+    return SimpleNamespace(
+        rint=rint,
+        transform=transform,
+        rotate=rotate,
+        icp_match=icp_match,
+        map_point=map_point,
+        point_to_plane_row=point_to_plane_row,
+        is_interest=is_interest,
+        has_depth=has_depth,
+        backproject=backproject,
+        sample_bilinear=sample_bilinear,
+        warp_point=warp_point,
+        photometric_row=photometric_row,
+        robust_weight=robust_weight,
+        add_row=add_row,
+    )
