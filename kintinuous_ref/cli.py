@@ -223,6 +223,117 @@ def _config_overrides(path: Path | None, settings: list[str]) -> dict:
     return overrides
 
 
+def _add_table(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "table",
+        help="the paper's Tables I-VI and Figs. 4-7: every odometry method on every dataset",
+    )
+    parser.add_argument(
+        "datasets", nargs="+", metavar="DATASET", help="TUM folders or synthetic scenario names"
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=ODOMETRY_CHOICES[1:],
+        help="odometry methods (default: all seven)",
+    )
+    parser.add_argument("--out", type=Path, default=Path("evaluation"), help="output folder")
+    parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (processes)")
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="send the runs to this dask.distributed scheduler instead (pip install "
+        "'kintinuous[dask]'; workers must see the datasets and --out)",
+    )
+    parser.add_argument("--frames", type=int, help="frames per run (default: all)")
+    parser.add_argument("--start", type=int, default=0, help="first frame")
+    parser.add_argument("--size", help="WIDTHxHEIGHT: resize the images (e.g. 320x240)")
+    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
+    parser.add_argument("--backend", choices=["ref", "cpu", "cuda", "auto"], default="ref")
+    parser.add_argument("--mesh", action="store_true", help="also write each run's mesh.ply")
+    parser.add_argument("--config", type=Path, help="JSON file of configuration values")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="as for reconstruct"
+    )
+    parser.set_defaults(handler=_run_table)
+
+
+def _run_table(args: argparse.Namespace) -> None:
+    from kintinuous_ref.config import Config, VolumeConfig, with_overrides
+    from kintinuous_ref.evaluation import evaluate_methods, method_title
+
+    size = None
+    if args.size:
+        width, _, height = args.size.lower().partition("x")
+        if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+            raise KintinuousError(f"--size expects WIDTHxHEIGHT such as 320x240, got {args.size!r}")
+        size = (int(width), int(height))
+    if args.scheduler:
+        from kintinuous_ref.evaluation.runs import dask_client
+
+        dask_client(args.scheduler).close()  # fail early: dask missing or scheduler unreachable
+    config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
+    config = with_overrides(config, _config_overrides(args.config, args.set))
+
+    def done(outcome, finished: int, total: int) -> None:  # noqa: ANN001
+        if outcome.status == "ok":
+            errors = outcome.errors
+            what = (
+                f"ATE median {errors['ate_median']:.4f} m, {outcome.tracking_failures} "
+                f"tracking failures, {outcome.seconds:.0f} s"
+            )
+        else:
+            what = f"FAILED: {outcome.reason}"
+        print(f"[{finished}/{total}] {outcome.dataset} {method_title(outcome.method)}: {what}")
+        sys.stdout.flush()
+
+    header = ["# Kintinuous odometry evaluation (paper section VII)", ""]
+    header += [f"Command: `{_table_command(args)}`", ""]
+    evaluation = evaluate_methods(
+        args.datasets,
+        args.out,
+        methods=args.methods,
+        config=config,
+        start=args.start,
+        frames=args.frames,
+        size=size,
+        backend=args.backend,
+        jobs=args.jobs,
+        scheduler=args.scheduler,
+        mesh=args.mesh,
+        on_done=done,
+        header=header,
+    )
+    print()
+    print(evaluation.markdown)
+    print(f"wrote {', '.join(str(path) for path in evaluation.files)}", flush=True)
+    if evaluation.failed:
+        print(
+            f"kintinuous: {len(evaluation.failed)} of {len(evaluation.outcomes)} runs failed "
+            "(reasons in table.md)",
+            file=sys.stderr,
+        )
+
+
+def _table_command(args: argparse.Namespace) -> str:
+    """The command line that reproduces a table (for table.md)."""
+    import shlex
+
+    words = ["kintinuous", "table", *args.datasets]
+    if args.methods:
+        words += ["--methods", *args.methods]
+    for option in ("out", "jobs", "scheduler", "frames", "start", "size", "volume_size"):
+        if getattr(args, option) is not None:
+            words += [f"--{option.replace('_', '-')}", str(getattr(args, option))]
+    words += ["--resolution", str(args.resolution), "--backend", args.backend]
+    words += ["--mesh"] if args.mesh else []
+    words += ["--config", str(args.config)] if args.config else []
+    for setting in args.set:
+        words += ["--set", setting]
+    return shlex.join(words)
+
+
 def _add_info(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser("info", help="which compute backends work on this machine")
     parser.set_defaults(handler=_run_info)
@@ -251,7 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"kintinuous {__version__}")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for add in (_add_synth, _add_evaluate, _add_reconstruct, _add_info):
+    for add in (_add_synth, _add_evaluate, _add_reconstruct, _add_table, _add_info):
         add(commands)
     return parser
 
