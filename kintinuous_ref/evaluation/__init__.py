@@ -148,6 +148,8 @@ def evaluate_methods(
         raise ConfigError(f"a method is named twice in {methods}")
     if not datasets:
         raise ConfigError("name at least one dataset")
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be at least 1, got {jobs}")
     if start < 0 or (frames is not None and frames < 2):
         raise ConfigError(f"--start must be >= 0 and --frames >= 2, got {start} and {frames}")
     if backend != "ref":
