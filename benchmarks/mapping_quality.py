@@ -38,6 +38,13 @@ def main() -> None:
     parser.add_argument("--size", type=float, default=3.0)
     parser.add_argument("--out", type=Path, default=Path("results/mapping_quality.json"))
     parser.add_argument("--mesh-dir", type=Path, help="also write both meshes here")
+    parser.add_argument(
+        "--colour-shift",
+        type=int,
+        default=0,
+        help="shift colour images this many pixels right of the depth (a depth-colour "
+        "calibration error, the first cause of colour bleed named in paper VI-B)",
+    )
     args = parser.parse_args()
 
     sequence = open_dataset(args.scenario, progress=True)
@@ -66,6 +73,8 @@ def main() -> None:
     started = time.perf_counter()
     for frame in tqdm(sequence.frames(0, count), total=count, unit="frame"):
         pose = groundtruth.poses[frame.index]
+        if args.colour_shift:
+            frame.colour = np.roll(frame.colour, args.colour_shift, axis=1)
         current = preprocess.preprocess_frame(
             frame.colour, frame.depth, sequence.camera, config.preprocess
         )
@@ -82,6 +91,7 @@ def main() -> None:
         "frames": count,
         "resolution": args.resolution,
         "size_m": args.size,
+        "colour_shift_px": args.colour_shift,
         "seconds_per_frame_two_volumes": elapsed / count,
     }
     for name, fused in volumes.items():

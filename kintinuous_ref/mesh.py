@@ -218,6 +218,11 @@ def _colour_at(truth: pyvista.PolyData, closest: np.ndarray, cells: np.ndarray) 
     return (1 - b1 - b2)[:, None] * rgb[:, 0] + b1[:, None] * rgb[:, 1] + b2[:, None] * rgb[:, 2]
 
 
+# A vertex whose colour is off by more than this (mean over RGB, 0..255) shows a foreign colour
+# (bleed from another surface), not just blurred texture.
+BLEED_LEVELS = 50.0
+
+
 @dataclass
 class SurfaceScore:
     accuracy: float  # mean distance from reconstructed vertices to the true surface, metres
@@ -225,6 +230,7 @@ class SurfaceScore:
     completeness: float  # share of visible true surface within `completeness_radius` of the mesh
     completeness_radius: float
     colour_error: float  # mean absolute RGB difference (0..255) of coloured vertices vs the truth
+    colour_bleed: float  # share of coloured vertices whose error exceeds BLEED_LEVELS
     uncoloured: float  # share of vertices that received no colour
     vertices: int
     visible_samples: int
@@ -245,15 +251,18 @@ def surface_accuracy(
     completeness: share of `visible_samples` (true-surface points some camera saw, see
     sample_surface and visible_from) lying within `completeness_radius` of the mesh;
     colour error: mean absolute per-channel difference between each coloured vertex and the true
-    colour at its closest true-surface point.
+    colour at its closest true-surface point; colour bleed: the share of coloured vertices off by
+    more than BLEED_LEVELS.
     """
     distance, closest, cells = closest_on(truth, mesh.points.astype(np.float64))
     coloured = mesh.colours.astype(int).sum(axis=1) > 0
     if coloured.any():
         true_colour = _colour_at(truth, closest[coloured], cells[coloured])
-        colour_error = float(np.abs(mesh.colours[coloured] - true_colour).mean())
+        per_vertex = np.abs(mesh.colours[coloured] - true_colour).mean(axis=1)
+        colour_error = float(per_vertex.mean())
+        colour_bleed = float((per_vertex > BLEED_LEVELS).mean())
     else:
-        colour_error = float("nan")
+        colour_error = colour_bleed = float("nan")
     if len(mesh.triangles) and len(visible_samples):
         to_mesh, _, _ = closest_on(mesh.to_pyvista(), visible_samples)
         completeness = float((to_mesh <= completeness_radius).mean())
@@ -265,6 +274,7 @@ def surface_accuracy(
         completeness=completeness,
         completeness_radius=completeness_radius,
         colour_error=colour_error,
+        colour_bleed=colour_bleed,
         uncoloured=float(1.0 - coloured.mean()) if len(coloured) else 0.0,
         vertices=len(mesh.points),
         visible_samples=len(visible_samples),

@@ -69,6 +69,7 @@ def test_scores_of_a_shifted_surface():
     assert score.accuracy == pytest.approx(0.005, abs=1e-6)  # 5 mm above the true plane
     assert score.completeness == 1.0  # every sample within 1 cm
     assert score.colour_error == pytest.approx(20 / 3, abs=1e-3)  # |+10|, |-10|, 0
+    assert score.colour_bleed == 0.0  # 6.7 levels off: blur, not bleed
     tight = mesh.surface_accuracy(reconstruction, truth, central, completeness_radius=0.004)
     assert tight.completeness == 0.0
     everywhere = mesh.surface_accuracy(reconstruction, truth, samples)
