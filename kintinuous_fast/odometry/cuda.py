@@ -1,0 +1,618 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels: argument types come from the call)
+"""kintinuous_ref.odometry as CUDA kernels around kintinuous_fast.odometry.ops, following the
+paper's GPU design (section IV-A.2/3, V-B):
+
+- Algorithm 1 (interest points): each block collects its pixels that pass the gradient test in a
+  shared-memory list (shared-memory atomics), then reserves room in the global list with ONE
+  global atomic per block and copies its list there.
+- Algorithm 2 (correspondences): the same per-block shared list for the warped interest points
+  that pass the image and d_s tests; each listed pair then adds r^2 to the global
+  intensity-difference sum and takes its slot in the global correspondence list with atomics.
+- The normal equations: every thread sums its rows (grid-stride loop) into a local vector of
+  21 + 6 numbers (upper triangle of J^T W J, J^T W r) plus cost and count, the block reduces the
+  vectors by a tree in shared memory, one partial per block goes to global memory, the host
+  adds the partials in float64 and solves the 6x6 system by Cholesky (kintinuous_ref's solve).
+
+Same names, signatures and results as the reference (tests/test_fast_odometry*.py state the
+tolerances), except that lists come out in atomic order: compare interest points and
+correspondences as sets. Arrays stay where they are given (kintinuous_fast.cuda): device arrays
+in, device arrays out; NumPy in, NumPy out. Runs on numba's CUDA simulator too (slowly).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+from numba import cuda, float64, int32, int64
+
+from kintinuous_fast.cuda import BLOCK_1D, grid_1d, is_device, to_device
+from kintinuous_fast.ops import cuda_device_jit
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
+from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
+from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
+
+from . import _host
+from .ops import NV, build_ops
+
+__all__ = [
+    "CombinedProblem",
+    "Correspondences",
+    "IcpProblem",
+    "InterestPoints",
+    "LinearSystem",
+    "RgbdProblem",
+    "accumulate",
+    "apply_increment",
+    "associate",
+    "correspond",
+    "icp_scale",
+    "icp_system",
+    "interest_points",
+    "joint_system",
+    "photometric_rows",
+    "point_to_plane_rows",
+    "prepare_level",
+    "refine",
+    "rgbd_system",
+    "solve",
+]
+
+# Blocks of the reduction kernels at most (each thread then loops over several rows): enough to
+# fill a GPU, few enough that the host adds the partials in microseconds.
+MAX_BLOCKS = 1024
+BLOCK = BLOCK_1D  # threads per block of every kernel here (a power of two: the tree halves it)
+
+_ops = build_ops(cuda_device_jit())
+icp_match = _ops.icp_match
+map_point = _ops.map_point
+point_to_plane_row = _ops.point_to_plane_row
+is_interest = _ops.is_interest
+has_depth = _ops.has_depth
+backproject = _ops.backproject
+warp_point = _ops.warp_point
+photometric_row = _ops.photometric_row
+robust_weight = _ops.robust_weight
+add_row = _ops.add_row
+
+
+# ----------------------------------------------------------------------------------------------
+# Reduction
+
+
+@cuda.jit(device=True)
+def _zero(acc):
+    for s in range(NV):
+        acc[s] = 0.0
+
+
+@cuda.jit(device=True)
+def _block_reduce(acc, shared, partials):
+    """Tree reduction of every thread's NV sums in shared memory; thread 0 writes the block's."""
+    t = cuda.threadIdx.x
+    for s in range(NV):
+        shared[s, t] = acc[s]
+    cuda.syncthreads()
+    half = BLOCK // 2
+    while half > 0:
+        if t < half:
+            for s in range(NV):
+                shared[s, t] += shared[s, t + half]
+        cuda.syncthreads()
+        half //= 2
+    if t == 0:
+        for s in range(NV):
+            partials[cuda.blockIdx.x, s] = shared[s, 0]
+
+
+# ----------------------------------------------------------------------------------------------
+# ICP
+
+
+@cuda.jit
+def _icp_kernel(vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
+    shared = cuda.shared.array((NV, BLOCK), float64)
+    acc = cuda.local.array(NV, float64)
+    _zero(acc)
+    width = vertices.shape[1]
+    n = vertices.shape[0] * width
+    for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+        v = i // width
+        u = i - v * width
+        ok, px, py, pz, nx, ny, nz = map_point(vertices, normals, v, u)
+        if ok:
+            acc[NV - 1] += 1.0
+            kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
+                px, py, pz, nx, ny, nz, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min
+            )
+            if kept:
+                j0, j1, j2, j3, j4, j5, r = point_to_plane_row(wx, wy, wz, qx, qy, qz, ux, uy, uz)
+                add_row(acc, j0, j1, j2, j3, j4, j5, r, 1.0)
+    _block_reduce(acc, shared, out)
+
+
+@cuda.jit
+def _associate_kernel(
+    points, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, count, out
+):
+    k = cuda.grid(1)
+    if k < points.shape[1]:
+        kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
+            points[0, k], points[1, k], points[2, k], normals[0, k], normals[1, k],
+            normals[2, k], pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min,
+        )  # fmt: skip
+        if kept:
+            slot = cuda.atomic.add(count, 0, 1)
+            out[0, slot], out[1, slot], out[2, slot] = wx, wy, wz
+            out[3, slot], out[4, slot], out[5, slot] = qx, qy, qz
+            out[6, slot], out[7, slot], out[8, slot] = ux, uy, uz
+
+
+@cuda.jit
+def _point_to_plane_kernel(world, mv, mn, jacobian, residuals):
+    k = cuda.grid(1)
+    if k < world.shape[1]:
+        j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
+            world[0, k], world[1, k], world[2, k], mv[0, k], mv[1, k], mv[2, k], mn[0, k],
+            mn[1, k], mn[2, k],
+        )  # fmt: skip
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+        residuals[k] = r
+
+
+@cuda.jit
+def _accumulate_kernel(jacobian, residuals, weights, weighted, out):
+    shared = cuda.shared.array((NV, BLOCK), float64)
+    acc = cuda.local.array(NV, float64)
+    _zero(acc)
+    for k in range(cuda.grid(1), residuals.shape[0], cuda.gridsize(1)):
+        w = weights[k] if weighted else 1.0
+        add_row(
+            acc, jacobian[0, k], jacobian[1, k], jacobian[2, k], jacobian[3, k], jacobian[4, k],
+            jacobian[5, k], residuals[k], w,
+        )  # fmt: skip
+    _block_reduce(acc, shared, out)
+
+
+# ----------------------------------------------------------------------------------------------
+# RGB-D
+
+
+@cuda.jit
+def _interest_kernel(dx, dy, depth, g2, use_depth, max_depth, count, indices):
+    """Algorithm 1: a shared-memory list per block, one global atomic per block."""
+    local = cuda.shared.array(BLOCK, int64)
+    local_count = cuda.shared.array(1, int32)
+    base = cuda.shared.array(1, int32)
+    t = cuda.threadIdx.x
+    if t == 0:
+        local_count[0] = 0
+    cuda.syncthreads()
+    width = dx.shape[1]
+    i = cuda.grid(1)
+    if i < dx.shape[0] * width:
+        v = i // width
+        u = i - v * width
+        keep = is_interest(dx, dy, v, u, g2)
+        if keep and use_depth:
+            keep = has_depth(depth, v, u, max_depth)
+        if keep:
+            local[cuda.atomic.add(local_count, 0, 1)] = i
+    cuda.syncthreads()
+    if t == 0:
+        base[0] = cuda.atomic.add(count, 0, local_count[0])
+    cuda.syncthreads()
+    if t < local_count[0]:
+        indices[base[0] + t] = local[t]
+
+
+@cuda.jit
+def _interest_data_kernel(indices, depth, intensity, dx, dy, fx, fy, cx, cy, points, values, grad):
+    k = cuda.grid(1)
+    if k < indices.shape[0]:
+        width = depth.shape[1]
+        i = indices[k]
+        v = i // width
+        u = i - v * width
+        x, y, z = backproject(u, v, float(depth[v, u]), fx, fy, cx, cy)
+        points[0, k] = x
+        points[1, k] = y
+        points[2, k] = z
+        values[k] = float(intensity[v, u])
+        grad[0, k] = float(dx[v, u])
+        grad[1, k] = float(dy[v, u])
+
+
+@cuda.jit
+def _correspond_kernel(
+    points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy, warped,
+    fx, fy, cx, cy, max_change, count, squares, pairs,
+):  # fmt: skip
+    """Algorithm 2: kept pairs listed per block in shared memory, then each adds r^2 to the
+    global sum and takes its slot in the global list with atomics."""
+    local = cuda.shared.array(BLOCK, int64)
+    local_r = cuda.shared.array(BLOCK, float64)
+    local_count = cuda.shared.array(1, int32)
+    t = cuda.threadIdx.x
+    if t == 0:
+        local_count[0] = 0
+    cuda.syncthreads()
+    k = cuda.grid(1)
+    if k < points.shape[1]:
+        ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
+            points, intensity, gradient, k, relative, pose, depth, prev_i, prev_dx, prev_dy,
+            warped, fx, fy, cx, cy, max_change,
+        )  # fmt: skip
+        if ok:
+            slot = cuda.atomic.add(local_count, 0, 1)
+            local[slot] = k
+            local_r[slot] = r
+    cuda.syncthreads()
+    if t < local_count[0]:
+        r = local_r[t]
+        cuda.atomic.add(squares, 0, r * r)
+        pairs[cuda.atomic.add(count, 0, 1)] = local[t]
+
+
+@cuda.jit
+def _correspondence_data_kernel(
+    pairs, n_pairs, points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy,
+    warped, fx, fy, cx, cy, max_change, residuals, world, warped_points, used_gradient,
+):  # fmt: skip
+    j = cuda.grid(1)
+    if j < n_pairs:
+        ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
+            points, intensity, gradient, pairs[j], relative, pose, depth, prev_i, prev_dx,
+            prev_dy, warped, fx, fy, cx, cy, max_change,
+        )  # fmt: skip
+        residuals[j] = r
+        world[0, j], world[1, j], world[2, j] = wx, wy, wz
+        warped_points[0, j], warped_points[1, j], warped_points[2, j] = x, y, z
+        used_gradient[0, j], used_gradient[1, j] = gx, gy
+
+
+@cuda.jit
+def _rgbd_rows_kernel(
+    pairs, n_pairs, points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy,
+    warped, fx, fy, cx, cy, max_change, previous_pose, sigma, out,
+):  # fmt: skip
+    """The robustly weighted photometric rows of the listed pairs, tree-reduced per block."""
+    shared = cuda.shared.array((NV, BLOCK), float64)
+    acc = cuda.local.array(NV, float64)
+    _zero(acc)
+    for j in range(cuda.grid(1), n_pairs, cuda.gridsize(1)):
+        ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
+            points, intensity, gradient, pairs[j], relative, pose, depth, prev_i, prev_dx,
+            prev_dy, warped, fx, fy, cx, cy, max_change,
+        )  # fmt: skip
+        j0, j1, j2, j3, j4, j5 = photometric_row(wx, wy, wz, x, y, z, gx, gy, previous_pose, fx, fy)
+        w = robust_weight(r, sigma)
+        add_row(acc, j0, j1, j2, j3, j4, j5, r, w * w)
+    _block_reduce(acc, shared, out)
+
+
+@cuda.jit
+def _photometric_kernel(world, warped_points, gradient, previous_pose, fx, fy, jacobian):
+    k = cuda.grid(1)
+    if k < world.shape[1]:
+        j0, j1, j2, j3, j4, j5 = photometric_row(
+            world[0, k], world[1, k], world[2, k], warped_points[0, k], warped_points[1, k],
+            warped_points[2, k], gradient[0, k], gradient[1, k], previous_pose, fx, fy,
+        )  # fmt: skip
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+
+
+# ----------------------------------------------------------------------------------------------
+# Host helpers
+
+
+def stage(array):
+    """A device array (uploaded once if a NumPy array is given; None stays None)."""
+    return None if array is None else to_device(array)
+
+
+def _f64(array):
+    """A float64 device array (host arrays converted and uploaded)."""
+    return to_device(array, np.float64)
+
+
+def _reduction_blocks(count: int) -> int:
+    return min(grid_1d(count, BLOCK), MAX_BLOCKS)
+
+
+def _back(array, given):
+    """`array` (device) returned where `given` lives."""
+    return array if is_device(given) else array.copy_to_host()
+
+
+def _counter(dtype=np.int32):
+    return cuda.to_device(np.zeros(1, dtype=dtype))
+
+
+# ----------------------------------------------------------------------------------------------
+# ICP (kintinuous_ref.odometry.icp)
+
+
+def icp_system_and_valid(
+    vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
+    distance_threshold, angle_threshold_deg,
+) -> tuple[LinearSystem, int]:  # fmt: skip
+    """icp_system and the number of valid current points (for the inlier fraction)."""
+    _host.check_map("current vertex map", vertices, camera)
+    _host.check_map("current normal map", normals, camera)
+    _host.check_map("model vertex map", model_vertices, camera)
+    _host.check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = _host.icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    blocks = _reduction_blocks(camera.height * camera.width)
+    out = cuda.device_array((blocks, NV), dtype=np.float64)
+    _icp_kernel[blocks, BLOCK](
+        stage(vertices), stage(normals), cuda.to_device(pose), cuda.to_device(to_model),
+        stage(model_vertices), stage(model_normals), *_host.camera_constants(camera), dist2,
+        cos_min, out,
+    )  # fmt: skip
+    return _host.sum_partials(out.copy_to_host())
+
+
+def icp_system(
+    vertices, normals, pose: np.ndarray, model_vertices, model_normals, model_pose: np.ndarray,
+    camera: Intrinsics, distance_threshold: float = 0.10, angle_threshold_deg: float = 20.0,
+) -> LinearSystem:  # fmt: skip
+    """The 6x6 point-to-plane normal equations of one ICP iteration at one level: one thread per
+    pixel(s), block tree reductions, partials added on the host."""
+    return icp_system_and_valid(
+        vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
+        distance_threshold, angle_threshold_deg,
+    )[0]  # fmt: skip
+
+
+def associate(
+    points, point_normals, pose: np.ndarray, model_vertices, model_normals,
+    model_pose: np.ndarray, camera: Intrinsics, distance_threshold: float,
+    angle_threshold_deg: float,
+) -> tuple:  # fmt: skip
+    """Projective data association: (world point, model vertex, model normal) as (3, M) columns
+    in atomic order. Model maps as (3, h*w) columns (ref map_columns)."""
+    shape = (camera.height, camera.width, 3)
+    _host.check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
+    _host.check_image("model normal columns", model_normals, (3, camera.height * camera.width))
+    pose, to_model, dist2, cos_min = _host.icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    n = points.shape[1]
+    if n == 0:
+        empty = np.empty((3, 0))
+        return empty, empty.copy(), empty.copy()
+    count = _counter()
+    out = cuda.device_array((9, n), dtype=np.float64)
+    model_v = to_device(np.asarray(model_vertices).T.reshape(shape))
+    model_n = to_device(np.asarray(model_normals).T.reshape(shape))
+    _associate_kernel[grid_1d(n, BLOCK), BLOCK](
+        _f64(points), _f64(point_normals), cuda.to_device(pose), cuda.to_device(to_model),
+        model_v, model_n, *_host.camera_constants(camera), dist2, cos_min, count, out,
+    )  # fmt: skip
+    kept = int(count.copy_to_host()[0])
+    pairs = _back(out[:, :kept], points)
+    return pairs[0:3], pairs[3:6], pairs[6:9]
+
+
+def point_to_plane_rows(world, model_vertices, model_normals) -> tuple:
+    """Jacobian (6, N) and residuals (N,) of the point-to-plane cost at xi = 0 (eq. 9)."""
+    n = world.shape[1]
+    if n == 0:
+        return np.empty((6, 0)), np.empty(0)
+    jacobian = cuda.device_array((6, n), dtype=np.float64)
+    residuals = cuda.device_array(n, dtype=np.float64)
+    _point_to_plane_kernel[grid_1d(n, BLOCK), BLOCK](
+        _f64(world), _f64(model_vertices), _f64(model_normals), jacobian, residuals
+    )
+    return _back(jacobian, world), _back(residuals, world)
+
+
+# ----------------------------------------------------------------------------------------------
+# Normal equations (kintinuous_ref.odometry.solve)
+
+
+def accumulate(jacobian, residuals, weights=None) -> LinearSystem:
+    """Normal equations of the (6, N) Jacobian and (N,) residuals: per-thread sums, block tree
+    reductions in shared memory, block partials added on the host in float64."""
+    n = residuals.shape[0]
+    blocks = _reduction_blocks(n)
+    out = cuda.device_array((blocks, NV), dtype=np.float64)
+    d_residuals = _f64(residuals) if n else cuda.to_device(np.zeros(1))
+    d_jacobian = _f64(jacobian) if n else cuda.to_device(np.zeros((6, 1)))
+    weighted = weights is not None and n > 0
+    _accumulate_kernel[blocks, BLOCK](
+        d_jacobian, d_residuals, _f64(weights) if weighted else d_residuals, weighted, out
+    )
+    system = _host.sum_partials(out.copy_to_host())[0]
+    if n == 0:  # the placeholder row above must not count
+        return LinearSystem.empty()
+    return system
+
+
+# ----------------------------------------------------------------------------------------------
+# RGB-D (kintinuous_ref.odometry.rgbd)
+
+
+def _interest_list(dx, dy, depth, min_gradient: float, max_depth: float):
+    """Algorithm 1 on the device: (indices device array, count)."""
+    height, width = dx.shape
+    n = height * width
+    count = _counter()
+    indices = cuda.device_array(max(n, 1), dtype=np.int64)
+    use_depth = depth is not None
+    _interest_kernel[grid_1d(n, BLOCK), BLOCK](
+        dx, dy, depth if use_depth else dx, float(min_gradient) ** 2, use_depth,
+        float(max_depth), count, indices,
+    )  # fmt: skip
+    total = int(count.copy_to_host()[0])
+    return indices[:total], total
+
+
+def interest_points(intensity_dx, intensity_dy, min_gradient: float):
+    """Algorithm 1: flat indices of the pixels with dx^2 + dy^2 >= g^2 (atomic order)."""
+    _host.check_image("intensity_dy", intensity_dy, intensity_dx.shape)
+    indices, _ = _interest_list(stage(intensity_dx), stage(intensity_dy), None, min_gradient, 0)
+    return _back(indices, intensity_dx)
+
+
+def prepare_level(
+    depth, intensity, intensity_dx, intensity_dy, camera: Intrinsics, min_gradient: float,
+    max_depth: float,
+) -> InterestPoints:  # fmt: skip
+    """Interest points with valid depth and their 3D points, intensities and gradients (on the
+    device when `depth` is a device array)."""
+    shape = (camera.height, camera.width)
+    for name, image in (
+        ("depth", depth), ("intensity", intensity), ("dx", intensity_dx), ("dy", intensity_dy)
+    ):  # fmt: skip
+        _host.check_image(f"current {name} image", image, shape)
+    d_depth, d_dx, d_dy = stage(depth), stage(intensity_dx), stage(intensity_dy)
+    indices, n = _interest_list(d_dx, d_dy, d_depth, min_gradient, max_depth)
+    size = max(n, 1)
+    points = cuda.device_array((3, size), dtype=np.float64)
+    values = cuda.device_array(size, dtype=np.float64)
+    gradient = cuda.device_array((2, size), dtype=np.float64)
+    if n:
+        _interest_data_kernel[grid_1d(n, BLOCK), BLOCK](
+            indices, d_depth, stage(intensity), d_dx, d_dy, *_host.camera_constants(camera),
+            points, values, gradient,
+        )  # fmt: skip
+    result = (indices, points[:, :n], values[:n], gradient[:, :n])
+    if not is_device(depth):
+        result = tuple(array.copy_to_host() for array in result)
+    return InterestPoints(*result)
+
+
+def _pair_arguments(
+    points, pose, previous_pose, previous_depth, previous_intensity, camera, max_depth_change,
+    previous_dx, previous_dy,
+) -> tuple:  # fmt: skip
+    """The arguments warp_point needs, on the device, in the kernels' order."""
+    shape = (camera.height, camera.width)
+    _host.check_image("previous depth image", previous_depth, shape)
+    _host.check_image("previous intensity image", previous_intensity, shape)
+    prev_i = stage(previous_intensity)
+    warped = previous_dx is not None and previous_dy is not None
+    return (
+        _f64(points.points),
+        _f64(points.intensity),
+        _f64(points.gradient),
+        cuda.to_device(_host.relative_pose(pose, previous_pose)),
+        cuda.to_device(np.ascontiguousarray(pose, dtype=np.float64)),
+        stage(previous_depth),
+        prev_i,
+        stage(previous_dx) if warped else prev_i,
+        stage(previous_dy) if warped else prev_i,
+        warped,
+        *_host.camera_constants(camera),
+        float(max_depth_change),
+    )
+
+
+def _pair_list(arguments: tuple, n: int):
+    """Algorithm 2 on the device: (pair list, count, sum of r^2)."""
+    count = _counter()
+    squares = cuda.to_device(np.zeros(1))
+    pairs = cuda.device_array(max(n, 1), dtype=np.int64)
+    if n:
+        _correspond_kernel[grid_1d(n, BLOCK), BLOCK](*arguments, count, squares, pairs)
+    return pairs, int(count.copy_to_host()[0]), float(squares.copy_to_host()[0])
+
+
+def correspond(
+    points: InterestPoints, pose: np.ndarray, previous_pose: np.ndarray, previous_depth,
+    previous_intensity, camera: Intrinsics, max_depth_change: float, previous_dx=None,
+    previous_dy=None,
+) -> Correspondences:  # fmt: skip
+    """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
+    image and d_s tests, in atomic order (`kept` says which interest point each pair is)."""
+    arguments = _pair_arguments(
+        points, pose, previous_pose, previous_depth, previous_intensity, camera,
+        max_depth_change, previous_dx, previous_dy,
+    )  # fmt: skip
+    n = points.points.shape[1]
+    pairs, kept, _ = _pair_list(arguments, n)
+    size = max(kept, 1)
+    residuals = cuda.device_array(size, dtype=np.float64)
+    world = cuda.device_array((3, size), dtype=np.float64)
+    warped_points = cuda.device_array((3, size), dtype=np.float64)
+    gradient = cuda.device_array((2, size), dtype=np.float64)
+    if kept:
+        _correspondence_data_kernel[grid_1d(kept, BLOCK), BLOCK](
+            pairs, kept, *arguments, residuals, world, warped_points, gradient
+        )
+    given = points.points
+    return Correspondences(
+        _back(world[:, :kept], given),
+        _back(warped_points[:, :kept], given),
+        _back(residuals[:kept], given),
+        _back(gradient[:, :kept], given),
+        _back(pairs[:kept], given),
+    )
+
+
+def photometric_rows(
+    correspondences: Correspondences, previous_pose: np.ndarray, camera: Intrinsics
+) -> tuple:
+    """Unweighted Jacobian (6, N) and residuals (N,) of the intensity differences at xi = 0."""
+    n = correspondences.world.shape[1]
+    if n == 0:
+        return np.empty((6, 0)), correspondences.residuals
+    jacobian = cuda.device_array((6, n), dtype=np.float64)
+    _photometric_kernel[grid_1d(n, BLOCK), BLOCK](
+        _f64(correspondences.world),
+        _f64(correspondences.warped),
+        _f64(correspondences.gradient),
+        cuda.to_device(np.ascontiguousarray(previous_pose, dtype=np.float64)),
+        float(camera.fx),
+        float(camera.fy),
+        jacobian,
+    )
+    return _back(jacobian, correspondences.world), correspondences.residuals
+
+
+def rgbd_system(
+    points: InterestPoints, pose: np.ndarray, previous_pose: np.ndarray, previous_depth,
+    previous_intensity, camera: Intrinsics, max_depth_change: float = 0.07, previous_dx=None,
+    previous_dy=None,
+) -> LinearSystem:  # fmt: skip
+    """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted:
+    Algorithm 2 (list + sum r^2 by atomics), sigma' on the host, then the weighted rows of the
+    listed pairs tree-reduced per block."""
+    arguments = _pair_arguments(
+        points, pose, previous_pose, previous_depth, previous_intensity, camera,
+        max_depth_change, previous_dx, previous_dy,
+    )  # fmt: skip
+    pairs, kept, squares = _pair_list(arguments, points.points.shape[1])
+    if kept == 0:
+        return LinearSystem.empty()
+    sigma = math.sqrt(squares / kept)
+    blocks = _reduction_blocks(kept)
+    out = cuda.device_array((blocks, NV), dtype=np.float64)
+    previous = cuda.to_device(np.ascontiguousarray(previous_pose, dtype=np.float64))
+    _rgbd_rows_kernel[blocks, BLOCK](pairs, kept, *arguments, previous, sigma, out)
+    return _host.sum_partials(out.copy_to_host())[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# Per-frame problems
+
+
+class IcpProblem(_host.IcpProblemBase):
+    """kintinuous_ref.odometry.icp.IcpProblem with the CUDA kernels underneath (maps uploaded
+    once per frame and level)."""
+
+
+class RgbdProblem(_host.RgbdProblemBase):
+    """kintinuous_ref.odometry.rgbd.RgbdProblem with the CUDA kernels underneath (interest points
+    stay on the device for all iterations)."""
+
+
+IcpProblem.kernels = RgbdProblem.kernels = sys.modules[__name__]

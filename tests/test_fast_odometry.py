@@ -1,0 +1,152 @@
+"""Equivalence of kintinuous_fast's CPU odometry (kintinuous_fast.odometry.cpu) with
+kintinuous_ref.odometry on small frames (80x60 and 160x120 of the analytic room), degenerate
+inputs (no depth, an empty frustum, points on the image borders) and whole trackers after 1 and 3
+iterations and at convergence. Cases and tolerances: tests/test_fast_odometry_cases.py.
+
+The CUDA twin is tests/test_fast_odometry_cuda.py: on a GPU it runs directly; without one, the
+last test here runs it in a child process on numba's CUDA simulator."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import test_fast_odometry_cases as cases
+
+import kintinuous_fast
+from kintinuous_fast.odometry import cpu, fast_odometry, kernels, make_tracker
+from kintinuous_ref.config import Config
+from kintinuous_ref.errors import ConfigError, DatasetError
+
+SIZES = [(80, 60), (160, 120)]
+IDS = ["80x60", "160x120"]
+
+
+@pytest.mark.parametrize("size", SIZES, ids=IDS)
+@pytest.mark.parametrize(
+    "check",
+    [
+        cases.check_icp_system,
+        cases.check_associate_and_rows,
+        cases.check_interest_points,
+        cases.check_prepare_level,
+        cases.check_correspond_and_rows,
+        cases.check_joint_system,
+        cases.check_zero_depth,
+        cases.check_empty_frustum,
+        cases.check_borders,
+    ],
+    ids=lambda check: check.__name__.removeprefix("check_"),
+)
+def test_equivalence_cpu_odometry(check, size):
+    check(cpu, *size)
+
+
+@pytest.mark.parametrize("count", [1, 63, 5000])
+def test_equivalence_cpu_accumulate(count):
+    cases.check_accumulate(cpu, count)
+
+
+def test_cpu_lists_keep_the_reference_order():
+    # Chunked loops + host compaction: no sorting needed on the CPU (unlike CUDA's atomics).
+    data, camera = cases.level_inputs(160, 120)
+    args = (data.depth, data.intensity, data.intensity_dx, data.intensity_dy, camera, 5.0, 6.0)
+    from kintinuous_ref.odometry import rgbd
+
+    np.testing.assert_array_equal(
+        cpu.prepare_level(*args).indices, rgbd.prepare_level(*args).indices
+    )
+
+
+# Poses after a fixed number of iterations: every row agrees to ~1 ulp and every sum to ~1e-12
+# relative, so one Gauss-Newton step agrees to ~1e-12 m; the brief's bound 1e-6 m / 1e-5 rad
+# leaves room for the CUDA sums' atomic order. At convergence the two stop within the reference's
+# `converged` threshold (|xi| < 1e-9) of each other: 1e-6 m / 1e-5 rad as well.
+FIXED = (1e-6, 1e-5)
+
+
+@pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])
+@pytest.mark.parametrize("iterations", [(1, 1, 1), (3, 3, 3), None], ids=["1", "3", "converged"])
+def test_equivalence_cpu_tracker(method, iterations):
+    reference, truth = cases.check_tracker(
+        lambda *a: make_tracker(*a, backend="cpu"), method, 160, 120, iterations, FIXED
+    )
+    if iterations is None:  # and the reference itself recovers the known motion
+        metres, radians = cases.pose_difference(reference, truth)
+        assert metres < 2e-3 and radians < np.radians(0.2), (metres, radians)
+
+
+def test_equivalence_cpu_tracker_failure():
+    # A current frame without depth: both trackers fail with the same reason and fallback pose.
+    camera, previous, _, previous_frame, frame, _ = cases.room(160, 120, 4)
+    import odometry_scene as scene
+
+    empty = scene.Frame(
+        [
+            scene.Level(level.camera, np.zeros_like(level.depth),
+                        np.full_like(level.vertices, np.nan), np.full_like(level.normals, np.nan),
+                        level.intensity, level.intensity_dx, level.intensity_dy)
+            for level in frame.levels
+        ]
+    )  # fmt: skip
+    vertices, normals = scene.model(previous, camera, 1)[0]
+    model = cases.Model(previous, vertices, normals)
+    for method in ("icp", "rgbd", "icp+rgbd"):
+        fast = make_tracker(method, Config(), camera, backend="cpu")
+        result = fast.track(previous_frame, empty, model, previous)
+        assert not result.ok and "too few correspondences" in result.reason
+        np.testing.assert_array_equal(result.pose, previous)
+
+
+def test_make_tracker_backends_and_errors():
+    camera = cases.room(80, 60)[0]
+    assert kernels("cpu") is cpu
+    assert kernels("ref").__name__ == "kintinuous_ref.odometry"
+    with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
+        make_tracker("kinfu", Config(), camera, backend="cpu")
+    with pytest.raises(ConfigError, match="unknown backend 'gpu'"):
+        make_tracker("icp", Config(), camera, backend="gpu")
+    fovis = make_tracker("fovis/icp+rgbd", Config(), camera, backend="cpu")
+    assert fovis.dense.kernels is cpu  # the dense half is the fast one, FOVIS the reference's
+    level = cases.room(80, 60)[4].levels[0]
+    with pytest.raises(
+        DatasetError, match=r"model vertex map is \(30, 40, 3\), expected \(60, 80, 3\)"
+    ):
+        cpu.icp_system(level.vertices, level.normals, np.eye(4), level.vertices[::2, ::2],
+                       level.normals, np.eye(4), camera)  # fmt: skip
+
+
+def test_fast_odometry_skips_the_finest_level():
+    config = fast_odometry(Config())
+    assert config.icp.iterations == (0, 5, 4)
+    assert config.rgbd.combined_iterations == (0, 5, 4)
+    assert config.rgbd.iterations == (0, 7, 7, 7)
+    # ... and still tracks the room's known motion to a few millimetres from level 1 alone.
+    camera, previous, current, previous_frame, frame, _ = cases.room(160, 120, 4)
+    import odometry_scene as scene
+
+    vertices, normals = scene.model(previous, camera, 1)[0]
+    result = make_tracker("icp+rgbd", config, camera, backend="cpu").track(
+        previous_frame, frame, cases.Model(previous, vertices, normals), previous
+    )
+    metres, radians = cases.pose_difference(result.pose, current)
+    assert result.ok and metres < 5e-3 and radians < np.radians(0.3), (metres, radians)
+
+
+@pytest.mark.skipif(
+    kintinuous_fast.cuda_status() == "",
+    reason="CUDA works in this process: tests/test_fast_odometry_cuda.py runs directly",
+)
+def test_equivalence_cuda_odometry_in_simulator():
+    tests = Path(__file__).parent
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+         str(tests / "test_fast_odometry_cuda.py")],
+        env=env, capture_output=True, text=True, timeout=600, cwd=tests.parent,
+    )  # fmt: skip
+    tail = (result.stdout + result.stderr)[-4000:]
+    assert result.returncode == 0, tail
+    assert " passed" in tail and "skipped" not in tail.splitlines()[-1], tail
