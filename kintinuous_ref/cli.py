@@ -235,7 +235,8 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
         "--methods",
         nargs="+",
         choices=ODOMETRY_CHOICES[1:],
-        help="odometry methods (default: all seven)",
+        metavar="METHOD",
+        help=f"odometry methods: {', '.join(ODOMETRY_CHOICES[1:])} (default: all seven)",
     )
     parser.add_argument("--out", type=Path, default=Path("evaluation"), help="output folder")
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (processes)")
@@ -250,7 +251,12 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", help="WIDTHxHEIGHT: resize the images (e.g. 320x240)")
     parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
-    parser.add_argument("--backend", choices=["ref", "cpu", "cuda", "auto"], default="ref")
+    parser.add_argument(
+        "--backend",
+        choices=["ref", "cpu", "cuda", "auto"],
+        default="ref",
+        help="preprocessing, integration and raycast backend (kintinuous info); default ref",
+    )
     parser.add_argument("--mesh", action="store_true", help="also write each run's mesh.ply")
     parser.add_argument("--config", type=Path, help="JSON file of configuration values")
     parser.add_argument(
