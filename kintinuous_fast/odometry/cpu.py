@@ -52,6 +52,8 @@ __all__ = [
 # Chunks per reduction loop: enough to keep every core busy, few enough that the partials cost
 # nothing to add up. Fixed, so that the order of summation never depends on the thread count.
 CHUNKS = 64
+# Loops over fewer items than this run on the calling thread only (see _run).
+PARALLEL_MIN = 50_000
 
 _ops = build_ops(cpu_jit)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
@@ -244,6 +246,22 @@ def stage(array):
     return np.asarray(array)
 
 
+def _run(loop, count: int, *args) -> None:
+    """Call a prange loop; below PARALLEL_MIN items on the calling thread alone. Waking the other
+    threads costs more than such a loop, and on a busy machine a parallel region waits for its
+    slowest (descheduled) thread: tens of milliseconds per call were measured at load 9 on two
+    cores for loops of a few thousand points."""
+    if count >= PARALLEL_MIN:
+        loop(*args)
+        return
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        loop(*args)
+    finally:
+        numba.set_num_threads(threads)
+
+
 def _partials(count: int) -> np.ndarray:
     return np.zeros((_host.chunks_for(count, CHUNKS), NV))
 
@@ -265,7 +283,9 @@ def icp_system_and_valid(
         pose, model_pose, distance_threshold, angle_threshold_deg
     )
     out = _partials(camera.height * camera.width)
-    _icp_loop(
+    _run(
+        _icp_loop,
+        camera.height * camera.width,
         vertices, normals, pose, to_model, model_vertices, model_normals,
         *_host.camera_constants(camera), dist2, cos_min, out,
     )  # fmt: skip
@@ -314,7 +334,9 @@ def associate(
     point_normals = np.asarray(point_normals, dtype=np.float64)
     keep = np.empty(points.shape[1], dtype=np.bool_)
     out = np.empty((9, points.shape[1]))
-    _associate_loop(
+    _run(
+        _associate_loop,
+        points.shape[1],
         points, point_normals, pose, to_model,
         np.asarray(model_vertices).T.reshape(shape), np.asarray(model_normals).T.reshape(shape),
         *_host.camera_constants(camera), dist2, cos_min, keep, out,
@@ -330,7 +352,9 @@ def point_to_plane_rows(
     n = world.shape[1]
     jacobian = np.empty((6, n))
     residuals = np.empty(n)
-    _point_to_plane_loop(
+    _run(
+        _point_to_plane_loop,
+        n,
         np.asarray(world, dtype=np.float64),
         np.asarray(model_vertices, dtype=np.float64),
         np.asarray(model_normals, dtype=np.float64),
@@ -351,7 +375,9 @@ def accumulate(
     residuals = np.asarray(residuals, dtype=np.float64)
     out = _partials(len(residuals))
     weighted = weights is not None
-    _accumulate_loop(
+    _run(
+        _accumulate_loop,
+        len(residuals),
         np.asarray(jacobian, dtype=np.float64),
         residuals,
         np.asarray(weights, dtype=np.float64) if weighted else residuals,
@@ -368,7 +394,9 @@ def accumulate(
 def _interest_mask(dx, dy, depth, min_gradient, max_depth) -> np.ndarray:
     mask = np.empty(dx.shape, dtype=np.bool_)
     use_depth = depth is not None
-    _interest_mask_loop(
+    _run(
+        _interest_mask_loop,
+        dx.size,
         dx, dy, depth if use_depth else dx, float(min_gradient) ** 2, use_depth,
         float(max_depth), mask,
     )  # fmt: skip
@@ -402,7 +430,9 @@ def prepare_level(
     indices = np.flatnonzero(_interest_mask(dx, dy, depth, min_gradient, max_depth))
     n = len(indices)
     points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
-    _interest_data_loop(
+    _run(
+        _interest_data_loop,
+        n,
         indices, depth, intensity, dx, dy, *_host.camera_constants(camera), points, values,
         gradient,
     )  # fmt: skip
@@ -425,7 +455,9 @@ def _correspond_all(
     residuals, world = np.empty(n), np.empty((3, n))
     warped_points, gradient = np.empty((3, n)), np.empty((2, n))
     sums = np.zeros((_host.chunks_for(n, CHUNKS), 2))
-    _correspond_loop(
+    _run(
+        _correspond_loop,
+        n,
         np.asarray(points.points, dtype=np.float64),
         np.asarray(points.intensity, dtype=np.float64),
         np.asarray(points.gradient, dtype=np.float64),
@@ -471,7 +503,9 @@ def photometric_rows(
     """Unweighted Jacobian (6, N) and residuals (N,) of the intensity differences at xi = 0."""
     n = correspondences.world.shape[1]
     jacobian = np.empty((6, n))
-    _photometric_loop(
+    _run(
+        _photometric_loop,
+        n,
         np.asarray(correspondences.world, dtype=np.float64),
         np.asarray(correspondences.warped, dtype=np.float64),
         np.asarray(correspondences.gradient, dtype=np.float64),
@@ -504,7 +538,9 @@ def rgbd_system(
         return LinearSystem.empty()
     sigma = float(np.sqrt(squares / count))
     out = _partials(len(residuals))
-    _rgbd_rows_loop(
+    _run(
+        _rgbd_rows_loop,
+        len(residuals),
         residuals, world, warped_points, gradient,
         np.ascontiguousarray(previous_pose, dtype=np.float64),
         float(camera.fx), float(camera.fy), sigma, out,
