@@ -78,6 +78,14 @@ def test_equivalence_cpu_tracker(method, iterations):
         assert metres < 2e-3 and radians < np.radians(0.2), (metres, radians)
 
 
+def test_equivalence_cpu_tracker_fovis_switching():
+    # FOVIS itself is the reference's (CPU, as in the paper); the dense half is the fast one, so
+    # the switched result equals the reference tracker's.
+    cases.check_tracker(
+        lambda *a: make_tracker(*a, backend="cpu"), "fovis/icp+rgbd", 160, 120, None, FIXED
+    )
+
+
 def test_equivalence_cpu_tracker_failure():
     # A current frame without depth: both trackers fail with the same reason and fallback pose.
     camera, previous, _, previous_frame, frame, _ = cases.room(160, 120, 4)
