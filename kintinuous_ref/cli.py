@@ -128,6 +128,19 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
+    parser.add_argument(
+        "--shift-threshold",
+        type=int,
+        default=14,
+        metavar="V",
+        help="moving volume: shift when the camera is V voxels from the volume's basis "
+        "(1..16, default 14; docs/moving_volume.md)",
+    )
+    parser.add_argument(
+        "--fixed-volume",
+        action="store_true",
+        help="keep the volume where it starts (KinectFusion) instead of moving it (Kintinuous)",
+    )
     parser.add_argument("--backend", choices=["ref"], default="ref")
     parser.add_argument(
         "--config",
@@ -161,7 +174,12 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, with_overrides
 
     config = Config(
-        volume=VolumeConfig(resolution=args.resolution, size=args.volume_size),
+        volume=VolumeConfig(
+            resolution=args.resolution,
+            size=args.volume_size,
+            shift_threshold=args.shift_threshold,
+            moving=not args.fixed_volume,
+        ),
         colour=ColourConfig(
             angle_weighting=not args.no_colour_weighting,
             discontinuity_check=not args.no_colour_weighting,
@@ -184,7 +202,8 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     print(
         f"fused {report['fused_frames']} of {report['frames']} frames "
         f"({total:.0f} ms per frame); wrote {args.out}/mesh.ply with "
-        f"{report['mesh']['vertices']} vertices"
+        f"{report['mesh']['vertices']} vertices ({report['shifts']} volume shifts, "
+        f"{report['slices']} slices)"
     )
 
 

@@ -58,7 +58,8 @@ def surface_colour(volume: TsdfVolume, points: np.ndarray) -> np.ndarray:
     coverage = np.zeros(len(coords))
     for corner in np.ndindex(2, 2, 2):
         offset = np.array(corner)
-        i, j, k = (base + offset).T
+        # array cell of the logical voxel (cyclical buffer, tsdf.py; offset 0 if never shifted)
+        i, j, k = ((base + offset + volume.offset) % volume.resolution).T
         w = np.prod(np.where(offset == 1, frac, 1.0 - frac), axis=-1)
         w = w * (volume.colour_weight[i, j, k] > 0)
         total += w[:, None] * volume.colour[i, j, k]

@@ -21,6 +21,8 @@ class VolumeConfig:
     max_weight: float = 128.0  # weight cap of the running average
     colour: bool = True  # keep a colour volume beside the TSDF (paper VI)
     shift_threshold: int = 14  # voxels from the basis before the volume shifts (1..16)
+    # Kintinuous' cyclical buffer (moving_volume.py); False = a fixed KinectFusion volume
+    moving: bool = True
     min_extract_weight: float = 8.0  # zero crossings lighter than this are not extracted
     # where the volume sits relative to the first camera (tsdf.volume_origin): "ahead" = the
     # camera at the centre of the face it looks through (KinectFusion), "centred" = at the centre

@@ -45,7 +45,7 @@ def _interpolates_observed(volume: TsdfVolume, points: np.ndarray, min_weight: f
     coords = volume.world_to_voxel(points)
     ok = np.ones(len(points), dtype=bool)
     weight = volume.weight.reshape(-1)
-    for index, w in corner_weights(volume.weight.shape, coords):
+    for index, w in corner_weights(volume.weight.shape, coords, volume.offset):
         ok &= (w < 1e-4) | (weight[index] > min_weight)
     return ok
 
@@ -64,7 +64,7 @@ def extract_mesh(volume: TsdfVolume | None, min_weight: float = 0.0) -> Mesh:
         dimensions=(n, n, n), spacing=(volume.voxel_size,) * 3, origin=tuple(volume.origin)
     )
     # VTK orders points with x fastest; our arrays are [x, y, z], hence Fortran order.
-    grid.point_data["tsdf"] = volume.tsdf.ravel(order="F")
+    grid.point_data["tsdf"] = volume.logical(volume.tsdf).ravel(order="F")
     surface = grid.contour([0.0], scalars="tsdf", method="flying_edges", compute_normals=False)
     if surface.n_points == 0:
         return empty

@@ -4,9 +4,12 @@
         1. preprocess        metric depth, filters, pyramids, vertex/normal maps (IV-A.1)
         2. odometry          pose from the ground truth, or tracker.track(previous, current,
                              model, previous_pose) (IV, V); a failed frame is not fused
-        3. integrate         depth into the TSDF, colour into the colour volume (III, VI)
-        4. raycast           the model seen from the new pose, for the next frame's ICP (III)
-        5. record            pose and per-stage timings; report progress
+        3. moving volume     shift the cyclical buffer if the camera moved far enough; the
+                             slices that leave are meshed and stored (III, Fig. 2)
+        4. integrate         depth into the TSDF, colour into the colour volume (III, VI)
+        5. raycast           the model seen from the new pose, for the next frame's ICP (III)
+        6. record            pose and per-stage timings; report progress
+    at the end: the rest of the volume becomes the last slice; the slices one mesh.
 
 The backend is a parameter: any object whose `preprocess`, `tsdf` and `raycast` attributes offer
 kintinuous_ref's functions of those modules (kintinuous_ref itself, or a kintinuous_fast backend).
@@ -16,7 +19,12 @@ the ground truth; with a tracker it is the first ground-truth pose when the data
 trajectories are comparable with it), else the identity.
 
 Ctrl-C (KeyboardInterrupt) ends the loop cleanly: the result holds the poses so far and the
-volume of what was fused, with `interrupted` set.
+volume of what was fused, with `interrupted` set. Slices already written to disk stay there even
+if the run crashes.
+
+The moving volume (config.volume.moving, on by default as in Kintinuous) needs the reference
+volume's cyclical buffer (tsdf.TsdfVolume.offset); with a backend whose volume has none the
+volume stays fixed, and `moving_volume_note` says so.
 """
 
 from __future__ import annotations
@@ -41,11 +49,12 @@ from kintinuous_ref.colour import colour_weights
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.tum import Frame, Trajectory, TumSequence
 from kintinuous_ref.errors import ConfigError, DatasetError
+from kintinuous_ref.moving_volume import MovingVolume, SliceStore
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.tsdf import TsdfVolume, check_volume_config
 
 GROUNDTRUTH = "groundtruth"
-STAGES = ("preprocess", "odometry", "integrate", "raycast", "total")
+STAGES = ("preprocess", "odometry", "shift", "integrate", "raycast", "total")
 
 
 @dataclass
@@ -59,6 +68,17 @@ class PipelineResult:
     volume: TsdfVolume | None = None
     model: ModelPrediction | None = None  # the last prediction, if any was made
     interrupted: bool = False
+    moving: MovingVolume | None = None  # the cyclical buffer's state (None: a fixed volume)
+    moving_volume_note: str = ""  # why the volume stayed fixed although config asked to move
+    volume_origins: list[np.ndarray] = field(default_factory=list)  # per frame, after its shift
+
+    @property
+    def shifts(self) -> int:
+        return 0 if self.moving is None else self.moving.shifts
+
+    @property
+    def slices(self) -> int:
+        return 0 if self.moving is None else self.moving.slices
 
     @property
     def frames(self) -> int:
@@ -106,10 +126,13 @@ def run(
     backend: ModuleType | Any = kintinuous_ref,
     progress: Callable[[PipelineResult], None] | None = None,
     predict_model: bool | None = None,
+    slices: Path | None = None,
 ) -> PipelineResult:
     """Reconstruct a sequence. `groundtruth` holds one pose per frame INDEX of the sequence
     (TumSequence.groundtruth_for_frames()). `predict_model` None: raycast only when a tracker
-    needs the model (ground-truth odometry does not). `progress` is called after every frame."""
+    needs the model (ground-truth odometry does not). `progress` is called after every frame.
+    `slices`: folder for the moving volume's slices (written as they leave); None keeps them in
+    memory."""
     check_run(config, odometry, groundtruth)
     if predict_model is None:
         predict_model = odometry != GROUNDTRUTH
@@ -142,7 +165,14 @@ def run(
                 result.volume = backend.tsdf.make_volume(
                     config.volume, pose, config.colour.max_weight
                 )
-            # 3. Integrate depth and colour (III, VI); a frame whose tracking failed is not fused.
+                result.moving, result.moving_volume_note = _moving_volume(
+                    result.volume, pose, config, slices
+                )
+            # 3. Moving volume (III, Fig. 2): shift, extracting the slices that leave.
+            if ok and result.moving is not None:
+                result.moving.update(pose)
+            clock.lap("shift")
+            # 4. Integrate depth and colour (III, VI); a frame whose tracking failed is not fused.
             if ok:
                 backend.tsdf.integrate(
                     result.volume,
@@ -156,23 +186,35 @@ def run(
                 result.tracking_failures += 1
                 result.failure_reasons.append(f"frame {frame.index}: {reason}")
             clock.lap("integrate")
-            # 4. Predict the model surface for the next frame's ICP (III).
+            # 5. Predict the model surface for the next frame's ICP (III).
             if predict_model:
                 result.model = backend.raycast.raycast(result.volume, pose, camera)
                 clock.lap("raycast")
-            # 5. Record.
+            # 6. Record.
             clock.total()
             for stage, milliseconds in clock.laps.items():
                 result.timings_ms[stage].append(milliseconds)
             result.timestamps.append(frame.timestamp)
             result.poses.append(np.asarray(pose, dtype=np.float64))
             result.fused.append(ok)
+            result.volume_origins.append(np.array(result.volume.origin, dtype=np.float64))
             previous = current
             if progress is not None:
                 progress(result)
     except KeyboardInterrupt:
         result.interrupted = True
     return result
+
+
+def _moving_volume(
+    volume: Any, first_pose: np.ndarray, config: Config, slices: Path | None
+) -> tuple[MovingVolume | None, str]:
+    """The cyclical buffer around a new volume, or None with the reason it stays fixed."""
+    if not config.volume.moving:
+        return None, ""
+    if not isinstance(volume, TsdfVolume):
+        return None, f"fixed volume: the {type(volume).__name__} backend has no cyclical buffer"
+    return MovingVolume(volume, first_pose, config.volume, SliceStore(slices)), ""
 
 
 class _Clock:
@@ -235,8 +277,16 @@ def write_outputs(
 
     out.mkdir(parents=True, exist_ok=True)
     write_trajectory(out / "trajectory.txt", result.trajectory)
-    surface = meshing.extract_mesh(result.volume)
-    meshing.write_ply(out / "mesh.ply", surface)
+    if result.moving is not None:
+        # The rest of the window is the last slice; the slices merge into one mesh on disk.
+        from kintinuous_ref import moving_volume
+
+        result.moving.finish()
+        moving_volume.assemble(result.moving.store, out / "mesh.ply")
+        surface = moving_volume.read_mesh(out / "mesh.ply")
+    else:
+        surface = meshing.extract_mesh(result.volume)
+        meshing.write_ply(out / "mesh.ply", surface)
     if preview:
         first = result.poses[0] if result.poses else None
         meshing.render_preview(surface, out / "preview.png", view_pose=first)
@@ -249,7 +299,12 @@ def write_outputs(
         "interrupted": result.interrupted,
         "timing_ms": result.timing_summary(),
         "mesh": {"vertices": len(surface.points), "triangles": len(surface.triangles)},
+        "moving_volume": result.moving is not None,
+        "shifts": result.shifts,
+        "slices": result.slices,
     }
+    if result.moving_volume_note:
+        report["moving_volume_note"] = result.moving_volume_note
     if result.volume is not None:
         report["volume"] = {
             "resolution": result.volume.resolution,
@@ -310,6 +365,7 @@ def reconstruct(
         groundtruth,
         progress=(lambda _: bar.update(1)) if bar is not None else None,
         predict_model=predict_model,
+        slices=Path(out) / "slices",
     )
     if bar is not None:
         bar.close()

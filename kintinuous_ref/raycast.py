@@ -69,8 +69,8 @@ def _gradient_normals(volume: TsdfVolume, points: np.ndarray) -> np.ndarray:
     for axis in range(3):
         offset = np.zeros(3)
         offset[axis] = 1.0
-        ahead = trilinear(volume.tsdf, np.clip(coords + offset, 0, limit))
-        behind = trilinear(volume.tsdf, np.clip(coords - offset, 0, limit))
+        ahead = trilinear(volume.tsdf, np.clip(coords + offset, 0, limit), volume.offset)
+        behind = trilinear(volume.tsdf, np.clip(coords - offset, 0, limit), volume.offset)
         gradient[:, axis] = ahead - behind
     length = np.linalg.norm(gradient, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -119,7 +119,8 @@ def _empty_space(volume: TsdfVolume) -> np.ndarray:
     """
     n, b = volume.resolution, -(-volume.resolution // BRICK)
     negative = np.zeros((b * BRICK,) * 3, dtype=bool)
-    negative[:n, :n, :n] = (volume.tsdf < 0) & (volume.weight > 0)
+    # In logical order: bricks are blocks of logical voxels (cyclical buffer, tsdf.py).
+    negative[:n, :n, :n] = volume.logical((volume.tsdf < 0) & (volume.weight > 0))
     bricks = negative.reshape(b, BRICK, b, BRICK, b, BRICK).any(axis=(1, 3, 5))
     bricks = ndimage.binary_dilation(bricks, structure=np.ones((3, 3, 3), dtype=bool))
     if not bricks.any():

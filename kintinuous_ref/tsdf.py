@@ -15,12 +15,18 @@ Stored values (the reference keeps float32 everywhere for readability):
   in front of the surface (free space), negative behind; unobserved voxels hold 0 with weight 0.
 - weight: number of observations, capped at `max_weight` (a running average that keeps adapting).
 - colour (RGB 0..255) and colour_weight: the colour volume of paper VI, same grid.
+
+Cyclical buffer (Kintinuous, paper III; kintinuous_ref.moving_volume): the arrays are a ring
+buffer. Logical voxel (i, j, k), centred at origin + voxel_size (i, j, k), is stored at array cell
+((i, j, k) + offset) mod N. Shifting the volume by whole voxels changes `origin` and `offset` and
+moves no data; every function here and in raycast/colour/mesh indexes through `offset`, which is
+zero for a volume that never moved (then array cell = logical voxel, as before).
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,10 +52,35 @@ class TsdfVolume:
     truncation: float
     max_weight: float
     colour_max_weight: float = 255.0
+    # (3,) int: array cell of logical voxel (0, 0, 0) (module docstring); zero until a shift
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
 
     @property
     def resolution(self) -> int:
         return self.tsdf.shape[0]
+
+    @property
+    def shifted(self) -> bool:
+        return bool(np.any(self.offset))
+
+    def logical(self, array: np.ndarray) -> np.ndarray:
+        """One of the volume's arrays in logical order (index = logical voxel): the array itself
+        when the volume never shifted, else a re-ordered copy (for whole-volume passes such as
+        meshing or the raycast's empty-space map, never for updates)."""
+        if not self.shifted:
+            return array
+        return np.roll(array, tuple(-self.offset), axis=(0, 1, 2))
+
+    def cells(self, start: tuple[int, int, int], stop: tuple[int, int, int]) -> tuple:
+        """Index of the array cells holding the logical box [start, stop) (per axis, within
+        0..N): plain slices (a view) when the box does not wrap, else np.ix_ index arrays
+        (indexing then copies, so updates must be written back through the same index)."""
+        n = self.resolution
+        if not self.shifted:
+            return tuple(slice(a, b) for a, b in zip(start, stop, strict=True))
+        return np.ix_(
+            *((np.arange(a, b) + o) % n for a, b, o in zip(start, stop, self.offset, strict=True))
+        )
 
     @property
     def size(self) -> float:
@@ -136,9 +167,10 @@ def make_volume(
 
 
 def corner_weights(
-    shape: tuple[int, ...], coordinates: np.ndarray
+    shape: tuple[int, ...], coordinates: np.ndarray, offset: np.ndarray | None = None
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(flat index, trilinear weight) of the 8 voxels around each continuous coordinate (M, 3).
+    """(flat array index, trilinear weight) of the 8 voxels around each continuous LOGICAL
+    coordinate (M, 3); `offset` is the cyclical buffer's (TsdfVolume.offset; None = zero).
 
     The weight of corner (a, b, c) is the product of f or 1 - f per axis, f the fractional part.
     Coordinates outside [0, N-1] are clamped onto the border cell.
@@ -146,7 +178,9 @@ def corner_weights(
     n = np.array(shape[:3])
     base = np.clip(np.floor(coordinates).astype(np.int64), 0, n - 2)
     frac = np.clip(coordinates - base, 0.0, 1.0)
-    flat = (base[:, 0] * n[1] + base[:, 1]) * n[2] + base[:, 2]
+    wraps = offset is not None and bool(np.any(offset))
+    if not wraps:
+        flat = (base[:, 0] * n[1] + base[:, 1]) * n[2] + base[:, 2]
     corners = []
     for a, b, c in np.ndindex(2, 2, 2):
         w = (
@@ -154,15 +188,22 @@ def corner_weights(
             * (frac[:, 1] if b else 1.0 - frac[:, 1])
             * (frac[:, 2] if c else 1.0 - frac[:, 2])
         )
-        corners.append((flat + (a * n[1] + b) * n[2] + c, w))
+        if wraps:  # logical voxel base + (a, b, c) lives in array cell (. + offset) mod N
+            cell = (base + (a, b, c) + offset) % n
+            corners.append(((cell[:, 0] * n[1] + cell[:, 1]) * n[2] + cell[:, 2], w))
+        else:
+            corners.append((flat + (a * n[1] + b) * n[2] + c, w))
     return corners
 
 
-def trilinear(grid: np.ndarray, coordinates: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of a (N, N, N[, C]) grid at continuous voxel coordinates (M, 3)."""
+def trilinear(
+    grid: np.ndarray, coordinates: np.ndarray, offset: np.ndarray | None = None
+) -> np.ndarray:
+    """Trilinear interpolation of a (N, N, N[, C]) grid at continuous voxel coordinates (M, 3)
+    (logical coordinates of a cyclical buffer with `offset`, see corner_weights)."""
     flat_grid = grid.reshape(-1, *grid.shape[3:])
     result = np.zeros((len(coordinates), *grid.shape[3:]))
-    for index, w in corner_weights(grid.shape, coordinates):
+    for index, w in corner_weights(grid.shape, coordinates, offset):
         result += (w[:, None] if grid.ndim == 4 else w) * flat_grid[index]
     return result.astype(np.float32)
 
@@ -180,7 +221,7 @@ def sample_tsdf(volume: TsdfVolume, coordinates: np.ndarray) -> np.ndarray:
     tsdf, weight = volume.tsdf.reshape(-1), volume.weight.reshape(-1)
     total = np.zeros(len(coordinates))
     coverage = np.zeros(len(coordinates))
-    for index, w in corner_weights(volume.tsdf.shape, coordinates):
+    for index, w in corner_weights(volume.tsdf.shape, coordinates, volume.offset):
         w = w * (weight[index] > 0)
         total += w * tsdf[index]
         coverage += w
@@ -308,12 +349,16 @@ def integrate(
         sdf = measured - np.sqrt(x * x + y * y + z * z)
         update = (measured > 0) & (sdf >= -volume.truncation)
 
-        block = (slice(i0, i1), slice(j0, j1), slice(k0, k1))
-        tsdf, weight = volume.tsdf[block], volume.weight[block]  # views: written in place
+        # The array cells of this logical block: views, or copies in a shifted cyclical buffer
+        # (written back below).
+        block = volume.cells((i0, j0, k0), (i1, j1, k1))
+        tsdf, weight = volume.tsdf[block], volume.weight[block]
         observed = np.minimum(1.0, sdf[update] / volume.truncation)
         w_old = weight[update]
         tsdf[update] = (tsdf[update] * w_old + observed) / (w_old + 1.0)
         weight[update] = np.minimum(w_old + 1.0, volume.max_weight)
+        if volume.shifted:
+            volume.tsdf[block], volume.weight[block] = tsdf, weight
 
         if fuse_colour:
             w_pixel = colour_weights.reshape(-1)[pixel]
@@ -324,3 +369,5 @@ def integrate(
             cw_old = cw_block[near][:, None]
             c_block[near] = (c_block[near] * cw_old + rgb * w_c) / (cw_old + w_c)
             cw_block[near] = np.minimum(cw_old + w_c, volume.colour_max_weight)[:, 0]
+            if volume.shifted:
+                volume.colour[block], volume.colour_weight[block] = c_block, cw_block
