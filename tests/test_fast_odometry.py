@@ -116,6 +116,11 @@ def test_make_tracker_backends_and_errors():
         make_tracker("kinfu", Config(), camera, backend="cpu")
     with pytest.raises(ConfigError, match="unknown backend 'gpu'"):
         make_tracker("icp", Config(), camera, backend="gpu")
+    # The backend module has the reference's make_tracker / DenseTracker signatures too.
+    assert cpu.make_tracker("icp+rgbd", Config(), camera).kernels is cpu
+    assert cpu.DenseTracker("rgbd", Config(), camera).kernels is cpu
+    with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
+        cpu.make_tracker("kinfu", Config(), camera)
     fovis = make_tracker("fovis/icp+rgbd", Config(), camera, backend="cpu")
     assert fovis.dense.kernels is cpu  # the dense half is the fast one, FOVIS the reference's
     level = cases.room(80, 60)[4].levels[0]

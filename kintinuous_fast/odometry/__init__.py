@@ -61,16 +61,12 @@ def make_tracker(method: str, config: Config, camera: Intrinsics, backend: str =
     ("ref", "cpu", "cuda" or "auto"); same methods, same TrackingResult."""
     from kintinuous_ref.odometry import make_tracker as ref_make_tracker
 
-    from ._host import FastDenseTracker, FastFovisTracker
-
     if method not in METHODS:
         raise ConfigError(f"unknown odometry method {method!r}; choose from {', '.join(METHODS)}")
     module = kernels(backend)
     if module.__name__ == "kintinuous_ref.odometry":
         return ref_make_tracker(method, config, camera)
-    if method in DENSE_METHODS:
-        return FastDenseTracker(method, config, camera, module)
-    return FastFovisTracker(method, config, camera, module)
+    return module.make_tracker(method, config, camera)
 
 
 def fast_odometry(config: Config) -> Config:

@@ -279,3 +279,14 @@ class FastFovisTracker(RefFovisTracker):
         super().__init__(method, config, camera)
         other = method.partition("/")[2]
         self.dense = FastDenseTracker(other, config, camera, kernels) if other else None
+
+
+def make_tracker_with(kernels: ModuleType, method: str, config: Config, camera: Intrinsics):  # noqa: ANN201
+    """kintinuous_ref.odometry.make_tracker with the dense systems of `kernels`."""
+    from kintinuous_ref.odometry import DENSE_METHODS, METHODS
+
+    if method in DENSE_METHODS:
+        return FastDenseTracker(method, config, camera, kernels)
+    if method in METHODS:
+        return FastFovisTracker(method, config, camera, kernels)
+    raise ConfigError(f"unknown odometry method {method!r}; choose from {', '.join(METHODS)}")

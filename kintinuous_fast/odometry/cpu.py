@@ -19,6 +19,8 @@ from numba import prange
 
 from kintinuous_fast.ops import cpu_jit
 from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import Config
+from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
 from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
@@ -27,7 +29,10 @@ from . import _host
 from .ops import NV, build_ops
 
 __all__ = [
+    "METHODS",
     "CombinedProblem",
+    "DenseTracker",
+    "TrackingResult",
     "Correspondences",
     "IcpProblem",
     "InterestPoints",
@@ -41,6 +46,7 @@ __all__ = [
     "icp_system",
     "interest_points",
     "joint_system",
+    "make_tracker",
     "photometric_rows",
     "point_to_plane_rows",
     "prepare_level",
@@ -561,3 +567,15 @@ class RgbdProblem(_host.RgbdProblemBase):
 
 
 IcpProblem.kernels = RgbdProblem.kernels = sys.modules[__name__]
+
+
+class DenseTracker(_host.FastDenseTracker):
+    """kintinuous_ref.odometry.DenseTracker with the CPU loops underneath."""
+
+    def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
+        super().__init__(method, config, camera, sys.modules[__name__])
+
+
+def make_tracker(method: str, config: Config, camera: Intrinsics) -> Tracker:
+    """kintinuous_ref.odometry.make_tracker (every method) with the CPU loops underneath."""
+    return _host.make_tracker_with(sys.modules[__name__], method, config, camera)

@@ -30,6 +30,8 @@ from numba import cuda, float64, int32, int64
 from kintinuous_fast.cuda import BLOCK_1D, grid_1d, is_device, to_device
 from kintinuous_fast.ops import cuda_device_jit
 from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import Config
+from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
 from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
@@ -38,7 +40,10 @@ from . import _host
 from .ops import NV, build_ops
 
 __all__ = [
+    "METHODS",
     "CombinedProblem",
+    "DenseTracker",
+    "TrackingResult",
     "Correspondences",
     "IcpProblem",
     "InterestPoints",
@@ -52,6 +57,7 @@ __all__ = [
     "icp_system",
     "interest_points",
     "joint_system",
+    "make_tracker",
     "photometric_rows",
     "point_to_plane_rows",
     "prepare_level",
@@ -616,3 +622,15 @@ class RgbdProblem(_host.RgbdProblemBase):
 
 
 IcpProblem.kernels = RgbdProblem.kernels = sys.modules[__name__]
+
+
+class DenseTracker(_host.FastDenseTracker):
+    """kintinuous_ref.odometry.DenseTracker with the CUDA kernels underneath."""
+
+    def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
+        super().__init__(method, config, camera, sys.modules[__name__])
+
+
+def make_tracker(method: str, config: Config, camera: Intrinsics) -> Tracker:
+    """kintinuous_ref.odometry.make_tracker (every method) with the CUDA kernels underneath."""
+    return _host.make_tracker_with(sys.modules[__name__], method, config, camera)
