@@ -302,3 +302,15 @@ def test_table_reproduces_the_papers_published_rank_scores():
     markdown = render_markdown(table)
     assert _row(markdown, "I", "ICP+RGB-D")[-2] == "**0.0904**"
     assert _row(markdown, "I", "FOVIS/ICP+RGB-D")[-2] == "*0.0911*"
+
+
+def test_values_equal_as_printed_share_their_mark():
+    # 0.00123 and 0.001234 both print as 0.0012: neither is shown as better than the other.
+    outcomes = [
+        _outcome("d1", "icp", 0.00123),
+        _outcome("d1", "rgbd", 0.001234),
+        _outcome("d1", "fovis", 0.0031),
+    ]
+    markdown = render_markdown(build_table(outcomes, ["icp", "rgbd", "fovis"], {"d1": {}}))
+    cells = [_row(markdown, "I", title)[0] for title in ("ICP", "RGB-D", "FOVIS")]
+    assert cells == ["**0.0012**", "**0.0012**", "*0.0031*"]

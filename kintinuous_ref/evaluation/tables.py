@@ -3,8 +3,9 @@
 Layout as in the paper (section VII): one row per method; per dataset the median and the maximum;
 the ranking score of eq. 16 (metrics.ranking_scores) of the medians and of the maxima in the last
 two columns. In Tables I-IV the best value of each column is in bold and the second best in
-italics (lower is better everywhere). Tables V and VI (per-frame milliseconds: avg, min, max,
-std dev) come once per dataset, as the paper's come for fr1/room.
+italics (lower is better everywhere; values equal as printed share their mark). Tables V and
+VI (per-frame milliseconds: avg, min, max, std dev) come once per dataset, as the paper's come
+for fr1/room.
 
 Failed runs: a cell of a run that failed reads "failed" and the reason is listed under the tables.
 The ranking score needs every method's number on a dataset (eq. 16 divides by the sum over the
@@ -168,7 +169,9 @@ def _row(cells: list[str]) -> str:
 
 
 def _marked_column(numbers: list[float | None], failed: list[bool]) -> list[str]:
-    labels = marks(numbers)
+    # Ranked as printed: two methods that agree to the digits shown (e.g. a FOVIS switch that
+    # never fired) share a mark rather than one being "better" by 1e-9.
+    labels = marks([None if n is None else float(format_number(n)) for n in numbers])
     return [
         "failed" if bad else _decorate(format_number(n), label)
         for n, label, bad in zip(numbers, labels, failed, strict=True)
