@@ -107,7 +107,9 @@ def trajectory_figure(
         for i, method in enumerate(methods):
             if method in runs:
                 xy = runs[method].poses[:, :3, 3] @ basis.T
-                panel.plot(xy[:, 0], xy[:, 1], color=colours(i), label=method_title(method))
+                # Dashed: the FOVIS-switching variants, which often coincide with their base method.
+                style = "--" if method.startswith("fovis/") else "-"
+                panel.plot(xy[:, 0], xy[:, 1], style, color=colours(i), label=method_title(method))
         panel.plot(*(reference[0, :3, 3] @ basis.T), "ko", markersize=4)
         panel.set_aspect("equal", adjustable="datalim")
         panel.set_title(f"{dataset} (seen from above)")

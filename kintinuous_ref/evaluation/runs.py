@@ -167,8 +167,8 @@ def _write_run(spec: RunSpec, outcome: RunOutcome, result: Any) -> None:
     report = _report(spec, outcome)
     report["failure_reasons"] = result.failure_reasons[:50]
     report["timings_ms"] = result.timings_ms  # raw per-frame times of every stage
-    if spec.mesh:
-        pipeline.write_outputs(result, out, report, preview=False)
+    if spec.mesh:  # the pipeline's own report (mesh, volume) with ours on top
+        report = pipeline.write_outputs(result, out, report, preview=False)
     write_trajectory(out / "trajectory.txt", result.trajectory)
     (out / "report.json").write_text(json.dumps(report, indent=1) + "\n")
 
