@@ -244,12 +244,14 @@ def _rgbd_rows_loop(residuals, world, warped_points, gradient, previous_pose, fx
 
 
 def stage(array):
-    """Arrays as the loops take them: NumPy, any layout (device arrays are downloaded)."""
+    """Arrays as the loops take them: C-contiguous NumPy (device arrays are downloaded). One
+    layout means one compiled specialisation per loop (the model pyramid's strided levels are
+    copied once per frame, ~1 ms at 640x480)."""
     if array is None:
         return None
     if hasattr(array, "copy_to_host") and not isinstance(array, np.ndarray):
         return array.copy_to_host()
-    return np.asarray(array)
+    return np.ascontiguousarray(array)
 
 
 def _run(loop, count: int, *args) -> None:
@@ -336,15 +338,16 @@ def associate(
     pose, to_model, dist2, cos_min = _host.icp_constants(
         pose, model_pose, distance_threshold, angle_threshold_deg
     )
-    points = np.asarray(points, dtype=np.float64)
-    point_normals = np.asarray(point_normals, dtype=np.float64)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    point_normals = np.ascontiguousarray(point_normals, dtype=np.float64)
     keep = np.empty(points.shape[1], dtype=np.bool_)
     out = np.empty((9, points.shape[1]))
     _run(
         _associate_loop,
         points.shape[1],
         points, point_normals, pose, to_model,
-        np.asarray(model_vertices).T.reshape(shape), np.asarray(model_normals).T.reshape(shape),
+        np.ascontiguousarray(np.asarray(model_vertices).T.reshape(shape)),
+        np.ascontiguousarray(np.asarray(model_normals).T.reshape(shape)),
         *_host.camera_constants(camera), dist2, cos_min, keep, out,
     )  # fmt: skip
     kept = np.compress(keep, out, axis=1)
@@ -361,9 +364,9 @@ def point_to_plane_rows(
     _run(
         _point_to_plane_loop,
         n,
-        np.asarray(world, dtype=np.float64),
-        np.asarray(model_vertices, dtype=np.float64),
-        np.asarray(model_normals, dtype=np.float64),
+        np.ascontiguousarray(world, dtype=np.float64),
+        np.ascontiguousarray(model_vertices, dtype=np.float64),
+        np.ascontiguousarray(model_normals, dtype=np.float64),
         jacobian,
         residuals,
     )
@@ -378,15 +381,15 @@ def accumulate(
     jacobian: np.ndarray, residuals: np.ndarray, weights: np.ndarray | None = None
 ) -> LinearSystem:
     """Normal equations of the (6, N) Jacobian and (N,) residuals in float64, chunked sums."""
-    residuals = np.asarray(residuals, dtype=np.float64)
+    residuals = np.ascontiguousarray(residuals, dtype=np.float64)
     out = _partials(len(residuals))
     weighted = weights is not None
     _run(
         _accumulate_loop,
         len(residuals),
-        np.asarray(jacobian, dtype=np.float64),
+        np.ascontiguousarray(jacobian, dtype=np.float64),
         residuals,
-        np.asarray(weights, dtype=np.float64) if weighted else residuals,
+        np.ascontiguousarray(weights, dtype=np.float64) if weighted else residuals,
         weighted,
         out,
     )
@@ -464,9 +467,9 @@ def _correspond_all(
     _run(
         _correspond_loop,
         n,
-        np.asarray(points.points, dtype=np.float64),
-        np.asarray(points.intensity, dtype=np.float64),
-        np.asarray(points.gradient, dtype=np.float64),
+        np.ascontiguousarray(points.points, dtype=np.float64),
+        np.ascontiguousarray(points.intensity, dtype=np.float64),
+        np.ascontiguousarray(points.gradient, dtype=np.float64),
         _host.relative_pose(pose, previous_pose),
         np.ascontiguousarray(pose, dtype=np.float64),
         previous_depth, previous_intensity, prev_dx, prev_dy, warped,
@@ -512,9 +515,9 @@ def photometric_rows(
     _run(
         _photometric_loop,
         n,
-        np.asarray(correspondences.world, dtype=np.float64),
-        np.asarray(correspondences.warped, dtype=np.float64),
-        np.asarray(correspondences.gradient, dtype=np.float64),
+        np.ascontiguousarray(correspondences.world, dtype=np.float64),
+        np.ascontiguousarray(correspondences.warped, dtype=np.float64),
+        np.ascontiguousarray(correspondences.gradient, dtype=np.float64),
         np.ascontiguousarray(previous_pose, dtype=np.float64),
         float(camera.fx),
         float(camera.fy),
