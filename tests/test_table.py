@@ -230,8 +230,11 @@ def test_failed_runs_are_reported_not_fatal(evaluation):
         assert missing["status"] == "failed"
         assert "neither a dataset folder nor a scenario" in missing["reason"]
         # Every failed run still has its folder with the reason.
-        report = evaluation["out"] / "runs" / "corrupt" / method.replace("/", "_") / "report.json"
-        assert json.loads(report.read_text())["status"] == "failed"
+        for dataset in ("corrupt", "missing"):
+            folder = evaluation["out"] / "runs" / dataset / method.replace("/", "_")
+            report = json.loads((folder / "report.json").read_text())
+            assert report["status"] == "failed"
+            assert report["reason"] == table["runs"][method][dataset]["reason"]
     cells = _row(markdown, "I", "ICP")
     assert cells[4:8] == ["failed"] * 4
     assert "corrupt, ICP: " in markdown and "missing, FOVIS/RGB-D: " in markdown

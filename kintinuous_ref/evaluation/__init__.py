@@ -34,6 +34,7 @@ from kintinuous_ref.evaluation.runs import (
     run_folder_name,
     run_one,
     timing_statistics,
+    write_failure,
 )
 from kintinuous_ref.evaluation.tables import build_table, marks, method_title, render_markdown
 
@@ -166,13 +167,9 @@ def evaluate_methods(
     for dataset in opened:
         for method in methods:
             folder = out / "runs" / dataset.label / run_folder_name(method)
-            if dataset.path is None:
-                outcome = RunOutcome(dataset.label, method, FAILED, dataset.reason, out=str(folder))
-                failed.append(outcome)
-                continue
             spec = RunSpec(
                 dataset.label,
-                dataset.path,
+                dataset.path or dataset.given,
                 method,
                 str(folder),
                 config,
@@ -182,7 +179,12 @@ def evaluate_methods(
                 backend,
                 mesh,
             )
-            specs.append(spec)
+            if dataset.path is None:  # could not be opened: failed without running
+                outcome = RunOutcome(dataset.label, method, FAILED, dataset.reason, out=str(folder))
+                write_failure(spec, outcome)
+                failed.append(outcome)
+            else:
+                specs.append(spec)
     for count, outcome in enumerate(failed, start=1):
         if on_done is not None:
             on_done(outcome, count, len(failed) + len(specs))

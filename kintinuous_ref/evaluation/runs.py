@@ -94,7 +94,7 @@ def run_one(spec: RunSpec) -> RunOutcome:
     outcome.seconds = time.perf_counter() - started
     outcome.out = spec.out
     if outcome.status == FAILED:
-        _write_failure(spec, outcome)
+        write_failure(spec, outcome)
     return outcome
 
 
@@ -173,7 +173,8 @@ def _write_run(spec: RunSpec, outcome: RunOutcome, result: Any) -> None:
     (out / "report.json").write_text(json.dumps(report, indent=1) + "\n")
 
 
-def _write_failure(spec: RunSpec, outcome: RunOutcome) -> None:
+def write_failure(spec: RunSpec, outcome: RunOutcome) -> None:
+    """report.json of a failed run (status and reason), best effort."""
     try:
         out = Path(spec.out)
         out.mkdir(parents=True, exist_ok=True)
