@@ -3,7 +3,7 @@ shared by the cpu and cuda integration and raycasting (see kintinuous_fast.ops.v
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -34,10 +34,22 @@ class FastTsdfVolume:
     truncation: float
     max_weight: float
     colour_max_weight: float = 255.0
+    # (3,) int in [0, N): array cell of logical voxel (0, 0, 0), the cyclical buffer of the
+    # moving volume (kintinuous_ref.tsdf.TsdfVolume.offset); zero until the volume shifts
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
 
     @property
     def resolution(self) -> int:
         return self.tsdf_weight.shape[0]
+
+    @property
+    def shifted(self) -> bool:
+        return bool(np.any(self.offset))
+
+    def offsets(self) -> tuple[int, int, int]:
+        """The offset as three Python ints (o0, o1, o2), as the kernels take it."""
+        o = np.asarray(self.offset, dtype=np.int64) % self.resolution
+        return int(o[0]), int(o[1]), int(o[2])
 
     @property
     def size(self) -> float:
@@ -103,6 +115,7 @@ def to_reference_volume(volume: FastTsdfVolume) -> TsdfVolume:
         truncation=volume.truncation,
         max_weight=volume.max_weight,
         colour_max_weight=volume.colour_max_weight,
+        offset=np.array(volume.offset, dtype=np.int64),
     )
 
 
@@ -125,6 +138,7 @@ def from_reference_volume(volume: TsdfVolume) -> FastTsdfVolume:
         truncation=volume.truncation,
         max_weight=volume.max_weight,
         colour_max_weight=volume.colour_max_weight,
+        offset=np.array(getattr(volume, "offset", np.zeros(3)), dtype=np.int64),
     )
 
 
@@ -182,3 +196,19 @@ def frustum_box(
     if np.any(hi <= lo):
         return None
     return lo, hi
+
+
+# ----------------------------------------------------------------------------------------------
+# Per-frame set-up of raycasting
+
+
+def empty_space_distance(negative_bricks: np.ndarray) -> np.ndarray:
+    """kintinuous_ref.raycast._empty_space from its (B, B, B) map of bricks holding an observed
+    negative voxel: grow by one brick, then the chessboard distance (in bricks) to the nearest
+    grown brick (2 B everywhere when there is none), int64."""
+    from scipy import ndimage
+
+    bricks = ndimage.binary_dilation(negative_bricks, structure=np.ones((3, 3, 3), dtype=bool))
+    if not bricks.any():
+        return np.full(bricks.shape, 2 * len(bricks), dtype=np.int64)
+    return ndimage.distance_transform_cdt(~bricks, metric="chessboard").astype(np.int64)

@@ -40,7 +40,9 @@ __all__ = [
 ]
 
 _ops = build_ops(cpu_jit)
-integrate_voxel = _ops.integrate_voxel
+update_voxel = _ops.update_voxel
+column_range = _ops.column_range
+cell = _ops.cell
 ray_distance_pixel = _ops.ray_distance_pixel
 sample_tsdf_at = _ops.sample_tsdf_at
 
@@ -58,11 +60,15 @@ def _ray_distance_loop(depth, fx, fy, cx, cy, out):
 def _integrate_loop(
     tsdf_weight,
     colour_volume,
+    o0,
+    o1,
+    o2,
     lo,
     hi,
     base,
     steps,
     intrinsics,
+    far,
     ray_distance,
     truncation,
     max_weight,
@@ -71,17 +77,45 @@ def _integrate_loop(
     fuse_colour,
     colour_max_weight,
 ):
+    # Voxel columns along k: only the k-range that can project into the image (column_range)
+    # is visited, so the work follows the viewing pyramid, not its bounding box.
+    n = tsdf_weight.shape[0]
+    height, width = ray_distance.shape
     for i in prange(lo[0], hi[0]):
+        fi = np.float32(i)
+        ci = cell(i, o0, n)
         for j in range(lo[1], hi[1]):
-            for k in range(lo[2], hi[2]):
-                integrate_voxel(
+            fj = np.float32(j)
+            # the reference's float32 order: ((base + i a_x) + j a_y) + k a_z
+            px = (base[0] + fi * steps[0, 0]) + fj * steps[1, 0]
+            py = (base[1] + fi * steps[0, 1]) + fj * steps[1, 1]
+            pz = (base[2] + fi * steps[0, 2]) + fj * steps[1, 2]
+            k0, k1 = column_range(
+                float(px),
+                float(py),
+                float(pz),
+                float(steps[2, 0]),
+                float(steps[2, 1]),
+                float(steps[2, 2]),
+                intrinsics,
+                width,
+                height,
+                far,
+                n,
+            )
+            k0, k1 = max(k0, lo[2]), min(k1, hi[2])
+            cj = cell(j, o1, n)
+            for k in range(k0, k1):
+                fk = np.float32(k)
+                update_voxel(
                     tsdf_weight,
                     colour_volume,
-                    i,
-                    j,
-                    k,
-                    base,
-                    steps,
+                    ci,
+                    cj,
+                    cell(k, o2, n),
+                    px + fk * steps[2, 0],
+                    py + fk * steps[2, 1],
+                    pz + fk * steps[2, 2],
                     intrinsics,
                     ray_distance,
                     truncation,
@@ -94,10 +128,10 @@ def _integrate_loop(
 
 
 @_loop
-def _sample_loop(tsdf_weight, coordinates, out):
+def _sample_loop(tsdf_weight, o0, o1, o2, coordinates, out):
     for m in prange(coordinates.shape[0]):
         out[m] = sample_tsdf_at(
-            tsdf_weight, coordinates[m, 0], coordinates[m, 1], coordinates[m, 2]
+            tsdf_weight, o0, o1, o2, coordinates[m, 0], coordinates[m, 1], coordinates[m, 2]
         )
 
 
@@ -127,7 +161,8 @@ def integrate(
     check_depth(depth, camera)
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     valid = depth[depth > 0]
-    box = frustum_box(volume, float(valid.max()) if valid.size else 0.0, pose, camera)
+    largest = float(valid.max()) if valid.size else 0.0
+    box = frustum_box(volume, largest, pose, camera)
     if box is None:
         return
     ray_distance = np.empty(depth.shape, dtype=np.float32)
@@ -146,11 +181,13 @@ def integrate(
     _integrate_loop(
         volume.tsdf_weight,
         colour_volume,
+        *volume.offsets(),
         box[0],
         box[1],
         base,
         steps,
         projection_constants(camera),
+        largest + float(volume.truncation),
         ray_distance,
         np.float32(volume.truncation),
         np.float32(volume.max_weight),
@@ -166,5 +203,5 @@ def sample_tsdf(volume: FastTsdfVolume, coordinates: np.ndarray) -> np.ndarray:
     none of the 8 is observed or outside the grid (kintinuous_ref.tsdf.sample_tsdf)."""
     coordinates = np.ascontiguousarray(coordinates, dtype=np.float64).reshape(-1, 3)
     out = np.empty(len(coordinates), dtype=np.float64)
-    _sample_loop(volume.tsdf_weight, coordinates, out)
+    _sample_loop(volume.tsdf_weight, *volume.offsets(), coordinates, out)
     return out

@@ -6,6 +6,8 @@ like the reference's)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import cuda
 
@@ -20,6 +22,17 @@ __all__ = ["STEP_FRACTION", "ModelPrediction", "raycast"]
 
 _ops = build_ops(cuda_device_jit())
 raycast_pixel = _ops.raycast_pixel
+
+
+_PLAIN_MARCH: list = []
+
+
+def _plain_march_map() -> Any:
+    """A (1, 1, 1) brick map of 0 on the device: march_ray then samples every step (the plain
+    march, whose answer the reference's exact skipping returns too)."""
+    if not _PLAIN_MARCH:
+        _PLAIN_MARCH.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.int64)))
+    return _PLAIN_MARCH[0]
 
 
 @cuda.jit
@@ -37,6 +50,10 @@ def _raycast_kernel(
     tsdf_weight,
     colour_volume,
     has_colour,
+    o0,
+    o1,
+    o2,
+    empty,
     camera,
     rotation,
     origin,
@@ -53,6 +70,10 @@ def _raycast_kernel(
             tsdf_weight,
             colour_volume,
             has_colour,
+            o0,
+            o1,
+            o2,
+            empty,
             u,
             v,
             camera,
@@ -91,6 +112,8 @@ def raycast(
         volume.tsdf_weight,
         colour_volume,
         has_colour,
+        *volume.offsets(),
+        _plain_march_map(),
         cuda.to_device(np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)),
         cuda.to_device(np.ascontiguousarray(pose[:3, :3])),
         cuda.to_device(np.ascontiguousarray(pose[:3, 3])),

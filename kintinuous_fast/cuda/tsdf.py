@@ -78,6 +78,9 @@ def _ray_distance_kernel(depth, fx, fy, cx, cy, out):
 def _integrate_kernel(
     tsdf_weight,
     colour_volume,
+    o0,
+    o1,
+    o2,
     lo0,
     hi0,
     lo1,
@@ -105,6 +108,9 @@ def _integrate_kernel(
                 i,
                 j,
                 k,
+                o0,
+                o1,
+                o2,
                 base,
                 steps,
                 intrinsics,
@@ -119,11 +125,11 @@ def _integrate_kernel(
 
 
 @cuda.jit
-def _sample_kernel(tsdf_weight, coordinates, out):
+def _sample_kernel(tsdf_weight, o0, o1, o2, coordinates, out):
     m = cuda.grid(1)
     if m < out.shape[0]:
         out[m] = sample_tsdf_at(
-            tsdf_weight, coordinates[m, 0], coordinates[m, 1], coordinates[m, 2]
+            tsdf_weight, o0, o1, o2, coordinates[m, 0], coordinates[m, 1], coordinates[m, 2]
         )
 
 
@@ -212,6 +218,7 @@ def integrate(
     _integrate_kernel[threads, BLOCK_2D](
         volume.tsdf_weight,
         colour_volume,
+        *volume.offsets(),
         lo0,
         hi0,
         lo1,
@@ -236,7 +243,9 @@ def sample_tsdf(volume: FastTsdfVolume, coordinates: Any) -> Any:
     none of the 8 is observed or outside the grid (kintinuous_ref.tsdf.sample_tsdf)."""
     d_coordinates = to_device(coordinates, np.float64)
     out = cuda.device_array(d_coordinates.shape[0], dtype=np.float64)
-    _sample_kernel[grid_1d(out.shape[0]), BLOCK_1D](volume.tsdf_weight, d_coordinates, out)
+    _sample_kernel[grid_1d(out.shape[0]), BLOCK_1D](
+        volume.tsdf_weight, *volume.offsets(), d_coordinates, out
+    )
     return like_input(out, coordinates)
 
 

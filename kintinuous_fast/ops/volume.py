@@ -19,6 +19,11 @@ from typing import Any
 import numpy as np
 
 TSDF_SCALE = 32767.0  # int16 units per unit of normalised TSDF
+BRICK = 8  # voxels per side of the empty-space bricks (kintinuous_ref.raycast.BRICK)
+
+# Cyclical buffer (kintinuous_ref.tsdf, moving volume): logical voxel l lives in array cell
+# (l + offset) mod N, offset in [0, N). Every function below takes the offset as three ints
+# (o0, o1, o2) and maps logical indices with `cell` (one compare, no division).
 
 
 def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
@@ -45,14 +50,21 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return np.float32(float(d) * math.sqrt(x * x + y * y + 1.0))
 
     @jit
-    def integrate_voxel(
+    def cell(index: int, offset: int, n: int) -> int:
+        """Array cell of logical index `index` in [0, N) with buffer offset in [0, N)."""
+        c = index + offset
+        return c - n if c >= n else c
+
+    @jit
+    def update_voxel(
         tsdf_weight: Any,
         colour_volume: Any,
-        i: int,
-        j: int,
-        k: int,
-        base: Any,
-        steps: Any,
+        ci: int,
+        cj: int,
+        ck: int,
+        x: Any,
+        y: Any,
+        z: Any,
         intrinsics: Any,
         ray_distance: Any,
         truncation: Any,
@@ -62,17 +74,14 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         fuse_colour: bool,
         colour_max_weight: Any,
     ) -> None:
-        """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place.
+        """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place: the voxel in
+        array cell (ci, cj, ck) whose camera-frame centre is (x, y, z) (float32).
 
-        p_c = base + i a_x + j a_y + k a_z (float32), pixel = round(pi(p_c)),
-        sdf = lambda D - |p_c|; update if D > 0 and sdf >= -mu: running average of min(1, sdf/mu)
-        with weight W + 1 (capped); colour where |sdf| < mu and the pixel's colour weight > 0.
-        `intrinsics` is float32 (fx, fy, cx, cy), as NumPy 2 computes the reference's projection.
+        pixel = round(pi(p_c)), sdf = lambda D - |p_c|; update if D > 0 and sdf >= -mu: running
+        average of min(1, sdf/mu) with weight W + 1 (capped); colour where |sdf| < mu and the
+        pixel's colour weight > 0. `intrinsics` is float32 (fx, fy, cx, cy), as NumPy 2
+        computes the reference's projection.
         """
-        fi, fj, fk = np.float32(i), np.float32(j), np.float32(k)
-        x = ((base[0] + fi * steps[0, 0]) + fj * steps[1, 0]) + fk * steps[2, 0]
-        y = ((base[1] + fi * steps[0, 1]) + fj * steps[1, 1]) + fk * steps[2, 1]
-        z = ((base[2] + fi * steps[0, 2]) + fj * steps[1, 2]) + fk * steps[2, 2]
         if not z > 0:
             return
         uf = intrinsics[0] * x / z + intrinsics[2]
@@ -90,29 +99,125 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         if not (measured > 0 and sdf >= -truncation):
             return
         observed = min(np.float32(1.0), np.float32(sdf / truncation))
-        w_old = np.float32(tsdf_weight[i, j, k, 1])
-        f_old = dequantise(tsdf_weight[i, j, k, 0])
+        w_old = np.float32(tsdf_weight[ci, cj, ck, 1])
+        f_old = dequantise(tsdf_weight[ci, cj, ck, 0])
         f_new = (f_old * w_old + observed) / (w_old + np.float32(1.0))
-        tsdf_weight[i, j, k, 0] = quantise(f_new)
-        tsdf_weight[i, j, k, 1] = min(w_old + np.float32(1.0), max_weight)
+        tsdf_weight[ci, cj, ck, 0] = quantise(f_new)
+        tsdf_weight[ci, cj, ck, 1] = min(w_old + np.float32(1.0), max_weight)
         if not fuse_colour:
             return
         w_c = colour_weights[v, u]
         if not (abs(sdf) < truncation and w_c > 0):
             return
-        cw_old = np.float32(colour_volume[i, j, k, 3])
+        cw_old = np.float32(colour_volume[ci, cj, ck, 3])
         for channel in range(3):
             rgb = np.float32(colour[v, u, channel])
-            c_old = np.float32(colour_volume[i, j, k, channel])
+            c_old = np.float32(colour_volume[ci, cj, ck, channel])
             c_new = (c_old * cw_old + rgb * w_c) / (cw_old + w_c)
-            colour_volume[i, j, k, channel] = min(max(round(float(c_new)), 0), 255)
+            colour_volume[ci, cj, ck, channel] = min(max(round(float(c_new)), 0), 255)
         cw_new = round(float(min(cw_old + w_c, colour_max_weight)))
-        colour_volume[i, j, k, 3] = min(max(cw_new, 1), 255)
+        colour_volume[ci, cj, ck, 3] = min(max(cw_new, 1), 255)
 
     @jit
-    def sample_tsdf_at(tsdf_weight: Any, cx: float, cy: float, cz: float) -> float:
+    def integrate_voxel(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        i: int,
+        j: int,
+        k: int,
+        o0: int,
+        o1: int,
+        o2: int,
+        base: Any,
+        steps: Any,
+        intrinsics: Any,
+        ray_distance: Any,
+        truncation: Any,
+        max_weight: Any,
+        colour: Any,
+        colour_weights: Any,
+        fuse_colour: bool,
+        colour_max_weight: Any,
+    ) -> None:
+        """Logical voxel (i, j, k): p_c = base + i a_x + j a_y + k a_z (float32, the
+        reference's order of additions), then update_voxel on its array cell."""
+        fi, fj, fk = np.float32(i), np.float32(j), np.float32(k)
+        x = ((base[0] + fi * steps[0, 0]) + fj * steps[1, 0]) + fk * steps[2, 0]
+        y = ((base[1] + fi * steps[0, 1]) + fj * steps[1, 1]) + fk * steps[2, 1]
+        z = ((base[2] + fi * steps[0, 2]) + fj * steps[1, 2]) + fk * steps[2, 2]
+        n = tsdf_weight.shape[0]
+        update_voxel(
+            tsdf_weight,
+            colour_volume,
+            cell(i, o0, n),
+            cell(j, o1, n),
+            cell(k, o2, n),
+            x,
+            y,
+            z,
+            intrinsics,
+            ray_distance,
+            truncation,
+            max_weight,
+            colour,
+            colour_weights,
+            fuse_colour,
+            colour_max_weight,
+        )
+
+    @jit
+    def limit_interval(lo: float, hi: float, a: float, b: float) -> tuple:
+        """[lo, hi] intersected with {k : a + b k >= 0}."""
+        if b > 0:
+            return max(lo, -a / b), hi
+        if b < 0:
+            return lo, min(hi, -a / b)
+        if a < 0:
+            return 1.0, 0.0  # never: empty
+        return lo, hi
+
+    @jit
+    def column_range(
+        px: float,
+        py: float,
+        pz: float,
+        ax: float,
+        ay: float,
+        az: float,
+        intrinsics: Any,
+        width: int,
+        height: int,
+        far: float,
+        n: int,
+    ) -> tuple:
+        """[k0, k1) holding every k of the voxel column p_c(k) = p + k a that update_voxel can
+        change: 0 < z <= far (the largest depth + mu bounds z, as |p_c| <= lambda D + mu) and
+        the projection within half a pixel of the image (u in [-1, W], v in [-1, H], i.e.
+        fx x + (cx + 1) z >= 0 and (W - cx) z - fx x >= 0 for z > 0, linear in k). A margin of
+        one voxel at each end covers float32 rounding of the voxel positions; update_voxel
+        still makes the exact decision, so only voxels it would skip are left out."""
+        fx, fy = float(intrinsics[0]), float(intrinsics[1])
+        cx, cy = float(intrinsics[2]), float(intrinsics[3])
+        lo, hi = -1.0, float(n)
+        lo, hi = limit_interval(lo, hi, pz, az)
+        lo, hi = limit_interval(lo, hi, far - pz, -az)
+        lo, hi = limit_interval(lo, hi, fx * px + (cx + 1.0) * pz, fx * ax + (cx + 1.0) * az)
+        lo, hi = limit_interval(lo, hi, (width - cx) * pz - fx * px, (width - cx) * az - fx * ax)
+        lo, hi = limit_interval(lo, hi, fy * py + (cy + 1.0) * pz, fy * ay + (cy + 1.0) * az)
+        lo, hi = limit_interval(lo, hi, (height - cy) * pz - fy * py, (height - cy) * az - fy * ay)
+        if not lo <= hi:
+            return 0, 0
+        k0 = max(int(math.floor(lo)) - 1, 0)
+        k1 = min(int(math.ceil(hi)) + 2, n)
+        return k0, max(k1, k0)
+
+    @jit
+    def sample_tsdf_at(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
+    ) -> float:
         """Trilinear TSDF over the OBSERVED corners only (weights renormalised), float64;
-        NaN outside [0, N-1]^3 or when no corner is observed (kintinuous_ref.tsdf.sample_tsdf)."""
+        NaN outside [0, N-1]^3 or when no corner is observed (kintinuous_ref.tsdf.sample_tsdf).
+        (cx, cy, cz) are logical voxel coordinates."""
         n = tsdf_weight.shape[0]
         if not (cx >= 0 and cx <= n - 1 and cy >= 0 and cy <= n - 1 and cz >= 0 and cz <= n - 1):
             return np.nan
@@ -126,20 +231,25 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         coverage = 0.0
         for a in range(2):
             wa = fx if a else 1.0 - fx
+            ia = cell(bx + a, o0, n)
             for b in range(2):
                 wb = fy if b else 1.0 - fy
+                ib = cell(by + b, o1, n)
                 for c in range(2):
                     wc = fz if c else 1.0 - fz
-                    if tsdf_weight[bx + a, by + b, bz + c, 1] > 0:
+                    ic = cell(bz + c, o2, n)
+                    if tsdf_weight[ia, ib, ic, 1] > 0:
                         w = wa * wb * wc
-                        total += w * float(dequantise(tsdf_weight[bx + a, by + b, bz + c, 0]))
+                        total += w * float(dequantise(tsdf_weight[ia, ib, ic, 0]))
                         coverage += w
         if not coverage > 1e-6:
             return np.nan
         return total / coverage
 
     @jit
-    def trilinear_tsdf(tsdf_weight: Any, cx: float, cy: float, cz: float) -> Any:
+    def trilinear_tsdf(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
+    ) -> Any:
         """Plain trilinear TSDF (unobserved voxels count as 0), float32 like tsdf.trilinear."""
         n = tsdf_weight.shape[0]
         bx = min(max(int(math.floor(cx)), 0), n - 2)
@@ -151,11 +261,13 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         total = 0.0
         for a in range(2):
             wa = fx if a else 1.0 - fx
+            ia = cell(bx + a, o0, n)
             for b in range(2):
                 wb = fy if b else 1.0 - fy
+                ib = cell(by + b, o1, n)
                 for c in range(2):
                     wc = fz if c else 1.0 - fz
-                    value = float(dequantise(tsdf_weight[bx + a, by + b, bz + c, 0]))
+                    value = float(dequantise(tsdf_weight[ia, ib, cell(bz + c, o2, n), 0]))
                     total += wa * wb * wc * value
         return np.float32(total)
 
@@ -164,19 +276,22 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return min(max(c, 0.0), limit)
 
     @jit
-    def gradient_normal(tsdf_weight: Any, cx: float, cy: float, cz: float) -> tuple:
+    def gradient_normal(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
+    ) -> tuple:
         """Unit TSDF gradient by central differences one voxel apart (raycast._gradient_normals);
         NaN when it vanishes."""
         limit = tsdf_weight.shape[0] - 1.0
         px, py, pz = clip(cx, limit), clip(cy, limit), clip(cz, limit)
-        gx = trilinear_tsdf(tsdf_weight, clip(cx + 1.0, limit), py, pz) - trilinear_tsdf(
-            tsdf_weight, clip(cx - 1.0, limit), py, pz
+        t = tsdf_weight
+        gx = trilinear_tsdf(t, o0, o1, o2, clip(cx + 1.0, limit), py, pz) - trilinear_tsdf(
+            t, o0, o1, o2, clip(cx - 1.0, limit), py, pz
         )
-        gy = trilinear_tsdf(tsdf_weight, px, clip(cy + 1.0, limit), pz) - trilinear_tsdf(
-            tsdf_weight, px, clip(cy - 1.0, limit), pz
+        gy = trilinear_tsdf(t, o0, o1, o2, px, clip(cy + 1.0, limit), pz) - trilinear_tsdf(
+            t, o0, o1, o2, px, clip(cy - 1.0, limit), pz
         )
-        gz = trilinear_tsdf(tsdf_weight, px, py, clip(cz + 1.0, limit)) - trilinear_tsdf(
-            tsdf_weight, px, py, clip(cz - 1.0, limit)
+        gz = trilinear_tsdf(t, o0, o1, o2, px, py, clip(cz + 1.0, limit)) - trilinear_tsdf(
+            t, o0, o1, o2, px, py, clip(cz - 1.0, limit)
         )
         gx, gy, gz = float(gx), float(gy), float(gz)
         length = math.sqrt(gx * gx + gy * gy + gz * gz)
@@ -185,7 +300,9 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return gx / length, gy / length, gz / length
 
     @jit
-    def surface_colour_at(colour_volume: Any, cx: float, cy: float, cz: float) -> tuple:
+    def surface_colour_at(
+        colour_volume: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
+    ) -> tuple:
         """RGB at continuous voxel coordinates by trilinear interpolation over the voxels that
         received colour (colour.surface_colour); black where none or outside the grid."""
         n = colour_volume.shape[0]
@@ -201,15 +318,18 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         coverage = 0.0
         for a in range(2):
             wa = fx if a else 1.0 - fx
+            ia = cell(bx + a, o0, n)
             for b in range(2):
                 wb = fy if b else 1.0 - fy
+                ib = cell(by + b, o1, n)
                 for c in range(2):
                     wc = fz if c else 1.0 - fz
-                    if colour_volume[bx + a, by + b, bz + c, 3] > 0:
+                    ic = cell(bz + c, o2, n)
+                    if colour_volume[ia, ib, ic, 3] > 0:
                         w = wa * wb * wc
-                        r += w * float(colour_volume[bx + a, by + b, bz + c, 0])
-                        g += w * float(colour_volume[bx + a, by + b, bz + c, 1])
-                        b_ += w * float(colour_volume[bx + a, by + b, bz + c, 2])
+                        r += w * float(colour_volume[ia, ib, ic, 0])
+                        g += w * float(colour_volume[ia, ib, ic, 1])
+                        b_ += w * float(colour_volume[ia, ib, ic, 2])
                         coverage += w
         if not coverage > 1e-6:
             return 0, 0, 0
@@ -237,6 +357,9 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     @jit
     def sample_along(
         tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
         origin: Any,
         d0: float,
         d1: float,
@@ -248,11 +371,25 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         cx = (origin[0] + t * d0 - volume_origin[0]) / voxel_size
         cy = (origin[1] + t * d1 - volume_origin[1]) / voxel_size
         cz = (origin[2] + t * d2 - volume_origin[2]) / voxel_size
-        return sample_tsdf_at(tsdf_weight, cx, cy, cz)
+        return sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
+
+    @jit
+    def border_distance(c: float, velocity: float, brick: int, reach: int) -> float:
+        """Ray parameter to the border of the empty cube of bricks [brick - reach, brick +
+        reach] along one axis (velocity in voxels per metre); inf when parallel."""
+        if velocity > 0:
+            return ((brick + reach + 1) * BRICK - c) / velocity
+        if velocity < 0:
+            return ((brick - reach) * BRICK - c) / velocity
+        return np.inf
 
     @jit
     def march_ray(
         tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
         origin: Any,
         d0: float,
         d1: float,
@@ -262,8 +399,13 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         step: float,
     ) -> float:
         """Ray parameter of the first + to - crossing (regula-falsi refined), NaN if none; the
-        samples lie at entry + m step (kintinuous_ref.raycast.march without skipping, whose
-        empty-space skipping is exact and so returns the same)."""
+        samples lie at entry + m step (kintinuous_ref.raycast.march).
+
+        `empty` is the brick distance map of kintinuous_ref.raycast._empty_space (logical
+        bricks of BRICK^3 voxels): a ray in a brick at distance D >= 1 jumps to the first grid
+        sample past the empty cube of bricks within D - 1, exactly as the reference's
+        skipping (which returns the plain march's answer). A (1, 1, 1) map of 0 is the plain
+        march."""
         upper_offset = (tsdf_weight.shape[0] - 1) * voxel_size
         lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
         lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
@@ -272,26 +414,58 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         exit_ = min(min(hi0, hi1), hi2)
         if not entry < exit_:
             return np.nan
+        bricks = empty.shape[0]
         previous = np.nan
+        previous_known = True
         m = 0
         while True:
             t = entry + m * step
-            value = sample_along(tsdf_weight, origin, d0, d1, d2, t, volume_origin, voxel_size)
-            if previous > 0 and value < 0:
-                t0 = t - step
-                estimate = zero_crossing(t0, previous, t, value)
-                f = sample_along(
-                    tsdf_weight, origin, d0, d1, d2, estimate, volume_origin, voxel_size
+            cx = (origin[0] + t * d0 - volume_origin[0]) / voxel_size
+            cy = (origin[1] + t * d1 - volume_origin[1]) / voxel_size
+            cz = (origin[2] + t * d2 - volume_origin[2]) / voxel_size
+            bx = min(max(int(math.floor(cx / BRICK)), 0), bricks - 1)
+            by = min(max(int(math.floor(cy / BRICK)), 0), bricks - 1)
+            bz = min(max(int(math.floor(cz / BRICK)), 0), bricks - 1)
+            radius = empty[bx, by, bz]
+            if radius > 0:  # empty space: jump past the empty cube around this brick
+                reach = radius - 1
+                to_border = min(
+                    min(
+                        border_distance(cx, d0 / voxel_size, bx, reach),
+                        border_distance(cy, d1 / voxel_size, by, reach),
+                    ),
+                    border_distance(cz, d2 / voxel_size, bz, reach),
                 )
-                if f > 0:
-                    return zero_crossing(estimate, f, t, value)
-                if f < 0:
-                    return zero_crossing(t0, previous, estimate, f)
-                return estimate
-            if previous < 0 and value > 0:
-                return np.nan  # a back face
-            previous = value
-            m += 1
+                m_border = int(math.floor((t + to_border - entry) / step)) + 1
+                m_next = max(m + 1, m_border)
+                previous_known = False
+            else:
+                if not previous_known:
+                    previous = np.nan
+                    if m > 0:
+                        previous = sample_along(
+                            tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
+                            entry + (m - 1) * step, volume_origin, voxel_size,
+                        )  # fmt: skip
+                value = sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
+                if previous > 0 and value < 0:
+                    t0 = t - step
+                    estimate = zero_crossing(t0, previous, t, value)
+                    f = sample_along(
+                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, estimate,
+                        volume_origin, voxel_size,
+                    )  # fmt: skip
+                    if f > 0:
+                        return zero_crossing(estimate, f, t, value)
+                    if f < 0:
+                        return zero_crossing(t0, previous, estimate, f)
+                    return estimate
+                if previous < 0 and value > 0:
+                    return np.nan  # a back face
+                previous = value
+                previous_known = True
+                m_next = m + 1
+            m = m_next
             if not entry + m * step <= exit_:
                 return np.nan
 
@@ -300,6 +474,10 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         tsdf_weight: Any,
         colour_volume: Any,
         has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
         u: int,
         v: int,
         camera: Any,
@@ -321,23 +499,45 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         d2 = rotation[2, 0] * rx + rotation[2, 1] * ry + rotation[2, 2]
         norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
-        t = march_ray(tsdf_weight, origin, d0, d1, d2, volume_origin, voxel_size, step)
+        t = march_ray(
+            tsdf_weight, o0, o1, o2, empty, origin, d0, d1, d2, volume_origin, voxel_size, step
+        )
         if not math.isfinite(t):
             return
         px, py, pz = origin[0] + t * d0, origin[1] + t * d1, origin[2] + t * d2
         cx = (px - volume_origin[0]) / voxel_size
         cy = (py - volume_origin[1]) / voxel_size
         cz = (pz - volume_origin[2]) / voxel_size
-        nx, ny, nz = gradient_normal(tsdf_weight, cx, cy, cz)
+        nx, ny, nz = gradient_normal(tsdf_weight, o0, o1, o2, cx, cy, cz)
         if math.isnan(nx):
             return  # no usable normal: no use to ICP, dropped
         vertices[v, u, 0], vertices[v, u, 1], vertices[v, u, 2] = px, py, pz
         normals[v, u, 0], normals[v, u, 1], normals[v, u, 2] = nx, ny, nz
         if has_colour:
-            r, g, b = surface_colour_at(colour_volume, cx, cy, cz)
+            r, g, b = surface_colour_at(colour_volume, o0, o1, o2, cx, cy, cz)
             colours[v, u, 0], colours[v, u, 1], colours[v, u, 2] = r, g, b
 
+    @jit
+    def brick_negative(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, b0: int, b1: int, b2: int
+    ) -> bool:
+        """True when logical brick (b0, b1, b2) holds an observed voxel with negative TSDF."""
+        n = tsdf_weight.shape[0]
+        for i in range(b0 * BRICK, min((b0 + 1) * BRICK, n)):
+            ci = cell(i, o0, n)
+            for j in range(b1 * BRICK, min((b1 + 1) * BRICK, n)):
+                cj = cell(j, o1, n)
+                for k in range(b2 * BRICK, min((b2 + 1) * BRICK, n)):
+                    ck = cell(k, o2, n)
+                    if tsdf_weight[ci, cj, ck, 0] < 0 and tsdf_weight[ci, cj, ck, 1] > 0:
+                        return True
+        return False
+
     return SimpleNamespace(
+        cell=cell,
+        update_voxel=update_voxel,
+        column_range=column_range,
+        brick_negative=brick_negative,
         dequantise=dequantise,
         quantise=quantise,
         ray_distance_pixel=ray_distance_pixel,
