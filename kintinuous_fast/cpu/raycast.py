@@ -10,20 +10,20 @@ import numpy as np
 from numba import prange
 
 from kintinuous_fast._volume import FastTsdfVolume, empty_space_distance
-from kintinuous_fast.ops import cpu_jit
+from kintinuous_fast.ops import cpu_jit_numpy_errors
 from kintinuous_fast.ops.volume import build_ops
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "raycast"]
 
-_ops = build_ops(cpu_jit)
+_ops = build_ops(cpu_jit_numpy_errors)
 raycast_pixel = _ops.raycast_pixel
 brick_negative = _ops.brick_negative
 BRICK = 8
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _negative_bricks(tsdf_weight, o0, o1, o2, out):
     b = out.shape[0]
     for index in prange(b * b * b):
@@ -41,7 +41,7 @@ def empty_space(volume: FastTsdfVolume) -> np.ndarray:
     return empty_space_distance(negative)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _raycast_loop(
     tsdf_weight,
     colour_volume,

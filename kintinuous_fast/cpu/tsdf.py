@@ -21,7 +21,7 @@ from kintinuous_fast._volume import (
     to_reference_volume,
     volume_header,
 )
-from kintinuous_fast.ops import cpu_jit
+from kintinuous_fast.ops import cpu_jit_numpy_errors
 from kintinuous_fast.ops.volume import build_ops
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
@@ -39,14 +39,14 @@ __all__ = [
     "volume_origin",
 ]
 
-_ops = build_ops(cpu_jit)
+_ops = build_ops(cpu_jit_numpy_errors)
 update_voxel = _ops.update_voxel
 column_range = _ops.column_range
 cell = _ops.cell
 ray_distance_pixel = _ops.ray_distance_pixel
 sample_tsdf_at = _ops.sample_tsdf_at
 
-_loop = numba.njit(parallel=True, cache=True)
+_loop = numba.njit(parallel=True, cache=True, error_model="numpy")
 
 
 @_loop
