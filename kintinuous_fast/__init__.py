@@ -29,8 +29,14 @@ from kintinuous_ref.errors import ConfigError
 
 BACKENDS = ("ref", "cpu", "cuda", "auto")
 # The stages each backend provides (module names shared with kintinuous_ref).
-STAGES = ("preprocess", "tsdf", "raycast")
+STAGES = ("preprocess", "tsdf", "raycast", "odometry")
 _PACKAGES = {"ref": "kintinuous_ref", "cpu": "kintinuous_fast.cpu", "cuda": "kintinuous_fast.cuda"}
+# Stages whose modules live elsewhere than {package}.{stage}: the fast trackers (each module has
+# make_tracker(method, config, camera) with kintinuous_ref.odometry's signature).
+_MODULES = {
+    ("cpu", "odometry"): "kintinuous_fast.odometry.cpu",
+    ("cuda", "odometry"): "kintinuous_fast.odometry.cuda",
+}
 
 
 @dataclass
@@ -45,7 +51,8 @@ class Backend:
             raise AttributeError(stage)
         if stage not in self._modules:
             try:
-                self._modules[stage] = importlib.import_module(f"{_PACKAGES[self.name]}.{stage}")
+                module = _MODULES.get((self.name, stage), f"{_PACKAGES[self.name]}.{stage}")
+                self._modules[stage] = importlib.import_module(module)
             except ModuleNotFoundError as err:
                 raise ConfigError(
                     f"backend {self.name!r} has no {stage} stage yet ({err.name} missing)"

@@ -212,3 +212,121 @@ def empty_space_distance(negative_bricks: np.ndarray) -> np.ndarray:
     if not bricks.any():
         return np.full(bricks.shape, 2 * len(bricks), dtype=np.int64)
     return ndimage.distance_transform_cdt(~bricks, metric="chessboard").astype(np.int64)
+
+
+# ----------------------------------------------------------------------------------------------
+# The moving volume's view of a fast volume
+
+
+def _pieces(index: np.ndarray) -> list[tuple[int, int, int]]:
+    """A wrapped range of cells (np.arange(a, b) + o) % n as (start in the output, first cell,
+    length) runs of consecutive cells (at most two)."""
+    breaks = np.flatnonzero(np.diff(index) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [len(index)]])
+    return [(int(s), int(index[s]), int(e - s)) for s, e in zip(starts, stops, strict=True)]
+
+
+def _blocks(cells: tuple) -> list[tuple[tuple, tuple]]:
+    """(output slices, array slices) of the contiguous blocks that make up TsdfVolume.cells'
+    index (plain slices: one block; np.ix_ arrays of wrapped ranges: up to 8)."""
+    if all(isinstance(c, slice) for c in cells):
+        return [(tuple(slice(0, c.stop - c.start) for c in cells), cells)]
+    per_axis = [_pieces(np.asarray(c).reshape(-1)) for c in cells]
+    blocks = []
+    for a in per_axis[0]:
+        for b in per_axis[1]:
+            for c in per_axis[2]:
+                out = tuple(slice(p[0], p[0] + p[2]) for p in (a, b, c))
+                src = tuple(slice(p[1], p[1] + p[2]) for p in (a, b, c))
+                blocks.append((out, src))
+    return blocks
+
+
+def _shape(cells: tuple) -> tuple[int, int, int]:
+    return tuple(c.stop - c.start if isinstance(c, slice) else np.asarray(c).size for c in cells)
+
+
+class _Field:
+    """One dequantised field of a fast volume as kintinuous_ref.moving_volume reads and clears
+    it: `field[cells]` gives a float32 host copy of the cells (downloading only those blocks
+    from a GPU), `field[cells] = 0` clears them."""
+
+    def __init__(self, volume: FastTsdfVolume, name: str) -> None:
+        self.volume, self.name = volume, name
+
+    def _source(self) -> tuple[Any, Any]:
+        if self.name in ("tsdf", "weight"):
+            return self.volume.tsdf_weight, 0 if self.name == "tsdf" else 1
+        return self.volume.colour, slice(0, 3) if self.name == "colour" else 3
+
+    def __getitem__(self, cells: tuple) -> np.ndarray:
+        array, channel = self._source()
+        shape = _shape(cells)
+        extra = (3,) if self.name == "colour" else ()
+        out = np.empty((*shape, *extra), dtype=np.float32)
+        for out_index, src in _blocks(cells):
+            block = array[src]
+            block = block.copy_to_host() if hasattr(block, "copy_to_host") else block
+            out[out_index] = block[..., channel]
+        if self.name == "tsdf":
+            out /= np.float32(TSDF_SCALE)
+        return out
+
+    def __setitem__(self, cells: tuple, value: float) -> None:
+        if value != 0:
+            raise ValueError("a fast volume's cells can only be cleared (set to 0)")
+        array, _ = self._source()  # clearing: every channel of the voxel
+        for _, src in _blocks(cells):
+            if hasattr(array, "copy_to_device"):
+                block = array[src]
+                block.copy_to_device(np.zeros(block.shape, dtype=block.dtype))
+            else:
+                array[src] = 0
+
+
+class SlabView:
+    """A FastTsdfVolume seen through kintinuous_ref.tsdf.TsdfVolume's interface as far as the
+    moving volume (kintinuous_ref.moving_volume) uses it: resolution, voxel_size, origin and
+    offset (shared with the volume: shifting the view shifts the volume), cells(), and the four
+    fields, read and cleared per box of cells (only the leaving slab crosses from a GPU)."""
+
+    def __init__(self, volume: FastTsdfVolume) -> None:
+        self.fast = volume
+        self.tsdf = _Field(volume, "tsdf")
+        self.weight = _Field(volume, "weight")
+        has_colour = volume.colour is not None
+        self.colour = _Field(volume, "colour") if has_colour else None
+        self.colour_weight = _Field(volume, "colour_weight") if has_colour else None
+
+    resolution = property(lambda self: self.fast.resolution)
+    voxel_size = property(lambda self: self.fast.voxel_size)
+    truncation = property(lambda self: self.fast.truncation)
+    size = property(lambda self: self.fast.size)
+    shifted = property(lambda self: self.fast.shifted)
+
+    @property
+    def offset(self) -> np.ndarray:
+        return self.fast.offset
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.fast.origin
+
+    @origin.setter
+    def origin(self, value: np.ndarray) -> None:
+        self.fast.origin = np.asarray(value, dtype=np.float64)
+
+    def cells(self, start: tuple[int, int, int], stop: tuple[int, int, int]) -> tuple:
+        return TsdfVolume.cells(self, start, stop)  # type: ignore[arg-type]
+
+    def world_to_voxel(self, points: np.ndarray) -> np.ndarray:
+        return self.fast.world_to_voxel(points)
+
+    def voxel_to_world(self, coordinates: np.ndarray) -> np.ndarray:
+        return self.fast.voxel_to_world(coordinates)
+
+
+def slab_view(volume: FastTsdfVolume) -> SlabView:
+    """The moving volume's view of a fast volume (SlabView)."""
+    return SlabView(volume)

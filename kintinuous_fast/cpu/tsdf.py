@@ -18,6 +18,7 @@ from kintinuous_fast._volume import (
     frustum_box,
     memory_bytes,
     projection_constants,
+    slab_view,
     to_reference_volume,
     volume_header,
 )
@@ -35,6 +36,7 @@ __all__ = [
     "make_volume",
     "memory_bytes",
     "sample_tsdf",
+    "slab_view",
     "to_reference_volume",
     "volume_origin",
 ]

@@ -21,6 +21,7 @@ from kintinuous_fast._volume import (
     frustum_box,
     memory_bytes,
     projection_constants,
+    slab_view,
     to_reference_volume,
     volume_header,
 )
@@ -249,4 +250,4 @@ def sample_tsdf(volume: FastTsdfVolume, coordinates: Any) -> Any:
     return like_input(out, coordinates)
 
 
-__all__ += ["to_reference_volume"]
+__all__ += ["slab_view", "to_reference_volume"]

@@ -1,0 +1,133 @@
+"""The fast backends' cyclical buffer (moving volume, paper III) against kintinuous_ref: the same
+offset gives the same integration, sampling and raycast, and kintinuous_ref.moving_volume's
+shifts, slice extraction and clearing on a fast volume (through kintinuous_fast._volume.SlabView)
+give the reference's slices and volume. Tolerances are those of tests/fast_equivalence.py (int16
+TSDF: 0.5 / 32767 per frame; uint8 colour: 0.5 level per frame)."""
+
+import fast_equivalence as fe
+import numpy as np
+import pytest
+
+from kintinuous_fast._volume import from_reference_volume, slab_view, to_reference_volume
+from kintinuous_fast.cpu import raycast as cpu_raycast
+from kintinuous_fast.cpu import tsdf as cpu_tsdf
+from kintinuous_ref import raycast as ref_raycast
+from kintinuous_ref import tsdf as ref_tsdf
+from kintinuous_ref.config import VolumeConfig
+from kintinuous_ref.moving_volume import MovingVolume
+
+HEIGHT, WIDTH, N = 60, 80, 32
+CONFIG = VolumeConfig(resolution=N, size=3.0, shift_threshold=2, min_extract_weight=1.0)
+OFFSET = np.array([5, 0, 27])  # wraps along x and z, none along y
+
+
+def assert_same_volume(fast, reference, frames: int) -> None:
+    back = to_reference_volume(fast)
+    np.testing.assert_array_equal(back.offset, reference.offset)
+    np.testing.assert_array_equal(back.weight, reference.weight)
+    np.testing.assert_allclose(back.tsdf, reference.tsdf, atol=0.5 * frames / 32767 + 1e-7)
+    np.testing.assert_array_equal(back.colour_weight, reference.colour_weight)
+    coloured = reference.colour_weight > 0
+    np.testing.assert_allclose(back.colour[coloured], reference.colour[coloured], atol=0.5 * frames)
+
+
+def test_equivalence_cpu_offset_integrate_sample_raycast():
+    camera = fe.camera_for(HEIGHT, WIDTH)
+    poses = fe.moving_poses(2)
+    reference = ref_tsdf.make_volume(CONFIG, poses[0])
+    reference.offset[:] = OFFSET
+    fast = cpu_tsdf.make_volume(CONFIG, poses[0])
+    fast.offset[:] = OFFSET
+    colour = fe.scene_colour(HEIGHT, WIDTH)
+    for index, pose in enumerate(poses):
+        depth = fe.scene_depth(HEIGHT, WIDTH, seed=index)
+        ref_tsdf.integrate(reference, depth, pose, camera, colour)
+        cpu_tsdf.integrate(fast, depth, pose, camera, colour)
+    assert np.count_nonzero(reference.weight) > 0.02 * reference.weight.size  # a real test
+    # The cells really wrapped: the same data at zero offset lands elsewhere in the arrays.
+    assert np.any(reference.weight != np.roll(reference.weight, tuple(-OFFSET), axis=(0, 1, 2)))
+    assert_same_volume(fast, reference, len(poses))
+
+    back = to_reference_volume(fast)  # same values: sampling and raycasting must agree exactly
+    rng = np.random.default_rng(5)
+    coordinates = rng.uniform(-0.5, N - 0.5, (400, 3))
+    np.testing.assert_array_equal(
+        cpu_tsdf.sample_tsdf(fast, coordinates), ref_tsdf.sample_tsdf(back, coordinates)
+    )
+    for pose in poses:
+        got = cpu_raycast.raycast(fast, pose, camera)
+        want = ref_raycast.raycast(back, pose, camera)
+        hit_got, hit_want = ~np.isnan(got.vertices[..., 0]), ~np.isnan(want.vertices[..., 0])
+        assert hit_want.mean() > 0.3
+        assert np.count_nonzero(hit_got != hit_want) <= 0.002 * hit_want.size
+        both = hit_got & hit_want
+        np.testing.assert_allclose(got.vertices[both], want.vertices[both], atol=1e-5, rtol=0)
+        np.testing.assert_allclose(got.normals[both], want.normals[both], atol=1e-5, rtol=0)
+        assert np.abs(got.colours[both].astype(int) - want.colours[both]).max() <= 1
+
+
+@pytest.mark.parametrize("plain", [False, True], ids=["skipping", "plain-march"])
+def test_equivalence_cpu_raycast_skipping_is_exact(plain):
+    # The brick skipping returns the plain march's answer (kintinuous_ref.raycast.march).
+    camera = fe.camera_for(HEIGHT, WIDTH)
+    fast, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, N, 2, weighted=False)
+    pose = fe.moving_poses(2)[1]
+    want = ref_raycast.raycast(to_reference_volume(fast), pose, camera, skip_empty=False)
+    got = cpu_raycast.raycast(fast, pose, camera, skip_empty=not plain)
+    np.testing.assert_array_equal(np.isnan(got.vertices), np.isnan(want.vertices))
+    hit = ~np.isnan(want.vertices[..., 0])
+    np.testing.assert_allclose(got.vertices[hit], want.vertices[hit], atol=1e-5, rtol=0)
+
+
+def test_equivalence_cpu_moving_volume_shifts_slices_and_clears():
+    """The camera slides 10 cm (1.07 voxels) per frame along x: the window shifts several times; the slices
+    leaving and the final volume must match the reference's."""
+    camera = fe.camera_for(HEIGHT, WIDTH)
+    poses = []
+    for n in range(6):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.1 * n, 0.0, 0.0]
+        poses.append(pose)
+    reference = ref_tsdf.make_volume(CONFIG, poses[0])
+    fast = cpu_tsdf.make_volume(CONFIG, poses[0])
+    moving_ref = MovingVolume(reference, poses[0], CONFIG)
+    moving_fast = MovingVolume(slab_view(fast), poses[0], CONFIG)
+    colour = fe.scene_colour(HEIGHT, WIDTH)
+    for index, pose in enumerate(poses):
+        depth = fe.scene_depth(HEIGHT, WIDTH, seed=index)
+        np.testing.assert_array_equal(moving_fast.update(pose), moving_ref.update(pose))
+        ref_tsdf.integrate(reference, depth, pose, camera, colour)
+        cpu_tsdf.integrate(fast, depth, pose, camera, colour)
+    assert moving_ref.shifts >= 2 and reference.shifted  # the test really shifted
+    np.testing.assert_allclose(fast.origin, reference.origin, atol=1e-12)
+    assert_same_volume(fast, reference, len(poses))
+    moving_ref.finish()
+    moving_fast.finish()
+    slices_ref, slices_fast = list(moving_ref.store), list(moving_fast.store)
+    assert len(slices_ref) == len(slices_fast) >= 2
+    for got, want in zip(slices_fast, slices_ref, strict=True):
+        # marching cubes over TSDFs within 0.5 n / 32767 of each other: same triangles, vertices
+        # within a hair (an edge crossing moves by voxel * dF / |F1 - F0|)
+        assert len(got.triangles) == len(want.triangles)
+        np.testing.assert_allclose(got.points, want.points, atol=1e-3)
+
+
+def test_slab_view_reads_and_clears_only_the_box():
+    reference, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, N, 1, weighted=False)
+    reference = to_reference_volume(reference)
+    reference.offset[:] = OFFSET
+    fast = from_reference_volume(reference)
+    view = slab_view(fast)
+    cells = reference.cells((0, 0, 3), (N, N, 9))  # wraps along x and z
+    np.testing.assert_array_equal(view.tsdf[cells], reference.tsdf[cells])
+    np.testing.assert_array_equal(view.colour[cells], reference.colour[cells])
+    view.weight[cells] = 0.0
+    back = to_reference_volume(fast)
+    cleared = np.zeros(reference.weight.shape, dtype=bool)
+    cleared[cells] = True
+    assert reference.weight[cleared].any() and not back.weight[cleared].any()
+    np.testing.assert_array_equal(back.weight[~cleared], reference.weight[~cleared])
+    view.colour[cells] = 0.0
+    back = to_reference_volume(fast)
+    assert reference.colour_weight[cleared].any() and not back.colour_weight[cleared].any()
+    np.testing.assert_array_equal(back.colour_weight[~cleared], reference.colour_weight[~cleared])
