@@ -359,6 +359,38 @@ def _table_command(args: argparse.Namespace) -> str:
     return shlex.join(words)
 
 
+def _add_benchmark(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "benchmark", help="per-stage milliseconds and frames/s of the pipeline on one backend"
+    )
+    parser.add_argument(
+        "dataset", nargs="?", help="TUM folder or synthetic scenario name (default: desk)"
+    )
+    parser.add_argument(
+        "--backend", choices=["ref", "cpu", "cuda", "auto"], default="auto", help="default auto"
+    )
+    parser.add_argument("--odometry", default="icp+rgbd", choices=ODOMETRY_CHOICES)
+    parser.add_argument("--frames", type=int, default=30, help="frames (the first is a warm-up)")
+    parser.add_argument("--start", type=int, default=0, help="first frame")
+    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
+    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.set_defaults(handler=_run_benchmark)
+
+
+def _run_benchmark(args: argparse.Namespace) -> None:
+    import json
+
+    from kintinuous_fast.benchmark import benchmark, format_table
+    from kintinuous_ref.config import Config, VolumeConfig
+
+    config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
+    report = benchmark(
+        args.dataset, args.backend, args.odometry, args.frames, config, start=args.start
+    )
+    print(json.dumps(report) if args.json else format_table(report))
+
+
 def _add_info(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser("info", help="which compute backends work on this machine")
     parser.set_defaults(handler=_run_info)
@@ -387,7 +419,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"kintinuous {__version__}")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for add in (_add_synth, _add_evaluate, _add_reconstruct, _add_table, _add_info):
+    for add in (
+        _add_synth,
+        _add_evaluate,
+        _add_reconstruct,
+        _add_table,
+        _add_info,
+        _add_benchmark,
+    ):
         add(commands)
     return parser
 
