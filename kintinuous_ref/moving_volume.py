@@ -319,16 +319,21 @@ def read_slice(path: Path) -> SliceMesh:
 
 class SliceStore:
     """Where extracted slices go: files slice_NNNNNN.ply in `folder` (written at once, so an
-    interrupted or crashed run keeps them), or a list in memory when `folder` is None."""
+    interrupted or crashed run keeps them), or a list in memory when `folder` is None.
+    `fresh` deletes slices an earlier run left in the folder; fresh=False opens them instead
+    (e.g. to assemble the mesh of a run that crashed)."""
 
-    def __init__(self, folder: Path | None = None) -> None:
+    def __init__(self, folder: Path | None = None, fresh: bool = True) -> None:
         self.folder = None if folder is None else Path(folder)
         self.count = 0
         self._memory: list[SliceMesh] = []
         if self.folder is not None:
             self.folder.mkdir(parents=True, exist_ok=True)
-            for stale in self.paths():  # left by an earlier run into the same folder
-                stale.unlink()
+            for stale in self.paths():
+                if fresh:
+                    stale.unlink()
+                else:
+                    self.count = max(self.count, int(_SLICE_FILE.search(stale.name).group(1)) + 1)
 
     def add(self, mesh: SliceMesh) -> None:
         if self.folder is None:

@@ -283,6 +283,9 @@ def write_outputs(
 
         result.moving.finish()
         moving_volume.assemble(result.moving.store, out / "mesh.ply")
+        # The window at each frame (after its shift): timestamp, voxel (0, 0, 0)'s centre.
+        rows = np.column_stack([result.timestamps, np.reshape(result.volume_origins, (-1, 3))])
+        np.savetxt(out / "volume_origins.txt", rows, fmt="%.6f", header="timestamp x y z")
         surface = moving_volume.read_mesh(out / "mesh.ply")
     else:
         surface = meshing.extract_mesh(result.volume)

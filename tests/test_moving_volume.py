@@ -264,6 +264,13 @@ def test_slices_on_disk_survive_a_crash(corridor, tmp_path):
         assert len(piece.triangles) > 0
         distance, _, _ = mesh.closest_on(truth, piece.points.astype(np.float64))
         assert np.mean(distance) < 0.015  # on the true surface (62.5 mm voxels)
+    # What was extracted before the crash still makes one mesh.
+    store = SliceStore(tmp_path, fresh=False)
+    assert store.count == len(files)
+    vertices, triangles = moving_volume.assemble(store, tmp_path / "mesh.ply")
+    pieces = [moving_volume.read_slice(path) for path in files]
+    assert triangles == sum(len(piece.triangles) for piece in pieces)
+    assert vertices < sum(len(piece.points) for piece in pieces)  # seam vertices merged
 
 
 def test_reconstruct_command_reports_shifts_and_slices(corridor, tmp_path):
