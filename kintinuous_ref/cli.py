@@ -141,7 +141,12 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         action="store_true",
         help="keep the volume where it starts (KinectFusion) instead of moving it (Kintinuous)",
     )
-    parser.add_argument("--backend", choices=["ref"], default="ref")
+    parser.add_argument(
+        "--backend",
+        choices=["ref", "cpu", "cuda", "auto"],
+        default="auto",
+        help="ref (NumPy), cpu (numba), cuda; auto: cuda where a GPU works, else cpu",
+    )
     parser.add_argument(
         "--config",
         type=Path,

@@ -12,7 +12,9 @@
     at the end: the rest of the volume becomes the last slice; the slices one mesh.
 
 The backend is a parameter: any object whose `preprocess`, `tsdf` and `raycast` attributes offer
-kintinuous_ref's functions of those modules (kintinuous_ref itself, or a kintinuous_fast backend).
+kintinuous_ref's functions of those modules (kintinuous_ref itself, or a kintinuous_fast backend,
+whose `odometry.make_tracker` then tracks, whose `tsdf.slab_view` lets the moving volume work on
+its volume and whose `tsdf.to_reference_volume` hands the final volume to meshing).
 
 Volume placement and the tracker's start need the first pose: with ground-truth odometry it is
 the ground truth; with a tracker it is the first ground-truth pose when the dataset has one (so
@@ -70,6 +72,8 @@ class PipelineResult:
     interrupted: bool = False
     moving: MovingVolume | None = None  # the cyclical buffer's state (None: a fixed volume)
     moving_volume_note: str = ""  # why the volume stayed fixed although config asked to move
+    # the backend's volume -> a host TsdfVolume (fast backends' to_reference_volume); None: as is
+    host_volume: Callable[[Any], TsdfVolume] | None = None
     volume_origins: list[np.ndarray] = field(default_factory=list)  # per frame, after its shift
 
     @property
@@ -138,8 +142,10 @@ def run(
         predict_model = odometry != GROUNDTRUTH
     tracker = None
     if odometry != GROUNDTRUTH:
-        from kintinuous_ref.odometry import make_tracker
-
+        # The backend's tracker (kintinuous_fast's dense systems), else the reference's.
+        make_tracker = getattr(getattr(backend, "odometry", None), "make_tracker", None)
+        if make_tracker is None:
+            from kintinuous_ref.odometry import make_tracker
         tracker = make_tracker(odometry, config, camera)
     result = PipelineResult()
     previous = None
@@ -166,8 +172,9 @@ def run(
                     config.volume, pose, config.colour.max_weight
                 )
                 result.moving, result.moving_volume_note = _moving_volume(
-                    result.volume, pose, config, slices
+                    result.volume, pose, config, slices, getattr(backend.tsdf, "slab_view", None)
                 )
+                result.host_volume = getattr(backend.tsdf, "to_reference_volume", None)
             # 3. Moving volume (III, Fig. 2): shift, extracting the slices that leave.
             if ok and result.moving is not None:
                 result.moving.update(pose)
@@ -207,12 +214,19 @@ def run(
 
 
 def _moving_volume(
-    volume: Any, first_pose: np.ndarray, config: Config, slices: Path | None
+    volume: Any,
+    first_pose: np.ndarray,
+    config: Config,
+    slices: Path | None,
+    view: Callable[[Any], Any] | None = None,
 ) -> tuple[MovingVolume | None, str]:
-    """The cyclical buffer around a new volume, or None with the reason it stays fixed."""
+    """The cyclical buffer around a new volume, or None with the reason it stays fixed. `view`
+    (a fast backend's tsdf.slab_view) shows another backend's volume as a TsdfVolume."""
     if not config.volume.moving:
         return None, ""
-    if not isinstance(volume, TsdfVolume):
+    if not isinstance(volume, TsdfVolume) and view is not None:
+        volume = view(volume)
+    elif not isinstance(volume, TsdfVolume):
         return None, f"fixed volume: the {type(volume).__name__} backend has no cyclical buffer"
     return MovingVolume(volume, first_pose, config.volume, SliceStore(slices)), ""
 
@@ -288,7 +302,10 @@ def write_outputs(
         np.savetxt(out / "volume_origins.txt", rows, fmt="%.6f", header="timestamp x y z")
         surface = moving_volume.read_mesh(out / "mesh.ply")
     else:
-        surface = meshing.extract_mesh(result.volume)
+        volume = result.volume
+        if result.host_volume is not None:  # a fast backend's volume, as a host TsdfVolume
+            volume = result.host_volume(volume)
+        surface = meshing.extract_mesh(volume)
         meshing.write_ply(out / "mesh.ply", surface)
     if preview:
         first = result.poses[0] if result.poses else None
@@ -336,8 +353,9 @@ def reconstruct(
     Everything that can be checked is checked before the first frame is read. An interrupted run
     (Ctrl-C) still writes what it has and then re-raises KeyboardInterrupt.
     """
-    if backend_name != "ref":
-        raise ConfigError(f"backend {backend_name!r} is not available yet; use --backend ref")
+    from kintinuous_fast import select_backend
+
+    backend = select_backend(backend_name)  # ConfigError when it cannot run here
     if not 0 <= start < len(sequence):
         raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
     if count is not None and count <= 0:
@@ -369,6 +387,7 @@ def reconstruct(
         progress=(lambda _: bar.update(1)) if bar is not None else None,
         predict_model=predict_model,
         slices=Path(out) / "slices",
+        backend=backend,
     )
     if bar is not None:
         bar.close()
@@ -378,7 +397,7 @@ def reconstruct(
         {
             "dataset": str(sequence.path),
             "odometry": odometry,
-            "backend": backend_name,
+            "backend": backend.name,
             "start": start,
         },
     )
