@@ -80,8 +80,8 @@ def test_equivalence_cpu_raycast_skipping_is_exact(plain):
 
 
 def test_equivalence_cpu_moving_volume_shifts_slices_and_clears():
-    """The camera slides 10 cm (1.07 voxels) per frame along x: the window shifts several times; the slices
-    leaving and the final volume must match the reference's."""
+    """The camera slides 10 cm (1.07 voxels) per frame along x: the window shifts several times;
+    the slices leaving and the final volume must match the reference's."""
     camera = fe.camera_for(HEIGHT, WIDTH)
     poses = []
     for n in range(6):
