@@ -13,7 +13,7 @@ import pytest
 from kintinuous_ref import se3
 from kintinuous_ref.config import Config, with_overrides
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.odometry import METHODS, TrackingResult, make_tracker
+from kintinuous_ref.odometry import METHODS, TrackingResult, is_repeated_frame, make_tracker
 
 
 @dataclass
@@ -217,3 +217,20 @@ def test_command_line_offers_every_method_and_config_overrides(tmp_path):
     assert config.combined.rgbd_weight == 0.2  # --set wins over the file
     with pytest.raises(ConfigError, match="unknown configuration key"):
         with_overrides(Config(), cli._config_overrides(None, ["icp.nonsense=1"]))
+
+
+@pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])
+def test_a_repeated_frame_means_no_motion(room, method):
+    # The same images twice (7-Scenes redkitchen repeats 12 of its frames 228-298): no new
+    # measurement, so exactly the previous pose, tracked successfully (a frame without motion, not
+    # a failure: the constant-velocity memory becomes the identity).
+    previous, _, previous_frame, _, model = room
+    tracker = make_tracker(method, Config(), scene.CAMERA)
+    start = previous @ se3.exp(np.array([0.0, 0.0, 0.0, 1e-15, 0.0, 0.0]))  # float rounding
+    result = tracker.track(previous_frame, previous_frame, model, start)
+    assert result.ok and result.reason == ""
+    np.testing.assert_array_equal(result.pose, start)
+    np.testing.assert_allclose(tracker.recovery.last_increment, np.eye(4), atol=1e-12)
+    assert is_repeated_frame(previous_frame, previous_frame)
+    assert not is_repeated_frame(previous_frame, room[3])
+    assert not is_repeated_frame(None, previous_frame)
