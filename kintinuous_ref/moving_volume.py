@@ -512,17 +512,36 @@ def _degenerate(mesh: SliceMesh) -> np.ndarray:
     return (code[:, 0] == code[:, 1]) | (code[:, 1] == code[:, 2]) | (code[:, 0] == code[:, 2])
 
 
-def read_mesh(path: Path) -> Mesh:
-    """A PLY written by mesh.write_ply or assemble (float xyz, uchar rgb, triangles)."""
-    data = Path(path).read_bytes()
-    end = data.find(b"end_header\n")
-    header = data[:end].decode("ascii", "replace").splitlines()
+def read_mesh(path: Path, max_triangles: int | None = None) -> Mesh:
+    """A PLY written by mesh.write_ply or assemble (float xyz, uchar rgb, triangles).
+
+    The file is memory-mapped, so with `max_triangles` (e.g. for a preview picture) only every
+    k-th triangle and the vertices it uses are read: memory stays bounded however long the run.
+    """
+    data = np.memmap(path, dtype=np.uint8, mode="r")
+    end = bytes(data[: 1 << 16]).find(b"end_header\n")
+    header = bytes(data[:end]).decode("ascii", "replace").splitlines()
     try:
         vertices, faces = _element_count(header, "vertex"), _element_count(header, "face")
     except (StopIteration, ValueError, IndexError):
         raise DatasetError(f"{path}: not a PLY mesh written by kintinuous") from None
     vertex_dtype = np.dtype(
         [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")]
+    )
+    start = end + len(b"end_header\n")
+    vertex = np.frombuffer(data, dtype=vertex_dtype, count=vertices, offset=start)
+    face = np.frombuffer(
+        data, dtype=_FACE, count=faces, offset=start + vertices * vertex_dtype.itemsize
+    )
+    triangles = face["v"]
+    if max_triangles is not None and faces > max_triangles:
+        triangles = triangles[:: -(-faces // max_triangles)]
+        used, triangles = np.unique(triangles, return_inverse=True)
+        vertex = vertex[used]
+    return Mesh(
+        points=np.column_stack([vertex["x"], vertex["y"], vertex["z"]]),
+        triangles=np.asarray(triangles, dtype=np.int64).reshape(-1, 3),
+        colours=np.column_stack([vertex["r"], vertex["g"], vertex["b"]]),
     )
     start = end + len(b"end_header\n")
     vertex = np.frombuffer(data, dtype=vertex_dtype, count=vertices, offset=start)

@@ -282,6 +282,10 @@ def open_dataset(
     return tum.open_sequence(folder, intrinsics)
 
 
+# Beyond this many triangles the preview shows every k-th one (bounded memory on long runs).
+PREVIEW_TRIANGLES = 1_000_000
+
+
 def write_outputs(
     result: PipelineResult, out: Path, report: dict[str, Any], preview: bool = True
 ) -> dict[str, Any]:
@@ -296,17 +300,19 @@ def write_outputs(
         from kintinuous_ref import moving_volume
 
         result.moving.finish()
-        moving_volume.assemble(result.moving.store, out / "mesh.ply")
+        mesh_size = moving_volume.assemble(result.moving.store, out / "mesh.ply")
         # The window at each frame (after its shift): timestamp, voxel (0, 0, 0)'s centre.
         rows = np.column_stack([result.timestamps, np.reshape(result.volume_origins, (-1, 3))])
         np.savetxt(out / "volume_origins.txt", rows, fmt="%.6f", header="timestamp x y z")
-        surface = moving_volume.read_mesh(out / "mesh.ply")
+        # The mesh grows with the path; its preview reads a bounded share of it.
+        surface = moving_volume.read_mesh(out / "mesh.ply", max_triangles=PREVIEW_TRIANGLES)
     else:
         volume = result.volume
         if result.host_volume is not None:  # a fast backend's volume, as a host TsdfVolume
             volume = result.host_volume(volume)
         surface = meshing.extract_mesh(volume)
         meshing.write_ply(out / "mesh.ply", surface)
+        mesh_size = (len(surface.points), len(surface.triangles))
     if preview:
         first = result.poses[0] if result.poses else None
         meshing.render_preview(surface, out / "preview.png", view_pose=first)
@@ -318,7 +324,7 @@ def write_outputs(
         "failure_reasons": result.failure_reasons[:50],
         "interrupted": result.interrupted,
         "timing_ms": result.timing_summary(),
-        "mesh": {"vertices": len(surface.points), "triangles": len(surface.triangles)},
+        "mesh": {"vertices": mesh_size[0], "triangles": mesh_size[1]},
         "moving_volume": result.moving is not None,
         "shifts": result.shifts,
         "slices": result.slices,

@@ -179,6 +179,16 @@ def test_surfaces_crossing_slice_boundaries_are_extracted_exactly_once(fused, tm
     distance, _, _ = mesh.closest_on(whole.to_pyvista(), merged.points.astype(np.float64))
     assert distance.max() < 1e-5
     np.testing.assert_allclose(merged.points.mean(axis=0), whole.points.mean(axis=0), atol=1e-6)
+    # A bounded read (the preview's) is every k-th triangle of the full mesh, corners unchanged.
+    bounded = moving_volume.read_mesh(tmp_path / "mesh.ply", max_triangles=triangles // 3)
+    stride = -(-triangles // (triangles // 3))
+    np.testing.assert_array_equal(
+        bounded.points[bounded.triangles], merged.points[merged.triangles[::stride]]
+    )
+    np.testing.assert_array_equal(
+        bounded.colours[bounded.triangles], merged.colours[merged.triangles[::stride]]
+    )
+    assert len(bounded.points) < len(merged.points)
 
 
 @pytest.mark.parametrize(
