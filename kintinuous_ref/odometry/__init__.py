@@ -104,6 +104,9 @@ def repeated_streams(
     # Full-resolution depth and intensity: what every dense cost reads (the coarser levels and
     # the gradients are computed from them).
     before, now = previous.levels[0], current.levels[0]
+    if not np.any(now.depth > 0):
+        # Nothing measured twice is not a repeat: let tracking fail on it as on any blind frame.
+        return False, False
     return (
         np.array_equal(before.depth, now.depth),
         np.array_equal(before.intensity, now.intensity),
