@@ -91,8 +91,11 @@ class RgbdConfig:
 
 @dataclass(frozen=True)
 class CombinedConfig:
-    rgbd_weight: float = 0.1  # the paper's w in eq. 11
-    # "paper": A = J_icp^T J_icp + w J_rgbd^T J_rgbd (eq. 12-13);
+    # the paper's w in eq. 11; 1 with the default normalised weighting (odometry/combined.py: the
+    # paper's 0.1 converted between its units, the normalised terms need none)
+    rgbd_weight: float = 1.0
+    # "paper": A = J_icp^T J_icp / sigma_icp^2 + w J_rgbd^T J_rgbd (eq. 12-13, both terms in units
+    # of their own noise); "paper-metres": the literal sum, ICP in metres;
     # "original-code": A = A_rgbd + 100 A_icp, b = b_rgbd + 10 b_icp (the public code's scaling)
     weighting: str = "paper"
     original_code_icp_scale: float = 10.0  # "original-code": A_rgbd + s^2 A_icp, b_rgbd + s b_icp
