@@ -23,14 +23,15 @@ is):
 
 Each term is then measured in units of its own noise, the "difference in metrics" the paper's w
 converted is gone, and w = 1 is the maximum-likelihood balance: every pair counts by how well it
-fits, geometric or photometric, no tuned number left. Measured with the whole pipeline (moving
-volume, 300 frames; docs/odometry.md has the tables), ATE RMSE:
+fits, geometric or photometric, no tuned number left. Measured with the whole pipeline (320x240,
+noise on, moving volume, 300 frames; docs/odometry.md has the tables), ATE RMSE:
 
-    weighting                    desk     corridor (ICP alone 580 mm)   redkitchen (ICP 27.1)
-    normalised, w = 1 (default)  1.5 mm   52 mm  (11x better)          26.2 mm
-    normalised, w = 0.1          1.6 mm   769 mm (follows ICP)          27.2 mm
-    normalised, w = 10           1.4 mm   8.5 mm                        see docs/odometry.md
-    "paper-metres", w = 0.1      7.9 mm   7.4 mm                        40.7 mm
+    weighting                    desk     corridor (ICP alone: 580 mm)   redkitchen (ICP: 27.1 mm)
+    normalised, w = 1 (default)  1.6 mm   52 mm  (11x lower)             26.2 mm
+    normalised, w = 0.1          1.6 mm*  769 mm (follows ICP)            26.9 mm
+    normalised, w = 10           1.4 mm   8.5 mm                          44.1 mm
+    "paper-metres", w = 0.1      7.9 mm*  7.4 mm                          40.7 mm
+    (* engineer O's earlier runs: fixed 3 m volume, which the desk never leaves)
 
 w = 0.1 on the normalised terms leaves ICP in charge along the corridor, where flat walls give it
 a weak, biased constraint (stray normals of the voxelised model) that outweighs a tenth of the
