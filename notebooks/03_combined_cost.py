@@ -258,7 +258,7 @@ for name, value in rms.items():
 #   voxels at 160x120, harsh for ICP). Over a whole 300-frame run (320x240, 23 mm voxels, ICP
 #   against a model fused from many frames) it holds the corridor to 52 mm ATE against ICP's
 #   580 mm while keeping ICP's accuracy on the desk and on redkitchen (docs/odometry.md), where the
-#   literal metres sum drifts like frame-to-frame RGB-D (40.7 mm on redkitchen). The weight sweep
+#   literal metres sum drifts like frame-to-frame RGB-D (40.3 mm on redkitchen). The weight sweep
 #   below shows the trade along the corridor.
 
 # %%
