@@ -23,6 +23,7 @@ from kintinuous_ref.odometry import DenseTracker as RefDenseTracker
 from kintinuous_ref.odometry import FovisTracker as RefFovisTracker
 from kintinuous_ref.odometry.combined import CombinedProblem
 from kintinuous_ref.odometry.rgbd import InterestPoints
+from kintinuous_ref.odometry.rgbd import RgbdProblem as RefRgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
 
 from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, SLOT_EXTRA
@@ -143,31 +144,14 @@ class IcpProblemBase:
         return system.count / valid if valid else 0.0
 
 
-class RgbdProblemBase:
-    """RGB-D odometry for one frame pair: interest points once per level, then any pose."""
+class RgbdProblemBase(RefRgbdProblem):
+    """The reference's RgbdProblem (same arguments and checks), with the interest points and the
+    previous frame's images kept where the kernels keep them (device arrays for cuda)."""
 
     kernels: ModuleType
 
-    def __init__(
-        self,
-        previous_levels: Sequence,
-        current_levels: Sequence,
-        previous_pose: np.ndarray,
-        min_gradient: Sequence[float] = (12.0, 5.0, 3.0, 1.0),
-        max_depth_change: float = 0.07,
-        max_depth: float = 6.0,
-        gradient: str = "current",
-    ) -> None:
-        if gradient not in ("current", "warped"):
-            raise ConfigError(f"rgbd.gradient must be 'current' or 'warped', got {gradient!r}")
-        self.previous_levels = previous_levels
-        self.current_levels = current_levels
-        self.previous_pose = previous_pose
-        self.min_gradient = tuple(min_gradient)
-        self.max_depth_change = max_depth_change
-        self.max_depth = max_depth
-        self.gradient = gradient
-        self._points: dict[int, InterestPoints] = {}
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         self._previous: dict[int, tuple[Any, ...]] = {}
 
     def points(self, level: int) -> InterestPoints:
