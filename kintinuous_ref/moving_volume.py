@@ -512,12 +512,8 @@ def _degenerate(mesh: SliceMesh) -> np.ndarray:
     return (code[:, 0] == code[:, 1]) | (code[:, 1] == code[:, 2]) | (code[:, 0] == code[:, 2])
 
 
-def read_mesh(path: Path, max_triangles: int | None = None) -> Mesh:
-    """A PLY written by mesh.write_ply or assemble (float xyz, uchar rgb, triangles).
-
-    The file is memory-mapped, so with `max_triangles` (e.g. for a preview picture) only every
-    k-th triangle and the vertices it uses are read: memory stays bounded however long the run.
-    """
+def read_mesh(path: Path) -> Mesh:
+    """A PLY written by mesh.write_ply or assemble (float xyz, uchar rgb, triangles)."""
     data = np.memmap(path, dtype=np.uint8, mode="r")
     end = bytes(data[: 1 << 16]).find(b"end_header\n")
     header = bytes(data[:end]).decode("ascii", "replace").splitlines()
@@ -533,23 +529,59 @@ def read_mesh(path: Path, max_triangles: int | None = None) -> Mesh:
     face = np.frombuffer(
         data, dtype=_FACE, count=faces, offset=start + vertices * vertex_dtype.itemsize
     )
-    triangles = face["v"]
-    if max_triangles is not None and faces > max_triangles:
-        triangles = triangles[:: -(-faces // max_triangles)]
-        used, triangles = np.unique(triangles, return_inverse=True)
-        vertex = vertex[used]
-    return Mesh(
-        points=np.column_stack([vertex["x"], vertex["y"], vertex["z"]]),
-        triangles=np.asarray(triangles, dtype=np.int64).reshape(-1, 3),
-        colours=np.column_stack([vertex["r"], vertex["g"], vertex["b"]]),
-    )
-    start = end + len(b"end_header\n")
-    vertex = np.frombuffer(data, dtype=vertex_dtype, count=vertices, offset=start)
-    face = np.frombuffer(
-        data, dtype=_FACE, count=faces, offset=start + vertices * vertex_dtype.itemsize
-    )
     return Mesh(
         points=np.column_stack([vertex["x"], vertex["y"], vertex["z"]]),
         triangles=face["v"].astype(np.int64),
         colours=np.column_stack([vertex["r"], vertex["g"], vertex["b"]]),
+    )
+
+
+def preview_mesh(
+    slices: SliceStore, voxel_size: float, max_triangles: int, triangles_in_slices: int
+) -> Mesh:
+    """The slices' surface with about `max_triangles` triangles at most, for a picture: memory
+    stays bounded however long the run (the full mesh is mesh.ply).
+
+    Vertex clustering (Rossignac and Borrel 1993): the vertices in one cell of a world-anchored
+    grid become one vertex at the cell's centre with their mean colour; triangles whose corners
+    fall into fewer than three cells vanish. A marching-cubes mesh has about two triangles per
+    voxel face it crosses, so cells s voxels wide keep about 1/s^2 of them. Each slice is
+    clustered on its own, but the grid is shared, so neighbouring slices meet at the same
+    cell centres (seam vertices are duplicated, which a picture does not show).
+    """
+    cell = voxel_size * max(1.0, np.sqrt(triangles_in_slices / max(max_triangles, 1)))
+    points, colours, triangles, count = [], [], [], 0
+    for mesh in slices:
+        clustered = mesh if cell == voxel_size else _cluster(mesh, cell)  # as is under budget
+        points.append(clustered.points)
+        colours.append(clustered.colours)
+        triangles.append(clustered.triangles + count)
+        count += len(clustered.points)
+    if not points:
+        return _empty_slice(np.zeros(3, np.int64), np.zeros(3, np.int64))
+    return Mesh(np.concatenate(points), np.concatenate(triangles), np.concatenate(colours))
+
+
+def _cluster(mesh: Mesh, cell: float) -> Mesh:
+    """One vertex per occupied grid cell (its centre, mean colour); distinct non-degenerate
+    triangles between cells."""
+    cells = np.floor(mesh.points / cell).astype(np.int64)
+    occupied, vertex_cell = np.unique(cells, axis=0, return_inverse=True)
+    vertex_cell = vertex_cell.reshape(-1)
+    members = np.bincount(vertex_cell, minlength=len(occupied))[:, None]
+    colour_sum = np.zeros((len(occupied), 3))
+    np.add.at(colour_sum, vertex_cell, mesh.colours.astype(np.float64))
+    corners = vertex_cell[mesh.triangles]
+    distinct = (
+        (corners[:, 0] != corners[:, 1])
+        & (corners[:, 1] != corners[:, 2])
+        & (corners[:, 0] != corners[:, 2])
+    )
+    # Keep one triangle per set of three cells (whatever its corner order).
+    corners = corners[distinct]
+    _, first = np.unique(np.sort(corners, axis=1), axis=0, return_index=True)
+    return Mesh(
+        points=((occupied + 0.5) * cell).astype(np.float32),
+        triangles=corners[np.sort(first)],
+        colours=np.rint(colour_sum / members).astype(np.uint8),
     )

@@ -282,8 +282,9 @@ def open_dataset(
     return tum.open_sequence(folder, intrinsics)
 
 
-# Beyond this many triangles the preview shows every k-th one (bounded memory on long runs).
-PREVIEW_TRIANGLES = 1_000_000
+# Beyond this many triangles the preview shows a coarser mesh (moving_volume.preview_mesh): its
+# render then costs the same memory however long the run.
+PREVIEW_TRIANGLES = 200_000
 
 
 def write_outputs(
@@ -304,8 +305,10 @@ def write_outputs(
         # The window at each frame (after its shift): timestamp, voxel (0, 0, 0)'s centre.
         rows = np.column_stack([result.timestamps, np.reshape(result.volume_origins, (-1, 3))])
         np.savetxt(out / "volume_origins.txt", rows, fmt="%.6f", header="timestamp x y z")
-        # The mesh grows with the path; its preview reads a bounded share of it.
-        surface = moving_volume.read_mesh(out / "mesh.ply", max_triangles=PREVIEW_TRIANGLES)
+        if preview:  # the mesh grows with the path; its preview does not
+            surface = moving_volume.preview_mesh(
+                result.moving.store, result.volume.voxel_size, PREVIEW_TRIANGLES, mesh_size[1]
+            )
     else:
         volume = result.volume
         if result.host_volume is not None:  # a fast backend's volume, as a host TsdfVolume

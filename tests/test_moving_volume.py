@@ -179,16 +179,19 @@ def test_surfaces_crossing_slice_boundaries_are_extracted_exactly_once(fused, tm
     distance, _, _ = mesh.closest_on(whole.to_pyvista(), merged.points.astype(np.float64))
     assert distance.max() < 1e-5
     np.testing.assert_allclose(merged.points.mean(axis=0), whole.points.mean(axis=0), atol=1e-6)
-    # A bounded read (the preview's) is every k-th triangle of the full mesh, corners unchanged.
-    bounded = moving_volume.read_mesh(tmp_path / "mesh.ply", max_triangles=triangles // 3)
-    stride = -(-triangles // (triangles // 3))
-    np.testing.assert_array_equal(
-        bounded.points[bounded.triangles], merged.points[merged.triangles[::stride]]
-    )
-    np.testing.assert_array_equal(
-        bounded.colours[bounded.triangles], merged.colours[merged.triangles[::stride]]
-    )
-    assert len(bounded.points) < len(merged.points)
+    # The preview: under budget, every extracted triangle; over budget, vertex clustering in
+    # cells s = sqrt(T / budget) voxels wide, whose vertices are cell centres (half a cell
+    # diagonal from some surface vertex) and which leave no surface vertex uncovered.
+    voxel = fused.voxel_size
+    full = moving_volume.preview_mesh(store, voxel, 2 * triangles, triangles)
+    assert len(full.triangles) == sum(len(s.triangles) for s in slices)
+    budget = triangles // 9  # cells 3 voxels wide
+    coarse = moving_volume.preview_mesh(store, voxel, budget, triangles)
+    assert budget / 2 < len(coarse.triangles) < 1.5 * budget
+    half_diagonal = 3 * voxel * np.sqrt(3) / 2
+    to_surface = np.linalg.norm(coarse.points[:, None] - merged.points[None], axis=2)
+    assert to_surface.min(axis=1).max() <= half_diagonal + 1e-6
+    assert to_surface.min(axis=0).max() <= half_diagonal + 1e-6
 
 
 @pytest.mark.parametrize(
