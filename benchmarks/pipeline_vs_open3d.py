@@ -1,0 +1,170 @@
+"""The whole pipeline, per stage, against Open3D's frame-to-model dense SLAM, in one run.
+
+    .venv/bin/python benchmarks/pipeline_vs_open3d.py [--frames 30] [--ref-frames 4]
+        [--backends cpu,ref] [--json out.json]
+
+Ours: `kintinuous_fast.benchmark.benchmark` (icp+rgbd, 640x480, 256^3 over 3 m, the moving volume,
+raycast every frame) on each backend, plus the cpu backend with the "fast odometry" setting
+(finest pyramid level skipped). The reference runs only `--ref-frames` frames (seconds each).
+Open3D: `o3d.t.pipelines.slam.Model` on the CPU with the voxel size of our volume (11.7 mm),
+per frame track_frame_to_model (its point-to-plane ICP, 6/3/1 iterations), integrate and
+synthesize_model_frame (its raycast), timed stage by stage. Both start at the first ground-truth
+pose; accuracy is the ATE RMSE over the frames run (rigidly aligned, kintinuous_ref.metrics).
+Stage times are medians over frames 2..N (the first frame compiles and has nothing to track).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the kintinuous command (cli.py)
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from kintinuous_fast import select_backend  # noqa: E402
+from kintinuous_fast.odometry import fast_odometry  # noqa: E402
+from kintinuous_ref import metrics, pipeline  # noqa: E402
+from kintinuous_ref.config import Config  # noqa: E402
+from kintinuous_ref.datasets.tum import Trajectory, open_sequence  # noqa: E402
+
+REDKITCHEN = ROOT.parent / "shared" / "data" / "redkitchen"
+STAGES = ("preprocess", "odometry", "integrate", "raycast", "total")
+
+
+def ate_mm(poses: list[np.ndarray], groundtruth: Trajectory, count: int) -> float:
+    stamps = groundtruth.timestamps[:count]
+    estimate = Trajectory(stamps, np.asarray(poses))
+    errors = metrics.absolute_trajectory_errors(
+        estimate, Trajectory(stamps, groundtruth.poses[:count])
+    )
+    return 1000.0 * float(np.sqrt(np.mean(errors**2)))
+
+
+def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # noqa: ANN001
+    groundtruth = sequence.groundtruth_for_frames()
+    result = pipeline.run(
+        sequence.frames(0, frames),
+        sequence.camera,
+        config,
+        "icp+rgbd",
+        groundtruth,
+        backend=select_backend(backend),
+        predict_model=True,
+    )
+    row = {stage: statistics.median(result.timings_ms[stage][1:]) for stage in STAGES}
+    row["ate_mm"] = ate_mm(result.poses, groundtruth, frames)
+    row["failures"] = result.tracking_failures
+    return row
+
+
+def run_open3d(sequence, voxel_size: float, max_depth: float, frames: int) -> dict | None:  # noqa: ANN001
+    try:
+        import open3d as o3d
+        import open3d.core as o3c
+    except ImportError:
+        return None
+    camera = sequence.camera
+    device = o3c.Device("CPU:0")
+    intrinsic = o3c.Tensor(camera.matrix, o3c.Dtype.Float64)
+    groundtruth = sequence.groundtruth_for_frames()
+    first = groundtruth.poses[0]
+    # Open3D keeps camera-to-model poses starting at identity; ours are world poses.
+    model = o3d.t.pipelines.slam.Model(voxel_size, 16, 40000, o3c.Tensor(np.eye(4)), device)
+    current = o3d.t.pipelines.slam.Frame(camera.height, camera.width, intrinsic, device)
+    predicted = o3d.t.pipelines.slam.Frame(camera.height, camera.width, intrinsic, device)
+    to_model = np.eye(4)
+    laps = {stage: [] for stage in ("odometry", "integrate", "raycast", "total")}
+    poses = []
+    for index, frame in enumerate(sequence.frames(0, frames)):
+        raw = np.round(frame.depth * camera.depth_scale).astype(np.uint16)
+        current.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(raw)))
+        current.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(frame.colour)))
+        start = time.perf_counter()
+        if index > 0:
+            tracked = model.track_frame_to_model(
+                current, predicted, camera.depth_scale, max_depth, 0.07
+            )
+            to_model = to_model @ tracked.transformation.numpy()
+        tracked_at = time.perf_counter()
+        model.update_frame_pose(index, o3c.Tensor(to_model))
+        model.integrate(current, camera.depth_scale, max_depth, 8.0)
+        integrated_at = time.perf_counter()
+        model.synthesize_model_frame(predicted, camera.depth_scale, 0.1, max_depth, 8.0, False)
+        end = time.perf_counter()
+        if index > 0:
+            laps["odometry"].append(1000.0 * (tracked_at - start))
+            laps["integrate"].append(1000.0 * (integrated_at - tracked_at))
+            laps["raycast"].append(1000.0 * (end - integrated_at))
+            laps["total"].append(1000.0 * (end - start))
+        poses.append(first @ to_model)
+    row = {stage: statistics.median(values) for stage, values in laps.items()}
+    row["ate_mm"] = ate_mm(poses, groundtruth, frames)
+    return row
+
+
+def print_table(table: dict[str, dict]) -> None:
+    names = list(table)
+    print(f"{'stage (median ms)':20s}" + "".join(f"{name:>14s}" for name in names))
+    for stage in (*STAGES, "fps", "ate_mm"):
+        cells = []
+        for name in names:
+            row = table[name]
+            value = 1000.0 / row["total"] if stage == "fps" else row.get(stage)
+            cells.append(f"{value:14.1f}" if value is not None else f"{'-':>14s}")
+        print(f"{stage:20s}" + "".join(cells))
+    if "open3d" in table:
+        print("ratio to Open3D (ours / theirs; < 1 = ours faster):")
+        for name in names:
+            if name != "open3d":
+                ratios = {
+                    stage: table[name][stage] / table["open3d"][stage]
+                    for stage in ("odometry", "integrate", "raycast", "total")
+                }
+                print(f"  {name:12s} " + "  ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--ref-frames", type=int, default=4)
+    parser.add_argument("--backends", default="cpu,ref")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    if not REDKITCHEN.is_dir():
+        sys.exit(f"{REDKITCHEN}: not found (the benchmark needs the redkitchen sequence)")
+    sequence = open_sequence(REDKITCHEN)
+    config = Config()  # 256^3 over 3 m
+    print(
+        f"redkitchen 640x480, {args.frames} frames, icp+rgbd, 256^3 over 3 m; "
+        f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
+    table: dict[str, dict] = {}
+    for backend in [name for name in args.backends.split(",") if name]:
+        frames = args.ref_frames if backend == "ref" else args.frames
+        table[backend] = run_ours(sequence, backend, config, frames)
+        if backend == "cpu":
+            table["cpu fast-odo"] = run_ours(sequence, "cpu", fast_odometry(config), frames)
+    open3d_row = run_open3d(
+        sequence, config.volume.voxel_size, config.preprocess.max_depth, args.frames
+    )
+    if open3d_row is not None:
+        table["open3d"] = open3d_row
+    print_table(table)
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
+    if args.json:
+        args.json.write_text(json.dumps(table, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
