@@ -1,22 +1,32 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
-"""kintinuous_ref.preprocess on the CPU: one prange loop per stage around kintinuous_fast.ops.
+"""kintinuous_ref.preprocess on the CPU: prange loops over rows around kintinuous_fast.ops.
 
 Same names, signatures and results as the reference (see tests/test_fast_preprocess.py for the
 stated tolerances); arrays are NumPy arrays.
+
+Speed (issue #6: the whole stage in ~20 ms per 640x480 frame on two cores). Every image loop
+here runs over a contiguous slice of a row with a straight-line body, which LLVM turns into SIMD
+code; a per-pixel call into the 2-D ops (`depth[v + dy, u + dx]` with a possibly negative index)
+does not vectorise, as numba must wrap negative indices. So the filters are written as "for each
+tap, for each pixel of the row", which sums every pixel's taps in the reference's order: the
+results are bit-identical where the reference's arithmetic is repeated (pyramids, gradients,
+vertices, normals, masks). The bilateral filter, 169 exp() per pixel, is the one stage that
+computes differently (float32 weights with an inlined exp, see `_bilateral_rows`).
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-from numba import prange
+from llvmlite import ir
+from numba import prange, types
+from numba.extending import intrinsic
 
 from kintinuous_fast._host import (
     SOBEL_X,
     SOBEL_Y,
     check_frame_inputs,
     gaussian3x3,
-    preprocess_frame_with,
     spatial_weights,
 )
 from kintinuous_fast.ops import cpu_jit
@@ -44,84 +54,327 @@ __all__ = [
 _ops = build_ops(cpu_jit)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 metric_value = _ops.metric_value
-bilateral_pixel = _ops.bilateral_pixel
-pyrdown_depth_pixel = _ops.pyrdown_depth_pixel
-pyrdown_intensity_pixel = _ops.pyrdown_intensity_pixel
-vertex_pixel = _ops.vertex_pixel
+binomial5 = _ops.binomial5
 normal_pixel = _ops.normal_pixel
 intensity_pixel = _ops.intensity_pixel
 correlate3x3_pixel = _ops.correlate3x3_pixel
-discontinuity_pixel = _ops.discontinuity_pixel
 
-_loop = numba.njit(parallel=True, cache=True)
+# Images with fewer pixels run on the calling thread: waking the second thread costs more than
+# such a loop, and on a busy machine a parallel region waits for its slowest, descheduled thread.
+PARALLEL_MIN = 40_000
 
-
-@_loop
-def _metric_depth_loop(raw, integer, depth_scale, max_depth, out):
-    for v in prange(raw.shape[0]):
-        for u in range(raw.shape[1]):
-            out[v, u] = metric_value(raw[v, u], integer, depth_scale, max_depth)
-
-
-@_loop
-def _bilateral_loop(depth, spatial, radius, two_sigma_d2, out):
-    for v in prange(depth.shape[0]):
-        for u in range(depth.shape[1]):
-            out[v, u] = bilateral_pixel(depth, v, u, spatial, radius, two_sigma_d2)
+_parallel = numba.njit(parallel=True, cache=True)
+_inline = numba.njit(cache=True, inline="always")
+# FMA contraction only: the bilateral weights are float32 approximations anyway (1-2 ulp), and
+# contraction is what makes the polynomial exp cheap (a third less time per tap).
+_inline_fma = numba.njit(cache=True, inline="always", fastmath={"contract"})
 
 
-@_loop
-def _pyrdown_depth_loop(depth, cutoff, out):
-    for v in prange(out.shape[0]):
-        for u in range(out.shape[1]):
-            out[v, u] = pyrdown_depth_pixel(depth, v, u, cutoff)
+def _run(loop, pixels: int, *args) -> None:
+    """Call a prange loop, on the calling thread alone below PARALLEL_MIN pixels."""
+    if pixels >= PARALLEL_MIN:
+        loop(*args)
+        return
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        loop(*args)
+    finally:
+        numba.set_num_threads(threads)
 
 
-@_loop
-def _pyrdown_intensity_loop(image, out):
-    for v in prange(out.shape[0]):
-        for u in range(out.shape[1]):
-            out[v, u] = pyrdown_intensity_pixel(image, v, u)
+# ----------------------------------------------------------------------------------------------
+# exp(-x) in float32 that LLVM can vectorise (numba's math.exp is a scalar libm call per tap)
 
 
-@_loop
-def _vertex_loop(depth, fx, fy, cx, cy, out):
-    for v in prange(depth.shape[0]):
-        for u in range(depth.shape[1]):
-            out[v, u, 0], out[v, u, 1], out[v, u, 2] = vertex_pixel(depth, v, u, fx, fy, cx, cy)
+@intrinsic
+def _float32_from_bits(typingctx, bits):
+    """The float32 whose IEEE bit pattern is the low 32 bits of the integer `bits`."""
+    if not isinstance(bits, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        value = args[0]
+        if bits.bitwidth > 32:
+            value = builder.trunc(value, ir.IntType(32))
+        elif bits.bitwidth < 32:
+            value = builder.sext(value, ir.IntType(32))
+        return builder.bitcast(value, ir.FloatType())
+
+    return types.float32(bits), codegen
 
 
-@_loop
-def _normal_loop(vertices, out):
-    for v in prange(vertices.shape[0]):
-        for u in range(vertices.shape[1]):
+_LOG2E = np.float32(1.4426950408889634)
+# ln 2 split so that n * _LN2_HI is exact for the n used here (Cody-Waite reduction).
+_LN2_HI = np.float32(0.693359375)
+_LN2_LO = np.float32(-2.12194440e-4)
+_EXP_MAX_ARG = np.float32(80.0)  # exp(-80) = 1.8e-35: such weights are left out
+
+
+@_inline_fma
+def _exp_neg(x):
+    """exp(-x) for float32 0 <= x <= 80, within 2.4e-7 relative: x = n ln2 + r, |r| <= ln2/2,
+    exp(-r) by its degree-6 Taylor polynomial, 2^-n by writing the exponent bits."""
+    n = np.int32(x * _LOG2E + np.float32(0.5))
+    nf = np.float32(n)
+    r = (x - nf * _LN2_HI) - nf * _LN2_LO
+    p = np.float32(1.0 / 720.0)
+    p = p * r - np.float32(1.0 / 120.0)
+    p = p * r + np.float32(1.0 / 24.0)
+    p = p * r - np.float32(1.0 / 6.0)
+    p = p * r + np.float32(0.5)
+    p = p * r - np.float32(1.0)
+    p = p * r + np.float32(1.0)
+    return p * _float32_from_bits((np.int32(127) - n) << 23)
+
+
+# ----------------------------------------------------------------------------------------------
+# Row kernels (one output row; slices start at the first pixel so every index is >= 0)
+
+
+@_inline_fma
+def _bilateral_taps(centre, neighbour, spatial, inv_two_sigma2, sum_w, sum_wd):
+    """Add one window offset's weights w = spatial * exp(-(D(q) - D(p))^2 / 2 sigma_d^2) and
+    w * (D(q) - D(p)) to the row sums; neighbours without depth weigh 0."""
+    for i in range(centre.shape[0]):
+        difference = neighbour[i] - centre[i]
+        x = difference * difference * inv_two_sigma2
+        use = (neighbour[i] > np.float32(0.0)) & (x < _EXP_MAX_ARG)  # also: NaN neighbours
+        w = spatial * _exp_neg(min(x, _EXP_MAX_ARG))
+        sum_w[i] += w if use else np.float32(0.0)
+        sum_wd[i] += w * difference if use else np.float32(0.0)
+
+
+@_parallel
+def _bilateral_rows(depth, spatial, radius, inv_two_sigma2, out):
+    """D'(p) = D(p) + sum_q w (D(q) - D(p)) / sum_q w, with float32 weights and sums.
+
+    The reference sums w D(q) in float64. Summing the differences from the centre instead keeps
+    float32 enough: the correction is a few millimetres, so its float32 rounding (and the weights'
+    1-2 ulp from `_exp_neg`) moves the result far less than one float32 ulp of the depth; the
+    float64 addition of the centre and the division then round as the reference does. Measured on
+    redkitchen: at most 1 ulp from the reference (tests/test_fast_preprocess.py)."""
+    height, width = depth.shape
+    for v in prange(height):
+        sum_w = np.ones(width, np.float32)  # the centre's own weight, 1 * exp(0)
+        sum_wd = np.zeros(width, np.float32)
+        centre = depth[v]
+        for dy in range(-radius, radius + 1):
+            y = v + dy
+            if y < 0 or y >= height:
+                continue
+            for dx in range(-radius, radius + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                lo = max(0, -dx)
+                hi = min(width, width - dx)
+                _bilateral_taps(
+                    centre[lo:hi],
+                    depth[y, lo + dx : hi + dx],
+                    spatial[dy + radius, dx + radius],
+                    inv_two_sigma2,
+                    sum_w[lo:hi],
+                    sum_wd[lo:hi],
+                )
+        for u in range(width):
+            c = centre[u]
+            if c > np.float32(0.0):
+                out[v, u] = np.float32(float(c) + float(sum_wd[u]) / float(sum_w[u]))
+            else:
+                out[v, u] = np.float32(0.0)
+
+
+@_inline
+def _pyrdown_depth_taps(centre, neighbour, cutoff, w, total, weights):
+    """One tap of the edge-aware 5x5 Gaussian for a row: `neighbour` holds every second pixel."""
+    for i in range(total.shape[0]):
+        c = float(centre[2 * i])
+        n = float(neighbour[2 * i])
+        use = (n > 0.0) & (abs(n - c) <= cutoff)
+        total[i] += w * n if use else 0.0
+        weights[i] += w if use else 0.0
+
+
+@_parallel
+def _pyrdown_depth_rows(depth, cutoff, out):
+    """pyramid_down_depth: taps summed in the reference's order (dy, then dx), float64."""
+    height, width = depth.shape
+    out_height, out_width = out.shape
+    for v in prange(out_height):
+        total = np.zeros(out_width)
+        weights = np.zeros(out_width)
+        for dy in range(-2, 3):
+            y = 2 * v + dy
+            if y < 0 or y >= height:
+                continue
+            for dx in range(-2, 3):
+                lo = (max(0, -dx) + 1) // 2  # first u with 2u + dx >= 0
+                hi = min(out_width, (width - 1 - dx) // 2 + 1)  # last u with 2u + dx < width
+                if hi <= lo:
+                    continue
+                _pyrdown_depth_taps(
+                    depth[2 * v, 2 * lo :],
+                    depth[y, 2 * lo + dx :],
+                    cutoff,
+                    binomial5(dy) * binomial5(dx),
+                    total[lo:hi],
+                    weights[lo:hi],
+                )
+        for u in range(out_width):
+            if depth[2 * v, 2 * u] > 0.0:
+                out[v, u] = np.float32(total[u] / weights[u])
+            else:
+                out[v, u] = np.float32(0.0)
+
+
+@_inline
+def _pyrdown_intensity_taps(neighbour, w, total, weights):
+    for i in range(total.shape[0]):
+        total[i] += w * float(neighbour[2 * i])
+        weights[i] += w
+
+
+@_parallel
+def _pyrdown_intensity_rows(image, out):
+    """pyramid_down_intensity: 5x5 Gaussian renormalised over the taps inside the image."""
+    height, width = image.shape
+    out_height, out_width = out.shape
+    for v in prange(out_height):
+        total = np.zeros(out_width)
+        weights = np.zeros(out_width)
+        for dy in range(-2, 3):
+            y = 2 * v + dy
+            if y < 0 or y >= height:
+                continue
+            for dx in range(-2, 3):
+                lo = (max(0, -dx) + 1) // 2
+                hi = min(out_width, (width - 1 - dx) // 2 + 1)
+                if hi <= lo:
+                    continue
+                _pyrdown_intensity_taps(
+                    image[y, 2 * lo + dx :],
+                    binomial5(dy) * binomial5(dx),
+                    total[lo:hi],
+                    weights[lo:hi],
+                )
+        for u in range(out_width):
+            out[v, u] = np.float32(total[u] / weights[u])
+
+
+@_inline
+def _vertex_row(depth, v, fx, fy, cx, cy, out):
+    """Vertices of one row as float32 (x, y, z) triples; NaN where D <= 0 (vertex_pixel)."""
+    for u in range(depth.shape[0]):
+        d = float(depth[u])
+        valid = d > 0.0
+        out[3 * u] = np.float32((u - cx) * d / fx) if valid else np.float32(np.nan)
+        out[3 * u + 1] = np.float32((v - cy) * d / fy) if valid else np.float32(np.nan)
+        out[3 * u + 2] = np.float32(d) if valid else np.float32(np.nan)
+
+
+@_parallel
+def _vertex_rows(depth, fx, fy, cx, cy, out):
+    height, width = depth.shape
+    flat = out.reshape((height, 3 * width))
+    for v in prange(height):
+        _vertex_row(depth[v], v, fx, fy, cx, cy, flat[v])
+
+
+@_parallel
+def _normal_rows(vertices, out):
+    """normal_pixel per pixel (its float32 cross product and norm)."""
+    height, width = vertices.shape[0], vertices.shape[1]
+    for v in prange(height):
+        for u in range(width):
             out[v, u, 0], out[v, u, 1], out[v, u, 2] = normal_pixel(vertices, v, u)
 
 
-@_loop
-def _intensity_loop(colour, out):
-    for v in prange(colour.shape[0]):
-        for u in range(colour.shape[1]):
-            out[v, u] = intensity_pixel(colour[v, u, 0], colour[v, u, 1], colour[v, u, 2])
+@_parallel
+def _intensity_rows(colour, out):
+    height, width = out.shape
+    flat = colour.reshape((height, 3 * width))
+    for v in prange(height):
+        row = flat[v]
+        for u in range(width):
+            out[v, u] = intensity_pixel(row[3 * u], row[3 * u + 1], row[3 * u + 2])
 
 
-@_loop
-def _gradient_loop(intensity, blur, sobel_x, sobel_y, blurred, dx, dy):
-    # Two passes over the image: the float64 blur first (as the reference), then both Sobels.
+@_inline
+def _correlate_row(image, v, kernel, out):
+    """One row of a 3x3 correlation with replicated borders, each pixel's nine products summed
+    in the reference's order (kernel row, then column) in float64."""
+    height, width = image.shape
+    for dy in range(3):
+        y = min(max(v + dy - 1, 0), height - 1)
+        row = image[y]
+        for dx in range(3):
+            k = kernel[dy, dx]
+            tap = row[dx:]
+            inner = out[1 : width - 1]  # pixel u = i + 1 reads row[u - 1 + dx] = tap[i]
+            if dy == 0 and dx == 0:
+                for i in range(width - 2):
+                    inner[i] = k * float(tap[i])
+            else:
+                for i in range(width - 2):
+                    inner[i] += k * float(tap[i])
+    # The two border columns: the scalar op clamps their outside neighbour.
+    out[0] = correlate3x3_pixel(image, v, 0, kernel)
+    out[width - 1] = correlate3x3_pixel(image, v, width - 1, kernel)
+
+
+@_parallel
+def _blur_rows(intensity, blur, blurred):
     for v in prange(intensity.shape[0]):
-        for u in range(intensity.shape[1]):
-            blurred[v, u] = correlate3x3_pixel(intensity, v, u, blur)
-    for v in prange(intensity.shape[0]):
-        for u in range(intensity.shape[1]):
-            dx[v, u] = correlate3x3_pixel(blurred, v, u, sobel_x)
-            dy[v, u] = correlate3x3_pixel(blurred, v, u, sobel_y)
+        _correlate_row(intensity, v, blur, blurred[v])
 
 
-@_loop
-def _discontinuity_loop(depth, radius, jump, max_bad, out):
-    for v in prange(depth.shape[0]):
-        for u in range(depth.shape[1]):
-            out[v, u] = discontinuity_pixel(depth, v, u, radius, jump, max_bad)
+@_parallel
+def _sobel_rows(blurred, sobel_x, sobel_y, dx, dy):
+    width = blurred.shape[1]
+    for v in prange(blurred.shape[0]):
+        row = np.empty(width)
+        _correlate_row(blurred, v, sobel_x, row)
+        for u in range(width):
+            dx[v, u] = np.float32(row[u])
+        _correlate_row(blurred, v, sobel_y, row)
+        for u in range(width):
+            dy[v, u] = np.float32(row[u])
+
+
+@_inline
+def _count_jumps(centre, neighbour, jump, bad):
+    """+1 where |D(q) - D(p)| > jump, in float32 as NumPy compares (NaN: never)."""
+    for i in range(centre.shape[0]):
+        bad[i] += np.int32(abs(neighbour[i] - centre[i]) > jump)
+
+
+@_parallel
+def _discontinuity_rows(depth, radius, jump, max_bad, out):
+    height, width = depth.shape
+    for v in prange(height):
+        bad = np.zeros(width, np.int32)
+        centre = depth[v]
+        for dy in range(-radius, radius + 1):
+            y = v + dy
+            if y < 0 or y >= height:
+                continue
+            for dx in range(-radius, radius + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                lo = max(0, -dx)
+                hi = min(width, width - dx)
+                if hi <= lo:
+                    continue
+                _count_jumps(centre[lo:hi], depth[y, lo + dx : hi + dx], jump, bad[lo:hi])
+        for u in range(width):
+            out[v, u] = centre[u] > np.float32(0.0) and bad[u] <= max_bad
+
+
+@_parallel
+def _metric_depth_rows(raw, integer, depth_scale, max_depth, out):
+    for v in prange(raw.shape[0]):
+        for u in range(raw.shape[1]):
+            out[v, u] = metric_value(raw[v, u], integer, depth_scale, max_depth)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -135,7 +388,15 @@ def metric_depth(depth: np.ndarray, max_depth: float, depth_scale: float = 5000.
     if not integer and depth.dtype != np.float32:
         depth = depth.astype(np.float32)  # the reference's cast, before any comparison
     out = np.empty(depth.shape, dtype=np.float32)
-    _metric_depth_loop(depth, integer, np.float32(depth_scale), np.float32(max_depth), out)
+    _run(
+        _metric_depth_rows,
+        depth.size,
+        depth,
+        integer,
+        np.float32(depth_scale),
+        np.float32(max_depth),
+        out,
+    )
     return out
 
 
@@ -145,8 +406,9 @@ def bilateral_filter(
     """Edge-preserving smoothing of a depth map; holes stay holes (see the reference)."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty(depth.shape, dtype=np.float32)
-    spatial = spatial_weights(sigma_space, radius)
-    _bilateral_loop(depth, spatial, int(radius), 2.0 * sigma_depth**2, out)
+    spatial = spatial_weights(sigma_space, radius).astype(np.float32)
+    inv_two_sigma2 = np.float32(1.0 / (2.0 * sigma_depth**2))
+    _run(_bilateral_rows, depth.size, depth, spatial, int(radius), inv_two_sigma2, out)
     return out
 
 
@@ -154,7 +416,7 @@ def pyramid_down_depth(depth: np.ndarray, cutoff: float) -> np.ndarray:
     """Half-size depth by the edge-aware 5x5 Gaussian centred on each even pixel."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty((depth.shape[0] // 2, depth.shape[1] // 2), dtype=np.float32)
-    _pyrdown_depth_loop(depth, float(cutoff), out)
+    _run(_pyrdown_depth_rows, depth.size, depth, float(cutoff), out)
     return out
 
 
@@ -162,7 +424,7 @@ def pyramid_down_intensity(image: np.ndarray) -> np.ndarray:
     """Half-size image by the 5x5 Gaussian, weights renormalised at the border."""
     image = np.ascontiguousarray(image, dtype=np.float32)
     out = np.empty((image.shape[0] // 2, image.shape[1] // 2), dtype=np.float32)
-    _pyrdown_intensity_loop(image, out)
+    _run(_pyrdown_intensity_rows, image.size, image, out)
     return out
 
 
@@ -170,7 +432,16 @@ def vertex_map(depth: np.ndarray, camera: Intrinsics) -> np.ndarray:
     """Camera-frame points D K^-1 [u, v, 1]; NaN where D <= 0."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty((*depth.shape, 3), dtype=np.float32)
-    _vertex_loop(depth, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), out)
+    _run(
+        _vertex_rows,
+        depth.size,
+        depth,
+        float(camera.fx),
+        float(camera.fy),
+        float(camera.cx),
+        float(camera.cy),
+        out,
+    )
     return out
 
 
@@ -178,7 +449,7 @@ def normal_map(vertices: np.ndarray) -> np.ndarray:
     """Unit normals from neighbour differences, pointing to the camera; NaN where undefined."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float32)
     out = np.empty(vertices.shape, dtype=np.float32)
-    _normal_loop(vertices, out)
+    _run(_normal_rows, vertices.shape[0] * vertices.shape[1], vertices, out)
     return out
 
 
@@ -186,7 +457,7 @@ def intensity_image(colour: np.ndarray) -> np.ndarray:
     """I = 0.299 R + 0.587 G + 0.114 B, float32 in 0..255."""
     colour = np.ascontiguousarray(colour)
     out = np.empty(colour.shape[:2], dtype=np.float32)
-    _intensity_loop(colour, out)
+    _run(_intensity_rows, out.size, colour, out)
     return out
 
 
@@ -196,7 +467,8 @@ def intensity_gradients(intensity: np.ndarray, blur_sigma: float) -> tuple[np.nd
     blurred = np.empty(intensity.shape, dtype=np.float64)
     dx = np.empty(intensity.shape, dtype=np.float32)
     dy = np.empty(intensity.shape, dtype=np.float32)
-    _gradient_loop(intensity, gaussian3x3(blur_sigma), SOBEL_X, SOBEL_Y, blurred, dx, dy)
+    _run(_blur_rows, intensity.size, intensity, gaussian3x3(blur_sigma), blurred)
+    _run(_sobel_rows, intensity.size, blurred, SOBEL_X, SOBEL_Y, dx, dy)
     return dx, dy
 
 
@@ -204,7 +476,15 @@ def discontinuity_mask(depth: np.ndarray, window: int, jump: float, max_bad: int
     """True where colour may be fused (paper VI-B's 7x7 check; see the reference)."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty(depth.shape, dtype=np.bool_)
-    _discontinuity_loop(depth, int(window) // 2, np.float32(jump), int(max_bad), out)
+    _run(
+        _discontinuity_rows,
+        depth.size,
+        depth,
+        int(window) // 2,
+        np.float32(jump),
+        int(max_bad),
+        out,
+    )
     return out
 
 
@@ -213,6 +493,27 @@ def preprocess_frame(
 ) -> PreprocessedFrame:
     """Everything tracking and fusion need from one RGB-D pair (kintinuous_ref.preprocess)."""
     check_frame_inputs(colour, depth, camera)
-    import kintinuous_fast.cpu.preprocess as stages
-
-    return preprocess_frame_with(stages, colour, depth, camera, config)
+    raw = metric_depth(depth, config.max_depth, camera.depth_scale)
+    filtered = bilateral_filter(
+        raw, config.bilateral_sigma_space, config.bilateral_sigma_depth, config.bilateral_radius
+    )
+    intensity = intensity_image(colour)
+    levels: list[PyramidLevel] = []
+    for level in range(config.pyramid_levels):
+        if level > 0:
+            raw = pyramid_down_depth(raw, config.pyramid_depth_cutoff)
+            filtered = pyramid_down_depth(filtered, config.pyramid_depth_cutoff)
+            intensity = pyramid_down_intensity(intensity)
+        level_camera = camera.at_level(level)
+        vertices = vertex_map(filtered, level_camera)
+        dx, dy = intensity_gradients(intensity, config.gradient_blur_sigma)
+        levels.append(
+            PyramidLevel(level_camera, raw, vertices, normal_map(vertices), intensity, dx, dy)
+        )
+    mask = discontinuity_mask(
+        levels[0].depth,
+        config.discontinuity_window,
+        config.discontinuity_jump,
+        config.discontinuity_max_bad,
+    )
+    return PreprocessedFrame(colour=colour, depth=levels[0].depth, levels=levels, colour_mask=mask)
