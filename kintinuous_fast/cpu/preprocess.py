@@ -11,7 +11,7 @@ does not vectorise, as numba must wrap negative indices. So the filters are writ
 tap, for each pixel of the row", which sums every pixel's taps in the reference's order: the
 results are bit-identical where the reference's arithmetic is repeated (pyramids, gradients,
 vertices, normals, masks). The bilateral filter, 169 exp() per pixel, is the one stage that
-computes differently (float32 weights with an inlined exp, see `_bilateral_rows`).
+computes differently (float32 weights with an inlined exp, see `_bilateral_sums`).
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ _LOG2E = np.float32(1.4426950408889634)
 # ln 2 split so that n * _LN2_HI is exact for the n used here (Cody-Waite reduction).
 _LN2_HI = np.float32(0.693359375)
 _LN2_LO = np.float32(-2.12194440e-4)
-_EXP_MAX_ARG = np.float32(80.0)  # exp(-80) = 1.8e-35: such weights are left out
+_EXP_MAX = np.float32(80.0)  # exp(-80) = 1.8e-35: such weights are left out
 
 
 @_inline_fma
@@ -133,21 +133,101 @@ def _exp_neg(x):
 
 
 @_inline_fma
-def _bilateral_taps(centre, neighbour, spatial, inv_two_sigma2, sum_w, sum_wd):
-    """Add one window offset's weights w = spatial * exp(-(D(q) - D(p))^2 / 2 sigma_d^2) and
-    w * (D(q) - D(p)) to the row sums; neighbours without depth weigh 0."""
-    for i in range(centre.shape[0]):
+def _pair_weights(centre, neighbour, spatial, inv_two_sigma2, w, wd):
+    """For one window offset along a row: w = spatial * exp(-(D(q) - D(p))^2 / 2 sigma_d^2) of
+    each pixel pair (p, q) and wd = w (D(q) - D(p)); 0 where p or q has no depth."""
+    for i in range(w.shape[0]):
         difference = neighbour[i] - centre[i]
         x = difference * difference * inv_two_sigma2
-        use = (neighbour[i] > np.float32(0.0)) & (x < _EXP_MAX_ARG)  # also: NaN neighbours
-        w = spatial * _exp_neg(min(x, _EXP_MAX_ARG))
-        sum_w[i] += w if use else np.float32(0.0)
-        sum_wd[i] += w * difference if use else np.float32(0.0)
+        # & (not `and`): no branch, so the loop vectorises; NaN depth is never used
+        use = (centre[i] > np.float32(0.0)) & (neighbour[i] > np.float32(0.0)) & (x < _EXP_MAX)
+        weight = spatial * _exp_neg(min(x, _EXP_MAX))
+        w[i] = weight if use else np.float32(0.0)
+        wd[i] = weight * difference if use else np.float32(0.0)
+
+
+@_inline_fma
+def _pairs_to_both(centre, neighbour, spatial, inv_two_sigma2, own_w, own_wd, other_w, other_wd):
+    """_pair_weights added straight to p's and q's sums (rows that do not overlap)."""
+    for i in range(own_w.shape[0]):
+        difference = neighbour[i] - centre[i]
+        x = difference * difference * inv_two_sigma2
+        use = (centre[i] > np.float32(0.0)) & (neighbour[i] > np.float32(0.0)) & (x < _EXP_MAX)
+        weight = spatial * _exp_neg(min(x, _EXP_MAX))
+        w = weight if use else np.float32(0.0)
+        wd = weight * difference if use else np.float32(0.0)
+        own_w[i] += w
+        own_wd[i] += wd
+        other_w[i] += w
+        other_wd[i] -= wd
+
+
+@_inline
+def _add_pairs(sum_w, sum_wd, w, wd, sign):
+    for i in range(w.shape[0]):
+        sum_w[i] += w[i]
+        sum_wd[i] += wd[i] if sign > 0 else -wd[i]
 
 
 @_parallel
-def _bilateral_rows(depth, spatial, radius, inv_two_sigma2, out):
-    """D'(p) = D(p) + sum_q w (D(q) - D(p)) / sum_q w, with float32 weights and sums.
+def _bilateral_sums(depth, spatial, radius, inv_two_sigma2, chunk_rows, sum_w, sum_wd):
+    """Weight sums of the bilateral filter without the centre, each pair computed once.
+
+    The weight of a pixel pair is symmetric, w(p, q) = w(q, p), so every pair with q after p
+    (a later row, or the same row to the right) is weighed once and added to both: w (D(q) -
+    D(p)) to p's sums and w (D(p) - D(q)) to q's, half the exp() of a per-pixel window. Rows
+    are cut into chunks, one prange iteration each, with sums of their own (chunk_rows +
+    radius rows: pairs reach `radius` rows into the next chunk); _bilateral_finish adds them."""
+    height, width = depth.shape
+    for chunk in prange(sum_w.shape[0]):
+        first = chunk * chunk_rows
+        w = np.empty(width, np.float32)
+        wd = np.empty(width, np.float32)
+        for v in range(first, min(height, first + chunk_rows)):
+            for dy in range(0, min(radius, height - 1 - v) + 1):
+                y = v + dy
+                for dx in range(1 if dy == 0 else -radius, radius + 1):
+                    lo = max(0, -dx)
+                    hi = min(width, width - dx)
+                    if hi <= lo:
+                        continue
+                    count = hi - lo
+                    p, q = v - first, y - first
+                    if dy > 0:
+                        _pairs_to_both(
+                            depth[v, lo:hi],
+                            depth[y, lo + dx : hi + dx],
+                            spatial[dy + radius, dx + radius],
+                            inv_two_sigma2,
+                            sum_w[chunk, p, lo:hi],
+                            sum_wd[chunk, p, lo:hi],
+                            sum_w[chunk, q, lo + dx : hi + dx],
+                            sum_wd[chunk, q, lo + dx : hi + dx],
+                        )
+                        continue
+                    _pair_weights(
+                        depth[v, lo:hi],
+                        depth[y, lo + dx : hi + dx],
+                        spatial[dy + radius, dx + radius],
+                        inv_two_sigma2,
+                        w[:count],
+                        wd[:count],
+                    )
+                    _add_pairs(
+                        sum_w[chunk, p, lo:hi], sum_wd[chunk, p, lo:hi], w[:count], wd[:count], 1
+                    )
+                    _add_pairs(
+                        sum_w[chunk, q, lo + dx : hi + dx],
+                        sum_wd[chunk, q, lo + dx : hi + dx],
+                        w[:count],
+                        wd[:count],
+                        -1,
+                    )
+
+
+@_parallel
+def _bilateral_finish(depth, chunk_rows, radius, sum_w, sum_wd, out):
+    """D'(p) = D(p) + sum_q w (D(q) - D(p)) / (1 + sum_q w), the centre weighing 1 * exp(0).
 
     The reference sums w D(q) in float64. Summing the differences from the centre instead keeps
     float32 enough: the correction is a few millimetres, so its float32 rounding (and the weights'
@@ -156,32 +236,20 @@ def _bilateral_rows(depth, spatial, radius, inv_two_sigma2, out):
     redkitchen: at most 1 ulp from the reference (tests/test_fast_preprocess.py)."""
     height, width = depth.shape
     for v in prange(height):
-        sum_w = np.ones(width, np.float32)  # the centre's own weight, 1 * exp(0)
-        sum_wd = np.zeros(width, np.float32)
-        centre = depth[v]
-        for dy in range(-radius, radius + 1):
-            y = v + dy
-            if y < 0 or y >= height:
-                continue
-            for dx in range(-radius, radius + 1):
-                if dy == 0 and dx == 0:
-                    continue
-                lo = max(0, -dx)
-                hi = min(width, width - dx)
-                _bilateral_taps(
-                    centre[lo:hi],
-                    depth[y, lo + dx : hi + dx],
-                    spatial[dy + radius, dx + radius],
-                    inv_two_sigma2,
-                    sum_w[lo:hi],
-                    sum_wd[lo:hi],
-                )
+        chunk = v // chunk_rows
+        row = v - chunk * chunk_rows
+        halo = chunk > 0 and row < radius  # also summed by the chunk before
         for u in range(width):
-            c = centre[u]
-            if c > np.float32(0.0):
-                out[v, u] = np.float32(float(c) + float(sum_wd[u]) / float(sum_w[u]))
-            else:
+            c = depth[v, u]
+            if not c > np.float32(0.0):
                 out[v, u] = np.float32(0.0)
+                continue
+            w = float(sum_w[chunk, row, u])
+            wd = float(sum_wd[chunk, row, u])
+            if halo:
+                w += float(sum_w[chunk - 1, row + chunk_rows, u])
+                wd += float(sum_wd[chunk - 1, row + chunk_rows, u])
+            out[v, u] = np.float32(float(c) + wd / (1.0 + w))
 
 
 @_inline
@@ -408,7 +476,26 @@ def bilateral_filter(
     out = np.empty(depth.shape, dtype=np.float32)
     spatial = spatial_weights(sigma_space, radius).astype(np.float32)
     inv_two_sigma2 = np.float32(1.0 / (2.0 * sigma_depth**2))
-    _run(_bilateral_rows, depth.size, depth, spatial, int(radius), inv_two_sigma2, out)
+    radius = int(radius)
+    height, width = depth.shape
+    # A few chunks per thread; at least `radius` rows each, so only one chunk reaches into the next.
+    chunks = 1 if depth.size < PARALLEL_MIN else 4 * numba.get_num_threads()
+    chunk_rows = max(radius, -(-height // chunks), 1)
+    chunks = -(-height // chunk_rows)
+    sum_w = np.zeros((chunks, chunk_rows + radius, width), np.float32)
+    sum_wd = np.zeros((chunks, chunk_rows + radius, width), np.float32)
+    _run(
+        _bilateral_sums,
+        depth.size,
+        depth,
+        spatial,
+        radius,
+        inv_two_sigma2,
+        chunk_rows,
+        sum_w,
+        sum_wd,
+    )
+    _run(_bilateral_finish, depth.size, depth, chunk_rows, radius, sum_w, sum_wd, out)
     return out
 
 
