@@ -16,6 +16,8 @@ computes differently (float32 weights with an inlined exp, see `_bilateral_sums`
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from llvmlite import ir
@@ -55,7 +57,6 @@ _ops = build_ops(cpu_jit)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 metric_value = _ops.metric_value
 binomial5 = _ops.binomial5
-normal_pixel = _ops.normal_pixel
 intensity_pixel = _ops.intensity_pixel
 correlate3x3_pixel = _ops.correlate3x3_pixel
 
@@ -252,44 +253,67 @@ def _bilateral_finish(depth, chunk_rows, radius, sum_w, sum_wd, out):
             out[v, u] = np.float32(float(c) + wd / (1.0 + w))
 
 
+@_parallel
+def _split_columns(image, even, odd):
+    """even[v, i] = image[v, 2i], odd[v, i] = image[v, 2i + 1]: the 5x5 taps of a half-size
+    pixel u are then contiguous runs (columns 2u + dx: even[u - 1], odd[u - 1], even[u], odd[u],
+    even[u + 1]), which vectorise; stride-2 loads do not."""
+    width = image.shape[1]
+    for v in prange(image.shape[0]):
+        row = image[v]
+        for i in range(even.shape[1]):
+            even[v, i] = row[2 * i]
+        for i in range((width) // 2):
+            odd[v, i] = row[2 * i + 1]
+
+
+@_inline
+def _tap_columns(dx, out_width, width):
+    """Half-size pixels [lo, hi) whose tap 2u + dx lies inside the row, and the offset of that
+    tap's run in `even` (dx even) or `odd` (dx odd): column 2u + dx is entry u + dx // 2."""
+    lo = (max(0, -dx) + 1) // 2
+    hi = min(out_width, (width - 1 - dx) // 2 + 1)
+    return lo, max(hi, lo), lo + dx // 2
+
+
 @_inline
 def _pyrdown_depth_taps(centre, neighbour, cutoff, w, total, weights):
-    """One tap of the edge-aware 5x5 Gaussian for a row: `neighbour` holds every second pixel."""
+    """One tap of the edge-aware 5x5 Gaussian for a run of half-size pixels (float64)."""
     for i in range(total.shape[0]):
-        c = float(centre[2 * i])
-        n = float(neighbour[2 * i])
+        c = float(centre[i])
+        n = float(neighbour[i])
         use = (n > 0.0) & (abs(n - c) <= cutoff)
         total[i] += w * n if use else 0.0
         weights[i] += w if use else 0.0
 
 
 @_parallel
-def _pyrdown_depth_rows(depth, cutoff, out):
-    """pyramid_down_depth: taps summed in the reference's order (dy, then dx), float64."""
-    height, width = depth.shape
+def _pyrdown_depth_rows(even, odd, width, cutoff, out):
+    """pyramid_down_depth: taps summed in the reference's order (dy, then dx) in float64, so
+    the result is the reference's to the bit."""
+    height = even.shape[0]
     out_height, out_width = out.shape
     for v in prange(out_height):
         total = np.zeros(out_width)
         weights = np.zeros(out_width)
+        centre = even[2 * v]
         for dy in range(-2, 3):
             y = 2 * v + dy
             if y < 0 or y >= height:
                 continue
             for dx in range(-2, 3):
-                lo = (max(0, -dx) + 1) // 2  # first u with 2u + dx >= 0
-                hi = min(out_width, (width - 1 - dx) // 2 + 1)  # last u with 2u + dx < width
-                if hi <= lo:
-                    continue
+                lo, hi, start = _tap_columns(dx, out_width, width)
+                source = even[y] if dx % 2 == 0 else odd[y]
                 _pyrdown_depth_taps(
-                    depth[2 * v, 2 * lo :],
-                    depth[y, 2 * lo + dx :],
+                    centre[lo:hi],
+                    source[start : start + hi - lo],
                     cutoff,
                     binomial5(dy) * binomial5(dx),
                     total[lo:hi],
                     weights[lo:hi],
                 )
         for u in range(out_width):
-            if depth[2 * v, 2 * u] > 0.0:
+            if centre[u] > 0.0:
                 out[v, u] = np.float32(total[u] / weights[u])
             else:
                 out[v, u] = np.float32(0.0)
@@ -298,14 +322,14 @@ def _pyrdown_depth_rows(depth, cutoff, out):
 @_inline
 def _pyrdown_intensity_taps(neighbour, w, total, weights):
     for i in range(total.shape[0]):
-        total[i] += w * float(neighbour[2 * i])
+        total[i] += w * float(neighbour[i])
         weights[i] += w
 
 
 @_parallel
-def _pyrdown_intensity_rows(image, out):
+def _pyrdown_intensity_rows(even, odd, width, out):
     """pyramid_down_intensity: 5x5 Gaussian renormalised over the taps inside the image."""
-    height, width = image.shape
+    height = even.shape[0]
     out_height, out_width = out.shape
     for v in prange(out_height):
         total = np.zeros(out_width)
@@ -315,12 +339,10 @@ def _pyrdown_intensity_rows(image, out):
             if y < 0 or y >= height:
                 continue
             for dx in range(-2, 3):
-                lo = (max(0, -dx) + 1) // 2
-                hi = min(out_width, (width - 1 - dx) // 2 + 1)
-                if hi <= lo:
-                    continue
+                lo, hi, start = _tap_columns(dx, out_width, width)
+                source = even[y] if dx % 2 == 0 else odd[y]
                 _pyrdown_intensity_taps(
-                    image[y, 2 * lo + dx :],
+                    source[start : start + hi - lo],
                     binomial5(dy) * binomial5(dx),
                     total[lo:hi],
                     weights[lo:hi],
@@ -348,13 +370,44 @@ def _vertex_rows(depth, fx, fy, cx, cy, out):
         _vertex_row(depth[v], v, fx, fy, cx, cy, flat[v])
 
 
+@_inline
+def _normal_row(here, below, out):
+    """normal_pixel's float32 cross product and norm for the pixels of a row that have a right
+    and a lower neighbour; rows are flat (x, y, z) triples."""
+    for u in range(out.shape[0] // 3 - 1):
+        p0 = here[3 * u]
+        p1 = here[3 * u + 1]
+        p2 = here[3 * u + 2]
+        a0 = below[3 * u] - p0
+        a1 = below[3 * u + 1] - p1
+        a2 = below[3 * u + 2] - p2
+        b0 = here[3 * u + 3] - p0
+        b1 = here[3 * u + 4] - p1
+        b2 = here[3 * u + 5] - p2
+        n0 = a1 * b2 - a2 * b1
+        n1 = a2 * b0 - a0 * b2
+        n2 = a0 * b1 - a1 * b0
+        length = np.float32(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2))
+        valid = length > np.float32(0.0)  # also NaN: a missing neighbour
+        out[3 * u] = n0 / length if valid else np.float32(np.nan)
+        out[3 * u + 1] = n1 / length if valid else np.float32(np.nan)
+        out[3 * u + 2] = n2 / length if valid else np.float32(np.nan)
+
+
 @_parallel
 def _normal_rows(vertices, out):
-    """normal_pixel per pixel (its float32 cross product and norm)."""
+    """normal_map; float32 throughout, as normal_pixel (and the reference's np.cross/norm)."""
     height, width = vertices.shape[0], vertices.shape[1]
+    flat = vertices.reshape((height, 3 * width))
+    flat_out = out.reshape((height, 3 * width))
     for v in prange(height):
-        for u in range(width):
-            out[v, u, 0], out[v, u, 1], out[v, u, 2] = normal_pixel(vertices, v, u)
+        row = flat_out[v]
+        if v + 1 < height and width > 0:
+            _normal_row(flat[v], flat[v + 1], row)
+        for u in range(0 if v + 1 >= height else max(width - 1, 0), width):
+            row[3 * u] = np.float32(np.nan)  # no lower or right neighbour
+            row[3 * u + 1] = np.float32(np.nan)
+            row[3 * u + 2] = np.float32(np.nan)
 
 
 @_parallel
@@ -499,19 +552,29 @@ def bilateral_filter(
     return out
 
 
+def _split(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Even and odd columns of a float32 image (see _split_columns)."""
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    height, width = image.shape
+    even = np.empty((height, (width + 1) // 2), np.float32)
+    odd = np.empty((height, width // 2), np.float32)
+    _run(_split_columns, image.size, image, even, odd)
+    return even, odd
+
+
 def pyramid_down_depth(depth: np.ndarray, cutoff: float) -> np.ndarray:
     """Half-size depth by the edge-aware 5x5 Gaussian centred on each even pixel."""
-    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    even, odd = _split(depth)
     out = np.empty((depth.shape[0] // 2, depth.shape[1] // 2), dtype=np.float32)
-    _run(_pyrdown_depth_rows, depth.size, depth, float(cutoff), out)
+    _run(_pyrdown_depth_rows, depth.size, even, odd, depth.shape[1], float(cutoff), out)
     return out
 
 
 def pyramid_down_intensity(image: np.ndarray) -> np.ndarray:
     """Half-size image by the 5x5 Gaussian, weights renormalised at the border."""
-    image = np.ascontiguousarray(image, dtype=np.float32)
+    even, odd = _split(image)
     out = np.empty((image.shape[0] // 2, image.shape[1] // 2), dtype=np.float32)
-    _run(_pyrdown_intensity_rows, image.size, image, out)
+    _run(_pyrdown_intensity_rows, image.size, even, odd, image.shape[1], out)
     return out
 
 
