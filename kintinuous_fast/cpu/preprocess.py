@@ -29,7 +29,6 @@ from kintinuous_fast._host import (
     SOBEL_Y,
     check_frame_inputs,
     gaussian3x3,
-    spatial_weights,
 )
 from kintinuous_fast.ops import cpu_jit
 from kintinuous_fast.ops.preprocess import build_ops
@@ -66,9 +65,11 @@ PARALLEL_MIN = 40_000
 
 _parallel = numba.njit(parallel=True, cache=True)
 _inline = numba.njit(cache=True, inline="always")
-# FMA contraction only: the bilateral weights are float32 approximations anyway (1-2 ulp), and
-# contraction is what makes the polynomial exp cheap (a third less time per tap).
+# FMA contraction only, for the bilateral filter: its weights are float32 approximations anyway
+# (1-2 ulp), and contraction makes the polynomial exp a third cheaper. Functions inlined by numba
+# compile with their caller's flags, so the prange loop that inlines them carries the flag too.
 _inline_fma = numba.njit(cache=True, inline="always", fastmath={"contract"})
+_parallel_fma = numba.njit(parallel=True, cache=True, fastmath={"contract"})
 
 
 def _run(loop, pixels: int, *args) -> None:
@@ -106,19 +107,18 @@ def _float32_from_bits(typingctx, bits):
 
 
 _LOG2E = np.float32(1.4426950408889634)
-# ln 2 split so that n * _LN2_HI is exact for the n used here (Cody-Waite reduction).
-_LN2_HI = np.float32(0.693359375)
-_LN2_LO = np.float32(-2.12194440e-4)
+_LN2 = np.float32(0.6931471805599453)
 _EXP_MAX = np.float32(80.0)  # exp(-80) = 1.8e-35: such weights are left out
 
 
 @_inline_fma
 def _exp_neg(x):
     """exp(-x) for float32 0 <= x <= 80, within 2.4e-7 relative: x = n ln2 + r, |r| <= ln2/2,
-    exp(-r) by its degree-6 Taylor polynomial, 2^-n by writing the exponent bits."""
+    exp(-r) by its degree-6 Taylor polynomial, 2^-n by writing the exponent bits. One-step
+    reduction: float32(ln 2) is 1.9e-9 off, i.e. n * 1.9e-9 <= 2.2e-7 relative at x = 80, and
+    1e-8 where a weight is large enough to matter (x < 5, n <= 7)."""
     n = np.int32(x * _LOG2E + np.float32(0.5))
-    nf = np.float32(n)
-    r = (x - nf * _LN2_HI) - nf * _LN2_LO
+    r = x - np.float32(n) * _LN2
     p = np.float32(1.0 / 720.0)
     p = p * r - np.float32(1.0 / 120.0)
     p = p * r + np.float32(1.0 / 24.0)
@@ -135,16 +135,17 @@ def _exp_neg(x):
 
 @_inline_fma
 def _pair_weights(centre, neighbour, spatial, inv_two_sigma2, w, wd):
-    """For one window offset along a row: w = spatial * exp(-(D(q) - D(p))^2 / 2 sigma_d^2) of
-    each pixel pair (p, q) and wd = w (D(q) - D(p)); 0 where p or q has no depth."""
+    """For one window offset along a row: w = exp(-spatial - (D(q) - D(p))^2 / 2 sigma_d^2) of
+    each pixel pair (p, q), the spatial Gaussian's exponent `spatial` folded in, and
+    wd = w (D(q) - D(p)). Holes hold a far sentinel (_bilateral_input), so a pair with one hole
+    has x > _EXP_MAX and weighs 0 (two holes do weigh, but only into sums of holes)."""
     for i in range(w.shape[0]):
         difference = neighbour[i] - centre[i]
-        x = difference * difference * inv_two_sigma2
-        # & (not `and`): no branch, so the loop vectorises; NaN depth is never used
-        use = (centre[i] > np.float32(0.0)) & (neighbour[i] > np.float32(0.0)) & (x < _EXP_MAX)
-        weight = spatial * _exp_neg(min(x, _EXP_MAX))
-        w[i] = weight if use else np.float32(0.0)
-        wd[i] = weight * difference if use else np.float32(0.0)
+        x = difference * difference * inv_two_sigma2 + spatial
+        # a select, not a branch, so that the loop vectorises
+        weight = _exp_neg(min(x, _EXP_MAX)) if x < _EXP_MAX else np.float32(0.0)
+        w[i] = weight
+        wd[i] = weight * difference
 
 
 @_inline_fma
@@ -152,14 +153,12 @@ def _pairs_to_both(centre, neighbour, spatial, inv_two_sigma2, own_w, own_wd, ot
     """_pair_weights added straight to p's and q's sums (rows that do not overlap)."""
     for i in range(own_w.shape[0]):
         difference = neighbour[i] - centre[i]
-        x = difference * difference * inv_two_sigma2
-        use = (centre[i] > np.float32(0.0)) & (neighbour[i] > np.float32(0.0)) & (x < _EXP_MAX)
-        weight = spatial * _exp_neg(min(x, _EXP_MAX))
-        w = weight if use else np.float32(0.0)
-        wd = weight * difference if use else np.float32(0.0)
-        own_w[i] += w
+        x = difference * difference * inv_two_sigma2 + spatial
+        weight = _exp_neg(min(x, _EXP_MAX)) if x < _EXP_MAX else np.float32(0.0)
+        wd = weight * difference
+        own_w[i] += weight
         own_wd[i] += wd
-        other_w[i] += w
+        other_w[i] += weight
         other_wd[i] -= wd
 
 
@@ -170,7 +169,7 @@ def _add_pairs(sum_w, sum_wd, w, wd, sign):
         sum_wd[i] += wd[i] if sign > 0 else -wd[i]
 
 
-@_parallel
+@_parallel_fma
 def _bilateral_sums(depth, spatial, radius, inv_two_sigma2, chunk_rows, sum_w, sum_wd):
     """Weight sums of the bilateral filter without the centre, each pair computed once.
 
@@ -527,9 +526,13 @@ def bilateral_filter(
     """Edge-preserving smoothing of a depth map; holes stay holes (see the reference)."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty(depth.shape, dtype=np.float32)
-    spatial = spatial_weights(sigma_space, radius).astype(np.float32)
-    inv_two_sigma2 = np.float32(1.0 / (2.0 * sigma_depth**2))
     radius = int(radius)
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64) ** 2
+    spatial = ((offsets[:, None] + offsets[None, :]) / (2.0 * sigma_space**2)).astype(np.float32)
+    inv_two_sigma2 = np.float32(1.0 / (2.0 * sigma_depth**2))
+    # Holes (and NaN) as a depth farther than 12.65 sigma_d from any valid one: x > 80 (weight 0).
+    hole = np.float32(-(16.0 * sigma_depth + 1.0))
+    work = np.where(depth > 0, depth, hole).astype(np.float32)
     height, width = depth.shape
     # A few chunks per thread; at least `radius` rows each, so only one chunk reaches into the next.
     chunks = 1 if depth.size < PARALLEL_MIN else 4 * numba.get_num_threads()
@@ -540,7 +543,7 @@ def bilateral_filter(
     _run(
         _bilateral_sums,
         depth.size,
-        depth,
+        work,
         spatial,
         radius,
         inv_two_sigma2,
