@@ -257,13 +257,16 @@ def _split_columns(image, even, odd):
     """even[v, i] = image[v, 2i], odd[v, i] = image[v, 2i + 1]: the 5x5 taps of a half-size
     pixel u are then contiguous runs (columns 2u + dx: even[u - 1], odd[u - 1], even[u], odd[u],
     even[u + 1]), which vectorise; stride-2 loads do not."""
-    width = image.shape[1]
+    pairs = odd.shape[1]
     for v in prange(image.shape[0]):
         row = image[v]
-        for i in range(even.shape[1]):
-            even[v, i] = row[2 * i]
-        for i in range((width) // 2):
-            odd[v, i] = row[2 * i + 1]
+        row_even = even[v]
+        row_odd = odd[v]
+        for i in range(pairs):  # one pass over both: an interleaved load LLVM vectorises
+            row_even[i] = row[2 * i]
+            row_odd[i] = row[2 * i + 1]
+        if even.shape[1] > pairs:  # odd width: the last column has no odd partner
+            row_even[pairs] = row[2 * pairs]
 
 
 @_inline
