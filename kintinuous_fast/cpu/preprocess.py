@@ -169,87 +169,112 @@ def _add_pairs(sum_w, sum_wd, w, wd, sign):
         sum_wd[i] += wd[i] if sign > 0 else -wd[i]
 
 
-@_parallel_fma
-def _bilateral_sums(depth, spatial, radius, inv_two_sigma2, chunk_rows, sum_w, sum_wd):
-    """Weight sums of the bilateral filter without the centre, each pair computed once.
-
-    The weight of a pixel pair is symmetric, w(p, q) = w(q, p), so every pair with q after p
-    (a later row, or the same row to the right) is weighed once and added to both: w (D(q) -
-    D(p)) to p's sums and w (D(p) - D(q)) to q's, half the exp() of a per-pixel window. Rows
-    are cut into chunks, one prange iteration each, with sums of their own (chunk_rows +
-    radius rows: pairs reach `radius` rows into the next chunk); _bilateral_finish adds them."""
-    height, width = depth.shape
-    for chunk in prange(sum_w.shape[0]):
-        first = chunk * chunk_rows
-        w = np.empty(width, np.float32)
-        wd = np.empty(width, np.float32)
-        for v in range(first, min(height, first + chunk_rows)):
-            for dy in range(0, min(radius, height - 1 - v) + 1):
-                y = v + dy
-                for dx in range(1 if dy == 0 else -radius, radius + 1):
-                    lo = max(0, -dx)
-                    hi = min(width, width - dx)
-                    if hi <= lo:
-                        continue
-                    count = hi - lo
-                    p, q = v - first, y - first
-                    if dy > 0:
-                        _pairs_to_both(
-                            depth[v, lo:hi],
-                            depth[y, lo + dx : hi + dx],
-                            spatial[dy + radius, dx + radius],
-                            inv_two_sigma2,
-                            sum_w[chunk, p, lo:hi],
-                            sum_wd[chunk, p, lo:hi],
-                            sum_w[chunk, q, lo + dx : hi + dx],
-                            sum_wd[chunk, q, lo + dx : hi + dx],
-                        )
-                        continue
-                    _pair_weights(
-                        depth[v, lo:hi],
-                        depth[y, lo + dx : hi + dx],
-                        spatial[dy + radius, dx + radius],
-                        inv_two_sigma2,
-                        w[:count],
-                        wd[:count],
-                    )
-                    _add_pairs(
-                        sum_w[chunk, p, lo:hi], sum_wd[chunk, p, lo:hi], w[:count], wd[:count], 1
-                    )
-                    _add_pairs(
-                        sum_w[chunk, q, lo + dx : hi + dx],
-                        sum_wd[chunk, q, lo + dx : hi + dx],
-                        w[:count],
-                        wd[:count],
-                        -1,
-                    )
-
-
-@_parallel
-def _bilateral_finish(depth, chunk_rows, radius, sum_w, sum_wd, out):
-    """D'(p) = D(p) + sum_q w (D(q) - D(p)) / (1 + sum_q w), the centre weighing 1 * exp(0).
+@_inline
+def _bilateral_finish_row(depth, sum_w, sum_wd, extra_w, extra_wd, out):
+    """D'(p) = D(p) + sum_q w (D(q) - D(p)) / (1 + sum_q w), the centre weighing 1 * exp(0);
+    `extra_*` are the sums another chunk added (zeros where none).
 
     The reference sums w D(q) in float64. Summing the differences from the centre instead keeps
     float32 enough: the correction is a few millimetres, so its float32 rounding (and the weights'
     1-2 ulp from `_exp_neg`) moves the result far less than one float32 ulp of the depth; the
     float64 addition of the centre and the division then round as the reference does. Measured on
     redkitchen: at most 1 ulp from the reference (tests/test_fast_preprocess.py)."""
-    height, width = depth.shape
-    for v in prange(height):
-        chunk = v // chunk_rows
-        row = v - chunk * chunk_rows
-        halo = chunk > 0 and row < radius  # also summed by the chunk before
-        for u in range(width):
-            c = depth[v, u]
-            if not c > np.float32(0.0):
-                out[v, u] = np.float32(0.0)
-                continue
-            w = float(sum_w[chunk, row, u])
-            wd = float(sum_wd[chunk, row, u])
-            if halo:
-                w += float(sum_w[chunk - 1, row + chunk_rows, u])
-                wd += float(sum_wd[chunk - 1, row + chunk_rows, u])
-            out[v, u] = np.float32(float(c) + wd / (1.0 + w))
+    for u in range(out.shape[0]):
+        c = depth[u]
+        w = float(sum_w[u]) + float(extra_w[u])
+        wd = float(sum_wd[u]) + float(extra_wd[u])
+        filtered = np.float32(float(c) + wd / (1.0 + w))
+        out[u] = filtered if c > np.float32(0.0) else np.float32(0.0)
+
+
+@_parallel_fma
+def _bilateral_rows(work, depth, spatial, radius, inv_two_sigma2, chunk_rows, head, tail, out):
+    """The bilateral filter with each pixel pair weighed once.
+
+    The weight of a pixel pair is symmetric, w(p, q) = w(q, p), so every pair with q after p
+    (a later row, or the same row to the right) is weighed once and added to both: w (D(q) -
+    D(p)) to p's sums and w (D(p) - D(q)) to q's, half the exp() of a per-pixel window. Rows
+    are cut into chunks, one prange iteration each; a chunk keeps the sums of radius + 1 rows in
+    a ring (row v is complete once the pairs starting on it are added) and writes finished rows
+    at once. Its first `radius` rows also get pairs from the chunk before: their sums go to
+    `head`, the ones it adds below its last row to `tail`, and _bilateral_seams adds the two."""
+    height, width = work.shape
+    slots = radius + 1
+    zeros = np.zeros(width, np.float32)
+    for chunk in prange(head.shape[0]):
+        first = chunk * chunk_rows
+        last = min(height, first + chunk_rows)
+        ring_w = np.zeros((slots, width), np.float32)
+        ring_wd = np.zeros((slots, width), np.float32)
+        w = np.empty(width, np.float32)
+        wd = np.empty(width, np.float32)
+        for v in range(first, last):
+            p = v % slots
+            for dy in range(0, min(radius, height - 1 - v) + 1):
+                y = v + dy
+                q = y % slots
+                for dx in range(1 if dy == 0 else -radius, radius + 1):
+                    lo = max(0, -dx)
+                    hi = min(width, width - dx)
+                    if hi <= lo:
+                        continue
+                    if dy > 0:
+                        _pairs_to_both(
+                            work[v, lo:hi],
+                            work[y, lo + dx : hi + dx],
+                            spatial[dy + radius, dx + radius],
+                            inv_two_sigma2,
+                            ring_w[p, lo:hi],
+                            ring_wd[p, lo:hi],
+                            ring_w[q, lo + dx : hi + dx],
+                            ring_wd[q, lo + dx : hi + dx],
+                        )
+                        continue
+                    # Same row: p's and q's sums overlap, so the weights go through a buffer.
+                    count = hi - lo
+                    _pair_weights(
+                        work[v, lo:hi],
+                        work[y, lo + dx : hi + dx],
+                        spatial[dy + radius, dx + radius],
+                        inv_two_sigma2,
+                        w[:count],
+                        wd[:count],
+                    )
+                    _add_pairs(ring_w[p, lo:hi], ring_wd[p, lo:hi], w[:count], wd[:count], 1)
+                    _add_pairs(
+                        ring_w[p, lo + dx : hi + dx],
+                        ring_wd[p, lo + dx : hi + dx],
+                        w[:count],
+                        wd[:count],
+                        -1,
+                    )
+            if chunk > 0 and v - first < radius:
+                head[chunk, 0, v - first] = ring_w[p]
+                head[chunk, 1, v - first] = ring_wd[p]
+            else:
+                _bilateral_finish_row(depth[v], ring_w[p], ring_wd[p], zeros, zeros, out[v])
+            ring_w[p] = 0.0  # the slot of row v + radius + 1 from now on
+            ring_wd[p] = 0.0
+        for k in range(min(radius, height - last)):
+            tail[chunk, 0, k] = ring_w[(last + k) % slots]
+            tail[chunk, 1, k] = ring_wd[(last + k) % slots]
+
+
+@cpu_jit
+def _bilateral_seams_loop(depth, chunk_rows, head, tail, out):
+    """The first rows of every chunk but the first: their own sums plus the chunk before's."""
+    radius = head.shape[2]
+    for chunk in range(1, head.shape[0]):
+        for k in range(min(radius, depth.shape[0] - chunk * chunk_rows)):
+            v = chunk * chunk_rows + k
+            _bilateral_finish_row(
+                depth[v],
+                head[chunk, 0, k],
+                head[chunk, 1, k],
+                tail[chunk - 1, 0, k],
+                tail[chunk - 1, 1, k],
+                out[v],
+            )
 
 
 @_parallel
@@ -541,20 +566,22 @@ def bilateral_filter(
     chunks = 1 if depth.size < PARALLEL_MIN else 4 * numba.get_num_threads()
     chunk_rows = max(radius, -(-height // chunks), 1)
     chunks = -(-height // chunk_rows)
-    sum_w = np.zeros((chunks, chunk_rows + radius, width), np.float32)
-    sum_wd = np.zeros((chunks, chunk_rows + radius, width), np.float32)
+    head = np.empty((chunks, 2, radius, width), np.float32)
+    tail = np.empty((chunks, 2, radius, width), np.float32)
     _run(
-        _bilateral_sums,
+        _bilateral_rows,
         depth.size,
         work,
+        depth,
         spatial,
         radius,
         inv_two_sigma2,
         chunk_rows,
-        sum_w,
-        sum_wd,
+        head,
+        tail,
+        out,
     )
-    _run(_bilateral_finish, depth.size, depth, chunk_rows, radius, sum_w, sum_wd, out)
+    _bilateral_seams_loop(depth, chunk_rows, head, tail, out)
     return out
 
 
