@@ -8,13 +8,19 @@ import fast_equivalence as fe
 import numpy as np
 import pytest
 
-from kintinuous_fast._volume import from_reference_volume, slab_view, to_reference_volume
+from kintinuous_fast._volume import (
+    FastTsdfVolume,
+    from_reference_volume,
+    slab_view,
+    to_reference_volume,
+)
 from kintinuous_fast.cpu import raycast as cpu_raycast
 from kintinuous_fast.cpu import tsdf as cpu_tsdf
 from kintinuous_ref import raycast as ref_raycast
 from kintinuous_ref import tsdf as ref_tsdf
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.moving_volume import MovingVolume
+from kintinuous_ref.raycast import STEP_FRACTION
 
 HEIGHT, WIDTH, N = 60, 80, 32
 CONFIG = VolumeConfig(resolution=N, size=3.0, shift_threshold=2, min_extract_weight=1.0)
@@ -77,6 +83,95 @@ def test_equivalence_cpu_raycast_skipping_is_exact(plain):
     np.testing.assert_array_equal(np.isnan(got.vertices), np.isnan(want.vertices))
     hit = ~np.isnan(want.vertices[..., 0])
     np.testing.assert_allclose(got.vertices[hit], want.vertices[hit], atol=1e-5, rtol=0)
+
+
+def test_cpu_fine_skipping_is_bit_exact_with_back_faces():
+    """Both levels of the cpu raycast's skipping (8^3 bricks, then fine bricks next to the
+    surface) return the plain march's maps bit for bit, also from behind the fused wall, where
+    rays meet negative samples first and stop at a back face."""
+    camera = fe.camera_for(HEIGHT, WIDTH)
+    fast, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, 64, 2, weighted=False)
+    behind = np.eye(4)
+    behind[:3, :3] = np.diag([-1.0, 1.0, -1.0])  # looking back at the wall from z = 3.4 m
+    behind[:3, 3] = [0.1, 0.05, 3.4]
+    oblique = behind.copy()
+    angle = np.radians(35.0)
+    oblique[:3, :3] = [
+        [-np.cos(angle), 0, -np.sin(angle)],
+        [0, 1, 0],
+        [np.sin(angle), 0, -np.cos(angle)],
+    ]
+    oblique[:3, 3] = [1.2, 0.0, 3.2]
+    for name, pose in (("front", fe.moving_poses(2)[1]), ("behind", behind), ("oblique", oblique)):
+        got = cpu_raycast.raycast(fast, pose, camera)
+        want = cpu_raycast.raycast(fast, pose, camera, skip_empty=False)
+        assert name != "front" or np.isfinite(want.vertices).mean() > 0.3
+        np.testing.assert_array_equal(got.vertices, want.vertices)
+        np.testing.assert_array_equal(got.normals, want.normals)
+        np.testing.assert_array_equal(got.colours, want.colours)
+
+
+def test_cpu_fine_skipping_stops_at_a_back_face():
+    """A hand-made volume: unobserved up to a one-voxel sheet of negative TSDF at x = 20, then
+    +1, and a second negative sheet at x = 40. Rays along +x whose sample lands on the first
+    sheet see unknown, negative, positive: a back face, no surface (the sample after the sheet
+    has no negative voxel near it, yet must be taken); the others pass it and hit the second
+    sheet. The skipping march must tell the two apart exactly as the plain march does."""
+    n = 64
+    packed = np.zeros((n, n, n, 2), dtype=np.int16)
+    packed[20:, :, :, 0] = 32767
+    packed[20:, :, :, 1] = 1
+    packed[20, :, :, 0] = packed[40, :, :, 0] = -16384
+    volume = FastTsdfVolume(
+        tsdf_weight=packed,
+        colour=None,
+        origin=np.zeros(3),
+        voxel_size=0.05,
+        truncation=2.05 * 0.05 / STEP_FRACTION,  # a step of 2.05 voxels
+        max_weight=128.0,
+    )
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]  # the optical axis along world +x
+    pose[:3, 3] = [-0.5, 1.6, 1.6]
+    camera = fe.camera_for(HEIGHT, WIDTH)
+    got = cpu_raycast.raycast(volume, pose, camera)
+    want = cpu_raycast.raycast(volume, pose, camera, skip_empty=False)
+    hit = np.isfinite(want.vertices[..., 0])
+    assert 0.01 < hit.mean() < 0.99  # both outcomes occur
+    np.testing.assert_array_equal(got.vertices, want.vertices)
+    np.testing.assert_array_equal(got.normals, want.normals)
+
+
+def test_cpu_negative_counts_kept_by_integration_equal_a_recount():
+    """The per-fine-brick counts of observed negative voxels that integration keeps (and the
+    brick map built from them) equal a count from scratch, before and after the moving volume
+    shifts the buffer and clears slabs; the brick map is the reference's _empty_space."""
+    camera = fe.camera_for(HEIGHT, WIDTH)
+    config = VolumeConfig(resolution=N, size=3.0, shift_threshold=2, min_extract_weight=1.0)
+    poses = []
+    for n in range(5):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.1 * n, 0.02 * n, 0.05 * n]
+        poses.append(pose)
+    fast = cpu_tsdf.make_volume(config, poses[0])
+    moving = MovingVolume(slab_view(fast), poses[0], config)
+    colour = fe.scene_colour(HEIGHT, WIDTH)
+    shifted_checked = False
+    for index, pose in enumerate(poses):
+        moving.update(pose)
+        if fast.current_negative_counts() is None:  # stale after a shift: counted again here
+            shifted_checked = index > 0
+            cpu_raycast.raycast(fast, pose, camera)
+        cpu_tsdf.integrate(fast, fe.scene_depth(HEIGHT, WIDTH, seed=index), pose, camera, colour)
+        kept = fast.current_negative_counts()
+        assert kept is not None and kept.any()
+        recount = from_reference_volume(to_reference_volume(fast))
+        recount.offset[:] = fast.offset
+        np.testing.assert_array_equal(kept, cpu_tsdf.negative_counts(recount))
+        np.testing.assert_array_equal(
+            cpu_raycast.empty_space(fast), ref_raycast._empty_space(to_reference_volume(fast))
+        )
+    assert shifted_checked and fast.shifted
 
 
 def test_equivalence_cpu_moving_volume_shifts_slices_and_clears():

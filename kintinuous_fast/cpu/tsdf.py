@@ -11,6 +11,7 @@ from numba import prange
 
 from kintinuous_fast._volume import (
     FastTsdfVolume,
+    NegativeCounts,
     camera_frame_steps,
     check_depth,
     check_volume_config,
@@ -23,7 +24,7 @@ from kintinuous_fast._volume import (
     volume_header,
 )
 from kintinuous_fast.ops import cpu_jit_numpy_errors
-from kintinuous_fast.ops.volume import build_ops
+from kintinuous_fast.ops.volume import FINE, build_ops
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.tsdf import volume_origin
@@ -35,6 +36,7 @@ __all__ = [
     "integrate",
     "make_volume",
     "memory_bytes",
+    "negative_counts",
     "sample_tsdf",
     "slab_view",
     "to_reference_volume",
@@ -47,8 +49,10 @@ column_range = _ops.column_range
 cell = _ops.cell
 ray_distance_pixel = _ops.ray_distance_pixel
 sample_tsdf_at = _ops.sample_tsdf_at
+count_negative = _ops.count_negative
 
 _loop = numba.njit(parallel=True, cache=True, error_model="numpy")
+_NO_COUNTS = np.zeros((1, 1, 1), dtype=np.uint8)  # typed placeholder: counts not kept
 
 
 @_loop
@@ -56,6 +60,81 @@ def _ray_distance_loop(depth, fx, fy, cx, cy, out):
     for v in prange(depth.shape[0]):
         for u in range(depth.shape[1]):
             out[v, u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _integrate_slice(
+    tsdf_weight,
+    colour_volume,
+    o0,
+    o1,
+    o2,
+    lo,
+    hi,
+    base,
+    steps,
+    intrinsics,
+    far,
+    ray_distance,
+    truncation,
+    max_weight,
+    colour,
+    colour_weights,
+    fuse_colour,
+    colour_max_weight,
+    counts,
+    count,
+    n,
+    height,
+    width,
+    i,
+):
+    """The voxel columns of logical slice i (see _integrate_loop)."""
+    fi = np.float32(i)
+    ci = cell(i, o0, n)
+    for j in range(lo[1], hi[1]):
+        fj = np.float32(j)
+        # the reference's float32 order: ((base + i a_x) + j a_y) + k a_z
+        px = (base[0] + fi * steps[0, 0]) + fj * steps[1, 0]
+        py = (base[1] + fi * steps[0, 1]) + fj * steps[1, 1]
+        pz = (base[2] + fi * steps[0, 2]) + fj * steps[1, 2]
+        k0, k1 = column_range(
+            float(px),
+            float(py),
+            float(pz),
+            float(steps[2, 0]),
+            float(steps[2, 1]),
+            float(steps[2, 2]),
+            intrinsics,
+            width,
+            height,
+            far,
+            n,
+        )
+        k0, k1 = max(k0, lo[2]), min(k1, hi[2])
+        cj = cell(j, o1, n)
+        for k in range(k0, k1):
+            fk = np.float32(k)
+            change = update_voxel(
+                tsdf_weight,
+                colour_volume,
+                ci,
+                cj,
+                cell(k, o2, n),
+                px + fk * steps[2, 0],
+                py + fk * steps[2, 1],
+                pz + fk * steps[2, 2],
+                intrinsics,
+                ray_distance,
+                truncation,
+                max_weight,
+                colour,
+                colour_weights,
+                fuse_colour,
+                colour_max_weight,
+            )
+            if count and change != 0:
+                counts[i // FINE, j // FINE, k // FINE] += change
 
 
 @_loop
@@ -78,55 +157,43 @@ def _integrate_loop(
     colour_weights,
     fuse_colour,
     colour_max_weight,
+    counts,
+    count,
 ):
     # Voxel columns along k: only the k-range that can project into the image (column_range)
-    # is visited, so the work follows the viewing pyramid, not its bounding box.
+    # is visited, so the work follows the viewing pyramid, not its bounding box. Threads take
+    # whole fine bricks along i, so no two threads ever change the same brick's count.
     n = tsdf_weight.shape[0]
     height, width = ray_distance.shape
-    for i in prange(lo[0], hi[0]):
-        fi = np.float32(i)
-        ci = cell(i, o0, n)
-        for j in range(lo[1], hi[1]):
-            fj = np.float32(j)
-            # the reference's float32 order: ((base + i a_x) + j a_y) + k a_z
-            px = (base[0] + fi * steps[0, 0]) + fj * steps[1, 0]
-            py = (base[1] + fi * steps[0, 1]) + fj * steps[1, 1]
-            pz = (base[2] + fi * steps[0, 2]) + fj * steps[1, 2]
-            k0, k1 = column_range(
-                float(px),
-                float(py),
-                float(pz),
-                float(steps[2, 0]),
-                float(steps[2, 1]),
-                float(steps[2, 2]),
-                intrinsics,
-                width,
-                height,
-                far,
-                n,
-            )
-            k0, k1 = max(k0, lo[2]), min(k1, hi[2])
-            cj = cell(j, o1, n)
-            for k in range(k0, k1):
-                fk = np.float32(k)
-                update_voxel(
-                    tsdf_weight,
-                    colour_volume,
-                    ci,
-                    cj,
-                    cell(k, o2, n),
-                    px + fk * steps[2, 0],
-                    py + fk * steps[2, 1],
-                    pz + fk * steps[2, 2],
-                    intrinsics,
-                    ray_distance,
-                    truncation,
-                    max_weight,
-                    colour,
-                    colour_weights,
-                    fuse_colour,
-                    colour_max_weight,
-                )
+    for brick in prange(lo[0] // FINE, (hi[0] + FINE - 1) // FINE):
+        for i in range(max(brick * FINE, lo[0]), min((brick + 1) * FINE, hi[0])):
+            _integrate_slice(
+                tsdf_weight, colour_volume, o0, o1, o2, lo, hi, base, steps, intrinsics, far,
+                ray_distance, truncation, max_weight, colour, colour_weights, fuse_colour,
+                colour_max_weight, counts, count, n, height, width, i,
+            )  # fmt: skip
+
+
+@_loop
+def _count_loop(tsdf_weight, o0, o1, o2, counts):
+    m = counts.shape[0]
+    for f0 in prange(m):
+        for f1 in range(m):
+            for f2 in range(m):
+                counts[f0, f1, f2] = count_negative(tsdf_weight, o0, o1, o2, f0, f1, f2)
+
+
+def negative_counts(volume: FastTsdfVolume) -> np.ndarray:
+    """Observed negative voxels per logical fine brick of FINE^3 voxels, (M, M, M) uint8:
+    those integration kept up to date, or counted from the volume now (after a shift, or
+    clearing) and kept for the following frames."""
+    counts = volume.current_negative_counts()
+    if counts is None:
+        m = -(-volume.resolution // FINE)
+        counts = np.empty((m, m, m), dtype=np.uint8)
+        _count_loop(volume.tsdf_weight, *volume.offsets(), counts)
+        volume.negative_counts = NegativeCounts(counts, volume.offsets())
+    return counts
 
 
 @_loop
@@ -142,11 +209,12 @@ def make_volume(
 ) -> FastTsdfVolume:
     """An empty volume placed for the first camera pose (all weights 0)."""
     check_volume_config(config)
-    n = config.resolution
+    n, m = config.resolution, -(-config.resolution // FINE)
     return FastTsdfVolume(
         tsdf_weight=np.zeros((n, n, n, 2), dtype=np.int16),
         colour=np.zeros((n, n, n, 4), dtype=np.uint8) if config.colour else None,
         **volume_header(config, first_pose, colour_max_weight),
+        negative_counts=NegativeCounts(np.zeros((m, m, m), dtype=np.uint8), (0, 0, 0)),
     )
 
 
@@ -180,6 +248,7 @@ def integrate(
         colour_weights = np.zeros((1, 1), np.float32)
     colour_volume = volume.colour if volume.colour is not None else np.zeros((1, 1, 1, 4), np.uint8)
     base, steps = camera_frame_steps(volume, pose)
+    counts = volume.current_negative_counts()  # kept up to date where known
     _integrate_loop(
         volume.tsdf_weight,
         colour_volume,
@@ -197,6 +266,8 @@ def integrate(
         colour_weights,
         fuse_colour,
         np.float32(volume.colour_max_weight),
+        _NO_COUNTS if counts is None else counts,
+        counts is not None,
     )
 
 

@@ -27,12 +27,14 @@ raycast_pixel = _ops.raycast_pixel
 _PLAIN_MARCH: list = []
 
 
-def _plain_march_map() -> Any:
-    """A (1, 1, 1) brick map of 0 on the device: march_ray then samples every step (the plain
-    march, whose answer the reference's exact skipping returns too)."""
+def _plain_march_maps() -> tuple[Any, Any]:
+    """A (1, 1, 1) brick map of 0 and a (1, 1, 1) fine map of 1 on the device: march_ray then
+    samples every step (the plain march, whose answer the reference's exact skipping returns
+    too)."""
     if not _PLAIN_MARCH:
         _PLAIN_MARCH.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.int64)))
-    return _PLAIN_MARCH[0]
+        _PLAIN_MARCH.append(cuda.to_device(np.ones((1, 1, 1), dtype=np.uint8)))
+    return _PLAIN_MARCH[0], _PLAIN_MARCH[1]
 
 
 @cuda.jit
@@ -54,6 +56,7 @@ def _raycast_kernel(
     o1,
     o2,
     empty,
+    near,
     camera,
     rotation,
     origin,
@@ -74,6 +77,7 @@ def _raycast_kernel(
             o1,
             o2,
             empty,
+            near,
             u,
             v,
             camera,
@@ -113,7 +117,7 @@ def raycast(
         colour_volume,
         has_colour,
         *volume.offsets(),
-        _plain_march_map(),
+        *_plain_march_maps(),
         cuda.to_device(np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)),
         cuda.to_device(np.ascontiguousarray(pose[:3, :3])),
         cuda.to_device(np.ascontiguousarray(pose[:3, 3])),

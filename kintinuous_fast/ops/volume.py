@@ -20,6 +20,9 @@ import numpy as np
 
 TSDF_SCALE = 32767.0  # int16 units per unit of normalised TSDF
 BRICK = 8  # voxels per side of the empty-space bricks (kintinuous_ref.raycast.BRICK)
+# Voxels per side of the fine bricks whose observed negative voxels integration counts (the cpu
+# raycast's second level of empty-space skipping, inside the bricks next to a surface).
+FINE = 2
 
 # Cyclical buffer (kintinuous_ref.tsdf, moving volume): logical voxel l lives in array cell
 # (l + offset) mod N, offset in [0, N). Every function below takes the offset as three ints
@@ -73,7 +76,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         colour_weights: Any,
         fuse_colour: bool,
         colour_max_weight: Any,
-    ) -> None:
+    ) -> int:
         """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place: the voxel in
         array cell (ci, cj, ck) whose camera-frame centre is (x, y, z) (float32).
 
@@ -81,34 +84,45 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         average of min(1, sdf/mu) with weight W + 1 (capped); colour where |sdf| < mu and the
         pixel's colour weight > 0. `intrinsics` is float32 (fx, fy, cx, cy), as NumPy 2
         computes the reference's projection.
+
+        Returns how the voxel's "observed and negative" state changed (+1, 0 or -1): the cpu
+        backend keeps a count of such voxels per fine brick for the raycast's empty-space
+        skipping. Values that do not change are not written back (a saturated free-space voxel,
+        F = 1 at the weight cap, stays as it is: no store, no dirty cache line).
         """
         if not z > 0:
-            return
+            return 0
         uf = intrinsics[0] * x / z + intrinsics[2]
         vf = intrinsics[1] * y / z + intrinsics[3]
         height, width = ray_distance.shape
         # range check before converting to an integer (uf may be huge or NaN)
         if not (uf > -1.0 and uf < width + 1.0 and vf > -1.0 and vf < height + 1.0):
-            return
+            return 0
         u = round(uf)  # half to even, as np.rint
         v = round(vf)
         if u < 0 or u >= width or v < 0 or v >= height:
-            return
+            return 0
         measured = ray_distance[v, u]
         sdf = measured - np.float32(math.sqrt(np.float32(np.float32(x * x) + y * y) + z * z))
         if not (measured > 0 and sdf >= -truncation):
-            return
+            return 0
         observed = min(np.float32(1.0), np.float32(sdf / truncation))
-        w_old = np.float32(tsdf_weight[ci, cj, ck, 1])
-        f_old = dequantise(tsdf_weight[ci, cj, ck, 0])
-        f_new = (f_old * w_old + observed) / (w_old + np.float32(1.0))
-        tsdf_weight[ci, cj, ck, 0] = quantise(f_new)
-        tsdf_weight[ci, cj, ck, 1] = min(w_old + np.float32(1.0), max_weight)
+        q_old = tsdf_weight[ci, cj, ck, 0]
+        stored_weight = tsdf_weight[ci, cj, ck, 1]
+        w_old = np.float32(stored_weight)
+        f_new = (dequantise(q_old) * w_old + observed) / (w_old + np.float32(1.0))
+        q_new = quantise(f_new)
+        w_new = min(w_old + np.float32(1.0), max_weight)
+        if q_new != q_old:
+            tsdf_weight[ci, cj, ck, 0] = q_new
+        if w_new != w_old:
+            tsdf_weight[ci, cj, ck, 1] = w_new
+        change = (1 if q_new < 0 else 0) - (1 if q_old < 0 and stored_weight > 0 else 0)
         if not fuse_colour:
-            return
+            return change
         w_c = colour_weights[v, u]
         if not (abs(sdf) < truncation and w_c > 0):
-            return
+            return change
         cw_old = np.float32(colour_volume[ci, cj, ck, 3])
         for channel in range(3):
             rgb = np.float32(colour[v, u, channel])
@@ -117,6 +131,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
             colour_volume[ci, cj, ck, channel] = min(max(round(float(c_new)), 0), 255)
         cw_new = round(float(min(cw_old + w_c, colour_max_weight)))
         colour_volume[ci, cj, ck, 3] = min(max(cw_new, 1), 255)
+        return change
 
     @jit
     def integrate_voxel(
@@ -384,12 +399,19 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return np.inf
 
     @jit
+    def fine_index(c: float, n: int, last: int) -> int:
+        """Fine brick of the lower corner voxel of a sample at voxel coordinate c (clamped as
+        sample_tsdf_at clamps it), at most `last`."""
+        return min(min(max(int(math.floor(c)), 0), n - 2) // FINE, last)
+
+    @jit
     def march_ray(
         tsdf_weight: Any,
         o0: int,
         o1: int,
         o2: int,
         empty: Any,
+        near: Any,
         origin: Any,
         d0: float,
         d1: float,
@@ -405,7 +427,15 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         bricks of BRICK^3 voxels): a ray in a brick at distance D >= 1 jumps to the first grid
         sample past the empty cube of bricks within D - 1, exactly as the reference's
         skipping (which returns the plain march's answer). A (1, 1, 1) map of 0 is the plain
-        march."""
+        march.
+
+        `near` is a second, finer level inside the bricks at distance 0: near[f] is False only
+        when no observed voxel of fine bricks f .. f + 1 (FINE^3 voxels each, logical) is
+        negative. Those hold all 8 voxels of a sample whose lower corner lies in brick f, so
+        such a sample is >= 0 or unknown: unless the sample before it was negative (a back face
+        would complete here), it decides nothing and is skipped like a sample in an empty brick
+        (the next sample taken recovers its predecessor). A (1, 1, 1) map of True samples every
+        step."""
         upper_offset = (tsdf_weight.shape[0] - 1) * voxel_size
         lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
         lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
@@ -415,6 +445,8 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         if not entry < exit_:
             return np.nan
         bricks = empty.shape[0]
+        last_fine = near.shape[0] - 1
+        n = tsdf_weight.shape[0]
         previous = np.nan
         previous_known = True
         m = 0
@@ -438,6 +470,16 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
                 )
                 m_border = int(math.floor((t + to_border - entry) / step)) + 1
                 m_next = max(m + 1, m_border)
+                previous_known = False
+            elif (
+                not (previous_known and previous < 0)
+                and not near[
+                    fine_index(cx, n, last_fine),
+                    fine_index(cy, n, last_fine),
+                    fine_index(cz, n, last_fine),
+                ]
+            ):  # neither this sample nor the one before can be negative: nothing to decide
+                m_next = m + 1
                 previous_known = False
             else:
                 if not previous_known:
@@ -478,6 +520,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         o1: int,
         o2: int,
         empty: Any,
+        near: Any,
         u: int,
         v: int,
         camera: Any,
@@ -500,8 +543,9 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
         t = march_ray(
-            tsdf_weight, o0, o1, o2, empty, origin, d0, d1, d2, volume_origin, voxel_size, step
-        )
+            tsdf_weight, o0, o1, o2, empty, near, origin, d0, d1, d2, volume_origin, voxel_size,
+            step,
+        )  # fmt: skip
         if not math.isfinite(t):
             return
         px, py, pz = origin[0] + t * d0, origin[1] + t * d1, origin[2] + t * d2
@@ -518,26 +562,27 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
             colours[v, u, 0], colours[v, u, 1], colours[v, u, 2] = r, g, b
 
     @jit
-    def brick_negative(
-        tsdf_weight: Any, o0: int, o1: int, o2: int, b0: int, b1: int, b2: int
-    ) -> bool:
-        """True when logical brick (b0, b1, b2) holds an observed voxel with negative TSDF."""
+    def count_negative(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, f0: int, f1: int, f2: int
+    ) -> int:
+        """Observed voxels with negative TSDF in logical fine brick (f0, f1, f2)."""
         n = tsdf_weight.shape[0]
-        for i in range(b0 * BRICK, min((b0 + 1) * BRICK, n)):
+        count = 0
+        for i in range(f0 * FINE, min((f0 + 1) * FINE, n)):
             ci = cell(i, o0, n)
-            for j in range(b1 * BRICK, min((b1 + 1) * BRICK, n)):
+            for j in range(f1 * FINE, min((f1 + 1) * FINE, n)):
                 cj = cell(j, o1, n)
-                for k in range(b2 * BRICK, min((b2 + 1) * BRICK, n)):
+                for k in range(f2 * FINE, min((f2 + 1) * FINE, n)):
                     ck = cell(k, o2, n)
                     if tsdf_weight[ci, cj, ck, 0] < 0 and tsdf_weight[ci, cj, ck, 1] > 0:
-                        return True
-        return False
+                        count += 1
+        return count
 
     return SimpleNamespace(
         cell=cell,
+        count_negative=count_negative,
         update_voxel=update_voxel,
         column_range=column_range,
-        brick_negative=brick_negative,
         dequantise=dequantise,
         quantise=quantise,
         ray_distance_pixel=ray_distance_pixel,
