@@ -26,7 +26,7 @@ __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _ops = build_ops(cpu_jit_numpy_errors)
 raycast_pixel = _ops.raycast_pixel
-ROWS_PER_CHUNK = 4  # rows handed to a thread at a time (rays cost very different amounts)
+ROWS_PER_CHUNK = 4  # rows handed to a thread at a time (dynamic scheduling of the rays)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -94,15 +94,14 @@ def _raycast_loop(
     normals,
     colours,
 ):
-    height = vertices.shape[0]
-    for chunk in prange((height + ROWS_PER_CHUNK - 1) // ROWS_PER_CHUNK):
-        for v in range(chunk * ROWS_PER_CHUNK, min((chunk + 1) * ROWS_PER_CHUNK, height)):
-            for u in range(vertices.shape[1]):
-                raycast_pixel(
-                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, near, u, v,
-                    camera, rotation, origin, volume_origin, voxel_size, step, vertices,
-                    normals, colours,
-                )  # fmt: skip
+    # rays cost very different amounts: rows are handed out a few at a time (the caller sets
+    # the chunk size), so a thread that finishes early, or was descheduled, evens out
+    for v in prange(vertices.shape[0]):
+        for u in range(vertices.shape[1]):
+            raycast_pixel(
+                tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, near, u, v, camera,
+                rotation, origin, volume_origin, voxel_size, step, vertices, normals, colours,
+            )  # fmt: skip
 
 
 def raycast(
@@ -121,21 +120,22 @@ def raycast(
         empty, near = brick_maps(volume)
     else:  # the plain march: every sample taken
         empty, near = np.zeros((1, 1, 1), dtype=np.int64), np.ones((1, 1, 1), dtype=np.bool_)
-    _raycast_loop(
-        volume.tsdf_weight,
-        colour_volume,
-        has_colour,
-        *volume.offsets(),
-        empty,
-        near,
-        np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
-        np.ascontiguousarray(pose[:3, :3]),
-        np.ascontiguousarray(pose[:3, 3]),
-        np.asarray(volume.origin, dtype=np.float64),
-        float(volume.voxel_size),
-        STEP_FRACTION * volume.truncation,
-        vertices,
-        normals,
-        colours,
-    )
+    with numba.parallel_chunksize(ROWS_PER_CHUNK):
+        _raycast_loop(
+            volume.tsdf_weight,
+            colour_volume,
+            has_colour,
+            *volume.offsets(),
+            empty,
+            near,
+            np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
+            np.ascontiguousarray(pose[:3, :3]),
+            np.ascontiguousarray(pose[:3, 3]),
+            np.asarray(volume.origin, dtype=np.float64),
+            float(volume.voxel_size),
+            STEP_FRACTION * volume.truncation,
+            vertices,
+            normals,
+            colours,
+        )
     return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)

@@ -50,6 +50,9 @@ cell = _ops.cell
 ray_distance_pixel = _ops.ray_distance_pixel
 sample_tsdf_at = _ops.sample_tsdf_at
 count_negative = _ops.count_negative
+project_voxel = _ops.project_voxel
+voxel_norm = _ops.voxel_norm
+fuse_voxel = _ops.fuse_voxel
 
 _loop = numba.njit(parallel=True, cache=True, error_model="numpy")
 _NO_COUNTS = np.zeros((1, 1, 1), dtype=np.uint8)  # typed placeholder: counts not kept
@@ -90,6 +93,9 @@ def _integrate_slice(
     i,
 ):
     """The voxel columns of logical slice i (see _integrate_loop)."""
+    pixel_u = np.empty(n, dtype=np.int32)
+    pixel_v = np.empty(n, dtype=np.int32)
+    norms = np.empty(n, dtype=np.float32)
     fi = np.float32(i)
     ci = cell(i, o0, n)
     for j in range(lo[1], hi[1]):
@@ -113,26 +119,23 @@ def _integrate_slice(
         )
         k0, k1 = max(k0, lo[2]), min(k1, hi[2])
         cj = cell(j, o1, n)
+        # two passes over the column: the projection (no memory access but the scratch rows,
+        # so it vectorises), then the updates of the voxels that project into the image
         for k in range(k0, k1):
             fk = np.float32(k)
-            change = update_voxel(
-                tsdf_weight,
-                colour_volume,
-                ci,
-                cj,
-                cell(k, o2, n),
-                px + fk * steps[2, 0],
-                py + fk * steps[2, 1],
-                pz + fk * steps[2, 2],
-                intrinsics,
-                ray_distance,
-                truncation,
-                max_weight,
-                colour,
-                colour_weights,
-                fuse_colour,
-                colour_max_weight,
-            )
+            x = px + fk * steps[2, 0]
+            y = py + fk * steps[2, 1]
+            z = pz + fk * steps[2, 2]
+            pixel_u[k], pixel_v[k] = project_voxel(x, y, z, intrinsics, width, height)
+            norms[k] = voxel_norm(x, y, z)
+        for k in range(k0, k1):
+            if pixel_u[k] < 0:
+                continue
+            change = fuse_voxel(
+                tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), pixel_u[k], pixel_v[k],
+                norms[k], ray_distance, truncation, max_weight, colour, colour_weights,
+                fuse_colour, colour_max_weight,
+            )  # fmt: skip
             if count and change != 0:
                 counts[i // FINE, j // FINE, k // FINE] += change
 
@@ -249,26 +252,27 @@ def integrate(
     colour_volume = volume.colour if volume.colour is not None else np.zeros((1, 1, 1, 4), np.uint8)
     base, steps = camera_frame_steps(volume, pose)
     counts = volume.current_negative_counts()  # kept up to date where known
-    _integrate_loop(
-        volume.tsdf_weight,
-        colour_volume,
-        *volume.offsets(),
-        box[0],
-        box[1],
-        base,
-        steps,
-        projection_constants(camera),
-        largest + float(volume.truncation),
-        ray_distance,
-        np.float32(volume.truncation),
-        np.float32(volume.max_weight),
-        colour,
-        colour_weights,
-        fuse_colour,
-        np.float32(volume.colour_max_weight),
-        _NO_COUNTS if counts is None else counts,
-        counts is not None,
-    )
+    with numba.parallel_chunksize(2):  # slabs cost different amounts: handed out dynamically
+        _integrate_loop(
+            volume.tsdf_weight,
+            colour_volume,
+            *volume.offsets(),
+            box[0],
+            box[1],
+            base,
+            steps,
+            projection_constants(camera),
+            largest + float(volume.truncation),
+            ray_distance,
+            np.float32(volume.truncation),
+            np.float32(volume.max_weight),
+            colour,
+            colour_weights,
+            fuse_colour,
+            np.float32(volume.colour_max_weight),
+            _NO_COUNTS if counts is None else counts,
+            counts is not None,
+        )
 
 
 def sample_tsdf(volume: FastTsdfVolume, coordinates: np.ndarray) -> np.ndarray:

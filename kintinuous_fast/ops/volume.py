@@ -59,6 +59,26 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return c - n if c >= n else c
 
     @jit
+    def project_voxel(x: Any, y: Any, z: Any, intrinsics: Any, width: int, height: int) -> tuple:
+        """(u, v) = round(pi(p_c)) of a camera-frame voxel centre (float32, as NumPy 2 computes
+        the reference's projection), or (-1, -1) when z <= 0 or it falls outside the image.
+        Branch-free apart from the selects, so a loop of it vectorises."""
+        uf = intrinsics[0] * x / z + intrinsics[2]
+        vf = intrinsics[1] * y / z + intrinsics[3]
+        # range check before converting to an integer (uf may be huge or NaN)
+        inside = z > 0 and uf > -1.0 and uf < width + 1.0 and vf > -1.0 and vf < height + 1.0
+        u = round(uf) if inside else -1  # half to even, as np.rint
+        v = round(vf) if inside else -1
+        if u < 0 or u >= width or v < 0 or v >= height:
+            return -1, -1
+        return u, v
+
+    @jit
+    def voxel_norm(x: Any, y: Any, z: Any) -> Any:
+        """|p_c| in float32, in the reference's order."""
+        return np.float32(math.sqrt(np.float32(np.float32(x * x) + y * y) + z * z))
+
+    @jit
     def update_voxel(
         tsdf_weight: Any,
         colour_volume: Any,
@@ -78,32 +98,49 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         colour_max_weight: Any,
     ) -> int:
         """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place: the voxel in
-        array cell (ci, cj, ck) whose camera-frame centre is (x, y, z) (float32).
+        array cell (ci, cj, ck) whose camera-frame centre is (x, y, z) (float32):
+        project_voxel, then fuse_voxel. Returns fuse_voxel's change of the negative count."""
+        height, width = ray_distance.shape
+        u, v = project_voxel(x, y, z, intrinsics, width, height)
+        if u < 0:
+            return 0
+        return fuse_voxel(
+            tsdf_weight, colour_volume, ci, cj, ck, u, v, voxel_norm(x, y, z), ray_distance,
+            truncation, max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
+        )  # fmt: skip
 
-        pixel = round(pi(p_c)), sdf = lambda D - |p_c|; update if D > 0 and sdf >= -mu: running
-        average of min(1, sdf/mu) with weight W + 1 (capped); colour where |sdf| < mu and the
-        pixel's colour weight > 0. `intrinsics` is float32 (fx, fy, cx, cy), as NumPy 2
-        computes the reference's projection.
+    @jit
+    def fuse_voxel(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        ci: int,
+        cj: int,
+        ck: int,
+        u: int,
+        v: int,
+        norm: Any,
+        ray_distance: Any,
+        truncation: Any,
+        max_weight: Any,
+        colour: Any,
+        colour_weights: Any,
+        fuse_colour: bool,
+        colour_max_weight: Any,
+    ) -> int:
+        """The update of the voxel in array cell (ci, cj, ck), at distance `norm` from the
+        camera, projecting to pixel (u, v) inside the image.
+
+        sdf = lambda D - |p_c|; update if D > 0 and sdf >= -mu: running average of min(1,
+        sdf/mu) with weight W + 1 (capped); colour where |sdf| < mu and the pixel's colour
+        weight > 0.
 
         Returns how the voxel's "observed and negative" state changed (+1, 0 or -1): the cpu
         backend keeps a count of such voxels per fine brick for the raycast's empty-space
         skipping. Values that do not change are not written back (a saturated free-space voxel,
         F = 1 at the weight cap, stays as it is: no store, no dirty cache line).
         """
-        if not z > 0:
-            return 0
-        uf = intrinsics[0] * x / z + intrinsics[2]
-        vf = intrinsics[1] * y / z + intrinsics[3]
-        height, width = ray_distance.shape
-        # range check before converting to an integer (uf may be huge or NaN)
-        if not (uf > -1.0 and uf < width + 1.0 and vf > -1.0 and vf < height + 1.0):
-            return 0
-        u = round(uf)  # half to even, as np.rint
-        v = round(vf)
-        if u < 0 or u >= width or v < 0 or v >= height:
-            return 0
         measured = ray_distance[v, u]
-        sdf = measured - np.float32(math.sqrt(np.float32(np.float32(x * x) + y * y) + z * z))
+        sdf = measured - norm
         if not (measured > 0 and sdf >= -truncation):
             return 0
         observed = min(np.float32(1.0), np.float32(sdf / truncation))
@@ -582,6 +619,9 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         cell=cell,
         count_negative=count_negative,
         update_voxel=update_voxel,
+        project_voxel=project_voxel,
+        voxel_norm=voxel_norm,
+        fuse_voxel=fuse_voxel,
         column_range=column_range,
         dequantise=dequantise,
         quantise=quantise,
