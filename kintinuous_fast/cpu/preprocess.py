@@ -107,18 +107,20 @@ def _float32_from_bits(typingctx, bits):
 
 
 _LOG2E = np.float32(1.4426950408889634)
-_LN2 = np.float32(0.6931471805599453)
+# ln 2 split so that n * _LN2_HI is exact for every n used here (Cody-Waite reduction): r is then
+# accurate with or without FMA contraction.
+_LN2_HI = np.float32(0.693359375)
+_LN2_LO = np.float32(-2.12194440e-4)
 _EXP_MAX = np.float32(80.0)  # exp(-80) = 1.8e-35: such weights are left out
 
 
 @_inline_fma
 def _exp_neg(x):
     """exp(-x) for float32 0 <= x <= 80, within 2.4e-7 relative: x = n ln2 + r, |r| <= ln2/2,
-    exp(-r) by its degree-6 Taylor polynomial, 2^-n by writing the exponent bits. One-step
-    reduction: float32(ln 2) is 1.9e-9 off, i.e. n * 1.9e-9 <= 2.2e-7 relative at x = 80, and
-    1e-8 where a weight is large enough to matter (x < 5, n <= 7)."""
+    exp(-r) by its degree-6 Taylor polynomial, 2^-n by writing the exponent bits."""
     n = np.int32(x * _LOG2E + np.float32(0.5))
-    r = x - np.float32(n) * _LN2
+    nf = np.float32(n)
+    r = (x - nf * _LN2_HI) - nf * _LN2_LO
     p = np.float32(1.0 / 720.0)
     p = p * r - np.float32(1.0 / 120.0)
     p = p * r + np.float32(1.0 / 24.0)
