@@ -9,6 +9,11 @@ Three interchangeable backends, each a set of modules with kintinuous_ref's publ
           arrays in, device arrays out, so a pipeline can keep its state in GPU memory),
 - "auto": "cuda" when a GPU (or numba's simulator) works here, else "cpu".
 
+A pipeline keeps its state where the backend computes: `backend.upload(image)` puts a frame's
+images there once (device memory for cuda, unchanged for cpu / ref), every stage then takes and
+returns arrays in that place, and `backend.predict_surface` leaves the raycast maps there for the
+next frame's tracking.
+
 The per-element maths (filter one pixel, update one voxel, ...) lives once, in kintinuous_fast.ops,
 and is compiled for both targets; only the loops (cpu) and the launches (cuda) differ.
 
@@ -24,12 +29,13 @@ import importlib
 import os
 from dataclasses import dataclass, field
 from types import ModuleType
+from typing import Any
 
 from kintinuous_ref.errors import ConfigError
 
 BACKENDS = ("ref", "cpu", "cuda", "auto")
 # The stages each backend provides (module names shared with kintinuous_ref).
-STAGES = ("preprocess", "tsdf", "raycast", "odometry")
+STAGES = ("preprocess", "colour", "tsdf", "raycast", "odometry")
 _PACKAGES = {"ref": "kintinuous_ref", "cpu": "kintinuous_fast.cpu", "cuda": "kintinuous_fast.cuda"}
 # Stages whose modules live elsewhere than {package}.{stage}: the fast trackers (each module has
 # make_tracker(method, config, camera) with kintinuous_ref.odometry's signature).
@@ -58,6 +64,22 @@ class Backend:
                     f"backend {self.name!r} has no {stage} stage yet ({err.name} missing)"
                 ) from None
         return self._modules[stage]
+
+    def upload(self, array: Any) -> Any:
+        """`array` where this backend computes: a device array for cuda (one copy per call),
+        the array itself for cpu and ref."""
+        if self.name != "cuda":
+            return array
+        from kintinuous_fast.cuda import to_device
+
+        return to_device(array)
+
+    def predict_surface(self, volume: Any, pose: Any, camera: Any) -> Any:
+        """raycast.raycast(volume, pose, camera) with the maps left where they were computed
+        (device memory for cuda: the next frame's ICP reads them there)."""
+        if self.name == "cuda":
+            return self.raycast.raycast(volume, pose, camera, download=False)
+        return self.raycast.raycast(volume, pose, camera)
 
 
 def cuda_status() -> str:

@@ -13,8 +13,12 @@
 
 The backend is a parameter: any object whose `preprocess`, `tsdf` and `raycast` attributes offer
 kintinuous_ref's functions of those modules (kintinuous_ref itself, or a kintinuous_fast backend,
-whose `odometry.make_tracker` then tracks, whose `tsdf.slab_view` lets the moving volume work on
-its volume and whose `tsdf.to_reference_volume` hands the final volume to meshing).
+whose `odometry.make_tracker` then tracks, whose `colour` computes the colour weights, whose
+`tsdf.slab_view` lets the moving volume work on its volume and whose `tsdf.to_reference_volume`
+hands the final volume to meshing). State stays where the backend computes: a fast backend's
+`upload` puts each frame's two images there once and its `predict_surface` leaves the raycast
+maps there, so with cuda the frames, maps and volume live in GPU memory for the whole run and
+only poses, the trackers' 6x6 systems and the outputs cross to the host.
 
 Volume placement and the tracker's start need the first pose: with ground-truth odometry it is
 the ground truth; with a tracker it is the first ground-truth pose when the dataset has one (so
@@ -43,11 +47,11 @@ from typing import Any
 import numpy as np
 
 import kintinuous_ref
+import kintinuous_ref.colour
 import kintinuous_ref.preprocess
 import kintinuous_ref.raycast
 import kintinuous_ref.tsdf
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.colour import colour_weights
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.tum import Frame, Trajectory, TumSequence
 from kintinuous_ref.errors import ConfigError, DatasetError
@@ -68,7 +72,7 @@ class PipelineResult:
     tracking_failures: int = 0
     failure_reasons: list[str] = field(default_factory=list)  # "frame i: reason"
     volume: TsdfVolume | None = None
-    model: ModelPrediction | None = None  # the last prediction, if any was made
+    model: ModelPrediction | None = None  # the last prediction, if any (maps where computed)
     interrupted: bool = False
     moving: MovingVolume | None = None  # the cyclical buffer's state (None: a fixed volume)
     moving_volume_note: str = ""  # why the volume stayed fixed although config asked to move
@@ -147,14 +151,18 @@ def run(
         if make_tracker is None:
             from kintinuous_ref.odometry import make_tracker
         tracker = make_tracker(odometry, config, camera)
+    # Where the backend keeps its arrays (device memory for cuda); the reference's defaults.
+    upload = getattr(backend, "upload", _as_given)
+    colour = getattr(backend, "colour", kintinuous_ref.colour)
+    predict_surface = getattr(backend, "predict_surface", backend.raycast.raycast)
     result = PipelineResult()
     previous = None
     try:
         for frame in frames:
             clock = _Clock()
-            # 1. Preprocess (IV-A.1).
+            # 1. Preprocess (IV-A.1), where the backend computes.
             current = backend.preprocess.preprocess_frame(
-                frame.colour, frame.depth, camera, config.preprocess
+                upload(frame.colour), upload(frame.depth), camera, config.preprocess
             )
             clock.lap("preprocess")
             # 2. Odometry (IV, V): where is this camera?
@@ -187,7 +195,7 @@ def run(
                     pose,
                     camera,
                     current.colour,
-                    colour_weights(current, config.colour),
+                    colour.colour_weights(current, config.colour),
                 )
             else:
                 result.tracking_failures += 1
@@ -195,7 +203,7 @@ def run(
             clock.lap("integrate")
             # 5. Predict the model surface for the next frame's ICP (III).
             if predict_model:
-                result.model = backend.raycast.raycast(result.volume, pose, camera)
+                result.model = predict_surface(result.volume, pose, camera)
                 clock.lap("raycast")
             # 6. Record.
             clock.total()
@@ -211,6 +219,11 @@ def run(
     except KeyboardInterrupt:
         result.interrupted = True
     return result
+
+
+def _as_given(array: Any) -> Any:
+    """The reference computes on the host: frames stay as read."""
+    return array
 
 
 def _moving_volume(

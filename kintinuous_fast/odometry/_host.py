@@ -21,10 +21,13 @@ from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError, DatasetError
 from kintinuous_ref.odometry import DenseTracker as RefDenseTracker
 from kintinuous_ref.odometry import FovisTracker as RefFovisTracker
+from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
 from kintinuous_ref.odometry.combined import CombinedProblem
+from kintinuous_ref.odometry.fovis import FovisResult
 from kintinuous_ref.odometry.rgbd import InterestPoints
 from kintinuous_ref.odometry.rgbd import RgbdProblem as RefRgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
+from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel
 
 from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, SLOT_EXTRA
 
@@ -219,6 +222,14 @@ class FastDenseTracker(RefDenseTracker):
         super().__init__(method, config, camera)
         self.kernels = kernels
 
+    def repeated_streams(
+        self, previous: PreprocessedFrame | None, current: PreprocessedFrame
+    ) -> tuple[bool, bool]:
+        """The reference's stale-stream test, run where the kernels keep the frames (the cuda
+        kernels compare device images on the device: three flags cross, not two images)."""
+        compare = getattr(self.kernels, "repeated_streams", ref_repeated_streams)
+        return compare(previous, current)
+
     def _problem(self, previous, current, model, previous_pose):  # noqa: ANN001, ANN202
         from kintinuous_ref.preprocess import model_pyramid
 
@@ -263,6 +274,43 @@ class FastFovisTracker(RefFovisTracker):
         super().__init__(method, config, camera)
         other = method.partition("/")[2]
         self.dense = FastDenseTracker(other, config, camera, kernels) if other else None
+        self._on_host: list[tuple[PreprocessedFrame, PreprocessedFrame]] = []
+
+    def sparse_motion(self, previous: PreprocessedFrame, current: PreprocessedFrame) -> FovisResult:
+        """FOVIS on host images (it runs on the CPU, as in the paper): each frame's images are
+        downloaded once, when it is the current frame, and reused when it is the previous."""
+        return super().sparse_motion(self._host_images(previous), self._host_images(current))
+
+    def _host_images(self, frame: PreprocessedFrame) -> PreprocessedFrame:
+        for known, host in self._on_host:
+            if known is frame:
+                return host
+        host = fovis_images(frame)
+        self._on_host = [*self._on_host[-1:], (frame, host)]  # this frame and the one before
+        return host
+
+
+def _download(array: Any) -> Any:
+    """A NumPy copy of a device array; host arrays (and None) as they are."""
+    return array if array is None or isinstance(array, np.ndarray) else array.copy_to_host()
+
+
+def fovis_images(frame: PreprocessedFrame) -> PreprocessedFrame:
+    """What FOVIS reads of a frame (every level's depth and intensity) as NumPy arrays: the frame
+    itself when it is on the host, else a copy without the maps, gradients and colour."""
+    if all(
+        isinstance(image, np.ndarray)
+        for level in frame.levels
+        for image in (level.depth, level.intensity)
+    ):
+        return frame
+    levels = [
+        PyramidLevel(
+            level.camera, _download(level.depth), None, None, _download(level.intensity), None, None
+        )
+        for level in frame.levels
+    ]
+    return PreprocessedFrame(colour=None, depth=levels[0].depth, levels=levels, colour_mask=None)
 
 
 def make_tracker_with(kernels: ModuleType, method: str, config: Config, camera: Intrinsics):  # noqa: ANN201

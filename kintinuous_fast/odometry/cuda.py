@@ -27,11 +27,12 @@ import sys
 import numpy as np
 from numba import cuda, float64, int32, int64
 
-from kintinuous_fast.cuda import BLOCK_1D, grid_1d, is_device, to_device
+from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, is_device, to_device
 from kintinuous_fast.ops import cuda_device_jit
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
+from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
 from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
@@ -62,6 +63,7 @@ __all__ = [
     "point_to_plane_rows",
     "prepare_level",
     "refine",
+    "repeated_streams",
     "rgbd_system",
     "solve",
 ]
@@ -310,6 +312,25 @@ def _photometric_kernel(world, warped_points, gradient, previous_pose, fx, fy, j
         )  # fmt: skip
         jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
         jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+
+
+# ----------------------------------------------------------------------------------------------
+# Stale sensor streams (kintinuous_ref.odometry.repeated_streams)
+
+
+@cuda.jit
+def _repeats_kernel(depth_before, depth_now, intensity_before, intensity_now, flags):
+    """flags[0] = 1 if any depth now, [1] = 1 if any depth differs, [2] = 1 if any intensity
+    differs (every writer writes the same 1: no atomics needed). != is True for NaN, as
+    np.array_equal's test is False."""
+    u, v = cuda.grid(2)
+    if v < depth_now.shape[0] and u < depth_now.shape[1]:
+        if depth_now[v, u] > 0:
+            flags[0] = 1
+        if depth_now[v, u] != depth_before[v, u]:
+            flags[1] = 1
+        if intensity_now[v, u] != intensity_before[v, u]:
+            flags[2] = 1
 
 
 # ----------------------------------------------------------------------------------------------
@@ -605,6 +626,28 @@ def rgbd_system(
     previous = cuda.to_device(np.ascontiguousarray(previous_pose, dtype=np.float64))
     _rgbd_rows_kernel[blocks, BLOCK](pairs, kept, *arguments, previous, sigma, out)
     return _host.sum_partials(out.copy_to_host())[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# Stale sensor streams
+
+
+def repeated_streams(previous, current) -> tuple[bool, bool]:
+    """kintinuous_ref.odometry.repeated_streams for frames on the device: the full-resolution
+    images compared by one kernel, three flags downloaded (host frames: the reference's)."""
+    if previous is None or not is_device(current.levels[0].depth):
+        return ref_repeated_streams(previous, current)
+    before, now = previous.levels[0], current.levels[0]
+    if tuple(before.depth.shape) != tuple(now.depth.shape):  # images of other sizes differ
+        return False, False
+    flags = cuda.to_device(np.zeros(3, dtype=np.int32))
+    _repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D](
+        stage(before.depth), now.depth, stage(before.intensity), now.intensity, flags
+    )
+    any_depth, depth_differs, intensity_differs = flags.copy_to_host()
+    if not any_depth:  # a blind frame is never a repeat (the reference's rule)
+        return False, False
+    return not depth_differs, not intensity_differs
 
 
 # ----------------------------------------------------------------------------------------------

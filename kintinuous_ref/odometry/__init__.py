@@ -34,6 +34,7 @@ from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import implausible_motion, refine
 
 if TYPE_CHECKING:
+    from kintinuous_ref.odometry.fovis import FovisResult
     from kintinuous_ref.preprocess import PreprocessedFrame
     from kintinuous_ref.raycast import ModelPrediction
 
@@ -129,6 +130,9 @@ class DenseTracker:
         self.camera = camera
         self.recovery = _Recovery(config.tracking.fallback)
 
+    # A method so that a fast backend compares its frames where it keeps them (on the GPU).
+    repeated_streams = staticmethod(repeated_streams)
+
     @property
     def iterations(self) -> tuple[int, ...]:
         if self.method == "icp":
@@ -195,7 +199,7 @@ class DenseTracker:
                     previous_pose,
                     f"{name} frame has {len(frame.levels)} pyramid levels, {levels} needed",
                 )
-        depth_repeated, colour_repeated = repeated_streams(previous, current)
+        depth_repeated, colour_repeated = self.repeated_streams(previous, current)
         if (depth_repeated and colour_repeated) or (colour_repeated and self.method == "rgbd"):
             # Nothing new to measure the motion with: report none.
             return previous_pose.copy(), ""
@@ -253,10 +257,10 @@ class FovisTracker:
         model: ModelPrediction | None,
         previous_pose: np.ndarray,
     ) -> TrackingResult:
-        from kintinuous_ref.odometry import fovis, switching
+        from kintinuous_ref.odometry import switching
 
         tracking = self.config.tracking
-        sparse = fovis.estimate_motion(previous, current, self.camera, self.config.fovis)
+        sparse = self.sparse_motion(previous, current)
         fovis_reason = sparse.reason or "failed"
         if sparse.ok:
             fovis_reason = implausible_motion(
@@ -283,6 +287,12 @@ class FovisTracker:
         new_pose = previous_pose @ increment
         new_pose[:3, :3] = se3.orthonormalize(new_pose[:3, :3])
         return self.recovery.success(new_pose, previous_pose, used)
+
+    def sparse_motion(self, previous: PreprocessedFrame, current: PreprocessedFrame) -> FovisResult:
+        """FOVIS's estimate between the two frames (a fast backend hands it host images)."""
+        from kintinuous_ref.odometry import fovis
+
+        return fovis.estimate_motion(previous, current, self.camera, self.config.fovis)
 
 
 def make_tracker(method: str, config: Config, camera: Intrinsics) -> Tracker:

@@ -1,0 +1,307 @@
+"""The pipeline on the cuda backend keeps its state on the device (issue #6), and the cuda colour
+weights equal the reference's.
+
+Without a GPU the tests run in a child process with numba's CUDA simulator
+(NUMBA_ENABLE_CUDASIM=1 must be set before numba is imported), started by
+test_equivalence_cuda_pipeline_in_simulator; the simulator runs every CUDA thread as a Python
+thread, so the run is tiny: the synthetic desk at 40x30, two pyramid levels, a 24^3 volume over
+4 m, two frames (the second tracked by ICP+RGB-D against the first's raycast).
+
+What may cross from the device to the host during a tracked frame: the trackers' block partial
+sums ((blocks, NV) float64, summed and solved on the host), counters, flags and scalars (at most
+SMALL values). No image, map, pyramid level or volume. Host -> device: the frame's two images
+and small constants (poses, intrinsics, filter tables); nothing image-sized besides.
+
+Tolerances: the colour weights are bit-identical (products of the same float32 factors). The
+poses equal the cpu backend's to 0.1 mm / 0.01 degree: the volumes differ by nothing and the
+6x6 systems only by the order of float64 sums (block trees against fixed chunks).
+"""
+
+import copy
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kintinuous_fast import cuda_is_simulated, cuda_status, select_backend
+from kintinuous_ref import pipeline, se3
+from kintinuous_ref.colour import colour_weights as ref_colour_weights
+from kintinuous_ref.config import (
+    ColourConfig,
+    Config,
+    PreprocessConfig,
+    RgbdConfig,
+    TrackingConfig,
+    VolumeConfig,
+)
+from kintinuous_ref.datasets.synthetic import make_scenario
+from kintinuous_ref.datasets.tum import Frame
+
+TESTS = Path(__file__).parent
+WIDTH, HEIGHT, FRAMES = 40, 30, 2
+SMALL = 16  # values: a counter, the three repeat flags, a pose, intrinsics, a 3x3 kernel
+NV = 30  # values per partial sum of the odometry kernels (odometry/ops.py)
+CONFIG = Config(
+    volume=VolumeConfig(resolution=24, size=4.0),
+    preprocess=PreprocessConfig(bilateral_radius=2, pyramid_levels=2),
+    rgbd=RgbdConfig(combined_iterations=(3, 2)),
+    # 40x30 has few points per level: a lower bar than 50 pairs, the same for both backends
+    tracking=TrackingConfig(min_correspondences=10),
+)
+
+on_device = pytest.mark.skipif(
+    bool(cuda_status()), reason="no CUDA GPU: runs in the simulator subprocess below"
+)
+
+
+@pytest.mark.skipif(not cuda_status(), reason="CUDA works here: the tests run in this process")
+def test_equivalence_cuda_pipeline_in_simulator():
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", __file__]
+    result = subprocess.run(
+        command, env=env, capture_output=True, text=True, timeout=600, cwd=TESTS.parent
+    )
+    tail = (result.stdout + result.stderr)[-4000:]
+    assert result.returncode == 0, tail
+    assert " passed" in tail and "failed" not in tail and "error" not in tail, tail
+
+
+# ----------------------------------------------------------------------------------------------
+# Colour weights and the trackers' host-side checks on device frames
+
+
+@pytest.fixture(scope="module")
+def host_frames():
+    """The desk's frames preprocessed by the reference (NumPy)."""
+    from kintinuous_ref import preprocess
+
+    desk, frames = desk_frames()
+    return desk.camera, [
+        preprocess.preprocess_frame(frame.colour, frame.depth, desk.camera, CONFIG.preprocess)
+        for frame in frames
+    ]
+
+
+def uploaded(frame):  # noqa: ANN001, ANN201
+    """A copy of a host PreprocessedFrame with every array on the device."""
+    from numba import cuda
+
+    from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel
+
+    def up(array):  # noqa: ANN001, ANN202
+        return cuda.to_device(array)
+
+    levels = [
+        PyramidLevel(
+            level.camera,
+            up(level.depth),
+            up(level.vertices),
+            up(level.normals),
+            up(level.intensity),
+            up(level.intensity_dx),
+            up(level.intensity_dy),
+        )  # fmt: skip
+        for level in frame.levels
+    ]
+    return PreprocessedFrame(up(frame.colour), levels[0].depth, levels, up(frame.colour_mask))
+
+
+@on_device
+@pytest.mark.parametrize("angle", [True, False], ids=["angle", "no-angle"])
+@pytest.mark.parametrize("check", [True, False], ids=["edges", "no-edges"])
+def test_equivalence_cuda_colour_weights(host_frames, angle, check):
+    from kintinuous_fast.cuda import colour, is_device
+
+    frame = host_frames[1][0]
+    assert np.isnan(frame.levels[0].normals).any() and (frame.depth == 0).any()
+    assert not frame.colour_mask.all()  # the cases the factors are there for
+    config = ColourConfig(angle_weighting=angle, discontinuity_check=check)
+    want = ref_colour_weights(frame, config)
+    if angle and check:  # host frame in: host weights out (once: each launch costs ~1 s here)
+        got = colour.colour_weights(frame, config)
+        assert isinstance(got, np.ndarray) and got.dtype == np.float32
+        np.testing.assert_array_equal(got, want)
+    on_gpu = colour.colour_weights(uploaded(frame), config)  # device in: device out
+    assert is_device(on_gpu)
+    np.testing.assert_array_equal(on_gpu.copy_to_host(), want)
+
+
+@on_device
+def test_equivalence_cuda_repeated_streams(host_frames):
+    from kintinuous_fast.odometry import cuda as kernels
+    from kintinuous_ref.odometry import repeated_streams
+
+    first, second = host_frames[1]
+    stale_colour = copy.copy(second)
+    stale_colour.levels = [copy.copy(level) for level in second.levels]
+    stale_colour.levels[0].intensity = first.levels[0].intensity
+    blind = copy.copy(first)
+    blind.levels = [copy.copy(level) for level in first.levels]
+    blind.levels[0].depth = np.zeros_like(first.depth)
+    cases = [(first, first), (first, second), (first, stale_colour), (blind, blind), (None, first)]
+    for previous, current in cases:
+        want = repeated_streams(previous, current)
+        on_device = None if previous is None else uploaded(previous)
+        assert kernels.repeated_streams(on_device, uploaded(current)) == want
+        assert kernels.repeated_streams(previous, current) == want  # host frames: the reference
+    assert [repeated_streams(*case) for case in cases] == [
+        (True, True), (False, False), (False, True), (False, False), (False, False)
+    ]  # fmt: skip
+
+
+@on_device
+def test_cuda_fovis_downloads_each_frame_once(host_frames, monkeypatch):
+    """FOVIS runs on the host: what it reads of a device frame (depth and intensity of every
+    level) is downloaded once, when the frame is current, and reused when it is previous."""
+    from kintinuous_fast.odometry import cuda as kernels
+
+    camera, frames = host_frames
+    tracker = kernels.make_tracker("fovis", CONFIG, camera)
+    previous, current = uploaded(frames[0]), uploaded(frames[1])
+    crossings = Crossings(monkeypatch)
+    tracker.track(previous, current, None, np.eye(4))
+    assert sorted(crossings.log) == sorted(
+        [("down", level.depth.shape) for level in frames[0].levels + frames[1].levels]
+        + [("down", level.intensity.shape) for level in frames[0].levels + frames[1].levels]
+    )
+    following = uploaded(frames[0])
+    crossings.log.clear()
+    tracker.track(current, following, None, np.eye(4))  # only the new frame crosses
+    assert sorted(crossings.log) == sorted(
+        [("down", level.depth.shape) for level in frames[0].levels]
+        + [("down", level.intensity.shape) for level in frames[0].levels]
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# The pipeline
+
+
+class Crossings:
+    """Every array that crosses the host/device boundary, as (direction, shape, where)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        from numba import cuda
+
+        self.log: list[tuple[str, tuple[int, ...]]] = []
+        upload = cuda.to_device
+
+        def to_device(array, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+            self.log.append(("up", tuple(np.shape(array))))
+            return upload(array, *args, **kwargs)
+
+        monkeypatch.setattr(cuda, "to_device", to_device)
+        if cuda_is_simulated():
+            self._watch_simulator(monkeypatch)
+        else:
+            from numba.cuda.cudadrv.devicearray import DeviceNDArrayBase
+
+            self._watch_downloads(monkeypatch, DeviceNDArrayBase)
+
+    def _watch_downloads(self, monkeypatch: pytest.MonkeyPatch, cls: type) -> None:
+        download = cls.copy_to_host
+
+        def copy_to_host(array, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+            self.log.append(("down", tuple(array.shape)))
+            return download(array, *args, **kwargs)
+
+        monkeypatch.setattr(cls, "copy_to_host", copy_to_host)
+
+    def _watch_simulator(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        """The simulator's device arrays wrap NumPy arrays and let NumPy read them silently
+        (np.asarray, comparisons), which a GPU's would not: those reads count as downloads too,
+        and host arrays handed to a kernel (copied in and back on a GPU) as uploads."""
+        from numba.cuda.simulator.cudadrv.devicearray import FakeCUDAArray
+        from numba.cuda.simulator.kernel import FakeCUDAKernel
+
+        self._watch_downloads(monkeypatch, FakeCUDAArray)
+        metadata = {"shape", "dtype", "ndim", "size", "strides", "itemsize", "nbytes", "_ary"}
+        attribute = FakeCUDAArray.__getattr__
+
+        def getattr_(array, name):  # noqa: ANN001, ANN202
+            if name not in metadata:
+                self.log.append((f"down (NumPy reads .{name})", tuple(array._ary.shape)))
+            return attribute(array, name)
+
+        monkeypatch.setattr(FakeCUDAArray, "__getattr__", getattr_)
+        for op in ("__gt__", "__ge__", "__lt__", "__le__", "__eq__", "__ne__", "__mul__"):
+            monkeypatch.setattr(FakeCUDAArray, op, self._host_op(getattr(FakeCUDAArray, op), op))
+        launch = FakeCUDAKernel.__call__
+
+        def call(kernel, *args):  # noqa: ANN001, ANN002, ANN202
+            for arg in () if kernel._device else args:  # launches, not device functions
+                if isinstance(arg, np.ndarray) and arg.ndim > 0:
+                    self.log.append(("up and down (host array to a kernel)", arg.shape))
+            return launch(kernel, *args)
+
+        monkeypatch.setattr(FakeCUDAKernel, "__call__", call)
+
+    def _host_op(self, method, name: str):  # noqa: ANN001, ANN202
+        def operator(array, other):  # noqa: ANN001, ANN202
+            self.log.append((f"down (NumPy {name})", tuple(array._ary.shape)))
+            return method(array, other)
+
+        return operator
+
+
+def desk_frames() -> tuple:
+    desk = make_scenario("desk", frames=FRAMES, width=WIDTH, height=HEIGHT)
+    frames = [
+        Frame(index, float(desk.trajectory.timestamps[index]), *desk.render(index))
+        for index in range(FRAMES)
+    ]
+    return desk, frames
+
+
+def is_small(shape: tuple[int, ...]) -> bool:
+    """A partial-sum table (blocks, NV), or at most SMALL values."""
+    return (len(shape) == 2 and shape[1] == NV) or int(np.prod(shape)) <= SMALL
+
+
+def image_like(shape: tuple[int, ...]) -> bool:
+    """An image or map of some pyramid level, or a volume."""
+    levels = {(HEIGHT >> level, WIDTH >> level) for level in range(len(CONFIG.rgbd.iterations))}
+    return (
+        tuple(shape[:2]) in levels or len(shape) >= 3 and min(shape[:3]) >= CONFIG.volume.resolution
+    )
+
+
+@on_device
+def test_cuda_pipeline_keeps_state_on_device(monkeypatch):
+    from kintinuous_fast.cuda import is_device
+
+    desk, frames = desk_frames()
+    want = pipeline.run(
+        frames, desk.camera, CONFIG, "icp+rgbd", desk.trajectory, backend=select_backend("cpu")
+    )
+    crossings = Crossings(monkeypatch)
+    frame_starts: list[int] = []
+    got = pipeline.run(
+        frames,
+        desk.camera,
+        CONFIG,
+        "icp+rgbd",
+        desk.trajectory,
+        backend=select_backend("cuda"),
+        progress=lambda _: frame_starts.append(len(crossings.log)),
+    )
+    # (a) tracked, and as the cpu backend tracked
+    assert got.fused == want.fused == [True] * FRAMES, got.failure_reasons
+    for a, b in zip(got.poses, want.poses, strict=True):
+        delta = se3.inverse(b) @ a
+        assert np.linalg.norm(delta[:3, 3]) < 1e-4
+        assert np.degrees(se3.rotation_angle(delta[:3, :3])) < 1e-2
+    truth = desk.trajectory.poses[FRAMES - 1]
+    assert np.linalg.norm(got.poses[-1][:3, 3] - truth[:3, 3]) < 0.01  # tracking did track
+    assert np.linalg.norm(got.poses[-1][:3, 3] - got.poses[0][:3, 3]) > 0.005  # ... a motion
+    # (b) nothing image- or volume-sized crossed during the tracked frames
+    tracked = crossings.log[frame_starts[0] :]
+    assert any(direction == "down" and shape[-1:] == (NV,) for direction, shape in tracked)
+    large = [c for c in tracked if c[0] != "up" and not is_small(c[1])]
+    assert not large, large
+    images = [shape for direction, shape in tracked if direction == "up" and image_like(shape)]
+    assert sorted(images) == [(HEIGHT, WIDTH), (HEIGHT, WIDTH, 3)] * (FRAMES - 1), images
+    assert is_device(got.model.vertices) and is_device(got.model.normals)
