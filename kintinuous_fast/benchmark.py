@@ -73,6 +73,8 @@ def benchmark(
         "resolution": config.volume.resolution,
         "image": [sequence.camera.width, sequence.camera.height],
         "tracking_failures": result.tracking_failures,
+        # finest to coarsest; (0, ...) with --fast-odometry
+        "icp_iterations": list(config.icp.iterations),
         "timing_ms": timing,
         "fps": (1000.0 / total) if total else None,
     }
@@ -83,7 +85,8 @@ def format_table(report: dict[str, Any]) -> str:
     width, height = report["image"]
     lines = [
         f"{report['backend']} backend, {report['odometry']}, {width}x{height}, "
-        f"{report['resolution']}^3, {report['timed_frames']} timed frames",
+        f"{report['resolution']}^3, {report['timed_frames']} timed frames, ICP iterations "
+        f"{'/'.join(str(n) for n in report['icp_iterations'])} (finest to coarsest)",
         f"{'stage':12s} {'mean ms':>9s} {'median ms':>10s} {'max ms':>9s}",
     ]
     for stage, stats in report["timing_ms"].items():

@@ -155,6 +155,25 @@ class Config:
         return self
 
 
+def fast_odometry(config: Config) -> Config:
+    """`config` with the finest pyramid level skipped by every dense estimator (0 iterations
+    there; the inlier check still looks at full resolution): the original code's "fast odometry"
+    option, for CPUs (docs/benchmarks.md measures its accuracy cost)."""
+
+    def skip_finest(iterations: tuple[int, ...]) -> tuple[int, ...]:
+        return (0, *iterations[1:])
+
+    return replace(
+        config,
+        icp=replace(config.icp, iterations=skip_finest(config.icp.iterations)),
+        rgbd=replace(
+            config.rgbd,
+            iterations=skip_finest(config.rgbd.iterations),
+            combined_iterations=skip_finest(config.rgbd.combined_iterations),
+        ),
+    )
+
+
 def with_overrides(config: Any, overrides: dict[str, Any]) -> Any:
     """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}."""
     grouped: dict[str, dict[str, Any]] = {}

@@ -19,18 +19,18 @@ itself on the CPU as in the paper) with the fast systems underneath:
     tracker = make_tracker("icp+rgbd", config, camera, backend="auto")
     result = tracker.track(previous_frame, current_frame, model_prediction, previous_pose)
 
-``fast_odometry(config)`` is the original code's "fast odometry" option: the dense estimators skip
-the finest pyramid level (docs/benchmarks.md measures what that costs in accuracy).
+``fast_odometry(config)`` (kintinuous_ref.config's, re-exported) is the original code's "fast
+odometry" option: the dense estimators skip the finest pyramid level (docs/benchmarks.md measures
+what that costs in accuracy).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 from types import ModuleType
 
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.config import Config
+from kintinuous_ref.config import Config, fast_odometry
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.odometry import DENSE_METHODS, METHODS, Tracker, TrackingResult
 
@@ -67,21 +67,3 @@ def make_tracker(method: str, config: Config, camera: Intrinsics, backend: str =
     if module.__name__ == "kintinuous_ref.odometry":
         return ref_make_tracker(method, config, camera)
     return module.make_tracker(method, config, camera)
-
-
-def fast_odometry(config: Config) -> Config:
-    """`config` with the finest pyramid level skipped by every dense estimator (0 iterations
-    there; the inlier check still looks at full resolution), as the original's fast odometry."""
-
-    def skip_finest(iterations: tuple[int, ...]) -> tuple[int, ...]:
-        return (0, *iterations[1:])
-
-    return dataclasses.replace(
-        config,
-        icp=dataclasses.replace(config.icp, iterations=skip_finest(config.icp.iterations)),
-        rgbd=dataclasses.replace(
-            config.rgbd,
-            iterations=skip_finest(config.rgbd.iterations),
-            combined_iterations=skip_finest(config.rgbd.combined_iterations),
-        ),
-    )

@@ -1,0 +1,33 @@
+"""`kintinuous benchmark --json` (issue #6): one JSON object whose per-stage statistics are those
+of the frames after the warm-up frame, and frames/s = 1000 / median total ms."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kintinuous_ref.cli import main
+
+TINY_DESK = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_benchmark_json_reports_stages_and_fps(capsys, fast):
+    arguments = ["benchmark", str(TINY_DESK), "--backend", "cpu", "--frames", "3"]
+    arguments += ["--resolution", "32", "--volume-size", "2", "--json"]
+    main(arguments + (["--fast-odometry"] if fast else []))
+    report = json.loads(capsys.readouterr().out)
+    assert report["backend"] == "cpu" and report["odometry"] == "icp+rgbd"
+    assert (report["frames"], report["timed_frames"]) == (3, 2)
+    assert report["image"] == [160, 120] and report["resolution"] == 32
+    assert report["icp_iterations"] == ([0, 5, 4] if fast else [10, 5, 4])
+    stages = report["timing_ms"]
+    assert {"preprocess", "odometry", "integrate", "raycast", "total"} <= set(stages)
+    for stats in stages.values():  # two timed frames: median = mean, both <= max
+        assert stats["median"] == pytest.approx(stats["mean"])
+        assert 0 <= stats["mean"] <= stats["max"]
+    parts = sum(stages[s]["mean"] for s in stages if s != "total")
+    assert parts <= stages["total"]["mean"] * (1 + 1e-9)
+    assert report["fps"] == pytest.approx(1000.0 / stages["total"]["median"])
+    assert np.isfinite(report["fps"])
