@@ -5,7 +5,8 @@ Without a GPU the tests run in a child process with numba's CUDA simulator
 (NUMBA_ENABLE_CUDASIM=1 must be set before numba is imported), started by
 test_equivalence_cuda_pipeline_in_simulator; the simulator runs every CUDA thread as a Python
 thread, so the run is tiny: the synthetic desk at 40x30, two pyramid levels, a 24^3 volume over
-4 m, two frames (the second tracked by ICP+RGB-D against the first's raycast).
+4 m, two frames, the second tracked by ICP+RGB-D (2 + 1 iterations) against the first frame and
+its raycast (tracking error 4 mm of 12 mm motion).
 
 What may cross from the device to the host during a tracked frame: the trackers' block partial
 sums ((blocks, NV) float64, summed and solved on the host), counters, flags and scalars (at most
@@ -13,8 +14,11 @@ SMALL values). No image, map, pyramid level or volume. Host -> device: the frame
 and small constants (poses, intrinsics, filter tables); nothing image-sized besides.
 
 Tolerances: the colour weights are bit-identical (products of the same float32 factors). The
-poses equal the cpu backend's to 0.1 mm / 0.01 degree: the volumes differ by nothing and the
-6x6 systems only by the order of float64 sums (block trees against fixed chunks).
+tracked poses equal the reference backend's to 0.1 mm / 0.01 degree (measured: 0.3 um, 4e-5
+degree), the tolerance tests/test_fast_pipeline.py holds the cpu backend to: the volumes differ
+only by the int16 / uint8 rounding and the 6x6 systems by the order of float64 sums. The
+reference rather than the cpu backend: the child process would compile the cpu kernels whenever
+their cache is stale (25-280 s measured while they were being edited), beyond this test's budget.
 """
 
 import copy
@@ -47,7 +51,7 @@ NV = 30  # values per partial sum of the odometry kernels (odometry/ops.py)
 CONFIG = Config(
     volume=VolumeConfig(resolution=24, size=4.0),
     preprocess=PreprocessConfig(bilateral_radius=2, pyramid_levels=2),
-    rgbd=RgbdConfig(combined_iterations=(3, 2)),
+    rgbd=RgbdConfig(combined_iterations=(2, 1)),
     # 40x30 has few points per level: a lower bar than 50 pairs, the same for both backends
     tracking=TrackingConfig(min_correspondences=10),
 )
@@ -275,7 +279,7 @@ def test_cuda_pipeline_keeps_state_on_device(monkeypatch):
 
     desk, frames = desk_frames()
     want = pipeline.run(
-        frames, desk.camera, CONFIG, "icp+rgbd", desk.trajectory, backend=select_backend("cpu")
+        frames, desk.camera, CONFIG, "icp+rgbd", desk.trajectory, backend=select_backend("ref")
     )
     crossings = Crossings(monkeypatch)
     frame_starts: list[int] = []
@@ -288,7 +292,7 @@ def test_cuda_pipeline_keeps_state_on_device(monkeypatch):
         backend=select_backend("cuda"),
         progress=lambda _: frame_starts.append(len(crossings.log)),
     )
-    # (a) tracked, and as the cpu backend tracked
+    # (a) tracked, and as the reference tracked
     assert got.fused == want.fused == [True] * FRAMES, got.failure_reasons
     for a, b in zip(got.poses, want.poses, strict=True):
         delta = se3.inverse(b) @ a
