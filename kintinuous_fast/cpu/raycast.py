@@ -26,6 +26,10 @@ __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _ops = build_ops(cpu_jit_numpy_errors)
 raycast_pixel = _ops.raycast_pixel
+raycast_pixel_skipping = _ops.raycast_pixel_skipping
+# Largest fine-brick distance kept: a jump leaves a cube reaching 15 fine bricks (30 voxels) to
+# either side, as far as a brick at distance 4 would (bricks below ops.FINE_LEVEL_BELOW read it).
+FINE_DISTANCE_CAP = 16
 ROWS_PER_CHUNK = 4  # rows handed to a thread at a time (dynamic scheduling of the rays)
 
 
@@ -69,6 +73,68 @@ def brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     return empty_space_distance(negative), near
 
 
+@numba.njit(parallel=True, cache=True)
+def _fine_distance(near, cap, out):
+    """out = min(cap, chessboard distance in fine bricks to the nearest `near` one), uint8,
+    cap < 255. Separable (the chessboard metric is the max of the per-axis distances, so the
+    minimum can be taken one axis at a time): the distance along axis 2 by two sweeps, then
+    along axes 1 and 0 d(x) = min over |k| < cap of max(k, d(x + k e)), as elementwise
+    operations on whole planes of uint8 (vectorised; rows would be too short)."""
+    m = near.shape[0]
+    top = np.uint8(cap)
+    along = np.empty_like(out)
+    for p in prange(m):
+        for f1 in range(m):
+            _sweeps(near[p, f1], along[p, f1], top)
+    for p in prange(m):  # along axis 1: shifts by whole rows inside the plane p
+        f0 = np.int64(p)  # prange gives unsigned indices: signed arithmetic below
+        source = along[f0].reshape(m * m)
+        target = out[f0].reshape(m * m)
+        target[:] = source
+        for k in range(1, min(cap, m)):
+            _min_max(target[k * m :], source[: (m - k) * m], np.uint8(k))
+            _min_max(target[: (m - k) * m], source[k * m :], np.uint8(k))
+    for p in prange(m):  # along axis 0: whole planes
+        f0 = np.int64(p)
+        target = along[f0].reshape(m * m)
+        target[:] = out[f0].reshape(m * m)
+        for k in range(1, min(cap, m)):
+            for g in (f0 - k, f0 + k):
+                if 0 <= g < m:
+                    _min_max(target, out[g].reshape(m * m), np.uint8(k))
+    out[...] = along
+
+
+@numba.njit(cache=True, inline="always")
+def _sweeps(near_row, row, top):
+    """row = min(top, distance along the row to the nearest near_row entry)."""
+    d = top
+    for j in range(row.shape[0]):
+        d = np.uint8(0) if near_row[j] else min(np.uint8(d + np.uint8(1)), top)
+        row[j] = d
+    d = top
+    for j in range(row.shape[0] - 1, -1, -1):
+        d = min(row[j], min(np.uint8(d + np.uint8(1)), top))
+        row[j] = d
+
+
+@numba.njit(cache=True, inline="always")
+def _min_max(target, source, k):
+    """target = min(target, max(k, source)), elementwise over 1-d uint8 arrays (vectorised)."""
+    for j in range(target.shape[0]):
+        target[j] = min(target[j], max(k, source[j]))
+
+
+def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
+    """(empty, fine_distance): the brick distance map of brick_maps and the capped distance
+    map over its fine bricks (march_ray_skipping's)."""
+    empty, near = brick_maps(volume)
+    fine_distance = np.empty(near.shape, dtype=np.uint8)
+    _fine_distance(near, FINE_DISTANCE_CAP, fine_distance)
+    # uint8: the map stays in the first-level cache; a smaller distance only means shorter jumps
+    return np.minimum(empty, 255).astype(np.uint8), fine_distance
+
+
 def empty_space(volume: FastTsdfVolume) -> np.ndarray:
     """kintinuous_ref.raycast._empty_space of the fast volume (brick distance map, int64)."""
     return brick_maps(volume)[0]
@@ -82,8 +148,9 @@ def _raycast_loop(
     o0,
     o1,
     o2,
+    skipping,
     empty,
-    near,
+    fine_distance,
     camera,
     rotation,
     origin,
@@ -98,10 +165,18 @@ def _raycast_loop(
     # the chunk size), so a thread that finishes early, or was descheduled, evens out
     for v in prange(vertices.shape[0]):
         for u in range(vertices.shape[1]):
-            raycast_pixel(
-                tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, near, u, v, camera,
-                rotation, origin, volume_origin, voxel_size, step, vertices, normals, colours,
-            )  # fmt: skip
+            if skipping:
+                raycast_pixel_skipping(
+                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
+                    u, v, camera, rotation, origin, volume_origin, voxel_size, step, vertices,
+                    normals, colours,
+                )  # fmt: skip
+            else:  # the plain march (march_ray with maps that skip nothing): the reference's
+                raycast_pixel(
+                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
+                    u, v, camera, rotation, origin, volume_origin, voxel_size, step, vertices,
+                    normals, colours,
+                )  # fmt: skip
 
 
 def raycast(
@@ -117,17 +192,19 @@ def raycast(
     colour_volume = volume.colour if has_colour else np.zeros((1, 1, 1, 4), np.uint8)
     pose = np.asarray(pose, dtype=np.float64)
     if skip_empty:
-        empty, near = brick_maps(volume)
+        empty, fine_distance = skip_maps(volume)
     else:  # the plain march: every sample taken
-        empty, near = np.zeros((1, 1, 1), dtype=np.int64), np.ones((1, 1, 1), dtype=np.bool_)
+        empty = np.zeros((1, 1, 1), dtype=np.int64)
+        fine_distance = np.ones((1, 1, 1), dtype=np.uint8)  # march_ray's `near`: sample
     with numba.parallel_chunksize(ROWS_PER_CHUNK):
         _raycast_loop(
             volume.tsdf_weight,
             colour_volume,
             has_colour,
             *volume.offsets(),
+            bool(skip_empty),
             empty,
-            near,
+            fine_distance,
             np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
             np.ascontiguousarray(pose[:3, :3]),
             np.ascontiguousarray(pose[:3, 3]),

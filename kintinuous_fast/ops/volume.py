@@ -23,6 +23,13 @@ BRICK = 8  # voxels per side of the empty-space bricks (kintinuous_ref.raycast.B
 # Voxels per side of the fine bricks whose observed negative voxels integration counts (the cpu
 # raycast's second level of empty-space skipping, inside the bricks next to a surface).
 FINE = 2
+# Voxels by which the cpu raycast's jumps shrink an empty cube: far above the rounding of sample
+# coordinates (~1e-13 voxels), far below a sample step (~2 voxels).
+JUMP_MARGIN = 1e-6
+# Bricks at a distance below this take the cpu raycast's jumps from its fine distance map (in
+# FINE^3 bricks, capped; valid everywhere): near surfaces they are longer than the brick
+# map's, whose cube of radius D - 1 is a single brick at D = 1.
+FINE_LEVEL_BELOW = 4
 
 # Cyclical buffer (kintinuous_ref.tsdf, moving volume): logical voxel l lives in array cell
 # (l + offset) mod N, offset in [0, N). Every function below takes the offset as three ints
@@ -549,6 +556,196 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
                 return np.nan
 
     @jit
+    def samples_to_leave(c: float, dc: float, inverse: float, lower: float, upper: float) -> float:
+        """Samples (a real number) until the coordinate c + m dc leaves [lower, upper) shrunk
+        by JUMP_MARGIN voxels, `inverse` = 1 / dc; inf when dc = 0. The margin dwarfs the
+        rounding of the samples' exactly computed coordinates (~1e-13 voxels), so every sample
+        before the returned count lies inside [lower, upper) as computed."""
+        if dc > 0:
+            return (upper - JUMP_MARGIN - c) * inverse
+        if dc < 0:
+            return (lower + JUMP_MARGIN - c) * inverse
+        return np.inf
+
+    @jit
+    def first_sample_outside(
+        m: int,
+        cx: float,
+        cy: float,
+        cz: float,
+        dcx: float,
+        dcy: float,
+        dcz: float,
+        ix: float,
+        iy: float,
+        iz: float,
+        lower_x: float,
+        lower_y: float,
+        lower_z: float,
+        size: float,
+    ) -> int:
+        """Index of the first sample after sample m (at voxel coordinates c, advancing dc per
+        sample, i = 1 / dc) that may lie outside the cube [lower, lower + size)^3; at least
+        m + 1. Multiplications only: the margin of samples_to_leave keeps it conservative."""
+        to_leave = min(
+            min(
+                samples_to_leave(cx, dcx, ix, lower_x, lower_x + size),
+                samples_to_leave(cy, dcy, iy, lower_y, lower_y + size),
+            ),
+            samples_to_leave(cz, dcz, iz, lower_z, lower_z + size),
+        )
+        return m + max(int(math.floor(to_leave)) + 1, 1)
+
+    @jit
+    def inverse_or_zero(x: float) -> float:
+        return 1.0 / x if x != 0 else 0.0
+
+    @jit
+    def march_ray_skipping(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+    ) -> float:
+        """march_ray with a distance map at both levels: `empty` over BRICK^3 bricks (as
+        there) and `fine_distance` over the fine bricks inside bricks at distance 0.
+
+        fine_distance[f] = D >= 1 says no fine brick within chessboard distance D - 1 of f is
+        `near` (march_ray's fine map: may hold the lower corner of a negative sample), so every
+        sample whose lower corner lies in that cube is >= 0 or unknown and, unless the sample
+        before the first of them was negative, is skipped at once. Jump lengths come from
+        the samples' nominal coordinates (linear in the sample index) with a margin, so the
+        samples skipped are a subset of those the exact test would skip: the same answer.
+        """
+        upper_offset = (tsdf_weight.shape[0] - 1) * voxel_size
+        lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
+        lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
+        lo2, hi2 = axis_interval(origin[2], d2, volume_origin[2], volume_origin[2] + upper_offset)
+        entry = max(max(max(lo0, lo1), lo2), 0.0)
+        exit_ = min(min(hi0, hi1), hi2)
+        if not entry < exit_:
+            return np.nan
+        # voxel coordinates of sample m, nominally: start + m * per_sample (jump lengths only)
+        dcx, dcy, dcz = step * d0 / voxel_size, step * d1 / voxel_size, step * d2 / voxel_size
+        ix, iy, iz = inverse_or_zero(dcx), inverse_or_zero(dcy), inverse_or_zero(dcz)
+        bricks = empty.shape[0]
+        last_fine = fine_distance.shape[0] - 1
+        n = tsdf_weight.shape[0]
+        previous = np.nan
+        previous_known = True
+        m = 0
+        sx = (origin[0] + entry * d0 - volume_origin[0]) / voxel_size
+        sy = (origin[1] + entry * d1 - volume_origin[1]) / voxel_size
+        sz = (origin[2] + entry * d2 - volume_origin[2]) / voxel_size
+        while True:
+            t = entry + m * step
+            # The maps are read at the nominal coordinates (one multiply-add, no division). They
+            # differ from the exact ones (the reference's, used for the samples) by rounding
+            # only, so they name the same brick and fine brick unless within JUMP_MARGIN of a
+            # fine brick's face: there the exact ones decide.
+            cx, cy, cz = sx + m * dcx, sy + m * dcy, sz + m * dcz
+            if not (clear_of_faces(cx) and clear_of_faces(cy) and clear_of_faces(cz)):
+                cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
+            bx = min(max(int(math.floor(cx / BRICK)), 0), bricks - 1)
+            by = min(max(int(math.floor(cy / BRICK)), 0), bricks - 1)
+            bz = min(max(int(math.floor(cz / BRICK)), 0), bricks - 1)
+            radius = int(empty[bx, by, bz])
+            fine, fx, fy, fz = 0, 0, 0, 0
+            if radius < FINE_LEVEL_BELOW and not (previous_known and previous < 0):
+                fx = fine_index(cx, n, last_fine)
+                fy = fine_index(cy, n, last_fine)
+                fz = fine_index(cz, n, last_fine)
+                fine = int(fine_distance[fx, fy, fz])
+            if radius >= FINE_LEVEL_BELOW:  # far from surfaces: past the empty cube of bricks
+                reach = radius - 1
+                m_next = first_sample_outside(
+                    m, cx, cy, cz, dcx, dcy, dcz, ix, iy, iz, (bx - reach) * BRICK,
+                    (by - reach) * BRICK, (bz - reach) * BRICK, (2 * reach + 1) * BRICK,
+                )  # fmt: skip
+                previous_known = False
+            elif fine > 0:  # no sample in the cube of fine bricks can be negative: jump past it
+                reach = fine - 1
+                m_next = first_sample_outside(
+                    m, cx, cy, cz, dcx, dcy, dcz, ix, iy, iz, (fx - reach) * FINE,
+                    (fy - reach) * FINE, (fz - reach) * FINE, (2 * reach + 1) * FINE,
+                )  # fmt: skip
+                previous_known = False
+            else:
+                if not previous_known:
+                    previous = np.nan
+                    if m > 0:
+                        previous = sample_along(
+                            tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
+                            entry + (m - 1) * step, volume_origin, voxel_size,
+                        )  # fmt: skip
+                value = sample_along(
+                    tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
+                )
+                if previous > 0 and value < 0:
+                    t0 = t - step
+                    estimate = zero_crossing(t0, previous, t, value)
+                    f = sample_along(
+                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, estimate,
+                        volume_origin, voxel_size,
+                    )  # fmt: skip
+                    if f > 0:
+                        return zero_crossing(estimate, f, t, value)
+                    if f < 0:
+                        return zero_crossing(t0, previous, estimate, f)
+                    return estimate
+                if previous < 0 and value > 0:
+                    return np.nan  # a back face
+                previous = value
+                previous_known = True
+                m_next = m + 1
+            m = m_next
+            if not entry + m * step <= exit_:
+                return np.nan
+
+    @jit
+    def clear_of_faces(c: float) -> bool:
+        """Whether coordinate c is more than JUMP_MARGIN voxels from every fine brick face."""
+        r = c * (1.0 / FINE)
+        f = r - math.floor(r)
+        return f >= JUMP_MARGIN / FINE and f <= 1.0 - JUMP_MARGIN / FINE
+
+    @jit
+    def voxel_coordinates(
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        t: float,
+        volume_origin: Any,
+        voxel_size: float,
+    ) -> tuple:
+        """Continuous voxel coordinates of the ray point at t (sample_along's)."""
+        cx = (origin[0] + t * d0 - volume_origin[0]) / voxel_size
+        cy = (origin[1] + t * d1 - volume_origin[1]) / voxel_size
+        cz = (origin[2] + t * d2 - volume_origin[2]) / voxel_size
+        return cx, cy, cz
+
+    @jit
+    def ray_direction(u: int, v: int, camera: Any, rotation: Any) -> tuple:
+        """Unit world-frame direction of pixel (u, v)'s ray (`camera` float64 fx, fy, cx, cy)."""
+        rx = (u - camera[2]) * 1.0 / camera[0]
+        ry = (v - camera[3]) * 1.0 / camera[1]
+        d0 = rotation[0, 0] * rx + rotation[0, 1] * ry + rotation[0, 2]
+        d1 = rotation[1, 0] * rx + rotation[1, 1] * ry + rotation[1, 2]
+        d2 = rotation[2, 0] * rx + rotation[2, 1] * ry + rotation[2, 2]
+        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        return d0 / norm, d1 / norm, d2 / norm
+
+    @jit
     def raycast_pixel(
         tsdf_weight: Any,
         colour_volume: Any,
@@ -570,19 +767,74 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         normals: Any,
         colours: Any,
     ) -> None:
-        """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast).
-        `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0 beforehand."""
-        rx = (u - camera[2]) * 1.0 / camera[0]
-        ry = (v - camera[3]) * 1.0 / camera[1]
-        d0 = rotation[0, 0] * rx + rotation[0, 1] * ry + rotation[0, 2]
-        d1 = rotation[1, 0] * rx + rotation[1, 1] * ry + rotation[1, 2]
-        d2 = rotation[2, 0] * rx + rotation[2, 1] * ry + rotation[2, 2]
-        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+        """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
+        march_ray. `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0
+        beforehand."""
+        d0, d1, d2 = ray_direction(u, v, camera, rotation)
         t = march_ray(
             tsdf_weight, o0, o1, o2, empty, near, origin, d0, d1, d2, volume_origin, voxel_size,
             step,
         )  # fmt: skip
+        shade_pixel(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2,
+            volume_origin, voxel_size, vertices, normals, colours,
+        )  # fmt: skip
+
+    @jit
+    def raycast_pixel_skipping(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        u: int,
+        v: int,
+        camera: Any,
+        rotation: Any,
+        origin: Any,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+    ) -> None:
+        """raycast_pixel by march_ray_skipping (the cpu backend's two distance maps)."""
+        d0, d1, d2 = ray_direction(u, v, camera, rotation)
+        t = march_ray_skipping(
+            tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d0, d1, d2, volume_origin,
+            voxel_size, step,
+        )  # fmt: skip
+        shade_pixel(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2,
+            volume_origin, voxel_size, vertices, normals, colours,
+        )  # fmt: skip
+
+    @jit
+    def shade_pixel(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        u: int,
+        v: int,
+        t: float,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+    ) -> None:
+        """Vertex, normal and colour of pixel (u, v) whose ray met the surface at t (NaN: none)."""
         if not math.isfinite(t):
             return
         px, py, pz = origin[0] + t * d0, origin[1] + t * d1, origin[2] + t * d2
@@ -632,5 +884,8 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         gradient_normal=gradient_normal,
         surface_colour_at=surface_colour_at,
         march_ray=march_ray,
+        march_ray_skipping=march_ray_skipping,
+        ray_direction=ray_direction,
         raycast_pixel=raycast_pixel,
+        raycast_pixel_skipping=raycast_pixel_skipping,
     )
