@@ -17,14 +17,14 @@ from numba import prange
 
 from kintinuous_fast._volume import FastTsdfVolume, empty_space_distance
 from kintinuous_fast.cpu.tsdf import negative_counts
-from kintinuous_fast.ops import cpu_jit_numpy_errors
+from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called
 from kintinuous_fast.ops.volume import BRICK, FINE, build_ops
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
-_ops = build_ops(cpu_jit_numpy_errors)
+_ops = build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called)
 raycast_pixel = _ops.raycast_pixel
 raycast_pixel_skipping = _ops.raycast_pixel_skipping
 # Largest fine-brick distance kept: a jump leaves a cube reaching 15 fine bricks (30 voxels) to

@@ -27,6 +27,8 @@ cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
 cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", inline="always"
 )
+# The same, called rather than inlined (ops.volume.build_ops's `jit_called`).
+cpu_jit_numpy_errors_called: Callable[[Any], Any] = numba.njit(cache=True, error_model="numpy")
 
 
 def cuda_device_jit() -> Callable[[Any], Any]:

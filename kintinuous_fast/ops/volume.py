@@ -36,8 +36,15 @@ FINE_LEVEL_BELOW = 4
 # (o0, o1, o2) and maps logical indices with `cell` (one compare, no division).
 
 
-def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
-    """The scalar functions of integration and raycasting compiled with `jit`."""
+def build_ops(
+    jit: Callable[[Any], Any], jit_called: Callable[[Any], Any] | None = None
+) -> SimpleNamespace:
+    """The scalar functions of integration and raycasting compiled with `jit`; the few large
+    per-ray ones (a whole march, a normal, a colour) with `jit_called` (default `jit`). The cpu
+    backend's `jit` inlines at numba IR level, which is what makes the per-voxel loops fast, but
+    inlining a whole march and its samples into every caller made the raycast take minutes to
+    compile; called once per ray, these lose nothing by being calls."""
+    jit_called = jit_called or jit
 
     @jit
     def dequantise(q: Any) -> Any:
@@ -334,7 +341,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     def clip(c: float, limit: float) -> float:
         return min(max(c, 0.0), limit)
 
-    @jit
+    @jit_called
     def gradient_normal(
         tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
     ) -> tuple:
@@ -358,7 +365,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
             return np.nan, np.nan, np.nan
         return gx / length, gy / length, gz / length
 
-    @jit
+    @jit_called
     def surface_colour_at(
         colour_volume: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
     ) -> tuple:
@@ -448,7 +455,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         sample_tsdf_at clamps it), at most `last`."""
         return min(min(max(int(math.floor(c)), 0), n - 2) // FINE, last)
 
-    @jit
+    @jit_called
     def march_ray(
         tsdf_weight: Any,
         o0: int,
@@ -600,7 +607,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     def inverse_or_zero(x: float) -> float:
         return 1.0 / x if x != 0 else 0.0
 
-    @jit
+    @jit_called
     def march_ray_skipping(
         tsdf_weight: Any,
         o0: int,
