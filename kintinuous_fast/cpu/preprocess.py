@@ -29,7 +29,9 @@ from kintinuous_fast._host import (
     SOBEL_Y,
     check_frame_inputs,
     gaussian3x3,
+    preprocess_frame_with,
 )
+from kintinuous_fast.cpu import run_parallel_above
 from kintinuous_fast.ops import cpu_jit
 from kintinuous_fast.ops.preprocess import build_ops
 from kintinuous_ref.camera import Intrinsics
@@ -74,15 +76,7 @@ _parallel_fma = numba.njit(parallel=True, cache=True, fastmath={"contract"})
 
 def _run(loop, pixels: int, *args) -> None:
     """Call a prange loop, on the calling thread alone below PARALLEL_MIN pixels."""
-    if pixels >= PARALLEL_MIN:
-        loop(*args)
-        return
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        loop(*args)
-    finally:
-        numba.set_num_threads(threads)
+    run_parallel_above(PARALLEL_MIN, loop, pixels, *args)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -678,27 +672,6 @@ def preprocess_frame(
 ) -> PreprocessedFrame:
     """Everything tracking and fusion need from one RGB-D pair (kintinuous_ref.preprocess)."""
     check_frame_inputs(colour, depth, camera)
-    raw = metric_depth(depth, config.max_depth, camera.depth_scale)
-    filtered = bilateral_filter(
-        raw, config.bilateral_sigma_space, config.bilateral_sigma_depth, config.bilateral_radius
-    )
-    intensity = intensity_image(colour)
-    levels: list[PyramidLevel] = []
-    for level in range(config.pyramid_levels):
-        if level > 0:
-            raw = pyramid_down_depth(raw, config.pyramid_depth_cutoff)
-            filtered = pyramid_down_depth(filtered, config.pyramid_depth_cutoff)
-            intensity = pyramid_down_intensity(intensity)
-        level_camera = camera.at_level(level)
-        vertices = vertex_map(filtered, level_camera)
-        dx, dy = intensity_gradients(intensity, config.gradient_blur_sigma)
-        levels.append(
-            PyramidLevel(level_camera, raw, vertices, normal_map(vertices), intensity, dx, dy)
-        )
-    mask = discontinuity_mask(
-        levels[0].depth,
-        config.discontinuity_window,
-        config.discontinuity_jump,
-        config.discontinuity_max_bad,
-    )
-    return PreprocessedFrame(colour=colour, depth=levels[0].depth, levels=levels, colour_mask=mask)
+    import kintinuous_fast.cpu.preprocess as stages
+
+    return preprocess_frame_with(stages, colour, depth, camera, config)

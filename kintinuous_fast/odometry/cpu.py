@@ -17,6 +17,7 @@ import numba
 import numpy as np
 from numba import prange
 
+from kintinuous_fast.cpu import run_parallel_above
 from kintinuous_fast.ops import cpu_jit
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
@@ -259,15 +260,7 @@ def _run(loop, count: int, *args) -> None:
     threads costs more than such a loop, and on a busy machine a parallel region waits for its
     slowest (descheduled) thread: tens of milliseconds per call were measured at load 9 on two
     cores for loops of a few thousand points."""
-    if count >= PARALLEL_MIN:
-        loop(*args)
-        return
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        loop(*args)
-    finally:
-        numba.set_num_threads(threads)
+    run_parallel_above(PARALLEL_MIN, loop, count, *args)
 
 
 def _partials(count: int) -> np.ndarray:
