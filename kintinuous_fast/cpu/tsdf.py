@@ -53,6 +53,7 @@ count_negative = _ops.count_negative
 project_voxel = _ops.project_voxel
 voxel_norm = _ops.voxel_norm
 fuse_voxel = _ops.fuse_voxel
+column_start = _ops.column_start
 
 _loop = numba.njit(parallel=True, cache=True, error_model="numpy")
 _NO_COUNTS = np.zeros((1, 1, 1), dtype=np.uint8)  # typed placeholder: counts not kept
@@ -99,11 +100,7 @@ def _integrate_slice(
     fi = np.float32(i)
     ci = cell(i, o0, n)
     for j in range(lo[1], hi[1]):
-        fj = np.float32(j)
-        # the reference's float32 order: ((base + i a_x) + j a_y) + k a_z
-        px = (base[0] + fi * steps[0, 0]) + fj * steps[1, 0]
-        py = (base[1] + fi * steps[0, 1]) + fj * steps[1, 1]
-        pz = (base[2] + fi * steps[0, 2]) + fj * steps[1, 2]
+        px, py, pz = column_start(base, steps, fi, np.float32(j))
         k0, k1 = column_range(
             float(px),
             float(py),

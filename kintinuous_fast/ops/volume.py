@@ -185,6 +185,16 @@ def build_ops(
         return change
 
     @jit
+    def column_start(base: Any, steps: Any, fi: Any, fj: Any) -> tuple:
+        """Camera-frame centre of voxel (i, j, 0): base + i a_x + j a_y in float32, the
+        reference's order of additions (a column then adds k a_z)."""
+        return (
+            (base[0] + fi * steps[0, 0]) + fj * steps[1, 0],
+            (base[1] + fi * steps[0, 1]) + fj * steps[1, 1],
+            (base[2] + fi * steps[0, 2]) + fj * steps[1, 2],
+        )
+
+    @jit
     def integrate_voxel(
         tsdf_weight: Any,
         colour_volume: Any,
@@ -207,10 +217,11 @@ def build_ops(
     ) -> None:
         """Logical voxel (i, j, k): p_c = base + i a_x + j a_y + k a_z (float32, the
         reference's order of additions), then update_voxel on its array cell."""
-        fi, fj, fk = np.float32(i), np.float32(j), np.float32(k)
-        x = ((base[0] + fi * steps[0, 0]) + fj * steps[1, 0]) + fk * steps[2, 0]
-        y = ((base[1] + fi * steps[0, 1]) + fj * steps[1, 1]) + fk * steps[2, 1]
-        z = ((base[2] + fi * steps[0, 2]) + fj * steps[1, 2]) + fk * steps[2, 2]
+        px, py, pz = column_start(base, steps, np.float32(i), np.float32(j))
+        fk = np.float32(k)
+        x = px + fk * steps[2, 0]
+        y = py + fk * steps[2, 1]
+        z = pz + fk * steps[2, 2]
         n = tsdf_weight.shape[0]
         update_voxel(
             tsdf_weight,
@@ -440,6 +451,35 @@ def build_ops(
         return sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
 
     @jit
+    def refine_crossing(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        t0: float,
+        f0: float,
+        t1: float,
+        f1: float,
+        volume_origin: Any,
+        voxel_size: float,
+    ) -> float:
+        """The ray distance of the surface between samples t0 (F > 0) and t1 (F < 0): one
+        secant step, then a second on whichever side the estimate falls (the reference's)."""
+        estimate = zero_crossing(t0, f0, t1, f1)
+        f = sample_along(
+            tsdf_weight, o0, o1, o2, origin, d0, d1, d2, estimate, volume_origin, voxel_size
+        )
+        if f > 0:
+            return zero_crossing(estimate, f, t1, f1)
+        if f < 0:
+            return zero_crossing(t0, f0, estimate, f)
+        return estimate
+
+    @jit
     def border_distance(c: float, velocity: float, brick: int, reach: int) -> float:
         """Ray parameter to the border of the empty cube of bricks [brick - reach, brick +
         reach] along one axis (velocity in voxels per metre); inf when parallel."""
@@ -542,17 +582,10 @@ def build_ops(
                         )  # fmt: skip
                 value = sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
                 if previous > 0 and value < 0:
-                    t0 = t - step
-                    estimate = zero_crossing(t0, previous, t, value)
-                    f = sample_along(
-                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, estimate,
-                        volume_origin, voxel_size,
+                    return refine_crossing(
+                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t - step, previous, t,
+                        value, volume_origin, voxel_size,
                     )  # fmt: skip
-                    if f > 0:
-                        return zero_crossing(estimate, f, t, value)
-                    if f < 0:
-                        return zero_crossing(t0, previous, estimate, f)
-                    return estimate
                 if previous < 0 and value > 0:
                     return np.nan  # a back face
                 previous = value
@@ -698,17 +731,10 @@ def build_ops(
                     tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
                 )
                 if previous > 0 and value < 0:
-                    t0 = t - step
-                    estimate = zero_crossing(t0, previous, t, value)
-                    f = sample_along(
-                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, estimate,
-                        volume_origin, voxel_size,
+                    return refine_crossing(
+                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t - step, previous, t,
+                        value, volume_origin, voxel_size,
                     )  # fmt: skip
-                    if f > 0:
-                        return zero_crossing(estimate, f, t, value)
-                    if f < 0:
-                        return zero_crossing(t0, previous, estimate, f)
-                    return estimate
                 if previous < 0 and value > 0:
                     return np.nan  # a back face
                 previous = value
@@ -876,6 +902,7 @@ def build_ops(
 
     return SimpleNamespace(
         cell=cell,
+        column_start=column_start,
         count_negative=count_negative,
         update_voxel=update_voxel,
         project_voxel=project_voxel,
