@@ -11,6 +11,8 @@ holding a counted voxel, and the fine map marks the fine bricks whose samples ma
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from numba import prange
@@ -27,10 +29,13 @@ __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 _ops = build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called)
 raycast_pixel = _ops.raycast_pixel
 raycast_pixel_skipping = _ops.raycast_pixel_skipping
+ray_direction = _ops.ray_direction
+cone_safe_until = _ops.cone_safe_until
+ray_span = _ops.ray_span
 # Largest fine-brick distance kept: a jump leaves a cube reaching 15 fine bricks (30 voxels) to
 # either side, as far as a brick at distance 4 would (bricks below ops.FINE_LEVEL_BELOW read it).
 FINE_DISTANCE_CAP = 16
-ROWS_PER_CHUNK = 4  # rows handed to a thread at a time (dynamic scheduling of the rays)
+TILE = 8  # pixels per side of the tiles whose rays march their shared free space once
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -140,6 +145,27 @@ def empty_space(volume: FastTsdfVolume) -> np.ndarray:
     return brick_maps(volume)[0]
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _tile_safe_until(
+    empty, fine_distance, n, u0, u1, v0, v1, camera, rotation, origin, volume_origin, voxel_size
+):
+    """cone_safe_until for the rays of pixels [u0, u1) x [v0, v1) around the middle one's,
+    from the first of their entries into the volume."""
+    c0, c1, c2 = ray_direction((u0 + u1 - 1) // 2, (v0 + v1 - 1) // 2, camera, rotation)
+    spread = 0.0
+    start = np.inf
+    for v in range(v0, v1):
+        for u in range(u0, u1):
+            d0, d1, d2 = ray_direction(u, v, camera, rotation)
+            spread = max(spread, max(max(abs(d0 - c0), abs(d1 - c1)), abs(d2 - c2)))
+            start = min(start, ray_span(origin, d0, d1, d2, volume_origin, voxel_size, n)[0])
+    if not math.isfinite(start):
+        return 0.0
+    return cone_safe_until(
+        empty, fine_distance, n, origin, c0, c1, c2, spread, volume_origin, voxel_size, start
+    )
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _raycast_loop(
     tsdf_weight,
@@ -161,22 +187,36 @@ def _raycast_loop(
     normals,
     colours,
 ):
-    # rays cost very different amounts: rows are handed out a few at a time (the caller sets
-    # the chunk size), so a thread that finishes early, or was descheduled, evens out
-    for v in prange(vertices.shape[0]):
-        for u in range(vertices.shape[1]):
+    # Rays cost very different amounts: rows of tiles are handed out one at a time (the caller
+    # sets the chunk size), so a thread that finishes early, or was descheduled, evens out.
+    # Each tile's rays share the free space in front of them, marched once (cone_safe_until).
+    height, width = vertices.shape[0], vertices.shape[1]
+    n = tsdf_weight.shape[0]
+    for tile_row in prange(-(-height // TILE)):
+        v0 = tile_row * TILE
+        v1 = min(v0 + TILE, height)
+        for u0 in range(0, width, TILE):
+            u1 = min(u0 + TILE, width)
+            safe_until = 0.0
             if skipping:
-                raycast_pixel_skipping(
-                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
-                    u, v, camera, rotation, origin, volume_origin, voxel_size, step, vertices,
-                    normals, colours,
+                safe_until = _tile_safe_until(
+                    empty, fine_distance, n, u0, u1, v0, v1, camera, rotation, origin,
+                    volume_origin, voxel_size,
                 )  # fmt: skip
-            else:  # the plain march (march_ray with maps that skip nothing): the reference's
-                raycast_pixel(
-                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
-                    u, v, camera, rotation, origin, volume_origin, voxel_size, step, vertices,
-                    normals, colours,
-                )  # fmt: skip
+            for v in range(v0, v1):
+                for u in range(u0, u1):
+                    if skipping:
+                        raycast_pixel_skipping(
+                            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty,
+                            fine_distance, u, v, camera, rotation, origin, volume_origin,
+                            voxel_size, step, vertices, normals, colours, safe_until,
+                        )  # fmt: skip
+                    else:  # the plain march (march_ray, maps that skip nothing): the reference's
+                        raycast_pixel(
+                            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty,
+                            fine_distance, u, v, camera, rotation, origin, volume_origin,
+                            voxel_size, step, vertices, normals, colours,
+                        )  # fmt: skip
 
 
 def raycast(
@@ -196,7 +236,7 @@ def raycast(
     else:  # the plain march: every sample taken
         empty = np.zeros((1, 1, 1), dtype=np.int64)
         fine_distance = np.ones((1, 1, 1), dtype=np.uint8)  # march_ray's `near`: sample
-    with numba.parallel_chunksize(ROWS_PER_CHUNK):
+    with numba.parallel_chunksize(1):  # a row of tiles at a time
         _raycast_loop(
             volume.tsdf_weight,
             colour_volume,

@@ -30,6 +30,13 @@ JUMP_MARGIN = 1e-6
 # FINE^3 bricks, capped; valid everywhere): near surfaces they are longer than the brick
 # map's, whose cube of radius D - 1 is a single brick at D = 1.
 FINE_LEVEL_BELOW = 4
+# The cpu raycast's tile cones (cone_safe_until): the slack, in voxels, by which the box of rays
+# stays inside a safe cube (far above rounding, ~1e-13 voxels), the most cubes walked, and the
+# voxels past the box's leading face where the next cube is looked up (also the least advance,
+# along the ray's dominant axis, worth another cube).
+CONE_MARGIN = 1e-3
+CONE_STEPS = 64
+CONE_LOOKAHEAD = 0.5
 
 # Cyclical buffer (kintinuous_ref.tsdf, moving volume): logical voxel l lives in array cell
 # (l + offset) mod N, offset in [0, N). Every function below takes the offset as three ints
@@ -428,6 +435,18 @@ def build_ops(
         return min(t0, t1), max(t0, t1)
 
     @jit
+    def ray_span(
+        origin: Any, d0: float, d1: float, d2: float, volume_origin: Any, voxel_size: float, n: int
+    ) -> tuple:
+        """(entry, exit): the ray parameters where the ray is inside the volume's sample box
+        [0, N - 1]^3 (entry >= 0; empty when entry >= exit)."""
+        upper_offset = (n - 1) * voxel_size
+        lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
+        lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
+        lo2, hi2 = axis_interval(origin[2], d2, volume_origin[2], volume_origin[2] + upper_offset)
+        return max(max(max(lo0, lo1), lo2), 0.0), min(min(hi0, hi1), hi2)
+
+    @jit
     def zero_crossing(t0: float, f0: float, t1: float, f1: float) -> float:
         return t0 + (t1 - t0) * f0 / (f0 - f1)
 
@@ -527,12 +546,7 @@ def build_ops(
         would complete here), it decides nothing and is skipped like a sample in an empty brick
         (the next sample taken recovers its predecessor). A (1, 1, 1) map of True samples every
         step."""
-        upper_offset = (tsdf_weight.shape[0] - 1) * voxel_size
-        lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
-        lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
-        lo2, hi2 = axis_interval(origin[2], d2, volume_origin[2], volume_origin[2] + upper_offset)
-        entry = max(max(max(lo0, lo1), lo2), 0.0)
-        exit_ = min(min(hi0, hi1), hi2)
+        entry, exit_ = ray_span(origin, d0, d1, d2, volume_origin, voxel_size, tsdf_weight.shape[0])
         if not entry < exit_:
             return np.nan
         bricks = empty.shape[0]
@@ -655,9 +669,12 @@ def build_ops(
         volume_origin: Any,
         voxel_size: float,
         step: float,
+        safe_until: float,
     ) -> float:
         """march_ray with a distance map at both levels: `empty` over BRICK^3 bricks (as
-        there) and `fine_distance` over the fine bricks inside bricks at distance 0.
+        there) and `fine_distance` over the fine bricks inside bricks at distance 0, starting
+        at the first sample at or past `safe_until` (cone_safe_until's: no sample before it
+        can be negative, so they are skipped like those of a jump; 0 starts at the entry).
 
         fine_distance[f] = D >= 1 says no fine brick within chessboard distance D - 1 of f is
         `near` (march_ray's fine map: may hold the lower corner of a negative sample), so every
@@ -666,12 +683,7 @@ def build_ops(
         the samples' nominal coordinates (linear in the sample index) with a margin, so the
         samples skipped are a subset of those the exact test would skip: the same answer.
         """
-        upper_offset = (tsdf_weight.shape[0] - 1) * voxel_size
-        lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
-        lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
-        lo2, hi2 = axis_interval(origin[2], d2, volume_origin[2], volume_origin[2] + upper_offset)
-        entry = max(max(max(lo0, lo1), lo2), 0.0)
-        exit_ = min(min(hi0, hi1), hi2)
+        entry, exit_ = ray_span(origin, d0, d1, d2, volume_origin, voxel_size, tsdf_weight.shape[0])
         if not entry < exit_:
             return np.nan
         # voxel coordinates of sample m, nominally: start + m * per_sample (jump lengths only)
@@ -681,8 +693,14 @@ def build_ops(
         last_fine = fine_distance.shape[0] - 1
         n = tsdf_weight.shape[0]
         previous = np.nan
-        previous_known = True
         m = 0
+        if safe_until > entry:
+            if not safe_until <= exit_:
+                return np.nan
+            m = int(math.ceil((safe_until - entry) / step))
+            if not entry + m * step <= exit_:
+                return np.nan
+        previous_known = m == 0  # past a skipped stretch the sample before is recovered
         sx = (origin[0] + entry * d0 - volume_origin[0]) / voxel_size
         sy = (origin[1] + entry * d1 - volume_origin[1]) / voxel_size
         sz = (origin[2] + entry * d2 - volume_origin[2]) / voxel_size
@@ -743,6 +761,103 @@ def build_ops(
             m = m_next
             if not entry + m * step <= exit_:
                 return np.nan
+
+    @jit
+    def box_inside(c: float, half: float, lower: float, upper: float) -> bool:
+        """Whether [c - half, c + half] lies in [lower, upper] with CONE_MARGIN to spare."""
+        return c - half >= lower + CONE_MARGIN and c + half <= upper - CONE_MARGIN
+
+    @jit
+    def box_advance(
+        c: float, half: float, v: float, spread: float, lower: float, upper: float
+    ) -> float:
+        """Largest dt keeping [c - half, c + half] inside [lower, upper] (less CONE_MARGIN)
+        while its centre moves at v and its half-width grows at `spread` per unit of dt."""
+        dt = np.inf
+        if v + spread > 0:
+            dt = (upper - CONE_MARGIN - c - half) / (v + spread)
+        if v - spread < 0:
+            dt = min(dt, (c - half - lower - CONE_MARGIN) / (spread - v))
+        return dt
+
+    @jit_called
+    def cone_safe_until(
+        empty: Any,
+        fine_distance: Any,
+        n: int,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        spread: float,
+        volume_origin: Any,
+        voxel_size: float,
+        start: float,
+    ) -> float:
+        """A ray parameter T >= `start` (where none of the rays has entered the volume yet)
+        such that no sample at t <= T of any ray whose unit direction
+        differs from (d0, d1, d2) by at most `spread` in each component can be negative: the
+        shared free space in front of a tile of pixels, marched once for all its rays.
+
+        At t those rays lie in a box of half-width t * spread / voxel_size voxels around the
+        centre ray's point. The box is walked through the safe cubes of the two distance maps
+        (march_ray_skipping's: samples whose brick, or whose lower corner's fine brick, lies in
+        the cube cannot be negative), each time as far as it stays inside the cube, choosing
+        the cube just ahead of the centre; the walk stops where no cube holds the whole box
+        (next to the tile's nearest surface). Points outside [0, N - 1]^3 are no samples: the
+        box may start and end outside the volume."""
+        sx = (origin[0] - volume_origin[0]) / voxel_size
+        sy = (origin[1] - volume_origin[1]) / voxel_size
+        sz = (origin[2] - volume_origin[2]) / voxel_size
+        vx, vy, vz = d0 / voxel_size, d1 / voxel_size, d2 / voxel_size
+        grow = spread / voxel_size
+        # The next cube is the one around a point just past the box's leading face along the
+        # ray's dominant axis (the face the last advance stopped at, unless growth stopped it).
+        dominant = max(max(abs(vx), abs(vy)), abs(vz))
+        # Lower corners are clamped to N - 2: past it, that names another fine brick than the
+        # coordinates do only when N - 1 starts a fine brick.
+        top = n - 2.0 if (n - 1) % FINE == 0 else np.inf
+        t = start
+        for _ in range(CONE_STEPS):
+            cx, cy, cz = sx + t * vx, sy + t * vy, sz + t * vz
+            half = t * grow
+            if not (
+                box_inside(cx, half, -np.inf, top)
+                and box_inside(cy, half, -np.inf, top)
+                and box_inside(cz, half, -np.inf, top)
+            ):
+                return t
+            ahead = (half + CONE_LOOKAHEAD) / dominant
+            ax = min(max(cx + ahead * vx, 0.0), n - 1.0)
+            ay = min(max(cy + ahead * vy, 0.0), n - 1.0)
+            az = min(max(cz + ahead * vz, 0.0), n - 1.0)
+            bx, by, bz = int(ax) // BRICK, int(ay) // BRICK, int(az) // BRICK
+            radius = int(empty[bx, by, bz])
+            size, fx, fy, fz = BRICK, bx, by, bz
+            if radius < 1 or not (
+                box_inside(cx, half, (bx - radius + 1) * BRICK, (bx + radius) * BRICK)
+                and box_inside(cy, half, (by - radius + 1) * BRICK, (by + radius) * BRICK)
+                and box_inside(cz, half, (bz - radius + 1) * BRICK, (bz + radius) * BRICK)
+            ):
+                size, fx, fy, fz = FINE, int(ax) // FINE, int(ay) // FINE, int(az) // FINE
+                radius = int(fine_distance[fx, fy, fz])
+                if radius < 1 or not (
+                    box_inside(cx, half, (fx - radius + 1) * FINE, (fx + radius) * FINE)
+                    and box_inside(cy, half, (fy - radius + 1) * FINE, (fy + radius) * FINE)
+                    and box_inside(cz, half, (fz - radius + 1) * FINE, (fz + radius) * FINE)
+                ):
+                    return t
+            dt = min(
+                min(
+                    box_advance(cx, half, vx, grow, (fx - radius + 1) * size, (fx + radius) * size),
+                    box_advance(cy, half, vy, grow, (fy - radius + 1) * size, (fy + radius) * size),
+                ),
+                box_advance(cz, half, vz, grow, (fz - radius + 1) * size, (fz + radius) * size),
+            )
+            if not dt * dominant >= CONE_LOOKAHEAD:
+                return t  # the box has (nearly) outgrown the cubes: leave the rest to each ray
+            t += dt
+        return t
 
     @jit
     def clear_of_faces(c: float) -> bool:
@@ -834,12 +949,14 @@ def build_ops(
         vertices: Any,
         normals: Any,
         colours: Any,
+        safe_until: float,
     ) -> None:
-        """raycast_pixel by march_ray_skipping (the cpu backend's two distance maps)."""
+        """raycast_pixel by march_ray_skipping (the cpu backend's two distance maps), from
+        `safe_until` on (cone_safe_until of the pixel's tile)."""
         d0, d1, d2 = ray_direction(u, v, camera, rotation)
         t = march_ray_skipping(
             tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d0, d1, d2, volume_origin,
-            voxel_size, step,
+            voxel_size, step, safe_until,
         )  # fmt: skip
         shade_pixel(
             tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2,
@@ -904,12 +1021,14 @@ def build_ops(
         cell=cell,
         column_start=column_start,
         count_negative=count_negative,
+        cone_safe_until=cone_safe_until,
         update_voxel=update_voxel,
         project_voxel=project_voxel,
         voxel_norm=voxel_norm,
         fuse_voxel=fuse_voxel,
         column_range=column_range,
         dequantise=dequantise,
+        ray_span=ray_span,
         quantise=quantise,
         ray_distance_pixel=ray_distance_pixel,
         integrate_voxel=integrate_voxel,
