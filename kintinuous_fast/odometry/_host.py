@@ -113,6 +113,7 @@ class IcpProblemBase:
         self.distance_threshold = distance_threshold
         self.angle_threshold_deg = angle_threshold_deg
         self._maps: dict[int, tuple[Any, Any, Any, Any]] = {}
+        self._points: dict[int, Any] = {}  # per level, for kernels that compact the valid points
 
     def maps(self, level: int) -> tuple[Any, Any, Any, Any]:
         """The level's current and model maps as the kernels take them, staged once."""

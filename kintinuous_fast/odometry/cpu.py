@@ -60,6 +60,9 @@ __all__ = [
 CHUNKS = 64
 # Loops over fewer items than this run on the calling thread only (see _run).
 PARALLEL_MIN = 50_000
+# Points per block of the ICP loop: the block's projections are computed first, in a loop that
+# vectorises (divisions and roundings 8 at a time), into a buffer that stays in L1.
+BLOCK = 128
 
 # The per-pair ops are inlined into the loops at numba IR level: compiled separately, LLVM does not
 # inline the larger ones (icp_match, warp_point take 4-8 arrays, i.e. dozens of scalar arguments),
@@ -67,6 +70,8 @@ PARALLEL_MIN = 50_000
 _ops = build_ops(numba.njit(cache=True, inline="always"))
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 icp_match = _ops.icp_match
+project_nearest = _ops.project_nearest
+match_pixel = _ops.match_pixel
 map_point = _ops.map_point
 point_to_plane_row = _ops.point_to_plane_row
 is_interest = _ops.is_interest
@@ -85,27 +90,70 @@ _loop = numba.njit(parallel=True, cache=True)
 
 
 @_loop
-def _icp_loop(vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
-    """Association + point-to-plane row + accumulation over every pixel of the current map;
+def _valid_counts(vertices, normals, counts):
+    """counts[v] = the valid current points (finite vertex and normal) of row v."""
+    for v in prange(vertices.shape[0]):
+        count = 0
+        for u in range(vertices.shape[1]):
+            count += map_point(vertices, normals, v, u)[0]
+        counts[v] = count
+
+
+@_loop
+def _compact_loop(vertices, normals, starts, points):
+    """The valid current points as float64 columns (px, py, pz, nx, ny, nz) in row-major order,
+    row v's from column starts[v]."""
+    for v in prange(vertices.shape[0]):
+        k = starts[v]
+        for u in range(vertices.shape[1]):
+            ok, px, py, pz, nx, ny, nz = map_point(vertices, normals, v, u)
+            if ok:
+                points[0, k], points[1, k], points[2, k] = px, py, pz
+                points[3, k], points[4, k], points[5, k] = nx, ny, nz
+                k += 1
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _project_block(points, start, stop, to_model, fx, fy, cx, cy, width, height, rows, cols):
+    """project_nearest of points[:, start:stop] into rows / cols: branch-free, so LLVM vectorises
+    it (its own function: the NumPy error model leaves the guarded division without a zero test,
+    and the loop with the data-dependent branches below would not vectorise)."""
+    for k in range(start, stop):
+        rows[k - start], cols[k - start] = project_nearest(
+            to_model, points[0, k], points[1, k], points[2, k], fx, fy, cx, cy, width, height
+        )
+
+
+@_loop
+def _icp_loop(points, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
+    """Association + point-to-plane row + accumulation over the valid current points (6, n);
     out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points)."""
-    height, width = vertices.shape[0], vertices.shape[1]
-    n = height * width
+    height, width = mv.shape[0], mv.shape[1]
+    n = points.shape[1]
     chunks = out.shape[0]
     for c in prange(chunks):
-        acc = out[c]
-        for i in range(c * n // chunks, (c + 1) * n // chunks):
-            v = i // width
-            u = i - v * width
-            ok, px, py, pz, nx, ny, nz = map_point(vertices, normals, v, u)
-            if not ok:
-                continue
-            acc[NV - 1] += 1.0
-            kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
-                px, py, pz, nx, ny, nz, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min
-            )
-            if kept:
-                j0, j1, j2, j3, j4, j5, r = point_to_plane_row(wx, wy, wz, qx, qy, qz, ux, uy, uz)
-                add_row(acc, j0, j1, j2, j3, j4, j5, r, 1.0)
+        acc = np.zeros(NV)  # not out[c]: LLVM then keeps the sums apart from the other arrays
+        rows = np.empty(BLOCK, dtype=np.int64)
+        cols = np.empty(BLOCK, dtype=np.int64)
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        acc[NV - 1] += stop - start
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _project_block(points, block, end, to_model, fx, fy, cx, cy, width, height, rows, cols)
+            for k in range(block, end):
+                iv = rows[k - block]
+                if iv < 0:
+                    continue
+                kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = match_pixel(
+                    points[0, k], points[1, k], points[2, k], points[3, k], points[4, k],
+                    points[5, k], pose, mv, mn, iv, cols[k - block], dist2, cos_min,
+                )  # fmt: skip
+                if kept:
+                    j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
+                        wx, wy, wz, qx, qy, qz, ux, uy, uz
+                    )
+                    add_row(acc, j0, j1, j2, j3, j4, j5, r, 1.0)
+        out[c] = acc
 
 
 @_loop
@@ -273,6 +321,40 @@ def _partials(count: int) -> np.ndarray:
 # ICP (kintinuous_ref.odometry.icp)
 
 
+def valid_points(vertices, normals) -> np.ndarray:
+    """The valid current points (finite vertex and normal) as (6, n) float64 columns (px, py, pz,
+    nx, ny, nz) in the reference's row-major order (ref `valid_points`). Depends on the frame
+    only: the ICP problem computes it once per level, not per iteration."""
+    counts = np.empty(vertices.shape[0], dtype=np.int64)
+    _run(_valid_counts, vertices.shape[0] * vertices.shape[1], vertices, normals, counts)
+    starts = np.zeros_like(counts)
+    np.cumsum(counts[:-1], out=starts[1:])
+    points = np.empty((6, int(counts.sum())))
+    _run(_compact_loop, vertices.shape[0] * vertices.shape[1], vertices, normals, starts, points)
+    return points
+
+
+def icp_points_system(
+    points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
+    angle_threshold_deg,
+) -> tuple[LinearSystem, int]:  # fmt: skip
+    """icp_system of the valid current points (`valid_points`) and their number (for the inlier
+    fraction)."""
+    _host.check_map("model vertex map", model_vertices, camera)
+    _host.check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = _host.icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    out = _partials(points.shape[1])
+    _run(
+        _icp_loop,
+        points.shape[1],
+        points, pose, to_model, model_vertices, model_normals,
+        *_host.camera_constants(camera), dist2, cos_min, out,
+    )  # fmt: skip
+    return _host.sum_partials(out)
+
+
 def icp_system_and_valid(
     vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
     distance_threshold, angle_threshold_deg,
@@ -280,19 +362,10 @@ def icp_system_and_valid(
     """icp_system and the number of valid current points (for the inlier fraction)."""
     _host.check_map("current vertex map", vertices, camera)
     _host.check_map("current normal map", normals, camera)
-    _host.check_map("model vertex map", model_vertices, camera)
-    _host.check_map("model normal map", model_normals, camera)
-    pose, to_model, dist2, cos_min = _host.icp_constants(
-        pose, model_pose, distance_threshold, angle_threshold_deg
-    )
-    out = _partials(camera.height * camera.width)
-    _run(
-        _icp_loop,
-        camera.height * camera.width,
-        vertices, normals, pose, to_model, model_vertices, model_normals,
-        *_host.camera_constants(camera), dist2, cos_min, out,
+    return icp_points_system(
+        valid_points(vertices, normals), model_vertices, model_normals, pose, model_pose, camera,
+        distance_threshold, angle_threshold_deg,
     )  # fmt: skip
-    return _host.sum_partials(out)
 
 
 def icp_system(
@@ -557,7 +630,20 @@ def rgbd_system(
 
 
 class IcpProblem(_host.IcpProblemBase):
-    """kintinuous_ref.odometry.icp.IcpProblem with the CPU loops underneath."""
+    """kintinuous_ref.odometry.icp.IcpProblem with the CPU loops underneath; each level's valid
+    current points are compacted once, on first use, for all of its iterations."""
+
+    def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
+        vertices, normals, model_vertices, model_normals = self.maps(level)
+        camera = self.current_levels[level].camera
+        if level not in self._points:
+            _host.check_map("current vertex map", vertices, camera)
+            _host.check_map("current normal map", normals, camera)
+            self._points[level] = valid_points(vertices, normals)
+        return icp_points_system(
+            self._points[level], model_vertices, model_normals, pose, self.model_pose, camera,
+            self.distance_threshold, self.angle_threshold_deg,
+        )  # fmt: skip
 
 
 class RgbdProblem(_host.RgbdProblemBase):

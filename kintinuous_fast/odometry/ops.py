@@ -39,14 +39,11 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
 
     @jit
     def rint(x: float) -> float:
-        """Round half to even, as np.rint (exact: x - floor(x) has no rounding error here)."""
-        f = math.floor(x)
-        d = x - f
-        if d > 0.5:
-            return f + 1.0
-        if d < 0.5:
-            return f
-        return f + (f - 2.0 * math.floor(f * 0.5))  # halfway: to the even neighbour
+        """Round half to even, as np.rint, for |x| < 2^51: adding and subtracting 1.5 * 2^52 leaves
+        x rounded to an integer in the default rounding mode (no branch, so the CPU's projection
+        loop vectorises). Larger |x| come back within a few units of x (far outside any image);
+        NaN and inf stay NaN and inf."""
+        return (x + 6755399441055744.0) - 6755399441055744.0
 
     @jit
     def transform(m: Any, x: float, y: float, z: float) -> tuple[float, float, float]:
@@ -70,6 +67,68 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     # ICP (kintinuous_ref.odometry.icp)
 
     @jit
+    def project_nearest(
+        m: Any,
+        x: float,
+        y: float,
+        z: float,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        width: int,
+        height: int,
+    ) -> tuple[int, int]:
+        """(row, column) of the pixel nearest to m (x, y, z) in a (height, width) camera, (-1, -1)
+        behind the camera or outside the image (ref `associate`). No branch on the data (NaN
+        fails every test), so that a loop of these vectorises."""
+        mx, my, mz = transform(m, x, y, z)
+        front = mz > 1e-6
+        safe_z = mz if front else 1.0
+        u = rint(fx * mx / safe_z + cx)
+        v = rint(fy * my / safe_z + cy)
+        inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        return (int(v) if inside else -1), (int(u) if inside else -1)
+
+    @jit
+    def match_pixel(
+        px: float,
+        py: float,
+        pz: float,
+        nx: float,
+        ny: float,
+        nz: float,
+        pose: Any,
+        model_vertices: Any,
+        model_normals: Any,
+        iv: int,
+        iu: int,
+        dist2: float,
+        cos_min: float,
+    ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
+        """The ICP pair of one valid current point and the model pixel (iv, iu) it projects to:
+        (kept, world point p = T v, model vertex, model normal). Rejected without a model surface
+        there (NaN fails both tests), farther than the distance threshold or with normals more
+        than the angle threshold apart."""
+        wx, wy, wz = transform(pose, px, py, pz)
+        qx = float(model_vertices[iv, iu, 0])
+        qy = float(model_vertices[iv, iu, 1])
+        qz = float(model_vertices[iv, iu, 2])
+        ux = float(model_normals[iv, iu, 0])
+        uy = float(model_normals[iv, iu, 1])
+        uz = float(model_normals[iv, iu, 2])
+        gx, gy, gz = rotate(pose, nx, ny, nz)
+        dx = wx - qx
+        dy = wy - qy
+        dz = wz - qz
+        squared = dx * dx + dy * dy + dz * dz
+        cos_angle = gx * ux + gy * uy + gz * uz
+        if squared <= dist2 and cos_angle >= cos_min:
+            return True, wx, wy, wz, qx, qy, qz, ux, uy, uz
+        nan = math.nan
+        return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+
+    @jit
     def icp_match(
         px: float,
         py: float,
@@ -88,38 +147,17 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         dist2: float,
         cos_min: float,
     ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
-        """Projective association of one valid current point (ref `associate`): (kept, world
-        point p = T v, model vertex, model normal). Nearest pixel of the model's camera; rejected
-        without a model surface there (NaN fails both tests), farther than the distance threshold
-        or with normals more than the angle threshold apart."""
-        height = model_vertices.shape[0]
-        width = model_vertices.shape[1]
-        wx, wy, wz = transform(pose, px, py, pz)
-        mx, my, mz = transform(to_model, px, py, pz)
-        nan = math.nan
-        if not mz > 1e-6:
+        """Projective association of one valid current point (ref `associate`): the nearest pixel
+        of the model's camera (project_nearest), then the tests of match_pixel."""
+        iv, iu = project_nearest(
+            to_model, px, py, pz, fx, fy, cx, cy, model_vertices.shape[1], model_vertices.shape[0]
+        )
+        if iv < 0:
+            nan = math.nan
             return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
-        u = rint(fx * mx / mz + cx)
-        v = rint(fy * my / mz + cy)
-        if not (u >= 0 and u < width and v >= 0 and v < height):
-            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
-        iu = int(u)
-        iv = int(v)
-        qx = float(model_vertices[iv, iu, 0])
-        qy = float(model_vertices[iv, iu, 1])
-        qz = float(model_vertices[iv, iu, 2])
-        ux = float(model_normals[iv, iu, 0])
-        uy = float(model_normals[iv, iu, 1])
-        uz = float(model_normals[iv, iu, 2])
-        gx, gy, gz = rotate(pose, nx, ny, nz)
-        dx = wx - qx
-        dy = wy - qy
-        dz = wz - qz
-        squared = dx * dx + dy * dy + dz * dz
-        cos_angle = gx * ux + gy * uy + gz * uz
-        if squared <= dist2 and cos_angle >= cos_min:
-            return True, wx, wy, wz, qx, qy, qz, ux, uy, uz
-        return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        return match_pixel(
+            px, py, pz, nx, ny, nz, pose, model_vertices, model_normals, iv, iu, dist2, cos_min
+        )
 
     @jit
     def map_point(vertices: Any, normals: Any, v: int, u: int) -> tuple[bool, float, ...]:
@@ -328,6 +366,8 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         rint=rint,
         transform=transform,
         rotate=rotate,
+        project_nearest=project_nearest,
+        match_pixel=match_pixel,
         icp_match=icp_match,
         map_point=map_point,
         point_to_plane_row=point_to_plane_row,
