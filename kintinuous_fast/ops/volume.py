@@ -738,16 +738,20 @@ def build_ops(
                 )  # fmt: skip
                 previous_known = False
             else:
-                if not previous_known:
+                value = sample_along(
+                    tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
+                )
+                # A skipped sample is >= 0 or unknown, so after a jump the one before matters
+                # only if this one is negative (a crossing, never a back face): fetched then.
+                if not previous_known and value < 0:
                     previous = np.nan
                     if m > 0:
                         previous = sample_along(
                             tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
                             entry + (m - 1) * step, volume_origin, voxel_size,
                         )  # fmt: skip
-                value = sample_along(
-                    tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
-                )
+                elif not previous_known:
+                    previous = np.nan
                 if previous > 0 and value < 0:
                     return refine_crossing(
                         tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t - step, previous, t,
