@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 TSDF_SCALE = 32767.0  # int16 units per unit of normalised TSDF
+TSDF_MAX = 32767  # the stored F = 1
 BRICK = 8  # voxels per side of the empty-space bricks (kintinuous_ref.raycast.BRICK)
 # Voxels per side of the fine bricks whose observed negative voxels integration counts (the cpu
 # raycast's second level of empty-space skipping, inside the bricks next to a surface).
@@ -164,10 +165,18 @@ def build_ops(
         sdf = measured - norm
         if not (measured > 0 and sdf >= -truncation):
             return 0
-        observed = min(np.float32(1.0), np.float32(sdf / truncation))
         q_old = tsdf_weight[ci, cj, ck, 0]
         stored_weight = tsdf_weight[ci, cj, ck, 1]
         w_old = np.float32(stored_weight)
+        if q_old == TSDF_MAX and sdf >= truncation:
+            # Free space seen again where F is already 1: the average (1 W + 1) / (W + 1) is 1
+            # exactly (W is a small whole number) and no colour is fused beyond mu, so only W
+            # moves. Most voxels of a frame take this path, without a division.
+            w_new = min(w_old + np.float32(1.0), max_weight)
+            if w_new != w_old:
+                tsdf_weight[ci, cj, ck, 1] = w_new
+            return 0
+        observed = min(np.float32(1.0), np.float32(sdf / truncation))
         f_new = (dequantise(q_old) * w_old + observed) / (w_old + np.float32(1.0))
         q_new = quantise(f_new)
         w_new = min(w_old + np.float32(1.0), max_weight)
