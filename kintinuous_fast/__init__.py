@@ -75,11 +75,12 @@ class Backend:
         return to_device(array)
 
     def predict_surface(self, volume: Any, pose: Any, camera: Any) -> Any:
-        """raycast.raycast(volume, pose, camera) with the maps left where they were computed
-        (device memory for cuda: the next frame's ICP reads them there)."""
+        """The pipeline's model prediction (kintinuous_ref.pipeline.predict_surface), with the
+        maps left where they were computed (device memory for cuda: the next frame's ICP reads
+        them there)."""
         if self.name == "cuda":
-            return self.raycast.raycast(volume, pose, camera, download=False)
-        return self.raycast.raycast(volume, pose, camera)
+            return self.raycast.raycast(volume, pose, camera, colour=False, download=False)
+        return self.raycast.raycast(volume, pose, camera, colour=False)
 
 
 def cuda_status() -> str:

@@ -7,7 +7,8 @@
         3. moving volume     shift the cyclical buffer if the camera moved far enough; the
                              slices that leave are meshed and stored (III, Fig. 2)
         4. integrate         depth into the TSDF, colour into the colour volume (III, VI)
-        5. raycast           the model seen from the new pose, for the next frame's ICP (III)
+        5. raycast           the model seen from the new pose, for the next frame's ICP (III):
+                             vertices and normals (the trackers read no model colour)
         6. record            pose and per-stage timings; report progress
     at the end: the rest of the volume becomes the last slice; the slices one mesh.
 
@@ -35,6 +36,7 @@ volume stays fixed, and `moving_volume_note` says so.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -154,7 +156,9 @@ def run(
     # Where the backend keeps its arrays (device memory for cuda); the reference's defaults.
     upload = getattr(backend, "upload", _as_given)
     colour = getattr(backend, "colour", kintinuous_ref.colour)
-    predict_surface = getattr(backend, "predict_surface", backend.raycast.raycast)
+    predict_surface = getattr(
+        backend, "predict_surface", functools.partial(backend.raycast.raycast, colour=False)
+    )
     result = PipelineResult()
     previous = None
     try:

@@ -212,9 +212,15 @@ def march(
 
 
 def raycast(
-    volume: TsdfVolume, pose: np.ndarray, camera: Intrinsics, skip_empty: bool = True
+    volume: TsdfVolume,
+    pose: np.ndarray,
+    camera: Intrinsics,
+    skip_empty: bool = True,
+    colour: bool = True,
 ) -> ModelPrediction:
-    """Vertex, normal and colour maps of the model surface seen from `pose` (world frame)."""
+    """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
+    `colour` False leaves the colour map black: the trackers read only vertices and normals
+    (the RGB-D term compares the raw frames, paper IV), so the pipeline's prediction skips it."""
     height, width = camera.height, camera.width
     rays = camera.ray_directions().reshape(-1, 3).astype(np.float64)
     directions = rays @ pose[:3, :3].T
@@ -229,7 +235,8 @@ def raycast(
     colours = np.zeros((len(rays), 3), dtype=np.uint8)
     vertices[found] = points
     normals[found] = _gradient_normals(volume, points)
-    colours[found] = surface_colour(volume, points)
+    if colour:
+        colours[found] = surface_colour(volume, points)
     # A surface point without a usable normal is no use to ICP: drop it.
     no_normal = np.isnan(normals[:, 0])
     vertices[no_normal] = np.nan

@@ -410,3 +410,10 @@ def check_raycast(
         assert np.abs(got.colours[both].astype(int) - want.colours[both]).max(initial=0) <= 1
         assert not got.colours[~hit_got].any()
         np.testing.assert_array_equal(got.pose, want.pose)
+    # The pipeline's prediction leaves colour out: the same geometry, a black colour map.
+    view = moving_poses(2)[1]
+    uncoloured = raycast_impl.raycast(fast, view, camera, colour=False)
+    coloured = raycast_impl.raycast(fast, view, camera)
+    np.testing.assert_array_equal(uncoloured.vertices, coloured.vertices)
+    np.testing.assert_array_equal(uncoloured.normals, coloured.normals)
+    assert coloured.colours.any() and not uncoloured.colours.any()

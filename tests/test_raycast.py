@@ -76,6 +76,14 @@ def test_skipping_empty_space_changes_nothing(fused_box):
     np.testing.assert_array_equal(plain.normals, prediction.normals)
 
 
+def test_raycast_without_colour_keeps_the_geometry(fused_box):
+    _, volume, prediction = fused_box
+    uncoloured = raycast.raycast(volume, VIEW, CAMERA, colour=False)
+    np.testing.assert_array_equal(uncoloured.vertices, prediction.vertices)
+    np.testing.assert_array_equal(uncoloured.normals, prediction.normals)
+    assert prediction.colours.any() and not uncoloured.colours.any()
+
+
 def test_raycast_from_outside_the_volume(fused_box):
     scene, volume, _ = fused_box
     behind = pose(np.eye(3), [0.0, 0.0, -0.4])  # 0.4 m behind the volume's front face

@@ -220,15 +220,20 @@ def _raycast_loop(
 
 
 def raycast(
-    volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics, skip_empty: bool = True
+    volume: FastTsdfVolume,
+    pose: np.ndarray,
+    camera: Intrinsics,
+    skip_empty: bool = True,
+    colour: bool = True,
 ) -> ModelPrediction:
     """Vertex, normal and colour maps of the model surface seen from `pose` (world frame);
-    `skip_empty` (exact, as in the reference) jumps over bricks far from any surface."""
+    `skip_empty` (exact, as in the reference) jumps over bricks far from any surface; `colour`
+    False leaves the colour map black (kintinuous_ref.raycast.raycast)."""
     shape = (camera.height, camera.width)
     vertices = np.full((*shape, 3), np.nan, dtype=np.float32)
     normals = np.full((*shape, 3), np.nan, dtype=np.float32)
     colours = np.zeros((*shape, 3), dtype=np.uint8)
-    has_colour = volume.colour is not None
+    has_colour = colour and volume.colour is not None
     colour_volume = volume.colour if has_colour else np.zeros((1, 1, 1, 4), np.uint8)
     pose = np.asarray(pose, dtype=np.float64)
     if skip_empty:

@@ -97,17 +97,19 @@ def raycast(
     pose: np.ndarray,
     camera: Intrinsics,
     skip_empty: bool = True,
+    colour: bool = True,
     download: bool = True,
 ) -> ModelPrediction:
     """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
-    `skip_empty` is accepted for the reference's signature (its skipping is exact)."""
+    `skip_empty` is accepted for the reference's signature (its skipping is exact); `colour`
+    False leaves the colour map black (kintinuous_ref.raycast.raycast)."""
     shape = (camera.height, camera.width)
     vertices = cuda.device_array((*shape, 3), dtype=np.float32)
     normals = cuda.device_array((*shape, 3), dtype=np.float32)
     colours = cuda.device_array((*shape, 3), dtype=np.uint8)
     grid = grid_2d(*shape)
     _clear_kernel[grid, BLOCK_2D](vertices, normals, colours)
-    has_colour = volume.colour is not None
+    has_colour = colour and volume.colour is not None
     colour_volume = (
         volume.colour if has_colour else cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
     )
