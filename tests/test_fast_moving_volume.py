@@ -94,14 +94,7 @@ def test_cpu_fine_skipping_is_bit_exact_with_back_faces():
     behind = np.eye(4)
     behind[:3, :3] = np.diag([-1.0, 1.0, -1.0])  # looking back at the wall from z = 3.4 m
     behind[:3, 3] = [0.1, 0.05, 3.4]
-    oblique = behind.copy()
-    angle = np.radians(35.0)
-    oblique[:3, :3] = [
-        [-np.cos(angle), 0, -np.sin(angle)],
-        [0, 1, 0],
-        [np.sin(angle), 0, -np.cos(angle)],
-    ]
-    oblique[:3, 3] = [1.2, 0.0, 3.2]
+    oblique = _oblique_pose_behind_wall()
     for name, pose in (("front", fe.moving_poses(2)[1]), ("behind", behind), ("oblique", oblique)):
         got = cpu_raycast.raycast(fast, pose, camera)
         want = cpu_raycast.raycast(fast, pose, camera, skip_empty=False)
@@ -257,7 +250,7 @@ def test_cpu_tile_cones_skip_only_samples_that_cannot_be_negative():
     camera = fe.camera_for(HEIGHT, WIDTH)
     fast, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, 64, 2, weighted=False)
     maps = cpu_raycast.skip_maps(fast)
-    for name, pose in (("front", fe.moving_poses(2)[1]), ("behind", _pose_behind_wall())):
+    for name, pose in (("front", fe.moving_poses(2)[1]), ("behind", _oblique_pose_behind_wall())):
         start = _tile_starts(fast, maps, pose, camera)
         t, values = _samples_of_every_ray(fast, pose, camera)
         assert not np.any(values[t < start[..., None]] < 0)
@@ -310,7 +303,7 @@ def _samples_of_every_ray(volume, pose, camera) -> tuple[np.ndarray, np.ndarray]
     return t, np.where(np.isfinite(t), values.reshape(t.shape), np.nan)
 
 
-def _pose_behind_wall() -> np.ndarray:
+def _oblique_pose_behind_wall() -> np.ndarray:
     """Looking back at the fused wall from z = 3.2 m, rotated 35 degrees about y."""
     pose = np.eye(4)
     angle = np.radians(35.0)
