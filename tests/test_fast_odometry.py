@@ -78,6 +78,25 @@ def test_equivalence_cpu_tracker(method, iterations):
         assert metres < 2e-3 and radians < np.radians(0.2), (metres, radians)
 
 
+def test_cpu_inlier_fraction_counts_the_reference_pairs():
+    # The CPU counts the pairs without building rows (cpu.icp_pairs): the same integers.
+    from kintinuous_ref.odometry.icp import IcpProblem
+    from kintinuous_ref.preprocess import model_pyramid
+
+    camera, previous, current, _, frame, rendered = cases.room(160, 120)
+    model = model_pyramid(*rendered[0], 3)  # as the trackers build it: strided coarse levels
+    assert not model[1][0].flags.c_contiguous
+    for thresholds in ((0.10, 20.0), (0.01, 5.0)):
+        fast = cpu.IcpProblem(frame.levels, model, previous, *thresholds)
+        reference = IcpProblem(frame.levels, model, previous, *thresholds)
+        for pose in cases.poses_to_try(previous, current):
+            assert fast.inlier_fraction(pose) == reference.inlier_fraction(pose)
+    for level in range(1, 3):  # staged strided maps equal NumPy's copies
+        for fast_map, reference_map in zip(fast.maps(level)[2:], model[level], strict=True):
+            assert fast_map.flags.c_contiguous
+            np.testing.assert_array_equal(fast_map, reference_map)
+
+
 def test_equivalence_cpu_tracker_fovis_switching():
     # FOVIS itself is the reference's (CPU, as in the paper); the dense half is the fast one, so
     # the switched result equals the reference tracker's.
