@@ -79,6 +79,8 @@ is_interest = _ops.is_interest
 has_depth = _ops.has_depth
 backproject = _ops.backproject
 warp_point = _ops.warp_point
+warp_project = _ops.warp_project
+warp_sample = _ops.warp_sample
 photometric_row = _ops.photometric_row
 robust_weight = _ops.robust_weight
 add_row = _ops.add_row
@@ -265,28 +267,47 @@ def _interest_data_loop(indices, depth, intensity, dx, dy, fx, fy, cx, cy, point
         grad[1, k] = float(dy[v, u])
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _warp_block(points, start, stop, relative, fx, fy, cx, cy, warp):
+    """warp_project of points start:stop into warp's columns (x, y, z, u, v): branch-free, so
+    it vectorises (divisions 8 at a time; see _project_block)."""
+    for k in range(start, stop):
+        x, y, z, u, v = warp_project(
+            relative, points[0, k], points[1, k], points[2, k], fx, fy, cx, cy
+        )
+        i = k - start
+        warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i] = x, y, z, u, v
+
+
 @_loop
 def _correspond_loop(
     points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy, warped,
-    fx, fy, cx, cy, max_change, residuals, world, warped_points, used_gradient, sums,
+    fx, fy, cx, cy, max_change, pairs, sums,
 ):  # fmt: skip
-    """Algorithm 2 per interest point: residual (NaN = not kept) and what J needs; sums[c] =
-    (sum r^2, count) of chunk c for sigma'."""
-    n = residuals.shape[0]
+    """Algorithm 2 per interest point k: pairs[:, k] = (residual, NaN = not kept; world point;
+    warped point; gradient), what J needs; sums[c] = (sum r^2, count) of chunk c for sigma'.
+    Each block's warps first, in a loop that vectorises."""
+    n = pairs.shape[1]
     chunks = sums.shape[0]
     for c in prange(chunks):
-        for k in range(c * n // chunks, (c + 1) * n // chunks):
-            ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
-                points, intensity, gradient, k, relative, pose, depth, prev_i, prev_dx, prev_dy,
-                warped, fx, fy, cx, cy, max_change,
-            )  # fmt: skip
-            residuals[k] = r
-            world[0, k], world[1, k], world[2, k] = wx, wy, wz
-            warped_points[0, k], warped_points[1, k], warped_points[2, k] = x, y, z
-            used_gradient[0, k], used_gradient[1, k] = gx, gy
-            if ok:
-                sums[c, 0] += r * r
-                sums[c, 1] += 1.0
+        warp = np.empty((5, BLOCK))
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _warp_block(points, block, end, relative, fx, fy, cx, cy, warp)
+            for k in range(block, end):
+                i = k - block
+                ok, r, wx, wy, wz, x, y, z, gx, gy = warp_sample(
+                    points, intensity, gradient, k, warp[0, i], warp[1, i], warp[2, i],
+                    warp[3, i], warp[4, i], pose, depth, prev_i, prev_dx, prev_dy, warped,
+                    max_change,
+                )  # fmt: skip
+                pairs[0, k], pairs[1, k], pairs[2, k], pairs[3, k] = r, wx, wy, wz
+                pairs[4, k], pairs[5, k], pairs[6, k] = x, y, z
+                pairs[7, k], pairs[8, k] = gx, gy
+                if ok:
+                    sums[c, 0] += r * r
+                    sums[c, 1] += 1.0
 
 
 @_loop
@@ -300,23 +321,47 @@ def _photometric_loop(world, warped_points, gradient, previous_pose, fx, fy, jac
         jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _weighted_rows_block(pairs, start, stop, previous_pose, fx, fy, sigma, rows):
+    """photometric_row and the squared robust weight of pairs[:, start:stop] (_correspond_loop's
+    columns) into rows[m * BLOCK + i] (m = j0..j5, w^2): branch-free, so it vectorises; a pair
+    not kept (NaN r) gives NaN, skipped by the caller. rows is flat: with constant offsets LLVM
+    sees one output region (a (7, BLOCK) array's 7 rows were too many overlap checks for it)."""
+    for k in range(start, stop):
+        i = k - start
+        j0, j1, j2, j3, j4, j5 = photometric_row(
+            pairs[1, k], pairs[2, k], pairs[3, k], pairs[4, k], pairs[5, k], pairs[6, k],
+            pairs[7, k], pairs[8, k], previous_pose, fx, fy,
+        )  # fmt: skip
+        rows[i], rows[BLOCK + i], rows[2 * BLOCK + i] = j0, j1, j2
+        rows[3 * BLOCK + i], rows[4 * BLOCK + i], rows[5 * BLOCK + i] = j3, j4, j5
+        w = robust_weight(pairs[0, k], sigma)
+        rows[6 * BLOCK + i] = w * w
+
+
 @_loop
-def _rgbd_rows_loop(residuals, world, warped_points, gradient, previous_pose, fx, fy, sigma, out):
-    """Robustly weighted photometric rows of the kept pairs, summed per chunk."""
-    n = residuals.shape[0]
+def _rgbd_rows_loop(pairs, previous_pose, fx, fy, sigma, out):
+    """Robustly weighted photometric rows of the kept pairs, summed per chunk (each block's rows
+    first, in a loop that vectorises)."""
+    n = pairs.shape[1]
     chunks = out.shape[0]
     for c in prange(chunks):
-        acc = out[c]
-        for k in range(c * n // chunks, (c + 1) * n // chunks):
-            r = residuals[k]
-            if np.isnan(r):
-                continue
-            j0, j1, j2, j3, j4, j5 = photometric_row(
-                world[0, k], world[1, k], world[2, k], warped_points[0, k], warped_points[1, k],
-                warped_points[2, k], gradient[0, k], gradient[1, k], previous_pose, fx, fy,
-            )  # fmt: skip
-            w = robust_weight(r, sigma)
-            add_row(acc, j0, j1, j2, j3, j4, j5, r, w * w)
+        acc = np.zeros(NV)  # not out[c]: LLVM then keeps the sums apart from the other arrays
+        rows = np.empty(7 * BLOCK)
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _weighted_rows_block(pairs, block, end, previous_pose, fx, fy, sigma, rows)
+            for k in range(block, end):
+                r = pairs[0, k]
+                if np.isnan(r):
+                    continue
+                i = k - block
+                add_row(
+                    acc, rows[i], rows[BLOCK + i], rows[2 * BLOCK + i], rows[3 * BLOCK + i],
+                    rows[4 * BLOCK + i], rows[5 * BLOCK + i], r, rows[6 * BLOCK + i],
+                )  # fmt: skip
+        out[c] = acc
 
 
 # ----------------------------------------------------------------------------------------------
@@ -589,7 +634,7 @@ def _correspond_all(
     points, pose, previous_pose, previous_depth, previous_intensity, camera, max_depth_change,
     previous_dx, previous_dy,
 ):  # fmt: skip
-    """Per interest point: (residuals with NaN = not kept, world, warped, gradient, sums)."""
+    """Per interest point: ((9, n) pairs as _correspond_loop writes them, (sum r^2, count))."""
     previous_depth, previous_intensity = stage(previous_depth), stage(previous_intensity)
     shape = (camera.height, camera.width)
     _host.check_image("previous depth image", previous_depth, shape)
@@ -598,8 +643,7 @@ def _correspond_all(
     prev_dx = stage(previous_dx) if warped else previous_intensity
     prev_dy = stage(previous_dy) if warped else previous_intensity
     n = points.points.shape[1]
-    residuals, world = np.empty(n), np.empty((3, n))
-    warped_points, gradient = np.empty((3, n)), np.empty((2, n))
+    pairs = np.empty((9, n))
     sums = np.zeros((_host.chunks_for(n, CHUNKS), 2))
     _run(
         _correspond_loop,
@@ -611,9 +655,9 @@ def _correspond_all(
         np.ascontiguousarray(pose, dtype=np.float64),
         previous_depth, previous_intensity, prev_dx, prev_dy, warped,
         *_host.camera_constants(camera), float(max_depth_change),
-        residuals, world, warped_points, gradient, sums,
+        pairs, sums,
     )  # fmt: skip
-    return residuals, world, warped_points, gradient, sums.sum(axis=0)
+    return pairs, sums.sum(axis=0)
 
 
 def correspond(
@@ -629,16 +673,17 @@ def correspond(
 ) -> Correspondences:
     """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
     image and d_s tests, in the reference's order."""
-    residuals, world, warped_points, gradient, _ = _correspond_all(
+    pairs, _ = _correspond_all(
         points, pose, previous_pose, previous_depth, previous_intensity, camera,
         max_depth_change, previous_dx, previous_dy,
     )  # fmt: skip
-    kept = np.flatnonzero(~np.isnan(residuals))
+    kept = np.flatnonzero(~np.isnan(pairs[0]))
+    columns = np.take(pairs, kept, axis=1)
     return Correspondences(
-        np.take(world, kept, axis=1),
-        np.take(warped_points, kept, axis=1),
-        residuals[kept],
-        np.take(gradient, kept, axis=1),
+        np.ascontiguousarray(columns[1:4]),
+        np.ascontiguousarray(columns[4:7]),
+        columns[0].copy(),
+        np.ascontiguousarray(columns[7:9]),
         kept,
     )
 
@@ -676,18 +721,18 @@ def rgbd_system(
 ) -> LinearSystem:
     """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted: pass 1
     finds the pairs and sum r^2 (sigma'), pass 2 sums the weighted rows."""
-    residuals, world, warped_points, gradient, (squares, count) = _correspond_all(
+    pairs, (squares, count) = _correspond_all(
         points, pose, previous_pose, previous_depth, previous_intensity, camera,
         max_depth_change, previous_dx, previous_dy,
     )  # fmt: skip
     if count == 0:
         return LinearSystem.empty()
     sigma = float(np.sqrt(squares / count))
-    out = _partials(len(residuals))
+    out = _partials(pairs.shape[1])
     _run(
         _rgbd_rows_loop,
-        len(residuals),
-        residuals, world, warped_points, gradient,
+        pairs.shape[1],
+        pairs,
         np.ascontiguousarray(previous_pose, dtype=np.float64),
         float(camera.fx), float(camera.fy), sigma, out,
     )  # fmt: skip

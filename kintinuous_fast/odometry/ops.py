@@ -232,6 +232,56 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return top * (1 - b) + bottom * b
 
     @jit
+    def warp_project(
+        relative: Any, px: float, py: float, pz: float, fx: float, fy: float, cx: float, cy: float
+    ) -> tuple[float, float, float, float, float]:
+        """The first half of warp_point: X' = T_rel X and its projection (u, v); (u, v) only mean
+        something where z' > 1e-6. No branch on the data, so that a loop of these vectorises."""
+        x, y, z = transform(relative, px, py, pz)
+        safe_z = z if z > 1e-6 else 1.0
+        return x, y, z, fx * x / safe_z + cx, fy * y / safe_z + cy
+
+    @jit
+    def warp_sample(
+        points: Any,
+        intensity: Any,
+        gradient: Any,
+        k: int,
+        x: float,
+        y: float,
+        z: float,
+        u: float,
+        v: float,
+        pose: Any,
+        previous_depth: Any,
+        previous_intensity: Any,
+        previous_dx: Any,
+        previous_dy: Any,
+        warped_gradient: bool,
+        max_depth_change: float,
+    ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
+        """The second half of warp_point, from warp_project's (x, y, z, u, v) of point k."""
+        height = previous_depth.shape[0]
+        width = previous_depth.shape[1]
+        nan = math.nan
+        if not z > 1e-6:
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        if not (u >= 0 and u <= width - 1 and v >= 0 and v <= height - 1):
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        d = float(previous_depth[int(rint(v)), int(rint(u))])
+        if not (d > 0 and abs(z - d) < max_depth_change):
+            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
+        r = sample_bilinear(previous_intensity, u, v) - intensity[k]
+        if warped_gradient:
+            gx = sample_bilinear(previous_dx, u, v)
+            gy = sample_bilinear(previous_dy, u, v)
+        else:
+            gx = gradient[0, k]
+            gy = gradient[1, k]
+        wx, wy, wz = transform(pose, points[0, k], points[1, k], points[2, k])
+        return True, r, wx, wy, wz, x, y, z, gx, gy
+
+    @jit
     def warp_point(
         points: Any,
         intensity: Any,
@@ -253,32 +303,15 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         """Algorithm 2 for interest point k (ref `correspond`): (kept, r = I_n(p') - I_{n+1}(p),
         world p = T X, warped X' = T_rel X, gradient used in J). Kept when p' lies inside the
         image (room for the 2x2 bilinear neighbourhood) and the previous depth at the nearest
-        pixel agrees with z' to within d_s."""
-        height = previous_depth.shape[0]
-        width = previous_depth.shape[1]
-        px = points[0, k]
-        py = points[1, k]
-        pz = points[2, k]
-        x, y, z = transform(relative, px, py, pz)
-        nan = math.nan
-        if not z > 1e-6:
-            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
-        u = fx * x / z + cx
-        v = fy * y / z + cy
-        if not (u >= 0 and u <= width - 1 and v >= 0 and v <= height - 1):
-            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
-        d = float(previous_depth[int(rint(v)), int(rint(u))])
-        if not (d > 0 and abs(z - d) < max_depth_change):
-            return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
-        r = sample_bilinear(previous_intensity, u, v) - intensity[k]
-        if warped_gradient:
-            gx = sample_bilinear(previous_dx, u, v)
-            gy = sample_bilinear(previous_dy, u, v)
-        else:
-            gx = gradient[0, k]
-            gy = gradient[1, k]
-        wx, wy, wz = transform(pose, px, py, pz)
-        return True, r, wx, wy, wz, x, y, z, gx, gy
+        pixel agrees with z' to within d_s. warp_project then warp_sample (the CPU runs the
+        first half of a block of points in a loop that vectorises)."""
+        x, y, z, u, v = warp_project(
+            relative, points[0, k], points[1, k], points[2, k], fx, fy, cx, cy
+        )
+        return warp_sample(
+            points, intensity, gradient, k, x, y, z, u, v, pose, previous_depth,
+            previous_intensity, previous_dx, previous_dy, warped_gradient, max_depth_change,
+        )  # fmt: skip
 
     @jit
     def photometric_row(
@@ -306,9 +339,8 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     def robust_weight(r: float, sigma: float) -> float:
         """w_k = 1 / (sigma' + |r_k|), 1 where that is 0 (ref robust_row_weights)."""
         denominator = sigma + abs(r)
-        if denominator > 1e-12:
-            return 1.0 / denominator
-        return 1.0
+        safe = denominator if denominator > 1e-12 else 1.0  # a select: the CPU's loop vectorises
+        return 1.0 / safe
 
     # ------------------------------------------------------------------------------------------
     # Normal equations
@@ -375,6 +407,8 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         has_depth=has_depth,
         backproject=backproject,
         sample_bilinear=sample_bilinear,
+        warp_project=warp_project,
+        warp_sample=warp_sample,
         warp_point=warp_point,
         photometric_row=photometric_row,
         robust_weight=robust_weight,
