@@ -15,7 +15,7 @@ import pytest
 
 from kintinuous_fast import cuda_is_simulated, cuda_status
 from kintinuous_ref import preprocess as ref
-from kintinuous_ref.config import PreprocessConfig
+from kintinuous_ref.config import PreprocessConfig, VolumeConfig
 
 pytestmark = pytest.mark.skipif(
     bool(cuda_status()),
@@ -128,6 +128,42 @@ def test_equivalence_cuda_volume_sample_tsdf(gpu_volume):
 @pytest.mark.parametrize("size", VOLUME_SIZES, ids=lambda s: f"{s[1]}x{s[0]}-{s[2]}^3")
 def test_equivalence_cuda_volume_raycast(gpu_volume, size):
     fe.check_raycast(*gpu_volume, *size)
+
+
+def test_equivalence_cuda_volume_empty_space(gpu_volume):
+    """The raycast's brick distance map, computed on the device, is the reference's
+    (kintinuous_ref.raycast._empty_space, scipy's distance transform) exactly: for a fused
+    volume, for two negative voxels far apart in a 48^3 volume (distances up to 4 bricks),
+    with the cyclical buffer at rest and wrapped, and for an empty volume (2 B everywhere)."""
+    from numba import cuda
+
+    from kintinuous_fast._volume import FastTsdfVolume, to_reference_volume
+    from kintinuous_ref import raycast as ref_raycast
+
+    tsdf, raycast = gpu_volume
+    height, width, _ = VOLUME_SIZES[0]
+    fused, _ = fe.fused_volumes(tsdf, height, width, 32, 1, weighted=False)
+    packed = np.zeros((48, 48, 48, 2), dtype=np.int16)
+    packed[3, 40, 20] = packed[30, 5, 44] = (-100, 1)
+    packed[10, 10, 10] = (-100, 0)  # unobserved: not a surface
+    sparse = FastTsdfVolume(cuda.to_device(packed), None, np.zeros(3), 0.01, 0.03, 128.0)
+    for volume in (fused, sparse):
+        for offset in ((0, 0, 0), (5, 0, 27)):
+            volume.offset = np.array(offset)
+            want = ref_raycast._empty_space(to_reference_volume(volume))
+            np.testing.assert_array_equal(raycast.empty_space(volume).copy_to_host(), want)
+    assert want.min() == 0 and want.max() == 4  # the separable passes met long distances too
+    empty = tsdf.make_volume(VolumeConfig(resolution=32, size=3.0), np.eye(4))
+    np.testing.assert_array_equal(raycast.empty_space(empty).copy_to_host(), np.full((4,) * 3, 8))
+    # The raycast's jumps over empty bricks return the plain march's maps bit for bit.
+    fused.offset = np.zeros(3, dtype=np.int64)
+    assert ref_raycast._empty_space(to_reference_volume(fused)).max() >= 1
+    camera, view = fe.camera_for(height, width), fe.moving_poses(2)[1]
+    skipping = raycast.raycast(fused, view, camera)
+    plain = raycast.raycast(fused, view, camera, skip_empty=False)
+    assert np.isfinite(plain.vertices).mean() > 0.3
+    np.testing.assert_array_equal(skipping.vertices, plain.vertices)
+    np.testing.assert_array_equal(skipping.normals, plain.normals)
 
 
 def test_equivalence_cuda_volume_stays_on_device(gpu_volume):

@@ -1,8 +1,9 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
 """kintinuous_ref.raycast as a CUDA kernel: one thread per pixel marching its ray through the
-device volume around kintinuous_fast.ops.volume. Only the pose goes in; the maps are device
-arrays (downloaded when `download` is True, the default, for a ModelPrediction of NumPy arrays
-like the reference's)."""
+device volume around kintinuous_fast.ops.volume, jumping over empty bricks with the reference's
+brick distance map, which three small kernels compute on the device every frame. Only the pose
+goes in; the maps are device arrays (downloaded when `download` is True, the default, for a
+ModelPrediction of NumPy arrays like the reference's)."""
 
 from __future__ import annotations
 
@@ -12,29 +13,106 @@ import numpy as np
 from numba import cuda
 
 from kintinuous_fast._volume import FastTsdfVolume
-from kintinuous_fast.cuda import BLOCK_2D, grid_2d
+from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
 from kintinuous_fast.ops import cuda_device_jit
-from kintinuous_fast.ops.volume import build_ops
+from kintinuous_fast.ops.volume import BRICK, build_ops
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
 
-__all__ = ["STEP_FRACTION", "ModelPrediction", "raycast"]
+__all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _ops = build_ops(cuda_device_jit())
 raycast_pixel = _ops.raycast_pixel
+cell = _ops.cell
 
 
 _PLAIN_MARCH: list = []
+# Larger than any chessboard distance between bricks: "no negative brick along this axis yet".
+_FAR = 1 << 30
 
 
 def _plain_march_maps() -> tuple[Any, Any]:
-    """A (1, 1, 1) brick map of 0 and a (1, 1, 1) fine map of 1 on the device: march_ray then
-    samples every step (the plain march, whose answer the reference's exact skipping returns
-    too)."""
+    """A (1, 1, 1) brick map of 0 and a (1, 1, 1) fine map of 1 on the device: with both,
+    march_ray samples every step (the plain march, whose answer the exact skipping returns
+    too); the fine map alone: every sample in a brick at distance 0."""
     if not _PLAIN_MARCH:
         _PLAIN_MARCH.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.int64)))
         _PLAIN_MARCH.append(cuda.to_device(np.ones((1, 1, 1), dtype=np.uint8)))
     return _PLAIN_MARCH[0], _PLAIN_MARCH[1]
+
+
+def empty_space(volume: FastTsdfVolume) -> Any:
+    """kintinuous_ref.raycast._empty_space of the device volume, on the device (int64 brick
+    distances): one thread per brick marks those holding an observed negative voxel, then the
+    chessboard distance to them, one axis at a time (the max-norm distance is separable), less
+    the one brick by which the reference grows them."""
+    bricks = -(-volume.resolution // BRICK)
+    distance = cuda.device_array((bricks,) * 3, dtype=np.int64)
+    scratch = cuda.device_array((bricks,) * 3, dtype=np.int64)
+    blocks = grid_1d(bricks**3)
+    _negative_brick_kernel[blocks, BLOCK_1D](volume.tsdf_weight, *volume.offsets(), distance)
+    for axis in range(3):
+        source, target = (distance, scratch) if axis % 2 == 0 else (scratch, distance)
+        _axis_distance_kernel[blocks, BLOCK_1D](source, target, axis)
+    _grown_distance_kernel[blocks, BLOCK_1D](scratch, distance)  # three passes ended in scratch
+    return distance
+
+
+@cuda.jit
+def _negative_brick_kernel(tsdf_weight, o0, o1, o2, distance):
+    """distance[b] = 0 where logical brick b holds an observed negative voxel, else _FAR."""
+    bricks = distance.shape[0]
+    index = cuda.grid(1)
+    if index >= bricks**3:
+        return
+    b0, rest = index // (bricks * bricks), index % (bricks * bricks)
+    b1, b2 = rest // bricks, rest % bricks
+    n = tsdf_weight.shape[0]
+    found = False
+    for i in range(b0 * BRICK, min((b0 + 1) * BRICK, n)):
+        ci = cell(i, o0, n)
+        for j in range(b1 * BRICK, min((b1 + 1) * BRICK, n)):
+            cj = cell(j, o1, n)
+            for k in range(b2 * BRICK, min((b2 + 1) * BRICK, n)):
+                ck = cell(k, o2, n)
+                if tsdf_weight[ci, cj, ck, 0] < 0 and tsdf_weight[ci, cj, ck, 1] > 0:
+                    found = True
+    distance[b0, b1, b2] = 0 if found else _FAR
+
+
+@cuda.jit
+def _axis_distance_kernel(source, target, axis):
+    """target[x] = min over y on x's line along `axis` of max(|x - y|, source[y]): one pass of
+    the separable chessboard distance."""
+    bricks = source.shape[0]
+    index = cuda.grid(1)
+    if index >= bricks**3:
+        return
+    x = (index // (bricks * bricks), (index // bricks) % bricks, index % bricks)
+    best = _FAR
+    for y in range(bricks):
+        offset = abs(y - x[axis])
+        if axis == 0:
+            value = source[y, x[1], x[2]]
+        elif axis == 1:
+            value = source[x[0], y, x[2]]
+        else:
+            value = source[x[0], x[1], y]
+        best = min(best, max(offset, value))
+    target[x[0], x[1], x[2]] = best
+
+
+@cuda.jit
+def _grown_distance_kernel(distance, out):
+    """The distance to the negative bricks grown by one brick: one less (not below 0); 2 B
+    everywhere when there are none (kintinuous_ref.raycast._empty_space's convention)."""
+    bricks = distance.shape[0]
+    index = cuda.grid(1)
+    if index >= bricks**3:
+        return
+    b0, b1, b2 = index // (bricks * bricks), (index // bricks) % bricks, index % bricks
+    d = distance[b0, b1, b2]
+    out[b0, b1, b2] = 2 * bricks if d >= _FAR else max(d - 1, 0)
 
 
 @cuda.jit
@@ -101,8 +179,9 @@ def raycast(
     download: bool = True,
 ) -> ModelPrediction:
     """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
-    `skip_empty` is accepted for the reference's signature (its skipping is exact); `colour`
-    False leaves the colour map black (kintinuous_ref.raycast.raycast)."""
+    `skip_empty` jumps over bricks far from any surface with the reference's exact brick
+    distance map (empty_space, computed on the device); `colour` False leaves the colour map
+    black (kintinuous_ref.raycast.raycast)."""
     shape = (camera.height, camera.width)
     vertices = cuda.device_array((*shape, 3), dtype=np.float32)
     normals = cuda.device_array((*shape, 3), dtype=np.float32)
@@ -119,7 +198,8 @@ def raycast(
         colour_volume,
         has_colour,
         *volume.offsets(),
-        *_plain_march_maps(),
+        empty_space(volume) if skip_empty else _plain_march_maps()[0],
+        _plain_march_maps()[1],  # no finer level: every sample in a brick at distance 0
         cuda.to_device(np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)),
         cuda.to_device(np.ascontiguousarray(pose[:3, :3])),
         cuda.to_device(np.ascontiguousarray(pose[:3, 3])),
