@@ -1,7 +1,7 @@
 """The whole pipeline, per stage, against Open3D's frame-to-model dense SLAM, in one run.
 
     .venv/bin/python benchmarks/pipeline_vs_open3d.py [--frames 30] [--ref-frames 4]
-        [--backends cpu,ref] [--json out.json]
+        [--backends cpu,ref] [--json out.json] [--plot stages.png]
 
 Ours: `kintinuous_fast.benchmark.benchmark` (icp+rgbd, 640x480, 256^3 over 3 m, the moving volume,
 raycast every frame) on each backend, plus the cpu backend with the "fast odometry" setting
@@ -39,6 +39,7 @@ from kintinuous_ref.datasets.tum import Trajectory, open_sequence  # noqa: E402
 
 REDKITCHEN = ROOT.parent / "shared" / "data" / "redkitchen"
 STAGES = ("preprocess", "odometry", "integrate", "raycast", "total")
+STAGE_COLOURS = ("#8da0cb", "#fc8d62", "#66c2a5", "#e78ac3")  # of the four stages in the plot
 
 
 def ate_mm(poses: list[np.ndarray], groundtruth: Trajectory, count: int) -> float:
@@ -133,12 +134,44 @@ def print_table(table: dict[str, dict]) -> None:
                 print(f"  {name:12s} " + "  ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
 
 
+def plot_stages(table: dict[str, dict], path: Path) -> None:
+    """Stacked bars of the per-stage medians of every column but the reference (off the scale:
+    its total is in the title), with the 10 frames/s budget marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [name for name in table if name != "ref"]
+    figure, axes = plt.subplots(figsize=(7.5, 0.9 + 0.7 * len(names)))
+    for index, name in enumerate(names):
+        left = 0.0
+        for stage, colour in zip(STAGES[:-1], STAGE_COLOURS, strict=True):
+            value = table[name].get(stage) or 0.0
+            axes.barh(index, value, left=left, color=colour, label=stage if index == 0 else None)
+            left += value
+        axes.text(left + 2, index, f"{1000.0 / table[name]['total']:.1f} frames/s", va="center")
+    axes.axvline(100.0, color="black", linestyle=":", linewidth=1)
+    axes.text(101, -0.45, "10 frames/s", fontsize=8, va="top")
+    axes.set_yticks(range(len(names)), names)
+    axes.invert_yaxis()
+    axes.set_xlabel("median ms per frame (redkitchen 640x480, icp+rgbd, 256^3)")
+    title = "per-stage time, one run"
+    if "ref" in table:
+        title += f" (the NumPy reference: {table['ref']['total']:.0f} ms per frame)"
+    axes.set_title(title, fontsize=10)
+    axes.legend(ncol=2, fontsize=8, loc="lower right")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--ref-frames", type=int, default=4)
     parser.add_argument("--backends", default="cpu,ref")
     parser.add_argument("--json", type=Path)
+    parser.add_argument("--plot", type=Path, help="write a bar chart of the stages (PNG)")
     args = parser.parse_args()
     if not REDKITCHEN.is_dir():
         sys.exit(f"{REDKITCHEN}: not found (the benchmark needs the redkitchen sequence)")
@@ -164,6 +197,8 @@ def main() -> None:
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     if args.json:
         args.json.write_text(json.dumps(table, indent=2) + "\n")
+    if args.plot:
+        plot_stages(table, args.plot)
 
 
 if __name__ == "__main__":
