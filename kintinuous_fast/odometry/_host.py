@@ -33,13 +33,13 @@ from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, SLOT_EXTRA
 
 # Upper-triangle (i, j) pairs of A in the order of the accumulated vector (ops.add_row).
 _UPPER = [(i, j) for i in range(6) for j in range(i, 6)]
+_UPPER_ROWS, _UPPER_COLS = (np.array(index) for index in zip(*_UPPER, strict=True))
 
 
 def unpack(total: np.ndarray) -> tuple[LinearSystem, int]:
     """(LinearSystem, the spare slot as an int) from the NV summed float64 values."""
     A = np.empty((6, 6))
-    for k, (i, j) in enumerate(_UPPER):
-        A[i, j] = A[j, i] = total[k]
+    A[_UPPER_ROWS, _UPPER_COLS] = A[_UPPER_COLS, _UPPER_ROWS] = total[:SLOT_B]
     count = int(round(total[SLOT_COUNT]))
     system = LinearSystem(A, total[SLOT_B : SLOT_B + 6].copy(), count, float(total[SLOT_COST]))
     return system, int(round(total[SLOT_EXTRA]))
@@ -55,11 +55,18 @@ def camera_constants(camera: Intrinsics) -> tuple[float, float, float, float]:
 
 
 def icp_constants(
-    pose: np.ndarray, model_pose: np.ndarray, distance_threshold: float, angle_threshold_deg: float
+    pose: np.ndarray,
+    model_pose: np.ndarray,
+    distance_threshold: float,
+    angle_threshold_deg: float,
+    model_inverse: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(pose, current camera to model camera, squared distance, cos angle) as `associate`."""
+    """(pose, current camera to model camera, squared distance, cos angle) as `associate`.
+    `model_inverse`: se3.inverse(model_pose) when the caller has it already (a per-frame
+    problem computes and checks it once, not every iteration)."""
     pose = np.ascontiguousarray(pose, dtype=np.float64)
-    to_model = np.ascontiguousarray(se3.inverse(model_pose) @ pose)
+    inverse = se3.inverse(model_pose) if model_inverse is None else model_inverse
+    to_model = np.ascontiguousarray(inverse @ pose)
     return (
         pose,
         to_model,
@@ -114,6 +121,14 @@ class IcpProblemBase:
         self.angle_threshold_deg = angle_threshold_deg
         self._maps: dict[int, tuple[Any, Any, Any, Any]] = {}
         self._points: dict[int, Any] = {}  # per level, for kernels that compact the valid points
+        self._model_inverse: np.ndarray | None = None
+
+    @property
+    def model_inverse(self) -> np.ndarray:
+        """se3.inverse(model_pose), computed (and the pose checked) once per frame."""
+        if self._model_inverse is None:
+            self._model_inverse = se3.inverse(self.model_pose)
+        return self._model_inverse
 
     def maps(self, level: int) -> tuple[Any, Any, Any, Any]:
         """The level's current and model maps as the kernels take them, staged once."""

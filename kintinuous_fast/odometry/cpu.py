@@ -425,14 +425,14 @@ def valid_points(vertices, normals) -> np.ndarray:
 
 def icp_points_system(
     points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
-    angle_threshold_deg,
+    angle_threshold_deg, model_inverse=None,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
     """icp_system of the valid current points (`valid_points`) and their number (for the inlier
-    fraction)."""
+    fraction); `model_inverse` as in _host.icp_constants."""
     _host.check_map("model vertex map", model_vertices, camera)
     _host.check_map("model normal map", model_normals, camera)
     pose, to_model, dist2, cos_min = _host.icp_constants(
-        pose, model_pose, distance_threshold, angle_threshold_deg
+        pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
     )
     out = _partials(points.shape[1])
     _run(
@@ -446,7 +446,7 @@ def icp_points_system(
 
 def icp_pairs(
     vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg,
+    distance_threshold, angle_threshold_deg, model_inverse=None,
 ) -> tuple[int, int]:  # fmt: skip
     """(ICP pairs, valid current points): the count of icp_system_and_valid's system and its
     second value, without the rows (all the inlier fraction needs)."""
@@ -456,7 +456,7 @@ def icp_pairs(
     ):  # fmt: skip
         _host.check_map(name, image, camera)
     pose, to_model, dist2, cos_min = _host.icp_constants(
-        pose, model_pose, distance_threshold, angle_threshold_deg
+        pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
     )
     out = np.empty((vertices.shape[0], 2), dtype=np.int64)
     _run(
@@ -756,7 +756,7 @@ class IcpProblem(_host.IcpProblemBase):
             self._points[level] = valid_points(vertices, normals)
         return icp_points_system(
             self._points[level], model_vertices, model_normals, pose, self.model_pose, camera,
-            self.distance_threshold, self.angle_threshold_deg,
+            self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
         )  # fmt: skip
 
     def inlier_fraction(self, pose: np.ndarray) -> float:
@@ -764,7 +764,7 @@ class IcpProblem(_host.IcpProblemBase):
         finest level's points are not compacted for this one look, nor its rows built."""
         pairs, valid = icp_pairs(
             *self.maps(0), pose, self.model_pose, self.current_levels[0].camera,
-            self.distance_threshold, self.angle_threshold_deg,
+            self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
         )  # fmt: skip
         return pairs / valid if valid else 0.0
 
