@@ -169,13 +169,13 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         nx = float(normals[v, u, 0])
         ny = float(normals[v, u, 1])
         nz = float(normals[v, u, 2])
-        ok = (
+        ok = (  # & (not `and`): one branch per point instead of six
             math.isfinite(px)
-            and math.isfinite(py)
-            and math.isfinite(pz)
-            and math.isfinite(nx)
-            and math.isfinite(ny)
-            and math.isfinite(nz)
+            & math.isfinite(py)
+            & math.isfinite(pz)
+            & math.isfinite(nx)
+            & math.isfinite(ny)
+            & math.isfinite(nz)
         )
         return ok, px, py, pz, nx, ny, nz
 
