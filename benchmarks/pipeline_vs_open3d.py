@@ -143,7 +143,7 @@ def plot_stages(table: dict[str, dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     names = [name for name in table if name != "ref"]
-    figure, axes = plt.subplots(figsize=(7.5, 0.9 + 0.7 * len(names)))
+    figure, axes = plt.subplots(figsize=(7.5, 1.3 + 0.7 * len(names)))
     for index, name in enumerate(names):
         left = 0.0
         for stage, colour in zip(STAGES[:-1], STAGE_COLOURS, strict=True):
@@ -160,7 +160,7 @@ def plot_stages(table: dict[str, dict], path: Path) -> None:
     if "ref" in table:
         title += f" (the NumPy reference: {table['ref']['total']:.0f} ms per frame)"
     axes.set_title(title, fontsize=10)
-    axes.legend(ncol=2, fontsize=8, loc="lower right")
+    axes.legend(ncol=4, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.3), frameon=False)
     figure.tight_layout()
     figure.savefig(path, dpi=110)
 
