@@ -696,89 +696,192 @@ def build_ops(
         before the first of them was negative, is skipped at once. Jump lengths come from
         the samples' nominal coordinates (linear in the sample index) with a margin, so the
         samples skipped are a subset of those the exact test would skip: the same answer.
+        The march is march_start, then march_step until it says the ray is done.
         """
-        entry, exit_ = ray_span(origin, d0, d1, d2, volume_origin, voxel_size, tsdf_weight.shape[0])
+        ray = march_start(
+            origin, d0, d1, d2, volume_origin, voxel_size, tsdf_weight.shape[0], step, safe_until
+        )
+        m, previous, previous_known, hit = ray[0], np.nan, ray[0] == 0, np.nan
+        while m >= 0:
+            m, previous, previous_known, hit = march_step(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d0, d1, d2,
+                volume_origin, voxel_size, step, ray, m, previous, previous_known,
+            )  # fmt: skip
+        return hit
+
+    @jit_called
+    def march_two_rays(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        origin: Any,
+        a: tuple,
+        b: tuple,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        safe_until: float,
+    ) -> tuple:
+        """march_ray_skipping of two rays (unit directions a and b) in lockstep: each step of
+        one is a chain of dependent loads and roundings, so the core works on the other's
+        meanwhile. The same answers as marching them one after the other."""
+        n = tsdf_weight.shape[0]
+        ray_a = march_start(
+            origin, a[0], a[1], a[2], volume_origin, voxel_size, n, step, safe_until
+        )
+        ray_b = march_start(
+            origin, b[0], b[1], b[2], volume_origin, voxel_size, n, step, safe_until
+        )
+        m_a, previous_a, known_a, hit_a = ray_a[0], np.nan, ray_a[0] == 0, np.nan
+        m_b, previous_b, known_b, hit_b = ray_b[0], np.nan, ray_b[0] == 0, np.nan
+        while m_a >= 0 or m_b >= 0:
+            if m_a >= 0:
+                m_a, previous_a, known_a, hit_a = march_step(
+                    tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
+                    volume_origin, voxel_size, step, ray_a, m_a, previous_a, known_a,
+                )  # fmt: skip
+            if m_b >= 0:
+                m_b, previous_b, known_b, hit_b = march_step(
+                    tsdf_weight, o0, o1, o2, empty, fine_distance, origin, b[0], b[1], b[2],
+                    volume_origin, voxel_size, step, ray_b, m_b, previous_b, known_b,
+                )  # fmt: skip
+        return hit_a, hit_b
+
+    @jit
+    def march_start(
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        n: int,
+        step: float,
+        safe_until: float,
+    ) -> tuple:
+        """(m, entry, exit, sx, sy, sz, dcx, dcy, dcz, ix, iy, iz) of a skipping march: the first
+        sample m to look at (-1: the ray has none), the ray's span in the volume, the voxel
+        coordinates of sample 0, their advance per sample and its inverses (0 where none)."""
+        entry, exit_ = ray_span(origin, d0, d1, d2, volume_origin, voxel_size, n)
+        m = 0
         if not entry < exit_:
-            return np.nan
+            m = -1
+        elif safe_until > entry:
+            if not safe_until <= exit_:
+                m = -1
+            else:
+                m = int(math.ceil((safe_until - entry) / step))
+                if not entry + m * step <= exit_:
+                    m = -1
         # voxel coordinates of sample m, nominally: start + m * per_sample (jump lengths only)
         dcx, dcy, dcz = step * d0 / voxel_size, step * d1 / voxel_size, step * d2 / voxel_size
-        ix, iy, iz = inverse_or_zero(dcx), inverse_or_zero(dcy), inverse_or_zero(dcz)
+        return (
+            m,
+            entry,
+            exit_,
+            (origin[0] + entry * d0 - volume_origin[0]) / voxel_size,
+            (origin[1] + entry * d1 - volume_origin[1]) / voxel_size,
+            (origin[2] + entry * d2 - volume_origin[2]) / voxel_size,
+            dcx,
+            dcy,
+            dcz,
+            inverse_or_zero(dcx),
+            inverse_or_zero(dcy),
+            inverse_or_zero(dcz),
+        )
+
+    @jit
+    def march_step(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        ray: tuple,
+        m: int,
+        previous: float,
+        previous_known: bool,
+    ) -> tuple:
+        """One step of march_ray_skipping at sample m: a jump or a sample. Returns (m,
+        previous, previous_known, hit) for the next step; m = -1 once the ray is done, hit then
+        its answer (NaN: no surface)."""
+        entry, exit_ = ray[1], ray[2]
+        t = entry + m * step
+        # The maps are read at the nominal coordinates (one multiply-add, no division). They
+        # differ from the exact ones (the reference's, used for the samples) by rounding
+        # only, so they name the same brick and fine brick unless within JUMP_MARGIN of a
+        # fine brick's face: there the exact ones decide.
+        cx, cy, cz = ray[3] + m * ray[6], ray[4] + m * ray[7], ray[5] + m * ray[8]
+        if not (clear_of_faces(cx) and clear_of_faces(cy) and clear_of_faces(cz)):
+            cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
         bricks = empty.shape[0]
-        last_fine = fine_distance.shape[0] - 1
-        n = tsdf_weight.shape[0]
-        previous = np.nan
-        m = 0
-        if safe_until > entry:
-            if not safe_until <= exit_:
-                return np.nan
-            m = int(math.ceil((safe_until - entry) / step))
-            if not entry + m * step <= exit_:
-                return np.nan
-        previous_known = m == 0  # past a skipped stretch the sample before is recovered
-        sx = (origin[0] + entry * d0 - volume_origin[0]) / voxel_size
-        sy = (origin[1] + entry * d1 - volume_origin[1]) / voxel_size
-        sz = (origin[2] + entry * d2 - volume_origin[2]) / voxel_size
-        while True:
-            t = entry + m * step
-            # The maps are read at the nominal coordinates (one multiply-add, no division). They
-            # differ from the exact ones (the reference's, used for the samples) by rounding
-            # only, so they name the same brick and fine brick unless within JUMP_MARGIN of a
-            # fine brick's face: there the exact ones decide.
-            cx, cy, cz = sx + m * dcx, sy + m * dcy, sz + m * dcz
-            if not (clear_of_faces(cx) and clear_of_faces(cy) and clear_of_faces(cz)):
-                cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
-            bx = min(max(int(math.floor(cx / BRICK)), 0), bricks - 1)
-            by = min(max(int(math.floor(cy / BRICK)), 0), bricks - 1)
-            bz = min(max(int(math.floor(cz / BRICK)), 0), bricks - 1)
-            radius = int(empty[bx, by, bz])
-            fine, fx, fy, fz = 0, 0, 0, 0
-            if radius < FINE_LEVEL_BELOW and not (previous_known and previous < 0):
-                fx = fine_index(cx, n, last_fine)
-                fy = fine_index(cy, n, last_fine)
-                fz = fine_index(cz, n, last_fine)
-                fine = int(fine_distance[fx, fy, fz])
-            if radius >= FINE_LEVEL_BELOW:  # far from surfaces: past the empty cube of bricks
-                reach = radius - 1
-                m_next = first_sample_outside(
-                    m, cx, cy, cz, dcx, dcy, dcz, ix, iy, iz, (bx - reach) * BRICK,
-                    (by - reach) * BRICK, (bz - reach) * BRICK, (2 * reach + 1) * BRICK,
-                )  # fmt: skip
-                previous_known = False
-            elif fine > 0:  # no sample in the cube of fine bricks can be negative: jump past it
-                reach = fine - 1
-                m_next = first_sample_outside(
-                    m, cx, cy, cz, dcx, dcy, dcz, ix, iy, iz, (fx - reach) * FINE,
-                    (fy - reach) * FINE, (fz - reach) * FINE, (2 * reach + 1) * FINE,
-                )  # fmt: skip
-                previous_known = False
-            else:
-                value = sample_along(
-                    tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
-                )
-                # A skipped sample is >= 0 or unknown, so after a jump the one before matters
-                # only if this one is negative (a crossing, never a back face): fetched then.
-                if not previous_known and value < 0:
-                    previous = np.nan
-                    if m > 0:
-                        previous = sample_along(
-                            tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
-                            entry + (m - 1) * step, volume_origin, voxel_size,
-                        )  # fmt: skip
-                elif not previous_known:
-                    previous = np.nan
-                if previous > 0 and value < 0:
-                    return refine_crossing(
-                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t - step, previous, t,
-                        value, volume_origin, voxel_size,
+        bx = min(max(int(math.floor(cx / BRICK)), 0), bricks - 1)
+        by = min(max(int(math.floor(cy / BRICK)), 0), bricks - 1)
+        bz = min(max(int(math.floor(cz / BRICK)), 0), bricks - 1)
+        radius = int(empty[bx, by, bz])
+        fine, fx, fy, fz = 0, 0, 0, 0
+        if radius < FINE_LEVEL_BELOW and not (previous_known and previous < 0):
+            n, last_fine = tsdf_weight.shape[0], fine_distance.shape[0] - 1
+            fx = fine_index(cx, n, last_fine)
+            fy = fine_index(cy, n, last_fine)
+            fz = fine_index(cz, n, last_fine)
+            fine = int(fine_distance[fx, fy, fz])
+        if radius >= FINE_LEVEL_BELOW:  # far from surfaces: past the empty cube of bricks
+            reach = radius - 1
+            m_next = first_sample_outside(
+                m, cx, cy, cz, ray[6], ray[7], ray[8], ray[9], ray[10], ray[11],
+                (bx - reach) * BRICK, (by - reach) * BRICK, (bz - reach) * BRICK,
+                (2 * reach + 1) * BRICK,
+            )  # fmt: skip
+            previous_known = False
+        elif fine > 0:  # no sample in the cube of fine bricks can be negative: jump past it
+            reach = fine - 1
+            m_next = first_sample_outside(
+                m, cx, cy, cz, ray[6], ray[7], ray[8], ray[9], ray[10], ray[11],
+                (fx - reach) * FINE, (fy - reach) * FINE, (fz - reach) * FINE,
+                (2 * reach + 1) * FINE,
+            )  # fmt: skip
+            previous_known = False
+        else:
+            value = sample_along(
+                tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
+            )
+            # A skipped sample is >= 0 or unknown, so after a jump the one before matters
+            # only if this one is negative (a crossing, never a back face): fetched then.
+            if not previous_known and value < 0:
+                previous = np.nan
+                if m > 0:
+                    previous = sample_along(
+                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
+                        entry + (m - 1) * step, volume_origin, voxel_size,
                     )  # fmt: skip
-                if previous < 0 and value > 0:
-                    return np.nan  # a back face
-                previous = value
-                previous_known = True
-                m_next = m + 1
-            m = m_next
-            if not entry + m * step <= exit_:
-                return np.nan
+            elif not previous_known:
+                previous = np.nan
+            if previous > 0 and value < 0:
+                hit = refine_crossing(
+                    tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t - step, previous, t,
+                    value, volume_origin, voxel_size,
+                )  # fmt: skip
+                return -1, previous, True, hit
+            if previous < 0 and value > 0:
+                return -1, previous, True, np.nan  # a back face
+            previous = value
+            previous_known = True
+            m_next = m + 1
+        if not entry + m_next * step <= exit_:
+            return -1, previous, previous_known, np.nan
+        return m_next, previous, previous_known, np.nan
 
     @jit
     def box_inside(c: float, half: float, lower: float, upper: float) -> bool:
@@ -982,6 +1085,42 @@ def build_ops(
         )  # fmt: skip
 
     @jit
+    def raycast_two_pixels_skipping(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        u: int,
+        v: int,
+        camera: Any,
+        rotation: Any,
+        origin: Any,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+        safe_until: float,
+    ) -> None:
+        """raycast_pixel_skipping of pixels (u, v) and (u + 1, v), marched in lockstep."""
+        a = ray_direction(u, v, camera, rotation)
+        b = ray_direction(u + 1, v, camera, rotation)
+        t_a, t_b = march_two_rays(
+            tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
+            voxel_size, step, safe_until,
+        )  # fmt: skip
+        for pixel, t, d in ((u, t_a, a), (u + 1, t_b, b)):
+            shade_pixel(
+                tsdf_weight, colour_volume, has_colour, o0, o1, o2, pixel, v, t, origin, d[0],
+                d[1], d[2], volume_origin, voxel_size, vertices, normals, colours,
+            )  # fmt: skip
+
+    @jit
     def shade_pixel(
         tsdf_weight: Any,
         colour_volume: Any,
@@ -1056,7 +1195,9 @@ def build_ops(
         surface_colour_at=surface_colour_at,
         march_ray=march_ray,
         march_ray_skipping=march_ray_skipping,
+        march_two_rays=march_two_rays,
         ray_direction=ray_direction,
         raycast_pixel=raycast_pixel,
         raycast_pixel_skipping=raycast_pixel_skipping,
+        raycast_two_pixels_skipping=raycast_two_pixels_skipping,
     )
