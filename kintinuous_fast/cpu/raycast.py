@@ -28,8 +28,7 @@ __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _ops = build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called)
 raycast_pixel = _ops.raycast_pixel
-raycast_pixel_skipping = _ops.raycast_pixel_skipping
-raycast_two_pixels_skipping = _ops.raycast_two_pixels_skipping
+raycast_pixels_skipping = _ops.raycast_pixels_skipping
 ray_direction = _ops.ray_direction
 cone_safe_until = _ops.cone_safe_until
 ray_span = _ops.ray_span
@@ -218,17 +217,11 @@ def _raycast_loop(
                 )  # fmt: skip
             for v in range(v0, v1):
                 for u in range(u0, u1):
-                    if skipping and (u - u0) % 2 == 0 and u + 1 < u1:
-                        raycast_two_pixels_skipping(
+                    if skipping and (u - u0) % 2 == 0:  # pixels two at a time
+                        raycast_pixels_skipping(
                             tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty,
                             fine_distance, u, v, camera, rotation, origin, volume_origin,
-                            voxel_size, step, vertices, normals, colours, safe_until,
-                        )  # fmt: skip
-                    elif skipping and (u - u0) % 2 == 0:  # the last of an odd row
-                        raycast_pixel_skipping(
-                            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty,
-                            fine_distance, u, v, camera, rotation, origin, volume_origin,
-                            voxel_size, step, vertices, normals, colours, safe_until,
+                            voxel_size, step, vertices, normals, colours, safe_until, u + 1 < u1,
                         )  # fmt: skip
                     elif not skipping:  # the plain march (march_ray, maps that skip nothing)
                         raycast_pixel(

@@ -180,7 +180,7 @@ def _count_loop(tsdf_weight, o0, o1, o2, counts):
     for f0 in prange(m):
         for f1 in range(m):
             for f2 in range(m):
-                counts[f0, f1, f2] = count_negative(tsdf_weight, o0, o1, o2, f0, f1, f2)
+                counts[f0, f1, f2] = count_negative(tsdf_weight, o0, o1, o2, f0, f1, f2, FINE)
 
 
 def negative_counts(volume: FastTsdfVolume) -> np.ndarray:

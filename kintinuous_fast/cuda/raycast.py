@@ -23,7 +23,7 @@ __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _ops = build_ops(cuda_device_jit())
 raycast_pixel = _ops.raycast_pixel
-cell = _ops.cell
+count_negative = _ops.count_negative
 
 
 _PLAIN_MARCH: list = []
@@ -67,16 +67,7 @@ def _negative_brick_kernel(tsdf_weight, o0, o1, o2, distance):
         return
     b0, rest = index // (bricks * bricks), index % (bricks * bricks)
     b1, b2 = rest // bricks, rest % bricks
-    n = tsdf_weight.shape[0]
-    found = False
-    for i in range(b0 * BRICK, min((b0 + 1) * BRICK, n)):
-        ci = cell(i, o0, n)
-        for j in range(b1 * BRICK, min((b1 + 1) * BRICK, n)):
-            cj = cell(j, o1, n)
-            for k in range(b2 * BRICK, min((b2 + 1) * BRICK, n)):
-                ck = cell(k, o2, n)
-                if tsdf_weight[ci, cj, ck, 0] < 0 and tsdf_weight[ci, cj, ck, 1] > 0:
-                    found = True
+    found = count_negative(tsdf_weight, o0, o1, o2, b0, b1, b2, BRICK) > 0
     distance[b0, b1, b2] = 0 if found else _FAR
 
 

@@ -1050,7 +1050,7 @@ def build_ops(
         )  # fmt: skip
 
     @jit
-    def raycast_pixel_skipping(
+    def raycast_pixels_skipping(
         tsdf_weight: Any,
         colour_volume: Any,
         has_colour: bool,
@@ -1071,54 +1071,31 @@ def build_ops(
         normals: Any,
         colours: Any,
         safe_until: float,
+        pair: bool,
     ) -> None:
-        """raycast_pixel by march_ray_skipping (the cpu backend's two distance maps), from
-        `safe_until` on (cone_safe_until of the pixel's tile)."""
-        d0, d1, d2 = ray_direction(u, v, camera, rotation)
-        t = march_ray_skipping(
-            tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d0, d1, d2, volume_origin,
-            voxel_size, step, safe_until,
-        )  # fmt: skip
-        shade_pixel(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2,
-            volume_origin, voxel_size, vertices, normals, colours,
-        )  # fmt: skip
-
-    @jit
-    def raycast_two_pixels_skipping(
-        tsdf_weight: Any,
-        colour_volume: Any,
-        has_colour: bool,
-        o0: int,
-        o1: int,
-        o2: int,
-        empty: Any,
-        fine_distance: Any,
-        u: int,
-        v: int,
-        camera: Any,
-        rotation: Any,
-        origin: Any,
-        volume_origin: Any,
-        voxel_size: float,
-        step: float,
-        vertices: Any,
-        normals: Any,
-        colours: Any,
-        safe_until: float,
-    ) -> None:
-        """raycast_pixel_skipping of pixels (u, v) and (u + 1, v), marched in lockstep."""
+        """raycast_pixel by march_ray_skipping (the cpu backend's two distance maps) from
+        `safe_until` on (cone_safe_until of the pixel's tile), for pixel (u, v) and, with
+        `pair`, (u + 1, v) too, the two rays marched in lockstep (march_two_rays)."""
         a = ray_direction(u, v, camera, rotation)
-        b = ray_direction(u + 1, v, camera, rotation)
-        t_a, t_b = march_two_rays(
-            tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
-            voxel_size, step, safe_until,
-        )  # fmt: skip
-        for pixel, t, d in ((u, t_a, a), (u + 1, t_b, b)):
-            shade_pixel(
-                tsdf_weight, colour_volume, has_colour, o0, o1, o2, pixel, v, t, origin, d[0],
-                d[1], d[2], volume_origin, voxel_size, vertices, normals, colours,
+        if pair:
+            b = ray_direction(u + 1, v, camera, rotation)
+            t_a, t_b = march_two_rays(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
+                voxel_size, step, safe_until,
             )  # fmt: skip
+            shade_pixel(
+                tsdf_weight, colour_volume, has_colour, o0, o1, o2, u + 1, v, t_b, origin, b[0],
+                b[1], b[2], volume_origin, voxel_size, vertices, normals, colours,
+            )  # fmt: skip
+        else:
+            t_a = march_ray_skipping(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
+                volume_origin, voxel_size, step, safe_until,
+            )  # fmt: skip
+        shade_pixel(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t_a, origin, a[0], a[1],
+            a[2], volume_origin, voxel_size, vertices, normals, colours,
+        )  # fmt: skip
 
     @jit
     def shade_pixel(
@@ -1159,16 +1136,17 @@ def build_ops(
 
     @jit
     def count_negative(
-        tsdf_weight: Any, o0: int, o1: int, o2: int, f0: int, f1: int, f2: int
+        tsdf_weight: Any, o0: int, o1: int, o2: int, b0: int, b1: int, b2: int, size: int
     ) -> int:
-        """Observed voxels with negative TSDF in logical fine brick (f0, f1, f2)."""
+        """Observed voxels with negative TSDF in the logical block (b0, b1, b2) of size^3 voxels
+        (the fine bricks of the cpu raycast, the bricks of the cuda one)."""
         n = tsdf_weight.shape[0]
         count = 0
-        for i in range(f0 * FINE, min((f0 + 1) * FINE, n)):
+        for i in range(b0 * size, min((b0 + 1) * size, n)):
             ci = cell(i, o0, n)
-            for j in range(f1 * FINE, min((f1 + 1) * FINE, n)):
+            for j in range(b1 * size, min((b1 + 1) * size, n)):
                 cj = cell(j, o1, n)
-                for k in range(f2 * FINE, min((f2 + 1) * FINE, n)):
+                for k in range(b2 * size, min((b2 + 1) * size, n)):
                     ck = cell(k, o2, n)
                     if tsdf_weight[ci, cj, ck, 0] < 0 and tsdf_weight[ci, cj, ck, 1] > 0:
                         count += 1
@@ -1198,6 +1176,5 @@ def build_ops(
         march_two_rays=march_two_rays,
         ray_direction=ray_direction,
         raycast_pixel=raycast_pixel,
-        raycast_pixel_skipping=raycast_pixel_skipping,
-        raycast_two_pixels_skipping=raycast_two_pixels_skipping,
+        raycast_pixels_skipping=raycast_pixels_skipping,
     )
