@@ -1,7 +1,9 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
-"""kintinuous_ref.raycast on the CPU: one ray per pixel in a prange loop around
+"""kintinuous_ref.raycast on the CPU: a prange loop over rows of 8x8 tiles of pixels around
 kintinuous_fast.ops.volume, with the reference's exact brick empty-space skipping plus a finer
-second level inside the bricks next to a surface.
+second level inside the bricks next to a surface. Each tile first marches the free space its
+rays share once (ops.volume.cone_safe_until), then its rays go on from there two at a time,
+in lockstep (ops.volume.march_two_rays). Every skip is exact: the maps are the plain march's.
 
 Both levels come from the per-fine-brick counts of observed negative voxels that integration
 keeps up to date (kintinuous_fast.cpu.tsdf.negative_counts), so no frame scans the volume: the
