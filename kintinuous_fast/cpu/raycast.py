@@ -41,7 +41,7 @@ TILE = 8  # pixels per side of the tiles whose rays march their shared free spac
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _brick_maps(counts, pairs, near, negative):
+def _brick_maps_loop(counts, pairs, near, negative):
     """From the fine counts (M, M, M): near[f] = any count in f .. f + 1 along each axis (three
     separable passes of "this or the next": along k and j into `pairs`, along i into `near`),
     and negative[b] = any count in 8^3 brick b (kintinuous_ref.raycast._empty_space's). Rows
@@ -80,7 +80,7 @@ def _or_into(target, source):
         target[j] = target[j] | source[j]
 
 
-def brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
+def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     """(empty, near): kintinuous_ref.raycast._empty_space of the volume (int64 brick distances)
     and the fine map of march_ray (bool per fine brick), from the negative-voxel counts."""
     counts = negative_counts(volume)
@@ -88,7 +88,7 @@ def brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     near = np.empty((m, m, m), dtype=np.bool_)
     b = -(-volume.resolution // BRICK)
     negative = np.zeros((b, b, b), dtype=np.bool_)
-    _brick_maps(counts, np.empty_like(near), near, negative)
+    _brick_maps_loop(counts, np.empty_like(near), near, negative)
     return empty_space_distance(negative), near
 
 
@@ -145,9 +145,9 @@ def _min_max(target, source, k):
 
 
 def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
-    """(empty, fine_distance): the brick distance map of brick_maps and the capped distance
+    """(empty, fine_distance): the brick distance map of _brick_maps and the capped distance
     map over its fine bricks (march_ray_skipping's)."""
-    empty, near = brick_maps(volume)
+    empty, near = _brick_maps(volume)
     fine_distance = np.empty(near.shape, dtype=np.uint8)
     _fine_distance(near, FINE_DISTANCE_CAP, fine_distance)
     # uint8: the map stays in the first-level cache; a smaller distance only means shorter jumps
@@ -156,7 +156,7 @@ def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
 
 def empty_space(volume: FastTsdfVolume) -> np.ndarray:
     """kintinuous_ref.raycast._empty_space of the fast volume (brick distance map, int64)."""
-    return brick_maps(volume)[0]
+    return _brick_maps(volume)[0]
 
 
 @numba.njit(cache=True, error_model="numpy")
