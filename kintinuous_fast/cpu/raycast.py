@@ -29,8 +29,7 @@ from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _ops = build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called)
-raycast_pixel = _ops.raycast_pixel
-raycast_pixels_skipping = _ops.raycast_pixels_skipping
+raycast_pixels = _ops.raycast_pixels
 ray_direction = _ops.ray_direction
 cone_safe_until = _ops.cone_safe_until
 ray_span = _ops.ray_span
@@ -82,7 +81,8 @@ def _or_into(target, source):
 
 def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     """(empty, near): kintinuous_ref.raycast._empty_space of the volume (int64 brick distances)
-    and the fine map of march_ray (bool per fine brick), from the negative-voxel counts."""
+    and the `near` map of fine bricks (bool) that skip_maps turns into distances, both from the
+    negative-voxel counts."""
     counts = negative_counts(volume)
     m = counts.shape[0]
     near = np.empty((m, m, m), dtype=np.bool_)
@@ -146,7 +146,7 @@ def _min_max(target, source, k):
 
 def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     """(empty, fine_distance): the brick distance map of _brick_maps and the capped distance
-    map over its fine bricks (march_ray_skipping's)."""
+    map over its fine bricks (ops.volume.march_ray's)."""
     empty, near = _brick_maps(volume)
     fine_distance = np.empty(near.shape, dtype=np.uint8)
     _fine_distance(near, FINE_DISTANCE_CAP, fine_distance)
@@ -188,7 +188,6 @@ def _raycast_loop(
     o0,
     o1,
     o2,
-    skipping,
     empty,
     fine_distance,
     camera,
@@ -203,7 +202,8 @@ def _raycast_loop(
 ):
     # Rays cost very different amounts: rows of tiles are handed out one at a time (the caller
     # sets the chunk size), so a thread that finishes early, or was descheduled, evens out.
-    # Each tile's rays share the free space in front of them, marched once (cone_safe_until).
+    # Each tile's rays share the free space in front of them, marched once (cone_safe_until;
+    # with maps that skip nothing it only finds the first entry into the volume).
     height, width = vertices.shape[0], vertices.shape[1]
     n = tsdf_weight.shape[0]
     for tile_row in prange(-(-height // TILE)):
@@ -211,26 +211,17 @@ def _raycast_loop(
         v1 = min(v0 + TILE, height)
         for u0 in range(0, width, TILE):
             u1 = min(u0 + TILE, width)
-            safe_until = 0.0
-            if skipping:
-                safe_until = _tile_safe_until(
-                    empty, fine_distance, n, u0, u1, v0, v1, camera, rotation, origin,
-                    volume_origin, voxel_size,
-                )  # fmt: skip
+            safe_until = _tile_safe_until(
+                empty, fine_distance, n, u0, u1, v0, v1, camera, rotation, origin, volume_origin,
+                voxel_size,
+            )  # fmt: skip
             for v in range(v0, v1):
-                for u in range(u0, u1):
-                    if skipping and (u - u0) % 2 == 0:  # pixels two at a time
-                        raycast_pixels_skipping(
-                            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty,
-                            fine_distance, u, v, camera, rotation, origin, volume_origin,
-                            voxel_size, step, vertices, normals, colours, safe_until, u + 1 < u1,
-                        )  # fmt: skip
-                    elif not skipping:  # the plain march (march_ray, maps that skip nothing)
-                        raycast_pixel(
-                            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty,
-                            fine_distance, u, v, camera, rotation, origin, volume_origin,
-                            voxel_size, step, vertices, normals, colours,
-                        )  # fmt: skip
+                for u in range(u0, u1, 2):  # pixels two at a time
+                    raycast_pixels(
+                        tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
+                        u, v, camera, rotation, origin, volume_origin, voxel_size, step,
+                        vertices, normals, colours, safe_until, u + 1 < u1,
+                    )  # fmt: skip
 
 
 def raycast(
@@ -252,16 +243,14 @@ def raycast(
     pose = np.asarray(pose, dtype=np.float64)
     if skip_empty:
         empty, fine_distance = skip_maps(volume)
-    else:  # the plain march: every sample taken
-        empty = np.zeros((1, 1, 1), dtype=np.int64)
-        fine_distance = np.ones((1, 1, 1), dtype=np.uint8)  # march_ray's `near`: sample
+    else:  # the plain march: maps of 0 skip nothing, every sample is taken
+        empty = fine_distance = np.zeros((1, 1, 1), dtype=np.uint8)
     with numba.parallel_chunksize(1):  # a row of tiles at a time
         _raycast_loop(
             volume.tsdf_weight,
             colour_volume,
             has_colour,
             *volume.offsets(),
-            bool(skip_empty),
             empty,
             fine_distance,
             np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),

@@ -22,23 +22,22 @@ from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _ops = build_ops(cuda_device_jit())
-raycast_pixel = _ops.raycast_pixel
+raycast_pixels = _ops.raycast_pixels
 count_negative = _ops.count_negative
 
 
-_PLAIN_MARCH: list = []
+_NOTHING_SKIPPED: list = []
 # Larger than any chessboard distance between bricks: "no negative brick along this axis yet".
 _FAR = 1 << 30
 
 
-def _plain_march_maps() -> tuple[Any, Any]:
-    """A (1, 1, 1) brick map of 0 and a (1, 1, 1) fine map of 1 on the device: with both,
-    march_ray samples every step (the plain march, whose answer the exact skipping returns
-    too); the fine map alone: every sample in a brick at distance 0."""
-    if not _PLAIN_MARCH:
-        _PLAIN_MARCH.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.int64)))
-        _PLAIN_MARCH.append(cuda.to_device(np.ones((1, 1, 1), dtype=np.uint8)))
-    return _PLAIN_MARCH[0], _PLAIN_MARCH[1]
+def _map_that_skips_nothing() -> Any:
+    """A (1, 1, 1) distance map of 0 on the device (kept for the run): as march_ray's fine map,
+    every sample in a brick at distance < FINE_LEVEL_BELOW is taken; as both maps, every
+    sample (the plain march, whose answer the exact skipping returns too)."""
+    if not _NOTHING_SKIPPED:
+        _NOTHING_SKIPPED.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.uint8)))
+    return _NOTHING_SKIPPED[0]
 
 
 def empty_space(volume: FastTsdfVolume) -> Any:
@@ -125,7 +124,7 @@ def _raycast_kernel(
     o1,
     o2,
     empty,
-    near,
+    fine_distance,
     camera,
     rotation,
     origin,
@@ -138,27 +137,11 @@ def _raycast_kernel(
 ):
     u, v = cuda.grid(2)
     if v < vertices.shape[0] and u < vertices.shape[1]:
-        raycast_pixel(
-            tsdf_weight,
-            colour_volume,
-            has_colour,
-            o0,
-            o1,
-            o2,
-            empty,
-            near,
-            u,
-            v,
-            camera,
-            rotation,
-            origin,
-            volume_origin,
-            voxel_size,
-            step,
-            vertices,
-            normals,
-            colours,
-        )
+        raycast_pixels(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
+            camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
+            colours, 0.0, False,
+        )  # fmt: skip
 
 
 def raycast(
@@ -189,8 +172,8 @@ def raycast(
         colour_volume,
         has_colour,
         *volume.offsets(),
-        empty_space(volume) if skip_empty else _plain_march_maps()[0],
-        _plain_march_maps()[1],  # no finer level: every sample in a brick at distance 0
+        empty_space(volume) if skip_empty else _map_that_skips_nothing(),
+        _map_that_skips_nothing(),  # no finer level
         cuda.to_device(np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)),
         cuda.to_device(np.ascontiguousarray(pose[:3, :3])),
         cuda.to_device(np.ascontiguousarray(pose[:3, 3])),

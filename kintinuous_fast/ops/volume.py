@@ -513,115 +513,10 @@ def build_ops(
         return estimate
 
     @jit
-    def border_distance(c: float, velocity: float, brick: int, reach: int) -> float:
-        """Ray parameter to the border of the empty cube of bricks [brick - reach, brick +
-        reach] along one axis (velocity in voxels per metre); inf when parallel."""
-        if velocity > 0:
-            return ((brick + reach + 1) * BRICK - c) / velocity
-        if velocity < 0:
-            return ((brick - reach) * BRICK - c) / velocity
-        return np.inf
-
-    @jit
     def fine_index(c: float, n: int, last: int) -> int:
         """Fine brick of the lower corner voxel of a sample at voxel coordinate c (clamped as
         sample_tsdf_at clamps it), at most `last`."""
         return min(min(max(int(math.floor(c)), 0), n - 2) // FINE, last)
-
-    @jit_called
-    def march_ray(
-        tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
-        empty: Any,
-        near: Any,
-        origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
-        volume_origin: Any,
-        voxel_size: float,
-        step: float,
-    ) -> float:
-        """Ray parameter of the first + to - crossing (regula-falsi refined), NaN if none; the
-        samples lie at entry + m step (kintinuous_ref.raycast.march).
-
-        `empty` is the brick distance map of kintinuous_ref.raycast._empty_space (logical
-        bricks of BRICK^3 voxels): a ray in a brick at distance D >= 1 jumps to the first grid
-        sample past the empty cube of bricks within D - 1, exactly as the reference's
-        skipping (which returns the plain march's answer). A (1, 1, 1) map of 0 is the plain
-        march.
-
-        `near` is a second, finer level inside the bricks at distance 0: near[f] is False only
-        when no observed voxel of fine bricks f .. f + 1 (FINE^3 voxels each, logical) is
-        negative. Those hold all 8 voxels of a sample whose lower corner lies in brick f, so
-        such a sample is >= 0 or unknown: unless the sample before it was negative (a back face
-        would complete here), it decides nothing and is skipped like a sample in an empty brick
-        (the next sample taken recovers its predecessor). A (1, 1, 1) map of True samples every
-        step."""
-        entry, exit_ = ray_span(origin, d0, d1, d2, volume_origin, voxel_size, tsdf_weight.shape[0])
-        if not entry < exit_:
-            return np.nan
-        bricks = empty.shape[0]
-        last_fine = near.shape[0] - 1
-        n = tsdf_weight.shape[0]
-        previous = np.nan
-        previous_known = True
-        m = 0
-        while True:
-            t = entry + m * step
-            cx = (origin[0] + t * d0 - volume_origin[0]) / voxel_size
-            cy = (origin[1] + t * d1 - volume_origin[1]) / voxel_size
-            cz = (origin[2] + t * d2 - volume_origin[2]) / voxel_size
-            bx = min(max(int(math.floor(cx / BRICK)), 0), bricks - 1)
-            by = min(max(int(math.floor(cy / BRICK)), 0), bricks - 1)
-            bz = min(max(int(math.floor(cz / BRICK)), 0), bricks - 1)
-            radius = empty[bx, by, bz]
-            if radius > 0:  # empty space: jump past the empty cube around this brick
-                reach = radius - 1
-                to_border = min(
-                    min(
-                        border_distance(cx, d0 / voxel_size, bx, reach),
-                        border_distance(cy, d1 / voxel_size, by, reach),
-                    ),
-                    border_distance(cz, d2 / voxel_size, bz, reach),
-                )
-                m_border = int(math.floor((t + to_border - entry) / step)) + 1
-                m_next = max(m + 1, m_border)
-                previous_known = False
-            elif (
-                not (previous_known and previous < 0)
-                and not near[
-                    fine_index(cx, n, last_fine),
-                    fine_index(cy, n, last_fine),
-                    fine_index(cz, n, last_fine),
-                ]
-            ):  # neither this sample nor the one before can be negative: nothing to decide
-                m_next = m + 1
-                previous_known = False
-            else:
-                if not previous_known:
-                    previous = np.nan
-                    if m > 0:
-                        previous = sample_along(
-                            tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
-                            entry + (m - 1) * step, volume_origin, voxel_size,
-                        )  # fmt: skip
-                value = sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
-                if previous > 0 and value < 0:
-                    return refine_crossing(
-                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t - step, previous, t,
-                        value, volume_origin, voxel_size,
-                    )  # fmt: skip
-                if previous < 0 and value > 0:
-                    return np.nan  # a back face
-                previous = value
-                previous_known = True
-                m_next = m + 1
-            m = m_next
-            if not entry + m * step <= exit_:
-                return np.nan
 
     @jit
     def samples_to_leave(c: float, dc: float, inverse: float, lower: float, upper: float) -> float:
@@ -669,7 +564,7 @@ def build_ops(
         return 1.0 / x if x != 0 else 0.0
 
     @jit_called
-    def march_ray_skipping(
+    def march_ray(
         tsdf_weight: Any,
         o0: int,
         o1: int,
@@ -685,15 +580,20 @@ def build_ops(
         step: float,
         safe_until: float,
     ) -> float:
-        """march_ray with a distance map at both levels: `empty` over BRICK^3 bricks (as
-        there) and `fine_distance` over the fine bricks inside bricks at distance 0, starting
-        at the first sample at or past `safe_until` (cone_safe_until's: no sample before it
-        can be negative, so they are skipped like those of a jump; 0 starts at the entry).
+        """Ray parameter of the first + to - crossing (regula-falsi refined), NaN if none; the
+        samples lie at entry + m step (kintinuous_ref.raycast.march), marched from the first
+        sample at or past `safe_until` (cone_safe_until's: no sample before it can be negative,
+        so they are skipped like those of a jump; 0 starts at the entry).
 
-        fine_distance[f] = D >= 1 says no fine brick within chessboard distance D - 1 of f is
-        `near` (march_ray's fine map: may hold the lower corner of a negative sample), so every
-        sample whose lower corner lies in that cube is >= 0 or unknown and, unless the sample
-        before the first of them was negative, is skipped at once. Jump lengths come from
+        Empty space is skipped exactly with a distance map at two levels. `empty` is the brick
+        distance map of kintinuous_ref.raycast._empty_space (logical bricks of BRICK^3 voxels):
+        no sample in the cube of bricks within D - 1 of a brick at distance D can be negative,
+        as there. `fine_distance` is finer, over FINE^3 bricks: fine_distance[f] = D >= 1 says
+        no fine brick within chessboard distance D - 1 of f is `near` (may hold the lower
+        corner of a negative sample), so every sample whose lower corner lies in that cube is
+        >= 0 or unknown and, unless the sample before the first of them was negative, is
+        skipped at once. Bricks at a distance below FINE_LEVEL_BELOW read the fine map. Maps
+        of shape (1, 1, 1) holding 0 skip nothing: the plain march. Jump lengths come from
         the samples' nominal coordinates (linear in the sample index) with a margin, so the
         samples skipped are a subset of those the exact test would skip: the same answer.
         The march is march_start, then march_step until it says the ray is done.
@@ -725,7 +625,7 @@ def build_ops(
         step: float,
         safe_until: float,
     ) -> tuple:
-        """march_ray_skipping of two rays (unit directions a and b) in lockstep: each step of
+        """march_ray of two rays (unit directions a and b) in lockstep: each step of
         one is a chain of dependent loads and roundings, so the core works on the other's
         meanwhile. The same answers as marching them one after the other."""
         n = tsdf_weight.shape[0]
@@ -813,7 +713,7 @@ def build_ops(
         previous: float,
         previous_known: bool,
     ) -> tuple:
-        """One step of march_ray_skipping at sample m: a jump or a sample. Returns (m,
+        """One step of march_ray at sample m: a jump or a sample. Returns (m,
         previous, previous_known, hit) for the next step; m = -1 once the ray is done, hit then
         its answer (NaN: no surface)."""
         entry, exit_ = ray[1], ray[2]
@@ -922,7 +822,7 @@ def build_ops(
 
         At t those rays lie in a box of half-width t * spread / voxel_size voxels around the
         centre ray's point. The box is walked through the safe cubes of the two distance maps
-        (march_ray_skipping's: samples whose brick, or whose lower corner's fine brick, lies in
+        (march_ray's: samples whose brick, or whose lower corner's fine brick, lies in
         the cube cannot be negative), each time as far as it stays inside the cube, choosing
         the cube just ahead of the centre; the walk stops where no cube holds the whole box
         (next to the tile's nearest surface). Points outside [0, N - 1]^3 are no samples: the
@@ -952,7 +852,11 @@ def build_ops(
             ax = min(max(cx + ahead * vx, 0.0), n - 1.0)
             ay = min(max(cy + ahead * vy, 0.0), n - 1.0)
             az = min(max(cz + ahead * vz, 0.0), n - 1.0)
-            bx, by, bz = int(ax) // BRICK, int(ay) // BRICK, int(az) // BRICK
+            # clamped as march_step clamps them (a (1, 1, 1) map of 0 then skips nothing)
+            last_brick, last_fine = empty.shape[0] - 1, fine_distance.shape[0] - 1
+            bx = min(int(ax) // BRICK, last_brick)
+            by = min(int(ay) // BRICK, last_brick)
+            bz = min(int(az) // BRICK, last_brick)
             radius = int(empty[bx, by, bz])
             size, fx, fy, fz = BRICK, bx, by, bz
             if radius < 1 or not (
@@ -960,7 +864,10 @@ def build_ops(
                 and box_inside(cy, half, (by - radius + 1) * BRICK, (by + radius) * BRICK)
                 and box_inside(cz, half, (bz - radius + 1) * BRICK, (bz + radius) * BRICK)
             ):
-                size, fx, fy, fz = FINE, int(ax) // FINE, int(ay) // FINE, int(az) // FINE
+                size = FINE
+                fx = min(int(ax) // FINE, last_fine)
+                fy = min(int(ay) // FINE, last_fine)
+                fz = min(int(az) // FINE, last_fine)
                 radius = int(fine_distance[fx, fy, fz])
                 if radius < 1 or not (
                     box_inside(cx, half, (fx - radius + 1) * FINE, (fx + radius) * FINE)
@@ -1015,42 +922,7 @@ def build_ops(
         return d0 / norm, d1 / norm, d2 / norm
 
     @jit
-    def raycast_pixel(
-        tsdf_weight: Any,
-        colour_volume: Any,
-        has_colour: bool,
-        o0: int,
-        o1: int,
-        o2: int,
-        empty: Any,
-        near: Any,
-        u: int,
-        v: int,
-        camera: Any,
-        rotation: Any,
-        origin: Any,
-        volume_origin: Any,
-        voxel_size: float,
-        step: float,
-        vertices: Any,
-        normals: Any,
-        colours: Any,
-    ) -> None:
-        """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
-        march_ray. `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0
-        beforehand."""
-        d0, d1, d2 = ray_direction(u, v, camera, rotation)
-        t = march_ray(
-            tsdf_weight, o0, o1, o2, empty, near, origin, d0, d1, d2, volume_origin, voxel_size,
-            step,
-        )  # fmt: skip
-        shade_pixel(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2,
-            volume_origin, voxel_size, vertices, normals, colours,
-        )  # fmt: skip
-
-    @jit
-    def raycast_pixels_skipping(
+    def raycast_pixels(
         tsdf_weight: Any,
         colour_volume: Any,
         has_colour: bool,
@@ -1073,9 +945,10 @@ def build_ops(
         safe_until: float,
         pair: bool,
     ) -> None:
-        """raycast_pixel by march_ray_skipping (the cpu backend's two distance maps) from
-        `safe_until` on (cone_safe_until of the pixel's tile), for pixel (u, v) and, with
-        `pair`, (u + 1, v) too, the two rays marched in lockstep (march_two_rays)."""
+        """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
+        march_ray from `safe_until` on (cone_safe_until of the pixel's tile, or 0), and with
+        `pair` of (u + 1, v) too, the two rays marched in lockstep (march_two_rays). `camera`
+        is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0 beforehand."""
         a = ray_direction(u, v, camera, rotation)
         if pair:
             b = ray_direction(u + 1, v, camera, rotation)
@@ -1088,7 +961,7 @@ def build_ops(
                 b[1], b[2], volume_origin, voxel_size, vertices, normals, colours,
             )  # fmt: skip
         else:
-            t_a = march_ray_skipping(
+            t_a = march_ray(
                 tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
                 volume_origin, voxel_size, step, safe_until,
             )  # fmt: skip
@@ -1172,9 +1045,7 @@ def build_ops(
         gradient_normal=gradient_normal,
         surface_colour_at=surface_colour_at,
         march_ray=march_ray,
-        march_ray_skipping=march_ray_skipping,
         march_two_rays=march_two_rays,
         ray_direction=ray_direction,
-        raycast_pixel=raycast_pixel,
-        raycast_pixels_skipping=raycast_pixels_skipping,
+        raycast_pixels=raycast_pixels,
     )
