@@ -66,3 +66,22 @@ def test_dequantise_is_the_float32_division_for_every_int16():
     q = np.arange(-32767, 32768, dtype=np.int16)
     got = np.array([dequantise(value) for value in q], dtype=np.float32)
     np.testing.assert_array_equal(got, q.astype(np.float32) / np.float32(32767.0))
+
+
+def test_nearest_even_is_np_rint_over_the_image_range():
+    """ops.volume.nearest_even (project_voxel's rounding: np.rint has no CUDA lowering) rounds
+    by adding and subtracting 1.5 * 2^23 in float32; it must equal np.rint, ties to even, for
+    every pixel coordinate a projection can keep: ties, their neighbours, random values."""
+    nearest_even = cpu_tsdf._ops.nearest_even
+    halves = np.arange(-8, 2 * 1300, dtype=np.float32) / np.float32(2.0)
+    rng = np.random.default_rng(7)
+    values = np.concatenate(
+        [
+            halves,
+            np.nextafter(halves, np.float32(np.inf)),
+            np.nextafter(halves, np.float32(-np.inf)),
+            rng.uniform(-4.0, 1300.0, 20000).astype(np.float32),
+        ]
+    )
+    got = np.array([nearest_even(value) for value in values], dtype=np.float32)
+    np.testing.assert_array_equal(got, np.rint(values))

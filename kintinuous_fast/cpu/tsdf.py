@@ -61,9 +61,11 @@ _NO_COUNTS = np.zeros((1, 1, 1), dtype=np.uint8)  # typed placeholder: counts no
 
 @_loop
 def _ray_distance_loop(depth, fx, fy, cx, cy, out):
-    for v in prange(depth.shape[0]):
-        for u in range(depth.shape[1]):
-            out[v, u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+    height, width = depth.shape
+    for v in prange(height):
+        for u in range(width):
+            out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+    out[height * width] = -np.inf  # the "no pixel" slot (project_voxel)
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -94,9 +96,9 @@ def _integrate_slice(
     i,
 ):
     """The voxel columns of logical slice i (see _integrate_loop)."""
-    pixel_u = np.empty(n, dtype=np.int32)
-    pixel_v = np.empty(n, dtype=np.int32)
+    pixels = np.empty(n, dtype=np.uint32)
     norms = np.empty(n, dtype=np.float32)
+    sdfs = np.empty(n, dtype=np.float32)
     fi = np.float32(i)
     ci = cell(i, o0, n)
     for j in range(lo[1], hi[1]):
@@ -116,22 +118,25 @@ def _integrate_slice(
         )
         k0, k1 = max(k0, lo[2]), min(k1, hi[2])
         cj = cell(j, o1, n)
-        # two passes over the column: the projection (no memory access but the scratch rows,
-        # so it vectorises), then the updates of the voxels that project into the image
-        for k in range(k0, k1):
-            fk = np.float32(k)
+        # Three passes over the column. Only the last has branches (voxels behind the surface
+        # or without a measurement skipped); the first vectorises (counted from 0 with a
+        # float32 counter, as LLVM needs), the second is a plain gather.
+        fk0 = np.float32(k0)
+        for m in range(k1 - k0):
+            fk = fk0 + np.float32(m)
             x = px + fk * steps[2, 0]
             y = py + fk * steps[2, 1]
             z = pz + fk * steps[2, 2]
-            pixel_u[k], pixel_v[k] = project_voxel(x, y, z, intrinsics, width, height)
-            norms[k] = voxel_norm(x, y, z)
+            pixels[k0 + m] = project_voxel(x, y, z, intrinsics, width, height)
+            norms[k0 + m] = voxel_norm(x, y, z)
         for k in range(k0, k1):
-            if pixel_u[k] < 0:
+            sdfs[k] = ray_distance[pixels[k]] - norms[k]
+        for k in range(k0, k1):
+            if not sdfs[k] >= -truncation:
                 continue
             change = fuse_voxel(
-                tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), pixel_u[k], pixel_v[k],
-                norms[k], ray_distance, truncation, max_weight, colour, colour_weights,
-                fuse_colour, colour_max_weight,
+                tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), pixels[k], sdfs[k],
+                truncation, max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
             )  # fmt: skip
             if count and change != 0:
                 counts[i // FINE, j // FINE, k // FINE] += change
@@ -159,12 +164,13 @@ def _integrate_loop(
     colour_max_weight,
     counts,
     count,
+    height,
+    width,
 ):
     # Voxel columns along k: only the k-range that can project into the image (column_range)
     # is visited, so the work follows the viewing pyramid, not its bounding box. Threads take
     # whole fine bricks along i, so no two threads ever change the same brick's count.
     n = tsdf_weight.shape[0]
-    height, width = ray_distance.shape
     for brick in prange(lo[0] // FINE, (hi[0] + FINE - 1) // FINE):
         for i in range(max(brick * FINE, lo[0]), min((brick + 1) * FINE, hi[0])):
             _integrate_slice(
@@ -235,17 +241,17 @@ def integrate(
     box = frustum_box(volume, largest, pose, camera)
     if box is None:
         return
-    ray_distance = np.empty(depth.shape, dtype=np.float32)
+    ray_distance = np.empty(depth.size + 1, dtype=np.float32)  # flat (project_voxel)
     _ray_distance_loop(depth, camera.fx, camera.fy, camera.cx, camera.cy, ray_distance)
     fuse_colour = colour is not None and volume.colour is not None
     if fuse_colour:
-        colour = np.ascontiguousarray(colour, dtype=np.uint8)
+        colour = np.ascontiguousarray(colour, dtype=np.uint8).reshape(-1, 3)
         if colour_weights is None:
             colour_weights = (depth > 0).astype(np.float32)
-        colour_weights = np.ascontiguousarray(colour_weights, dtype=np.float32)
+        colour_weights = np.ascontiguousarray(colour_weights, dtype=np.float32).reshape(-1)
     else:  # typed placeholders: the loop never reads them
-        colour = np.zeros((1, 1, 3), np.uint8)
-        colour_weights = np.zeros((1, 1), np.float32)
+        colour = np.zeros((1, 3), np.uint8)
+        colour_weights = np.zeros(1, np.float32)
     colour_volume = volume.colour if volume.colour is not None else np.zeros((1, 1, 1, 4), np.uint8)
     base, steps = camera_frame_steps(volume, pose)
     counts = volume.current_negative_counts()  # kept up to date where known
@@ -269,6 +275,8 @@ def integrate(
             np.float32(volume.colour_max_weight),
             _NO_COUNTS if counts is None else counts,
             counts is not None,
+            camera.height,
+            camera.width,
         )
 
 

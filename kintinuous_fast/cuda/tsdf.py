@@ -70,9 +70,13 @@ def _max_depth_kernel(depth, result):
 
 @cuda.jit
 def _ray_distance_kernel(depth, fx, fy, cx, cy, out):
+    # flat, with -inf in the "no pixel" slot one past the image (ops.volume.project_voxel)
     u, v = cuda.grid(2)
-    if v < out.shape[0] and u < out.shape[1]:
-        out[v, u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+    height, width = depth.shape
+    if v < height and u < width:
+        out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+    if u == 0 and v == 0:
+        out[height * width] = -np.inf
 
 
 @cuda.jit
@@ -91,6 +95,8 @@ def _integrate_kernel(
     base,
     steps,
     intrinsics,
+    width,
+    height,
     ray_distance,
     truncation,
     max_weight,
@@ -115,6 +121,8 @@ def _integrate_kernel(
                 base,
                 steps,
                 intrinsics,
+                width,
+                height,
                 ray_distance,
                 truncation,
                 max_weight,
@@ -193,23 +201,23 @@ def integrate(
     box = frustum_box(volume, float(largest.copy_to_host()[0]), pose, camera)
     if box is None:
         return
-    ray_distance = cuda.device_array(d_depth.shape, dtype=np.float32)
+    ray_distance = cuda.device_array(camera.height * camera.width + 1, dtype=np.float32)
     _ray_distance_kernel[grid, BLOCK_2D](
         d_depth, camera.fx, camera.fy, camera.cx, camera.cy, ray_distance
     )
     fuse_colour = colour is not None and volume.colour is not None
     if fuse_colour:
-        colour = to_device(colour, np.uint8)
+        colour = to_device(colour, np.uint8).reshape(-1, 3)
         if colour_weights is None:
             colour_weights = (
                 (np.asarray(depth) > 0).astype(np.float32)
                 if not hasattr(depth, "copy_to_host")
                 else (depth.copy_to_host() > 0).astype(np.float32)
             )
-        colour_weights = to_device(colour_weights, np.float32)
+        colour_weights = to_device(colour_weights, np.float32).reshape(-1)
     else:
-        colour = cuda.to_device(np.zeros((1, 1, 3), np.uint8))
-        colour_weights = cuda.to_device(np.zeros((1, 1), np.float32))
+        colour = cuda.to_device(np.zeros((1, 3), np.uint8))
+        colour_weights = cuda.to_device(np.zeros(1, np.float32))
     colour_volume = volume.colour
     if colour_volume is None:
         colour_volume = cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
@@ -229,6 +237,8 @@ def integrate(
         cuda.to_device(base),
         cuda.to_device(steps),
         cuda.to_device(projection_constants(camera)),
+        camera.width,
+        camera.height,
         ray_distance,
         np.float32(volume.truncation),
         np.float32(volume.max_weight),

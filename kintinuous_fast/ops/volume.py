@@ -21,6 +21,7 @@ import numpy as np
 TSDF_SCALE = 32767.0  # int16 units per unit of normalised TSDF
 TSDF_MAX = 32767  # the stored F = 1
 TSDF_INVERSE_SCALE = 1.0 / TSDF_SCALE
+ROUNDING_SHIFT = np.float32(1.5 * 2**23)  # see nearest_even
 BRICK = 8  # voxels per side of the empty-space bricks (kintinuous_ref.raycast.BRICK)
 # Voxels per side of the fine bricks whose observed negative voxels integration counts (the cpu
 # raycast's second level of empty-space skipping, inside the bricks next to a surface).
@@ -74,10 +75,13 @@ def build_ops(
     def ray_distance_pixel(
         d: Any, u: int, v: int, fx: float, fy: float, cx: float, cy: float
     ) -> Any:
-        """lambda D: the measured distance along pixel (u, v)'s ray (float32 as the reference)."""
+        """lambda D: the measured distance along pixel (u, v)'s ray (float32 as the reference);
+        -inf where D is not > 0 (no measurement), so that every sdf taken from it is below -mu:
+        no update, as the reference's D > 0 test."""
         x = (u - cx) * 1.0 / fx
         y = (v - cy) * 1.0 / fy
-        return np.float32(float(d) * math.sqrt(x * x + y * y + 1.0))
+        measured = np.float32(float(d) * math.sqrt(x * x + y * y + 1.0))
+        return measured if d > 0 else np.float32(-np.inf)
 
     @jit
     def cell(index: int, offset: int, n: int) -> int:
@@ -86,19 +90,28 @@ def build_ops(
         return c - n if c >= n else c
 
     @jit
-    def project_voxel(x: Any, y: Any, z: Any, intrinsics: Any, width: int, height: int) -> tuple:
-        """(u, v) = round(pi(p_c)) of a camera-frame voxel centre (float32, as NumPy 2 computes
-        the reference's projection), or (-1, -1) when z <= 0 or it falls outside the image.
-        Branch-free apart from the selects, so a loop of it vectorises."""
+    def nearest_even(f: Any) -> Any:
+        """np.rint of a float32 in float32 arithmetic, exact for |f| < 2^22 (all that
+        project_voxel keeps): adding 1.5 * 2^23 leaves no fraction bits, so the sum is rounded
+        to the nearest integer, ties to even; subtracting it again is exact. np.rint itself
+        has no CUDA lowering."""
+        return (f + ROUNDING_SHIFT) - ROUNDING_SHIFT
+
+    @jit
+    def project_voxel(x: Any, y: Any, z: Any, intrinsics: Any, width: int, height: int) -> Any:
+        """The pixel of a camera-frame voxel centre, (u, v) = round(pi(p_c)) (float32, as NumPy 2
+        computes the reference's projection), as the flat index v W + u (uint32); W H, the
+        "no pixel" slot one past the image, when z <= 0 or it falls outside the image. Images
+        are read flat here: ray distances with -inf in that slot (see measured_ray_distances),
+        colour (W H, 3), colour weights (W H). Selects only, no branch and no integer-to-float
+        conversion, so that a loop of it vectorises (the cpu integration's first pass)."""
         uf = intrinsics[0] * x / z + intrinsics[2]
         vf = intrinsics[1] * y / z + intrinsics[3]
-        # range check before converting to an integer (uf may be huge or NaN)
-        inside = z > 0 and uf > -1.0 and uf < width + 1.0 and vf > -1.0 and vf < height + 1.0
-        u = round(uf) if inside else -1  # half to even, as np.rint
-        v = round(vf) if inside else -1
-        if u < 0 or u >= width or v < 0 or v >= height:
-            return -1, -1
-        return u, v
+        ur = nearest_even(uf)
+        vr = nearest_even(vf)
+        inside = (z > 0) & (ur >= 0) & (ur <= width - 1) & (vr >= 0) & (vr <= height - 1)
+        pixel = np.uint32(vr) * np.uint32(width) + np.uint32(ur)
+        return pixel if inside else np.uint32(width * height)
 
     @jit
     def voxel_norm(x: Any, y: Any, z: Any) -> Any:
@@ -116,6 +129,8 @@ def build_ops(
         y: Any,
         z: Any,
         intrinsics: Any,
+        width: int,
+        height: int,
         ray_distance: Any,
         truncation: Any,
         max_weight: Any,
@@ -126,14 +141,13 @@ def build_ops(
     ) -> int:
         """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place: the voxel in
         array cell (ci, cj, ck) whose camera-frame centre is (x, y, z) (float32):
-        project_voxel, then fuse_voxel. Returns fuse_voxel's change of the negative count."""
-        height, width = ray_distance.shape
-        u, v = project_voxel(x, y, z, intrinsics, width, height)
-        if u < 0:
-            return 0
+        project_voxel, its sdf, then fuse_voxel. Returns fuse_voxel's change of the negative
+        count."""
+        pixel = project_voxel(x, y, z, intrinsics, width, height)
         return fuse_voxel(
-            tsdf_weight, colour_volume, ci, cj, ck, u, v, voxel_norm(x, y, z), ray_distance,
-            truncation, max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
+            tsdf_weight, colour_volume, ci, cj, ck, pixel,
+            ray_distance[pixel] - voxel_norm(x, y, z), truncation, max_weight,
+            colour, colour_weights, fuse_colour, colour_max_weight,
         )  # fmt: skip
 
     @jit
@@ -143,10 +157,8 @@ def build_ops(
         ci: int,
         cj: int,
         ck: int,
-        u: int,
-        v: int,
-        norm: Any,
-        ray_distance: Any,
+        pixel: Any,
+        sdf: Any,
         truncation: Any,
         max_weight: Any,
         colour: Any,
@@ -154,10 +166,10 @@ def build_ops(
         fuse_colour: bool,
         colour_max_weight: Any,
     ) -> int:
-        """The update of the voxel in array cell (ci, cj, ck), at distance `norm` from the
-        camera, projecting to pixel (u, v) inside the image.
+        """The update of the voxel in array cell (ci, cj, ck) projecting to flat pixel index
+        `pixel` (project_voxel's), with sdf = lambda D - |p_c| (-inf without a measurement).
 
-        sdf = lambda D - |p_c|; update if D > 0 and sdf >= -mu: running average of min(1,
+        Update if sdf >= -mu: running average of min(1,
         sdf/mu) with weight W + 1 (capped); colour where |sdf| < mu and the pixel's colour
         weight > 0.
 
@@ -166,9 +178,7 @@ def build_ops(
         skipping. Values that do not change are not written back (a saturated free-space voxel,
         F = 1 at the weight cap, stays as it is: no store, no dirty cache line).
         """
-        measured = ray_distance[v, u]
-        sdf = measured - norm
-        if not (measured > 0 and sdf >= -truncation):
+        if not sdf >= -truncation:
             return 0
         q_old = tsdf_weight[ci, cj, ck, 0]
         stored_weight = tsdf_weight[ci, cj, ck, 1]
@@ -192,12 +202,12 @@ def build_ops(
         change = (1 if q_new < 0 else 0) - (1 if q_old < 0 and stored_weight > 0 else 0)
         if not fuse_colour:
             return change
-        w_c = colour_weights[v, u]
+        w_c = colour_weights[pixel]
         if not (abs(sdf) < truncation and w_c > 0):
             return change
         cw_old = np.float32(colour_volume[ci, cj, ck, 3])
         for channel in range(3):
-            rgb = np.float32(colour[v, u, channel])
+            rgb = np.float32(colour[pixel, channel])
             c_old = np.float32(colour_volume[ci, cj, ck, channel])
             c_new = (c_old * cw_old + rgb * w_c) / (cw_old + w_c)
             colour_volume[ci, cj, ck, channel] = min(max(round(float(c_new)), 0), 255)
@@ -228,6 +238,8 @@ def build_ops(
         base: Any,
         steps: Any,
         intrinsics: Any,
+        width: int,
+        height: int,
         ray_distance: Any,
         truncation: Any,
         max_weight: Any,
@@ -254,6 +266,8 @@ def build_ops(
             y,
             z,
             intrinsics,
+            width,
+            height,
             ray_distance,
             truncation,
             max_weight,
@@ -1036,6 +1050,7 @@ def build_ops(
         fuse_voxel=fuse_voxel,
         column_range=column_range,
         dequantise=dequantise,
+        nearest_even=nearest_even,
         ray_span=ray_span,
         quantise=quantise,
         ray_distance_pixel=ray_distance_pixel,
