@@ -74,13 +74,15 @@ class Backend:
 
         return to_device(array)
 
-    def predict_surface(self, volume: Any, pose: Any, camera: Any) -> Any:
+    def predict_surface(self, volume: Any, pose: Any, camera: Any, stride: int = 1) -> Any:
         """The pipeline's model prediction (kintinuous_ref.pipeline.predict_surface), with the
         maps left where they were computed (device memory for cuda: the next frame's ICP reads
         them there)."""
         if self.name == "cuda":
-            return self.raycast.raycast(volume, pose, camera, colour=False, download=False)
-        return self.raycast.raycast(volume, pose, camera, colour=False)
+            return self.raycast.raycast(
+                volume, pose, camera, colour=False, stride=stride, download=False
+            )
+        return self.raycast.raycast(volume, pose, camera, colour=False, stride=stride)
 
 
 def cuda_status() -> str:

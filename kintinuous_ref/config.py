@@ -157,8 +157,9 @@ class Config:
 
 def fast_odometry(config: Config) -> Config:
     """`config` with the finest pyramid level skipped by every dense estimator (0 iterations
-    there; the inlier check still looks at full resolution): the original code's "fast odometry"
-    option, for CPUs (docs/benchmarks.md measures its accuracy cost)."""
+    there; the inlier check looks at the next level, and the pipeline raycasts only the quarter
+    of the pixels that level reads): the original code's "fast odometry" option, for CPUs
+    (docs/benchmarks.md measures its accuracy cost)."""
 
     def skip_finest(iterations: tuple[int, ...]) -> tuple[int, ...]:
         return (0, *iterations[1:])

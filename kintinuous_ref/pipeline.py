@@ -159,6 +159,7 @@ def run(
     predict_surface = getattr(
         backend, "predict_surface", functools.partial(backend.raycast.raycast, colour=False)
     )
+    stride = getattr(tracker, "model_stride", 1)  # only the pixels the tracker reads
     result = PipelineResult()
     previous = None
     try:
@@ -207,7 +208,7 @@ def run(
             clock.lap("integrate")
             # 5. Predict the model surface for the next frame's ICP (III).
             if predict_model:
-                result.model = predict_surface(result.volume, pose, camera)
+                result.model = predict_surface(result.volume, pose, camera, stride=stride)
                 clock.lap("raycast")
             # 6. Record.
             clock.total()

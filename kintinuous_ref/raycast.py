@@ -34,6 +34,12 @@ STEP_FRACTION = 0.8  # of the truncation distance (parameters.md)
 BRICK = 8  # voxels per side of the blocks used to skip empty space
 
 
+def check_stride(stride: int) -> None:
+    """The pixel stride of a raycast: a whole number >= 1."""
+    if not isinstance(stride, (int, np.integer)) or isinstance(stride, bool) or stride < 1:
+        raise ValueError(f"raycast stride must be a whole number >= 1, got {stride!r}")
+
+
 @dataclass
 class ModelPrediction:
     pose: np.ndarray  # camera-to-world pose it was rendered from
@@ -217,22 +223,30 @@ def raycast(
     camera: Intrinsics,
     skip_empty: bool = True,
     colour: bool = True,
+    stride: int = 1,
 ) -> ModelPrediction:
     """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
     `colour` False leaves the colour map black: the trackers read only vertices and normals
-    (the RGB-D term compares the raw frames, paper IV), so the pipeline's prediction skips it."""
+    (the RGB-D term compares the raw frames, paper IV), so the pipeline's prediction skips it.
+    `stride` s > 1 casts only the rays of pixels (u, v) with u and v multiples of s, all that
+    level log2(s) of preprocess.model_pyramid keeps (the fast-odometry setting's ICP starts
+    there); the other pixels stay empty."""
     height, width = camera.height, camera.width
-    rays = camera.ray_directions().reshape(-1, 3).astype(np.float64)
+    check_stride(stride)
+    rays = camera.ray_directions()[::stride, ::stride].reshape(-1, 3).astype(np.float64)
     directions = rays @ pose[:3, :3].T
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     origin = pose[:3, 3].astype(np.float64)
     hit_t = march(volume, origin, directions, skip_empty)
+    rows, columns = np.mgrid[0:height:stride, 0:width:stride]
+    cast_pixels = (rows * width + columns).ravel()  # flat index of each ray's pixel
 
     found = np.flatnonzero(np.isfinite(hit_t))
     points = origin + hit_t[found, None] * directions[found]
-    vertices = np.full((len(rays), 3), np.nan, dtype=np.float32)
-    normals = np.full((len(rays), 3), np.nan, dtype=np.float32)
-    colours = np.zeros((len(rays), 3), dtype=np.uint8)
+    found = cast_pixels[found]
+    vertices = np.full((height * width, 3), np.nan, dtype=np.float32)
+    normals = np.full((height * width, 3), np.nan, dtype=np.float32)
+    colours = np.zeros((height * width, 3), dtype=np.uint8)
     vertices[found] = points
     normals[found] = _gradient_normals(volume, points)
     if colour:

@@ -417,3 +417,13 @@ def check_raycast(
     np.testing.assert_array_equal(uncoloured.vertices, coloured.vertices)
     np.testing.assert_array_equal(uncoloured.normals, coloured.normals)
     assert coloured.colours.any() and not uncoloured.colours.any()
+    # A stride casts every s-th pixel of each every s-th row (tiles and pairs regrouped):
+    # each ray's answer is the full raycast's, bit for bit; the other pixels stay empty.
+    for stride in (2, 3):
+        strided = raycast_impl.raycast(fast, view, camera, stride=stride)
+        cast = np.zeros((camera.height, camera.width), dtype=bool)
+        cast[::stride, ::stride] = True
+        for name in ("vertices", "normals", "colours"):
+            got_map, full_map = getattr(strided, name), getattr(coloured, name)
+            np.testing.assert_array_equal(got_map[cast], full_map[cast], err_msg=name)
+        assert np.isnan(strided.vertices[~cast]).all() and not strided.colours[~cast].any()

@@ -273,7 +273,7 @@ def _tile_starts(volume, maps, pose, camera) -> np.ndarray:
         for u0 in range(0, camera.width, tile):
             v1, u1 = min(v0 + tile, camera.height), min(u0 + tile, camera.width)
             start[v0:v1, u0:u1] = cpu_raycast._tile_safe_until(
-                *maps, volume.resolution, u0, u1, v0, v1, intrinsics,
+                *maps, volume.resolution, u0, u1, v0, v1, 1, intrinsics,
                 np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
                 np.asarray(volume.origin, dtype=np.float64), volume.voxel_size,
             )  # fmt: skip

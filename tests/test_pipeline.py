@@ -6,13 +6,16 @@ import json
 import numpy as np
 import pytest
 
+import kintinuous_ref
 from kintinuous_fast import resolve_backend_name
 from kintinuous_ref import mesh, pipeline, se3
+from kintinuous_ref import raycast as raycast_module
 from kintinuous_ref.cli import main
-from kintinuous_ref.config import Config, VolumeConfig
+from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
 from kintinuous_ref.datasets import synthetic, tum
 from kintinuous_ref.datasets.tum import Frame
 from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.odometry import make_tracker
 
 FRAMES = 8
 CONFIG = Config(volume=VolumeConfig(resolution=96, size=3.0))
@@ -96,6 +99,40 @@ def test_tracker_plugs_in(desk):
         error = se3.inverse(truth) @ estimate
         assert np.linalg.norm(error[:3, 3]) < 0.05
         assert np.degrees(se3.rotation_angle(error[:3, :3])) < 3.0
+
+
+def test_fast_odometry_raycasts_only_the_pixels_it_reads(desk):
+    """With the fast-odometry setting ICP starts at pyramid level 1, which reads the model's
+    pixels (2u, 2v) only: the pipeline raycasts just those (a quarter of the rays), and the
+    trajectory is bit for bit that of a run raycasting every pixel."""
+    scenario, frames = desk
+    config = fast_odometry(CONFIG)
+    tracker = make_tracker("icp+rgbd", config, scenario.camera)
+    assert (tracker.finest_level, tracker.model_stride) == (1, 2)
+    default = make_tracker("icp+rgbd", CONFIG, scenario.camera)
+    assert (default.finest_level, default.model_stride) == (0, 1)
+    assert make_tracker("fovis/icp", config, scenario.camera).model_stride == 2
+    assert make_tracker("rgbd", config, scenario.camera).model_stride == 1
+
+    class EveryPixel:  # the reference backend, raycasting every pixel whatever it is asked
+        preprocess, tsdf, raycast = kintinuous_ref.preprocess, kintinuous_ref.tsdf, raycast_module
+
+        @staticmethod
+        def predict_surface(volume, pose, camera, stride):  # noqa: ANN001, ANN205
+            return raycast_module.raycast(volume, pose, camera, colour=False)
+
+    def track(backend):  # noqa: ANN001, ANN202
+        return pipeline.run(
+            frames[:4], scenario.camera, config, "icp+rgbd", scenario.trajectory, backend=backend
+        )
+
+    strided, full = track(kintinuous_ref), track(EveryPixel)
+    assert strided.tracking_failures == full.tracking_failures == 0
+    np.testing.assert_array_equal(np.array(strided.poses), np.array(full.poses))
+    cast = np.zeros((scenario.camera.height, scenario.camera.width), dtype=bool)
+    cast[::2, ::2] = True
+    assert np.isnan(strided.model.vertices[~cast]).all()
+    np.testing.assert_array_equal(strided.model.vertices[cast], full.model.vertices[cast])
 
 
 def test_bad_runs_are_refused_before_work(desk):

@@ -84,6 +84,25 @@ def test_raycast_without_colour_keeps_the_geometry(fused_box):
     assert prediction.colours.any() and not uncoloured.colours.any()
 
 
+@pytest.mark.parametrize("stride", [2, 3])
+def test_raycast_stride_casts_only_the_pixels_a_pyramid_level_reads(fused_box, stride):
+    """With a stride only the pixels (s u, s v) are cast (the fast-odometry setting's model
+    pyramid starts at level 1: preprocess.model_pyramid keeps exactly those), each as in the
+    full raycast; every other pixel stays empty."""
+    _, volume, prediction = fused_box
+    strided = raycast.raycast(volume, VIEW, CAMERA, stride=stride)
+    cast = np.zeros((CAMERA.height, CAMERA.width), dtype=bool)
+    cast[::stride, ::stride] = True
+    np.testing.assert_array_equal(strided.vertices[cast], prediction.vertices[cast])
+    np.testing.assert_array_equal(strided.normals[cast], prediction.normals[cast])
+    np.testing.assert_array_equal(strided.colours[cast], prediction.colours[cast])
+    assert np.isfinite(strided.vertices[cast]).mean() > 0.5
+    assert np.isnan(strided.vertices[~cast]).all() and not strided.colours[~cast].any()
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="stride must be a whole number"):
+            raycast.raycast(volume, VIEW, CAMERA, stride=bad)
+
+
 def test_raycast_from_outside_the_volume(fused_box):
     scene, volume, _ = fused_box
     behind = pose(np.eye(3), [0.0, 0.0, -0.4])  # 0.4 m behind the volume's front face

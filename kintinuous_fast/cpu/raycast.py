@@ -24,7 +24,7 @@ from kintinuous_fast.cpu.tsdf import negative_counts
 from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called
 from kintinuous_fast.ops.volume import BRICK, FINE, build_ops
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
+from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
@@ -161,15 +161,18 @@ def empty_space(volume: FastTsdfVolume) -> np.ndarray:
 
 @numba.njit(cache=True, error_model="numpy")
 def _tile_safe_until(
-    empty, fine_distance, n, u0, u1, v0, v1, camera, rotation, origin, volume_origin, voxel_size
-):
-    """cone_safe_until for the rays of pixels [u0, u1) x [v0, v1) around the middle one's,
-    from the first of their entries into the volume."""
-    c0, c1, c2 = ray_direction((u0 + u1 - 1) // 2, (v0 + v1 - 1) // 2, camera, rotation)
+    empty, fine_distance, n, u0, u1, v0, v1, stride, camera, rotation, origin, volume_origin,
+    voxel_size,
+):  # fmt: skip
+    """cone_safe_until for the rays of pixels [u0, u1) x [v0, v1) (every `stride`-th) around the
+    middle one's, from the first of their entries into the volume."""
+    middle_u = u0 + (u1 - 1 - u0) // stride // 2 * stride
+    middle_v = v0 + (v1 - 1 - v0) // stride // 2 * stride
+    c0, c1, c2 = ray_direction(middle_u, middle_v, camera, rotation)
     spread = 0.0
     start = np.inf
-    for v in range(v0, v1):
-        for u in range(u0, u1):
+    for v in range(v0, v1, stride):
+        for u in range(u0, u1, stride):
             d0, d1, d2 = ray_direction(u, v, camera, rotation)
             spread = max(spread, max(max(abs(d0 - c0), abs(d1 - c1)), abs(d2 - c2)))
             start = min(start, ray_span(origin, d0, d1, d2, volume_origin, voxel_size, n)[0])
@@ -199,28 +202,31 @@ def _raycast_loop(
     vertices,
     normals,
     colours,
+    stride,
 ):
     # Rays cost very different amounts: rows of tiles are handed out one at a time (the caller
     # sets the chunk size), so a thread that finishes early, or was descheduled, evens out.
     # Each tile's rays share the free space in front of them, marched once (cone_safe_until;
     # with maps that skip nothing it only finds the first entry into the volume).
+    # A tile is TILE x TILE of the pixels cast (every `stride`-th).
     height, width = vertices.shape[0], vertices.shape[1]
     n = tsdf_weight.shape[0]
-    for tile_row in prange(-(-height // TILE)):
-        v0 = tile_row * TILE
-        v1 = min(v0 + TILE, height)
-        for u0 in range(0, width, TILE):
-            u1 = min(u0 + TILE, width)
+    span = TILE * stride
+    for tile_row in prange(-(-height // span)):
+        v0 = tile_row * span
+        v1 = min(v0 + span, height)
+        for u0 in range(0, width, span):
+            u1 = min(u0 + span, width)
             safe_until = _tile_safe_until(
-                empty, fine_distance, n, u0, u1, v0, v1, camera, rotation, origin, volume_origin,
-                voxel_size,
+                empty, fine_distance, n, u0, u1, v0, v1, stride, camera, rotation, origin,
+                volume_origin, voxel_size,
             )  # fmt: skip
-            for v in range(v0, v1):
-                for u in range(u0, u1, 2):  # pixels two at a time
+            for v in range(v0, v1, stride):
+                for u in range(u0, u1, 2 * stride):  # pixels two at a time
                     raycast_pixels(
                         tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
                         u, v, camera, rotation, origin, volume_origin, voxel_size, step,
-                        vertices, normals, colours, safe_until, u + 1 < u1,
+                        vertices, normals, colours, safe_until, stride if u + stride < u1 else 0,
                     )  # fmt: skip
 
 
@@ -230,10 +236,13 @@ def raycast(
     camera: Intrinsics,
     skip_empty: bool = True,
     colour: bool = True,
+    stride: int = 1,
 ) -> ModelPrediction:
     """Vertex, normal and colour maps of the model surface seen from `pose` (world frame);
     `skip_empty` (exact, as in the reference) jumps over bricks far from any surface; `colour`
-    False leaves the colour map black (kintinuous_ref.raycast.raycast)."""
+    False leaves the colour map black; `stride` > 1 casts only the pixels whose u and v are
+    multiples of it (kintinuous_ref.raycast.raycast)."""
+    check_stride(stride)
     shape = (camera.height, camera.width)
     vertices = np.full((*shape, 3), np.nan, dtype=np.float32)
     normals = np.full((*shape, 3), np.nan, dtype=np.float32)
@@ -262,5 +271,6 @@ def raycast(
             vertices,
             normals,
             colours,
+            int(stride),
         )
     return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)

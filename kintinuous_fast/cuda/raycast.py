@@ -17,7 +17,7 @@ from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
 from kintinuous_fast.ops import cuda_device_jit
 from kintinuous_fast.ops.volume import BRICK, build_ops
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction
+from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
@@ -134,13 +134,16 @@ def _raycast_kernel(
     vertices,
     normals,
     colours,
+    stride,
 ):
-    u, v = cuda.grid(2)
+    # one thread per pixel cast: (u, v) multiples of the stride
+    cast_u, cast_v = cuda.grid(2)
+    u, v = cast_u * stride, cast_v * stride
     if v < vertices.shape[0] and u < vertices.shape[1]:
         raycast_pixels(
             tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
             camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
-            colours, 0.0, False,
+            colours, 0.0, 0,
         )  # fmt: skip
 
 
@@ -151,11 +154,14 @@ def raycast(
     skip_empty: bool = True,
     colour: bool = True,
     download: bool = True,
+    stride: int = 1,
 ) -> ModelPrediction:
     """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
     `skip_empty` jumps over bricks far from any surface with the reference's exact brick
     distance map (empty_space, computed on the device); `colour` False leaves the colour map
-    black (kintinuous_ref.raycast.raycast)."""
+    black; `stride` > 1 casts only the pixels whose u and v are multiples of it
+    (kintinuous_ref.raycast.raycast)."""
+    check_stride(stride)
     shape = (camera.height, camera.width)
     vertices = cuda.device_array((*shape, 3), dtype=np.float32)
     normals = cuda.device_array((*shape, 3), dtype=np.float32)
@@ -167,7 +173,8 @@ def raycast(
         volume.colour if has_colour else cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
     )
     pose = np.asarray(pose, dtype=np.float64)
-    _raycast_kernel[grid, BLOCK_2D](
+    cast_grid = grid_2d(-(-shape[0] // stride), -(-shape[1] // stride))
+    _raycast_kernel[cast_grid, BLOCK_2D](
         volume.tsdf_weight,
         colour_volume,
         has_colour,
@@ -183,6 +190,7 @@ def raycast(
         vertices,
         normals,
         colours,
+        int(stride),
     )
     if not download:
         return ModelPrediction(

@@ -157,9 +157,9 @@ class IcpProblemBase:
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
         return self.system_and_valid(level, pose)[0]
 
-    def inlier_fraction(self, pose: np.ndarray) -> float:
-        """Matched pairs per valid current vertex at full resolution (0 when none is valid)."""
-        system, valid = self.system_and_valid(0, pose)
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """Matched pairs per valid current vertex at a pyramid level (0 when none is valid)."""
+        system, valid = self.system_and_valid(level, pose)
         return system.count / valid if valid else 0.0
 
 
@@ -218,10 +218,10 @@ class RgbdProblemBase(RefRgbdProblem):
             dy,
         )
 
-    def inlier_fraction(self, pose: np.ndarray) -> float:
-        """Correspondences per interest point at full resolution (0 when there is none)."""
-        total = int(self.points(0).indices.shape[0])
-        return self.system(0, pose).count / total if total else 0.0
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """Correspondences per interest point at a pyramid level (0 when there is none)."""
+        total = int(self.points(level).indices.shape[0])
+        return self.system(level, pose).count / total if total else 0.0
 
 
 # ----------------------------------------------------------------------------------------------

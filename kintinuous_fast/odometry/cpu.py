@@ -759,11 +759,11 @@ class IcpProblem(_host.IcpProblemBase):
             self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
         )  # fmt: skip
 
-    def inlier_fraction(self, pose: np.ndarray) -> float:
-        """As the base class, from the pair count alone (icp_pairs): with --fast-odometry the
-        finest level's points are not compacted for this one look, nor its rows built."""
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """As the base class, from the pair count alone (icp_pairs): no rows are built for this
+        one look."""
         pairs, valid = icp_pairs(
-            *self.maps(0), pose, self.model_pose, self.current_levels[0].camera,
+            *self.maps(level), pose, self.model_pose, self.current_levels[level].camera,
             self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
         )  # fmt: skip
         return pairs / valid if valid else 0.0

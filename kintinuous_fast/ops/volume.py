@@ -957,22 +957,23 @@ def build_ops(
         normals: Any,
         colours: Any,
         safe_until: float,
-        pair: bool,
+        partner: int,
     ) -> None:
         """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
         march_ray from `safe_until` on (cone_safe_until of the pixel's tile, or 0), and with
-        `pair` of (u + 1, v) too, the two rays marched in lockstep (march_two_rays). `camera`
-        is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0 beforehand."""
+        `partner` > 0 of pixel (u + partner, v) too, the two rays marched in lockstep
+        (march_two_rays). `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0
+        beforehand."""
         a = ray_direction(u, v, camera, rotation)
-        if pair:
-            b = ray_direction(u + 1, v, camera, rotation)
+        if partner > 0:
+            b = ray_direction(u + partner, v, camera, rotation)
             t_a, t_b = march_two_rays(
                 tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
                 voxel_size, step, safe_until,
             )  # fmt: skip
             shade_pixel(
-                tsdf_weight, colour_volume, has_colour, o0, o1, o2, u + 1, v, t_b, origin, b[0],
-                b[1], b[2], volume_origin, voxel_size, vertices, normals, colours,
+                tsdf_weight, colour_volume, has_colour, o0, o1, o2, u + partner, v, t_b, origin,
+                b[0], b[1], b[2], volume_origin, voxel_size, vertices, normals, colours,
             )  # fmt: skip
         else:
             t_a = march_ray(

@@ -134,6 +134,18 @@ class DenseTracker:
     repeated_streams = staticmethod(repeated_streams)
 
     @property
+    def finest_level(self) -> int:
+        """The finest pyramid level with iterations, where the inlier check looks: 0, or 1 with
+        the fast-odometry setting (config.fast_odometry), which skips full resolution."""
+        return next((level for level, count in enumerate(self.iterations) if count > 0), 0)
+
+    @property
+    def model_stride(self) -> int:
+        """The pixel stride of the model prediction this tracker reads (raycast's `stride`):
+        ICP at levels >= l reads only the pixels (2^l u, 2^l v) of it (model_pyramid)."""
+        return 2**self.finest_level if self.method != "rgbd" else 1
+
+    @property
     def iterations(self) -> tuple[int, ...]:
         if self.method == "icp":
             return tuple(self.config.icp.iterations)
@@ -213,7 +225,7 @@ class DenseTracker:
         )
         if reason:
             return pose, reason
-        fraction = problem.inlier_fraction(pose)
+        fraction = problem.inlier_fraction(pose, self.finest_level)
         if fraction < tracking.min_inlier_fraction:
             return pose, (
                 f"too few inliers ({100 * fraction:.1f}% < {100 * tracking.min_inlier_fraction:g}%)"
@@ -249,6 +261,10 @@ class FovisTracker:
         other = method.partition("/")[2]
         self.dense = DenseTracker(other, config, camera) if other else None
         self.recovery = _Recovery(config.tracking.fallback)
+
+    @property
+    def model_stride(self) -> int:
+        return self.dense.model_stride if self.dense is not None else 1
 
     def track(
         self,

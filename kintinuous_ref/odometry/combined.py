@@ -119,6 +119,6 @@ class CombinedProblem:
             self.original_code_icp_scale,
         )
 
-    def inlier_fraction(self, pose: np.ndarray) -> float:
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
         """The ICP fraction: the joint estimate stands on the model's geometry first."""
-        return self.icp.inlier_fraction(pose)
+        return self.icp.inlier_fraction(pose, level)

@@ -209,7 +209,7 @@ class IcpProblem:
             self.angle_threshold_deg,
         )
 
-    def inlier_fraction(self, pose: np.ndarray) -> float:
-        """Matched pairs per valid current vertex at full resolution (0 when none is valid)."""
-        valid = self.points(0)[0].shape[1]
-        return self.system(0, pose).count / valid if valid else 0.0
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """Matched pairs per valid current vertex at a pyramid level (0 when none is valid)."""
+        valid = self.points(level)[0].shape[1]
+        return self.system(level, pose).count / valid if valid else 0.0

@@ -284,7 +284,7 @@ class RgbdProblem:
             previous.intensity_dy if warped else None,
         )
 
-    def inlier_fraction(self, pose: np.ndarray) -> float:
-        """Correspondences per interest point at full resolution (0 when there is none)."""
-        total = len(self.points(0).indices)
-        return self.system(0, pose).count / total if total else 0.0
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """Correspondences per interest point at a pyramid level (0 when there is none)."""
+        total = len(self.points(level).indices)
+        return self.system(level, pose).count / total if total else 0.0
