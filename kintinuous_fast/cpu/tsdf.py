@@ -23,6 +23,7 @@ from kintinuous_fast._volume import (
     to_reference_volume,
     volume_header,
 )
+from kintinuous_fast.cpu import prefetch_cell
 from kintinuous_fast.ops import cpu_jit_numpy_errors
 from kintinuous_fast.ops.volume import FINE, build_ops
 from kintinuous_ref.camera import Intrinsics
@@ -95,51 +96,99 @@ def _integrate_slice(
     width,
     i,
 ):
-    """The voxel columns of logical slice i (see _integrate_loop)."""
-    pixels = np.empty(n, dtype=np.uint32)
-    norms = np.empty(n, dtype=np.float32)
-    sdfs = np.empty(n, dtype=np.float32)
+    """The voxel columns of logical slice i (see _integrate_loop), software-pipelined: column
+    j is projected (_project_column) and the volume lines it will update are prefetched, then
+    column j - 1, projected one step earlier, is fused; its lines have arrived meanwhile."""
+    pixels = np.empty((2, n), dtype=np.uint32)  # two columns: this one and the one before
+    norms = np.empty((2, n), dtype=np.float32)
+    sdfs = np.empty((2, n), dtype=np.float32)
+    updated = np.zeros((2, 2), dtype=np.int64)  # per column: [first, last + 1) updated
     fi = np.float32(i)
     ci = cell(i, o0, n)
-    for j in range(lo[1], hi[1]):
-        px, py, pz = column_start(base, steps, fi, np.float32(j))
-        k0, k1 = column_range(
-            float(px),
-            float(py),
-            float(pz),
-            float(steps[2, 0]),
-            float(steps[2, 1]),
-            float(steps[2, 2]),
-            intrinsics,
-            width,
-            height,
-            far,
-            n,
-        )
-        k0, k1 = max(k0, lo[2]), min(k1, hi[2])
-        cj = cell(j, o1, n)
-        # Three passes over the column. Only the last has branches (voxels behind the surface
-        # or without a measurement skipped); the first vectorises (counted from 0 with a
-        # float32 counter, as LLVM needs), the second is a plain gather.
-        fk0 = np.float32(k0)
-        for m in range(k1 - k0):
-            fk = fk0 + np.float32(m)
-            x = px + fk * steps[2, 0]
-            y = py + fk * steps[2, 1]
-            z = pz + fk * steps[2, 2]
-            pixels[k0 + m] = project_voxel(x, y, z, intrinsics, width, height)
-            norms[k0 + m] = voxel_norm(x, y, z)
-        for k in range(k0, k1):
-            sdfs[k] = ray_distance[pixels[k]] - norms[k]
-        for k in range(k0, k1):
-            if not sdfs[k] >= -truncation:
-                continue
-            change = fuse_voxel(
-                tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), pixels[k], sdfs[k],
-                truncation, max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
+    for j in range(lo[1], hi[1] + 1):
+        if j < hi[1]:
+            this = j & 1
+            px, py, pz = column_start(base, steps, fi, np.float32(j))
+            k0, k1 = column_range(
+                float(px), float(py), float(pz), float(steps[2, 0]), float(steps[2, 1]),
+                float(steps[2, 2]), intrinsics, width, height, far, n,
             )  # fmt: skip
-            if count and change != 0:
-                counts[i // FINE, j // FINE, k // FINE] += change
+            k0 = max(k0, lo[2])
+            k1 = max(min(k1, hi[2]), k0)
+            first, last, near_first, near_last = _project_column(
+                k0, k1, px, py, pz, steps, intrinsics, width, height, ray_distance, truncation,
+                pixels[this], norms[this], sdfs[this],
+            )  # fmt: skip
+            cj = cell(j, o1, n)
+            _prefetch_cells(tsdf_weight, ci, cj, first, last, o2, n)
+            if fuse_colour:
+                _prefetch_cells(colour_volume, ci, cj, near_first, near_last, o2, n)
+            updated[this, 0], updated[this, 1] = first, last + 1
+        if j > lo[1]:
+            before = (j - 1) & 1
+            _fuse_column(
+                tsdf_weight, colour_volume, ci, cell(j - 1, o1, n), o2, n, pixels[before],
+                sdfs[before], updated[before, 0], updated[before, 1], truncation, max_weight,
+                colour, colour_weights, fuse_colour, colour_max_weight, counts, count, i, j - 1,
+            )  # fmt: skip
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _project_column(
+    k0, k1, px, py, pz, steps, intrinsics, width, height, ray_distance, truncation, pixels,
+    norms, sdfs,
+):  # fmt: skip
+    """Voxels [k0, k1) of a column from camera-frame p + k a: pixel, distance and sdf, in two
+    passes (the first vectorises: counted from 0 with a float32 counter, as LLVM needs; the
+    second is a gather). Returns the first and last k to update (sdf >= -mu) and the first and
+    last near the surface (|sdf| < mu, where colour is fused)."""
+    fk0 = np.float32(k0)
+    for m in range(k1 - k0):
+        fk = fk0 + np.float32(m)
+        x = px + fk * steps[2, 0]
+        y = py + fk * steps[2, 1]
+        z = pz + fk * steps[2, 2]
+        pixels[k0 + m] = project_voxel(x, y, z, intrinsics, width, height)
+        norms[k0 + m] = voxel_norm(x, y, z)
+    first, last, near_first, near_last = k1, k0 - 1, k1, k0 - 1
+    for k in range(k0, k1):
+        sdf = ray_distance[pixels[k]] - norms[k]
+        sdfs[k] = sdf
+        if sdf >= -truncation:  # branches: faster than selects here (measured)
+            first = min(first, k)
+            last = k
+            if sdf < truncation:
+                near_first = min(near_first, k)
+                near_last = k
+    return first, last, near_first, near_last
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _prefetch_cells(volume, ci, cj, first, last, o2, n):
+    """Prefetch the lines of logical voxels first..last of column (ci, cj): 16 voxels of 4
+    bytes share a 64-byte line."""
+    if last < first:
+        return
+    for k in range(first, last + 1, 16):
+        prefetch_cell(volume, ci, cj, cell(k, o2, n))
+    prefetch_cell(volume, ci, cj, cell(last, o2, n))
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _fuse_column(
+    tsdf_weight, colour_volume, ci, cj, o2, n, pixels, sdfs, first, end, truncation, max_weight,
+    colour, colour_weights, fuse_colour, colour_max_weight, counts, count, i, j,
+):  # fmt: skip
+    """Pass 3: fuse_voxel on the voxels [first, end) of column (i, j) with sdf >= -mu."""
+    for k in range(first, end):
+        if not sdfs[k] >= -truncation:
+            continue
+        change = fuse_voxel(
+            tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), pixels[k], sdfs[k], truncation,
+            max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
+        )  # fmt: skip
+        if count and change != 0:
+            counts[i // FINE, j // FINE, k // FINE] += change
 
 
 @_loop
