@@ -115,14 +115,14 @@ def _integrate_slice(
             )  # fmt: skip
             k0 = max(k0, lo[2])
             k1 = max(min(k1, hi[2]), k0)
-            first, last, near_first, near_last = _project_column(
+            first, last = _project_column(
                 k0, k1, px, py, pz, steps, intrinsics, width, height, ray_distance, truncation,
                 pixels[this], norms[this], sdfs[this],
             )  # fmt: skip
             cj = cell(j, o1, n)
             _prefetch_cells(tsdf_weight, ci, cj, first, last, o2, n)
-            if fuse_colour:
-                _prefetch_cells(colour_volume, ci, cj, near_first, near_last, o2, n)
+            if fuse_colour:  # the lines of the few voxels near the surface are among these
+                _prefetch_cells(colour_volume, ci, cj, first, last, o2, n)
             updated[this, 0], updated[this, 1] = first, last + 1
         if j > lo[1]:
             before = (j - 1) & 1
@@ -140,8 +140,8 @@ def _project_column(
 ):  # fmt: skip
     """Voxels [k0, k1) of a column from camera-frame p + k a: pixel, distance and sdf, in two
     passes (the first vectorises: counted from 0 with a float32 counter, as LLVM needs; the
-    second is a gather). Returns the first and last k to update (sdf >= -mu) and the first and
-    last near the surface (|sdf| < mu, where colour is fused)."""
+    second is a gather). Returns the first and last k to update (sdf >= -mu), found by a scan
+    from each end afterwards (tracking them inside the gather loop cost more, measured)."""
     fk0 = np.float32(k0)
     for m in range(k1 - k0):
         fk = fk0 + np.float32(m)
@@ -150,17 +150,15 @@ def _project_column(
         z = pz + fk * steps[2, 2]
         pixels[k0 + m] = project_voxel(x, y, z, intrinsics, width, height)
         norms[k0 + m] = voxel_norm(x, y, z)
-    first, last, near_first, near_last = k1, k0 - 1, k1, k0 - 1
     for k in range(k0, k1):
-        sdf = ray_distance[pixels[k]] - norms[k]
-        sdfs[k] = sdf
-        if sdf >= -truncation:  # branches: faster than selects here (measured)
-            first = min(first, k)
-            last = k
-            if sdf < truncation:
-                near_first = min(near_first, k)
-                near_last = k
-    return first, last, near_first, near_last
+        sdfs[k] = ray_distance[pixels[k]] - norms[k]
+    first = k0
+    while first < k1 and not sdfs[first] >= -truncation:
+        first += 1
+    last = k1 - 1
+    while last >= first and not sdfs[last] >= -truncation:
+        last -= 1
+    return first, last
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")

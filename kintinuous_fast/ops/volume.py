@@ -109,7 +109,8 @@ def build_ops(
         vf = intrinsics[1] * y / z + intrinsics[3]
         ur = nearest_even(uf)
         vr = nearest_even(vf)
-        inside = (z > 0) & (ur >= 0) & (ur <= width - 1) & (vr >= 0) & (vr <= height - 1)
+        zero, last_u, last_v = np.float32(0), np.float32(width - 1), np.float32(height - 1)
+        inside = (z > zero) & (ur >= zero) & (ur <= last_u) & (vr >= zero) & (vr <= last_v)
         pixel = np.uint32(vr) * np.uint32(width) + np.uint32(ur)
         return pixel if inside else np.uint32(width * height)
 
