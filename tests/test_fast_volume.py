@@ -85,3 +85,26 @@ def test_nearest_even_is_np_rint_over_the_image_range():
     )
     got = np.array([nearest_even(value) for value in values], dtype=np.float32)
     np.testing.assert_array_equal(got, np.rint(values))
+
+
+@pytest.mark.parametrize("angle", [True, False], ids=["angle", "no-angle"])
+@pytest.mark.parametrize("check", [True, False], ids=["edges", "no-edges"])
+def test_equivalence_cpu_colour_weights(angle, check):
+    """The cpu loop's colour weights are the reference's bit for bit (0, 1 or |n_z| products)
+    on a frame with holes, NaN normals and depth edges."""
+    from kintinuous_fast.cpu import colour as cpu_colour
+    from kintinuous_ref import preprocess
+    from kintinuous_ref.colour import colour_weights
+    from kintinuous_ref.config import ColourConfig, PreprocessConfig
+    from kintinuous_ref.datasets.synthetic import make_scenario
+
+    desk = make_scenario("desk", frames=2, width=160, height=120)
+    rgb, depth = desk.render(1)
+    depth[40:50, 60:80] = 0.0  # a hole
+    frame = preprocess.preprocess_frame(rgb, depth, desk.camera, PreprocessConfig())
+    assert np.isnan(frame.levels[0].normals).any() and (frame.depth == 0).any()
+    assert not frame.colour_mask.all()
+    config = ColourConfig(angle_weighting=angle, discontinuity_check=check)
+    got = cpu_colour.colour_weights(frame, config)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, colour_weights(frame, config))

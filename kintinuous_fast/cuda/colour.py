@@ -1,36 +1,30 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels: argument types come from the call)
-"""kintinuous_ref.colour's colour_weights as one CUDA kernel, so that a frame on the device gets
-its colour weights there (paper VI-B): per pixel, 1 where there is depth, times the
-discontinuity mask when config.discontinuity_check, times |n_z| of the full-resolution normal
-(0 where not finite) when config.angle_weighting. The float32 products of the reference's
-factors: bit-identical weights. Arrays stay where they are given (kintinuous_fast.cuda).
+"""kintinuous_ref.colour's colour_weights as one CUDA kernel around
+kintinuous_fast.ops.volume.colour_weight, so that a frame on the device gets its colour weights
+there (paper VI-B); bit-identical weights. Arrays stay where they are given (kintinuous_fast.cuda).
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 from numba import cuda
 
 from kintinuous_fast.cuda import BLOCK_2D, grid_2d, like_input, to_device
+from kintinuous_fast.ops import cuda_device_jit
+from kintinuous_fast.ops.volume import build_ops
 from kintinuous_ref.config import ColourConfig
 from kintinuous_ref.preprocess import PreprocessedFrame
 
 __all__ = ["colour_weights"]
+
+colour_weight = build_ops(cuda_device_jit()).colour_weight
 
 
 @cuda.jit
 def _weights_kernel(depth, mask, normals, use_mask, use_angle, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
-        weight = np.float32(1.0) if depth[v, u] > 0 else np.float32(0.0)
-        if use_mask and not mask[v, u]:
-            weight = np.float32(0.0)
-        if use_angle:
-            nz = abs(normals[v, u, 2])
-            weight *= nz if math.isfinite(nz) else np.float32(0.0)
-        out[v, u] = weight
+        out[v, u] = colour_weight(depth[v, u], mask[v, u], normals[v, u, 2], use_mask, use_angle)
 
 
 def colour_weights(frame: PreprocessedFrame, config: ColourConfig):

@@ -217,6 +217,22 @@ def build_ops(
         return change
 
     @jit
+    def colour_weight(
+        depth: Any, fusable: bool, normal_z: Any, use_mask: bool, use_angle: bool
+    ) -> Any:
+        """kintinuous_ref.colour.colour_weights of one pixel (paper VI-B), float32: 1 where
+        there is depth, times the discontinuity mask's `fusable` when use_mask, times |n_z|
+        (0 where not finite) when use_angle. The reference's factors are 0, 1 and |n_z|: their
+        float32 product is |n_z| or 0 in any order, so the weights are bit-identical."""
+        weight = np.float32(1.0) if depth > 0 else np.float32(0.0)
+        if use_mask and not fusable:
+            weight = np.float32(0.0)
+        if use_angle:
+            nz = abs(np.float32(normal_z))
+            weight *= nz if math.isfinite(nz) else np.float32(0.0)
+        return weight
+
+    @jit
     def column_start(base: Any, steps: Any, fi: Any, fj: Any) -> tuple:
         """Camera-frame centre of voxel (i, j, 0): base + i a_x + j a_y in float32, the
         reference's order of additions (a column then adds k a_z)."""
@@ -1044,6 +1060,7 @@ def build_ops(
     return SimpleNamespace(
         cell=cell,
         column_start=column_start,
+        colour_weight=colour_weight,
         count_negative=count_negative,
         cone_safe_until=cone_safe_until,
         update_voxel=update_voxel,
