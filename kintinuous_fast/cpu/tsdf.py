@@ -150,8 +150,9 @@ def _project_column(
         z = pz + fk * steps[2, 2]
         pixels[k0 + m] = project_voxel(x, y, z, intrinsics, width, height)
         norms[k0 + m] = voxel_norm(x, y, z)
-    for k in range(k0, k1):
-        sdfs[k] = ray_distance[pixels[k]] - norms[k]
+    column_pixels, column_norms, column_sdfs = pixels[k0:k1], norms[k0:k1], sdfs[k0:k1]
+    for m in range(k1 - k0):
+        column_sdfs[m] = ray_distance[column_pixels[m]] - column_norms[m]
     first = k0
     while first < k1 and not sdfs[first] >= -truncation:
         first += 1
@@ -178,12 +179,14 @@ def _fuse_column(
     colour, colour_weights, fuse_colour, colour_max_weight, counts, count, i, j,
 ):  # fmt: skip
     """Pass 3: fuse_voxel on the voxels [first, end) of column (i, j) with sdf >= -mu."""
-    for k in range(first, end):
-        if not sdfs[k] >= -truncation:
+    span_sdfs, span_pixels = sdfs[first:end], pixels[first:end]
+    for m in range(end - first):
+        if not span_sdfs[m] >= -truncation:
             continue
+        k = first + m
         change = fuse_voxel(
-            tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), pixels[k], sdfs[k], truncation,
-            max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
+            tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), span_pixels[m], span_sdfs[m],
+            truncation, max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
         )  # fmt: skip
         if count and change != 0:
             counts[i // FINE, j // FINE, k // FINE] += change

@@ -120,10 +120,13 @@ def _compact_loop(vertices, normals, starts, points):
 def _project_block(points, start, stop, to_model, fx, fy, cx, cy, width, height, rows, cols):
     """project_nearest of points[:, start:stop] into rows / cols: branch-free, so LLVM vectorises
     it (its own function: the NumPy error model leaves the guarded division without a zero test,
-    and the loop with the data-dependent branches below would not vectorise)."""
-    for k in range(start, stop):
-        rows[k - start], cols[k - start] = project_nearest(
-            to_model, points[0, k], points[1, k], points[2, k], fx, fy, cx, cy, width, height
+    and the loop with the data-dependent branches below would not vectorise). The rows are read
+    as 1-d slices indexed from 0: indexed points[r, k] from `start`, numba's negative-index
+    wraparound made LLVM load them with gathers (ICP level 0: 6.0 -> 4.6 ms single-thread)."""
+    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
+    for m in range(stop - start):
+        rows[m], cols[m] = project_nearest(
+            to_model, x[m], y[m], z[m], fx, fy, cx, cy, width, height
         )
 
 
@@ -270,12 +273,10 @@ def _interest_data_loop(indices, depth, intensity, dx, dy, fx, fy, cx, cy, point
 @numba.njit(cache=True, error_model="numpy")
 def _warp_block(points, start, stop, relative, fx, fy, cx, cy, warp):
     """warp_project of points start:stop into warp's columns (x, y, z, u, v): branch-free, so
-    it vectorises (divisions 8 at a time; see _project_block)."""
-    for k in range(start, stop):
-        x, y, z, u, v = warp_project(
-            relative, points[0, k], points[1, k], points[2, k], fx, fy, cx, cy
-        )
-        i = k - start
+    it vectorises (divisions 8 at a time; rows read as slices, see _project_block)."""
+    px, py, pz = points[0, start:stop], points[1, start:stop], points[2, start:stop]
+    for i in range(stop - start):
+        x, y, z, u, v = warp_project(relative, px[i], py[i], pz[i], fx, fy, cx, cy)
         warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i] = x, y, z, u, v
 
 
@@ -327,15 +328,17 @@ def _weighted_rows_block(pairs, start, stop, previous_pose, fx, fy, sigma, rows)
     columns) into rows[m * BLOCK + i] (m = j0..j5, w^2): branch-free, so it vectorises; a pair
     not kept (NaN r) gives NaN, skipped by the caller. rows is flat: with constant offsets LLVM
     sees one output region (a (7, BLOCK) array's 7 rows were too many overlap checks for it)."""
-    for k in range(start, stop):
-        i = k - start
+    # the rows as slices indexed from 0 (see _project_block)
+    r, wx, wy = pairs[0, start:stop], pairs[1, start:stop], pairs[2, start:stop]
+    wz, x, y = pairs[3, start:stop], pairs[4, start:stop], pairs[5, start:stop]
+    z, gx, gy = pairs[6, start:stop], pairs[7, start:stop], pairs[8, start:stop]
+    for i in range(stop - start):
         j0, j1, j2, j3, j4, j5 = photometric_row(
-            pairs[1, k], pairs[2, k], pairs[3, k], pairs[4, k], pairs[5, k], pairs[6, k],
-            pairs[7, k], pairs[8, k], previous_pose, fx, fy,
-        )  # fmt: skip
+            wx[i], wy[i], wz[i], x[i], y[i], z[i], gx[i], gy[i], previous_pose, fx, fy
+        )
         rows[i], rows[BLOCK + i], rows[2 * BLOCK + i] = j0, j1, j2
         rows[3 * BLOCK + i], rows[4 * BLOCK + i], rows[5 * BLOCK + i] = j3, j4, j5
-        w = robust_weight(pairs[0, k], sigma)
+        w = robust_weight(r[i], sigma)
         rows[6 * BLOCK + i] = w * w
 
 
