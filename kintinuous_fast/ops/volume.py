@@ -85,9 +85,11 @@ def build_ops(
 
     @jit
     def cell(index: int, offset: int, n: int) -> int:
-        """Array cell of logical index `index` in [0, N) with buffer offset in [0, N)."""
+        """Array cell of logical index `index` in [0, N) with buffer offset in [0, N), unsigned:
+        numba then indexes without its negative-index wraparound (a compare and select per
+        index, which also keeps LLVM from vectorising)."""
         c = index + offset
-        return c - n if c >= n else c
+        return np.uint64(c - n if c >= n else c)
 
     @jit
     def nearest_even(f: Any) -> Any:
