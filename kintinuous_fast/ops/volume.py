@@ -104,9 +104,10 @@ def build_ops(
         """The pixel of a camera-frame voxel centre, (u, v) = round(pi(p_c)) (float32, as NumPy 2
         computes the reference's projection), as the flat index v W + u (uint32); W H, the
         "no pixel" slot one past the image, when z <= 0 or it falls outside the image. Images
-        are read flat here: ray distances with -inf in that slot (see measured_ray_distances),
-        colour (W H, 3), colour weights (W H). Selects only, no branch and no integer-to-float
-        conversion, so that a loop of it vectorises (the cpu integration's first pass)."""
+        are read flat here: ray distances (ray_distance_pixel's, H W + 1 with -inf in that
+        slot), colour (H W, 3), colour weights (H W). Selects only, no branch and no
+        integer-to-float conversion, so that a loop of it vectorises (the cpu integration's
+        first pass)."""
         uf = intrinsics[0] * x / z + intrinsics[2]
         vf = intrinsics[1] * y / z + intrinsics[3]
         ur = nearest_even(uf)
@@ -172,9 +173,8 @@ def build_ops(
         """The update of the voxel in array cell (ci, cj, ck) projecting to flat pixel index
         `pixel` (project_voxel's), with sdf = lambda D - |p_c| (-inf without a measurement).
 
-        Update if sdf >= -mu: running average of min(1,
-        sdf/mu) with weight W + 1 (capped); colour where |sdf| < mu and the pixel's colour
-        weight > 0.
+        Update if sdf >= -mu: running average of min(1, sdf/mu) with weight W + 1 (capped);
+        colour where |sdf| < mu and the pixel's colour weight > 0.
 
         Returns how the voxel's "observed and negative" state changed (+1, 0 or -1): the cpu
         backend keeps a count of such voxels per fine brick for the raycast's empty-space
