@@ -68,11 +68,11 @@ def test_dequantise_is_the_float32_division_for_every_int16():
     np.testing.assert_array_equal(got, q.astype(np.float32) / np.float32(32767.0))
 
 
-def test_nearest_even_is_np_rint_over_the_image_range():
-    """ops.volume.nearest_even (project_voxel's rounding: np.rint has no CUDA lowering) rounds
-    by adding and subtracting 1.5 * 2^23 in float32; it must equal np.rint, ties to even, for
-    every pixel coordinate a projection can keep: ties, their neighbours, random values."""
-    nearest_even = cpu_tsdf._ops.nearest_even
+def test_rint32_is_np_rint_over_the_image_range():
+    """ops.build_rint's rint32 (project_voxel's rounding: np.rint has no CUDA lowering) adds and
+    subtracts 1.5 * 2^23 in float32; it must equal np.rint, ties to even, for every pixel
+    coordinate a projection can keep: ties, their neighbours, random values."""
+    rint32 = cpu_tsdf._ops.rint32
     halves = np.arange(-8, 2 * 1300, dtype=np.float32) / np.float32(2.0)
     rng = np.random.default_rng(7)
     values = np.concatenate(
@@ -83,7 +83,7 @@ def test_nearest_even_is_np_rint_over_the_image_range():
             rng.uniform(-4.0, 1300.0, 20000).astype(np.float32),
         ]
     )
-    got = np.array([nearest_even(value) for value in values], dtype=np.float32)
+    got = np.array([rint32(value) for value in values], dtype=np.float32)
     np.testing.assert_array_equal(got, np.rint(values))
 
 

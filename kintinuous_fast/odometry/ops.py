@@ -26,6 +26,8 @@ from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
 
+from kintinuous_fast.ops import build_rint
+
 # Slots of the accumulated vector (see the module docstring).
 NV = 30
 SLOT_B = 21
@@ -37,13 +39,7 @@ SLOT_EXTRA = 29
 def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     """The scalar functions of dense odometry compiled with `jit` (see kintinuous_fast.ops)."""
 
-    @jit
-    def rint(x: float) -> float:
-        """Round half to even, as np.rint, for |x| < 2^51: adding and subtracting 1.5 * 2^52 leaves
-        x rounded to an integer in the default rounding mode (no branch, so the CPU's projection
-        loop vectorises). Larger |x| come back within a few units of x (far outside any image);
-        NaN and inf stay NaN and inf."""
-        return (x + 6755399441055744.0) - 6755399441055744.0
+    rint = build_rint(jit)[0]
 
     @jit
     def transform(m: Any, x: float, y: float, z: float) -> tuple[float, float, float]:

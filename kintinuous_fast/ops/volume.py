@@ -18,10 +18,11 @@ from typing import Any
 
 import numpy as np
 
+from kintinuous_fast.ops import build_rint
+
 TSDF_SCALE = 32767.0  # int16 units per unit of normalised TSDF
 TSDF_MAX = 32767  # the stored F = 1
 TSDF_INVERSE_SCALE = 1.0 / TSDF_SCALE
-ROUNDING_SHIFT = np.float32(1.5 * 2**23)  # see nearest_even
 BRICK = 8  # voxels per side of the empty-space bricks (kintinuous_ref.raycast.BRICK)
 # Voxels per side of the fine bricks whose observed negative voxels integration counts (the cpu
 # raycast's second level of empty-space skipping, inside the bricks next to a surface).
@@ -91,13 +92,7 @@ def build_ops(
         c = index + offset
         return np.uint64(c - n if c >= n else c)
 
-    @jit
-    def nearest_even(f: Any) -> Any:
-        """np.rint of a float32 in float32 arithmetic, exact for |f| < 2^22 (all that
-        project_voxel keeps): adding 1.5 * 2^23 leaves no fraction bits, so the sum is rounded
-        to the nearest integer, ties to even; subtracting it again is exact. np.rint itself
-        has no CUDA lowering."""
-        return (f + ROUNDING_SHIFT) - ROUNDING_SHIFT
+    rint32 = build_rint(jit)[1]
 
     @jit
     def project_voxel(x: Any, y: Any, z: Any, intrinsics: Any, width: int, height: int) -> Any:
@@ -110,8 +105,8 @@ def build_ops(
         first pass)."""
         uf = intrinsics[0] * x / z + intrinsics[2]
         vf = intrinsics[1] * y / z + intrinsics[3]
-        ur = nearest_even(uf)
-        vr = nearest_even(vf)
+        ur = rint32(uf)  # float32: a float64 rounding costs 10 % of integration (measured)
+        vr = rint32(vf)
         zero, last_u, last_v = np.float32(0), np.float32(width - 1), np.float32(height - 1)
         inside = (z > zero) & (ur >= zero) & (ur <= last_u) & (vr >= zero) & (vr <= last_v)
         pixel = np.uint32(vr) * np.uint32(width) + np.uint32(ur)
@@ -1071,7 +1066,7 @@ def build_ops(
         fuse_voxel=fuse_voxel,
         column_range=column_range,
         dequantise=dequantise,
-        nearest_even=nearest_even,
+        rint32=rint32,
         ray_span=ray_span,
         quantise=quantise,
         ray_distance_pixel=ray_distance_pixel,
