@@ -223,22 +223,6 @@ def frustum_box(
 
 
 # ----------------------------------------------------------------------------------------------
-# Per-frame set-up of raycasting
-
-
-def empty_space_distance(negative_bricks: np.ndarray) -> np.ndarray:
-    """kintinuous_ref.raycast._empty_space from its (B, B, B) map of bricks holding an observed
-    negative voxel: grow by one brick, then the chessboard distance (in bricks) to the nearest
-    grown brick (2 B everywhere when there is none), int64."""
-    from scipy import ndimage
-
-    bricks = ndimage.binary_dilation(negative_bricks, structure=np.ones((3, 3, 3), dtype=bool))
-    if not bricks.any():
-        return np.full(bricks.shape, 2 * len(bricks), dtype=np.int64)
-    return ndimage.distance_transform_cdt(~bricks, metric="chessboard").astype(np.int64)
-
-
-# ----------------------------------------------------------------------------------------------
 # The moving volume's view of a fast volume
 
 

@@ -157,6 +157,27 @@ def test_cpu_fine_distance_is_the_capped_chessboard_distance():
             np.testing.assert_array_equal(got, want)
 
 
+def test_cpu_brick_distance_is_the_references_grown_chessboard_distance():
+    """The brick map from negative bricks equals kintinuous_ref.raycast._empty_space's recipe
+    (grow by one brick with scipy, then scipy's chessboard transform; 2 B when no brick is
+    negative), for sparse, dense, single-brick and empty maps."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    single = np.zeros((9, 9, 9), dtype=bool)
+    single[0, 8, 4] = True
+    maps = [rng.random((b, b, b)) < density for b, density in ((4, 0.1), (32, 0.001), (17, 0.3))]
+    for negative in (*maps, single, np.zeros((6, 6, 6), dtype=bool)):
+        got = cpu_raycast._brick_distance(negative)
+        grown = ndimage.binary_dilation(negative, structure=np.ones((3, 3, 3), dtype=bool))
+        if grown.any():
+            want = ndimage.distance_transform_cdt(~grown, metric="chessboard")
+        else:
+            want = np.full(negative.shape, 2 * len(negative))
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
+
+
 def test_cpu_negative_counts_kept_by_integration_equal_a_recount():
     """The per-fine-brick counts of observed negative voxels that integration keeps (and the
     brick map built from them) equal a count from scratch, before and after the moving volume

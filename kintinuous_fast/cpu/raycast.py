@@ -19,7 +19,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from kintinuous_fast._volume import FastTsdfVolume, empty_space_distance
+from kintinuous_fast._volume import FastTsdfVolume
 from kintinuous_fast.cpu.tsdf import negative_counts
 from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called
 from kintinuous_fast.ops.volume import BRICK, FINE, build_ops
@@ -89,7 +89,21 @@ def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     b = -(-volume.resolution // BRICK)
     negative = np.zeros((b, b, b), dtype=np.bool_)
     _brick_maps_loop(counts, np.empty_like(near), near, negative)
-    return empty_space_distance(negative), near
+    return _brick_distance(negative), near
+
+
+def _brick_distance(negative: np.ndarray) -> np.ndarray:
+    """kintinuous_ref.raycast._empty_space from its (B, B, B) map of bricks holding an observed
+    negative voxel (int64). Growing by one brick and then taking the chessboard distance is the
+    chessboard distance less one, floored at 0; _fine_distance gives it with a cap (B + 1) that
+    no distance inside the grid reaches (numba, ~0.1 ms at B = 32 where scipy's dilation and
+    transform took ~1.4)."""
+    b = negative.shape[0]
+    if not negative.any():
+        return np.full(negative.shape, 2 * b, dtype=np.int64)  # nothing anywhere: skip it all
+    distance = np.empty(negative.shape, dtype=np.uint8)
+    _fine_distance(negative, b + 1, distance)
+    return np.maximum(distance.astype(np.int64) - 1, 0)
 
 
 @numba.njit(parallel=True, cache=True)
