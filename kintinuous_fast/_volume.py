@@ -1,5 +1,6 @@
 """The fast backends' TSDF + colour volume (8 bytes per voxel) and the host-side per-frame set-up
-shared by the cpu and cuda integration and raycasting (see kintinuous_fast.ops.volume)."""
+shared by the cpu and cuda integration and raycasting (their per-voxel and per-ray maths:
+kintinuous_fast.ops.volume, .integration and .march)."""
 
 from __future__ import annotations
 

@@ -266,7 +266,7 @@ def test_slab_view_reads_and_clears_only_the_box():
 
 def test_cpu_tile_cones_skip_only_samples_that_cannot_be_negative():
     """The cpu raycast marches the free space in front of each 8x8 tile of pixels once
-    (ops.volume.cone_safe_until) and starts the tile's rays there. Checked against every sample
+    (ops.march.cone_safe_until) and starts the tile's rays there. Checked against every sample
     of every ray (the reference-equivalent sample_tsdf): none before its tile's start is
     negative; looking at the fused wall the cones skip most samples before the first negative
     one; from behind the volume, where rays meet the wall's back at once, they still hold."""

@@ -62,7 +62,7 @@ def test_fast_make_volume_refuses_what_cannot_fit():
 def test_dequantise_is_the_float32_division_for_every_int16():
     """ops.volume.dequantise multiplies in float64 instead of dividing in float32; the result
     must be the correctly rounded q / 32767 (to_reference_volume's) for every stored value."""
-    dequantise = cpu_tsdf._ops.dequantise
+    dequantise = cpu_tsdf._voxels.dequantise
     q = np.arange(-32767, 32768, dtype=np.int16)
     got = np.array([dequantise(value) for value in q], dtype=np.float32)
     np.testing.assert_array_equal(got, q.astype(np.float32) / np.float32(32767.0))

@@ -1,6 +1,6 @@
 # ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
 """kintinuous_ref.colour's colour_weights on the CPU: one prange loop over rows around
-kintinuous_fast.ops.volume.colour_weight (the reference's three whole-image NumPy passes took
+kintinuous_fast.ops.integration.colour_weight (the reference's three whole-image NumPy passes took
 2.7 ms at 640x480, ~15 % of a frame's integration stage; this loop ~0.2 ms). Bit-identical.
 """
 
@@ -10,14 +10,13 @@ import numba
 import numpy as np
 from numba import prange
 
-from kintinuous_fast.ops import cpu_jit_numpy_errors
-from kintinuous_fast.ops.volume import build_ops
+from kintinuous_fast.ops import cpu_jit_numpy_errors, integration
 from kintinuous_ref.config import ColourConfig
 from kintinuous_ref.preprocess import PreprocessedFrame
 
 __all__ = ["colour_weights"]
 
-colour_weight = build_ops(cpu_jit_numpy_errors).colour_weight
+colour_weight = integration.build_ops(cpu_jit_numpy_errors).colour_weight
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")

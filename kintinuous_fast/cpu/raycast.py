@@ -1,9 +1,9 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
 """kintinuous_ref.raycast on the CPU: a prange loop over rows of 8x8 tiles of pixels around
-kintinuous_fast.ops.volume, with the reference's exact brick empty-space skipping plus a finer
+kintinuous_fast.ops.march, with the reference's exact brick empty-space skipping plus a finer
 second level inside the bricks next to a surface. Each tile first marches the free space its
-rays share once (ops.volume.cone_safe_until), then its rays go on from there two at a time,
-in lockstep (ops.volume.march_two_rays). Every skip is exact: the maps are the plain march's.
+rays share once (ops.march.cone_safe_until), then its rays go on from there two at a time,
+in lockstep (ops.march.march_two_rays). Every skip is exact: the maps are the plain march's.
 
 Both levels come from the per-fine-brick counts of observed negative voxels that integration
 keeps up to date (kintinuous_fast.cpu.tsdf.negative_counts), so no frame scans the volume: the
@@ -21,14 +21,14 @@ from numba import prange
 
 from kintinuous_fast._volume import FastTsdfVolume
 from kintinuous_fast.cpu.tsdf import negative_counts
-from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called
-from kintinuous_fast.ops.volume import BRICK, FINE, build_ops
+from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, march
+from kintinuous_fast.ops.volume import BRICK, FINE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
-_ops = build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called)
+_ops = march.build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called)
 raycast_pixels = _ops.raycast_pixels
 ray_direction = _ops.ray_direction
 cone_safe_until = _ops.cone_safe_until
@@ -160,7 +160,7 @@ def _min_max(target, source, k):
 
 def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     """(empty, fine_distance): the brick distance map of _brick_maps and the capped distance
-    map over its fine bricks (ops.volume.march_ray's)."""
+    map over its fine bricks (ops.march.march_ray's)."""
     empty, near = _brick_maps(volume)
     fine_distance = np.empty(near.shape, dtype=np.uint8)
     _fine_distance(near, FINE_DISTANCE_CAP, fine_distance)

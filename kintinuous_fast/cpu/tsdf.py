@@ -1,6 +1,6 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
 """kintinuous_ref.tsdf on the CPU: integration as a prange loop over voxel slabs around
-kintinuous_fast.ops.volume, into the 8-byte-per-voxel FastTsdfVolume (kintinuous_fast._volume).
+kintinuous_fast.ops.integration, into the 8-byte-per-voxel FastTsdfVolume (kintinuous_fast._volume).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from kintinuous_fast._volume import (
     volume_header,
 )
 from kintinuous_fast.cpu import prefetch_cell
-from kintinuous_fast.ops import cpu_jit_numpy_errors
-from kintinuous_fast.ops.volume import FINE, build_ops
+from kintinuous_fast.ops import cpu_jit_numpy_errors, integration, volume
+from kintinuous_fast.ops.volume import FINE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.tsdf import volume_origin
@@ -44,13 +44,14 @@ __all__ = [
     "volume_origin",
 ]
 
-_ops = build_ops(cpu_jit_numpy_errors)
+_voxels = volume.build_ops(cpu_jit_numpy_errors)
+_ops = integration.build_ops(cpu_jit_numpy_errors, _voxels)
 update_voxel = _ops.update_voxel
 column_range = _ops.column_range
-cell = _ops.cell
+cell = _voxels.cell
 ray_distance_pixel = _ops.ray_distance_pixel
-sample_tsdf_at = _ops.sample_tsdf_at
-count_negative = _ops.count_negative
+sample_tsdf_at = _voxels.sample_tsdf_at
+count_negative = _voxels.count_negative
 project_voxel = _ops.project_voxel
 voxel_norm = _ops.voxel_norm
 fuse_voxel = _ops.fuse_voxel

@@ -1,6 +1,6 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels: argument types come from the call)
 """kintinuous_ref.colour's colour_weights as one CUDA kernel around
-kintinuous_fast.ops.volume.colour_weight, so that a frame on the device gets its colour weights
+kintinuous_fast.ops.integration.colour_weight, so that a frame on the device gets its colour weights
 there (paper VI-B); bit-identical weights. Arrays stay where they are given (kintinuous_fast.cuda).
 """
 
@@ -10,14 +10,13 @@ import numpy as np
 from numba import cuda
 
 from kintinuous_fast.cuda import BLOCK_2D, grid_2d, like_input, to_device
-from kintinuous_fast.ops import cuda_device_jit
-from kintinuous_fast.ops.volume import build_ops
+from kintinuous_fast.ops import cuda_device_jit, integration
 from kintinuous_ref.config import ColourConfig
 from kintinuous_ref.preprocess import PreprocessedFrame
 
 __all__ = ["colour_weights"]
 
-colour_weight = build_ops(cuda_device_jit()).colour_weight
+colour_weight = integration.build_ops(cuda_device_jit()).colour_weight
 
 
 @cuda.jit

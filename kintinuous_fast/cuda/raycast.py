@@ -1,6 +1,6 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
 """kintinuous_ref.raycast as a CUDA kernel: one thread per pixel marching its ray through the
-device volume around kintinuous_fast.ops.volume, jumping over empty bricks with the reference's
+device volume around kintinuous_fast.ops.march, jumping over empty bricks with the reference's
 brick distance map, which three small kernels compute on the device every frame. Only the pose
 goes in; the maps are device arrays (downloaded when `download` is True, the default, for a
 ModelPrediction of NumPy arrays like the reference's)."""
@@ -14,16 +14,16 @@ from numba import cuda
 
 from kintinuous_fast._volume import FastTsdfVolume
 from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
-from kintinuous_fast.ops import cuda_device_jit
-from kintinuous_fast.ops.volume import BRICK, build_ops
+from kintinuous_fast.ops import cuda_device_jit, march, volume
+from kintinuous_fast.ops.volume import BRICK
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
-_ops = build_ops(cuda_device_jit())
-raycast_pixels = _ops.raycast_pixels
-count_negative = _ops.count_negative
+_voxels = volume.build_ops(cuda_device_jit())
+raycast_pixels = march.build_ops(cuda_device_jit(), voxels=_voxels).raycast_pixels
+count_negative = _voxels.count_negative
 
 
 _NOTHING_SKIPPED: list = []

@@ -1,7 +1,7 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
 """kintinuous_ref.tsdf as CUDA kernels: integration with one thread per voxel column (threads
 over (k, j), x marched inside the thread, as KinectFusion's GPU design) around
-kintinuous_fast.ops.volume, into a FastTsdfVolume in device memory (8 bytes per voxel).
+kintinuous_fast.ops.integration, into a FastTsdfVolume in device memory (8 bytes per voxel).
 
 Per frame only the pose, four intrinsics and the frustum box cross from the host; depth, colour
 and colour weights may be device arrays (a host array is uploaded for the call).
@@ -28,8 +28,7 @@ from kintinuous_fast._volume import (
 from kintinuous_fast._volume import check_volume_config as _check_host
 from kintinuous_fast._volume import from_reference_volume as _from_reference_host
 from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
-from kintinuous_fast.ops import cuda_device_jit
-from kintinuous_fast.ops.volume import build_ops
+from kintinuous_fast.ops import cuda_device_jit, integration, volume
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.tsdf import TsdfVolume, volume_origin
@@ -46,10 +45,11 @@ __all__ = [
     "volume_origin",
 ]
 
-_ops = build_ops(cuda_device_jit())
+_voxels = volume.build_ops(cuda_device_jit())
+_ops = integration.build_ops(cuda_device_jit(), _voxels)
 integrate_voxel = _ops.integrate_voxel
 ray_distance_pixel = _ops.ray_distance_pixel
-sample_tsdf_at = _ops.sample_tsdf_at
+sample_tsdf_at = _voxels.sample_tsdf_at
 
 
 @cuda.jit
@@ -70,7 +70,7 @@ def _max_depth_kernel(depth, result):
 
 @cuda.jit
 def _ray_distance_kernel(depth, fx, fy, cx, cy, out):
-    # flat, with -inf in the "no pixel" slot one past the image (ops.volume.project_voxel)
+    # flat, with -inf in the "no pixel" slot one past the image (ops.integration.project_voxel)
     u, v = cuda.grid(2)
     height, width = depth.shape
     if v < height and u < width:

@@ -24,11 +24,12 @@ import numpy as np
 cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
 # The same with NumPy's error model: a float division by zero gives inf/NaN instead of a Python
 # ZeroDivisionError, so numba emits no zero test and exception path per division (2-3x faster
-# per-voxel loops). Only for code whose divisions are guarded (ops.volume: z > 0, b != 0, ...).
+# per-voxel loops). Only for code whose divisions are guarded (ops.volume, .integration, .march:
+# z > 0, b != 0, ...).
 cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", inline="always"
 )
-# The same, called rather than inlined (ops.volume.build_ops's `jit_called`), and without
+# The same, called rather than inlined (`jit_called` of ops.volume and ops.march), and without
 # numba's reference counting: these functions allocate nothing, but the array arguments of the
 # functions inlined into their loops were counted up and down on every step of a ray, in
 # branches that numba's pruning pass cannot pair up, each an atomic operation on a count that

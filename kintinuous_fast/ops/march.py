@@ -1,0 +1,641 @@
+"""Per-ray maths of kintinuous_ref.raycast, written once for the CPU and the CUDA target: the
+march along a ray with exact empty-space skipping (brick and fine distance maps, tile cones),
+the regula-falsi refinement of the crossing, and the shading of the hit (vertex, TSDF-gradient
+normal, colour) from the voxel functions of kintinuous_fast.ops.volume.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from kintinuous_fast.ops import volume as voxel_ops
+from kintinuous_fast.ops.volume import BRICK, FINE
+
+# Voxels by which the cpu raycast's jumps shrink an empty cube: far above the rounding of sample
+# coordinates (~1e-13 voxels), far below a sample step (~2 voxels).
+JUMP_MARGIN = 1e-6
+# Bricks at a distance below this take the cpu raycast's jumps from its fine distance map (in
+# FINE^3 bricks, capped; valid everywhere): near surfaces they are longer than the brick
+# map's, whose cube of radius D - 1 is a single brick at D = 1.
+FINE_LEVEL_BELOW = 4
+# The cpu raycast's tile cones (cone_safe_until): the slack, in voxels, by which the box of rays
+# stays inside a safe cube (far above rounding, ~1e-13 voxels), the most cubes walked, and the
+# voxels past the box's leading face where the next cube is looked up (also the least advance,
+# along the ray's dominant axis, worth another cube).
+CONE_MARGIN = 1e-3
+CONE_STEPS = 64
+CONE_LOOKAHEAD = 0.5
+
+
+def build_ops(
+    jit: Callable[[Any], Any],
+    jit_called: Callable[[Any], Any] | None = None,
+    voxels: SimpleNamespace | None = None,
+) -> SimpleNamespace:
+    """The march functions compiled with `jit`; the few large per-ray ones (a whole march, the
+    cone of a tile) with `jit_called` (default `jit`, see ops.volume.build_ops), on `voxels`
+    (ops.volume.build_ops(jit, jit_called) unless given)."""
+    jit_called = jit_called or jit
+    voxels = voxels or voxel_ops.build_ops(jit, jit_called)
+    sample_tsdf_at, gradient_normal = voxels.sample_tsdf_at, voxels.gradient_normal
+    surface_colour_at = voxels.surface_colour_at
+
+    @jit
+    def axis_interval(o: float, d: float, lower: float, upper: float) -> tuple:
+        """(t_min, t_max) of one slab [lower, upper] along one axis (infinite when parallel)."""
+        if d == 0:
+            if o >= lower and o <= upper:
+                return -np.inf, np.inf
+            return np.inf, -np.inf
+        t0 = (lower - o) / d
+        t1 = (upper - o) / d
+        return min(t0, t1), max(t0, t1)
+
+    @jit
+    def ray_span(
+        origin: Any, d0: float, d1: float, d2: float, volume_origin: Any, voxel_size: float, n: int
+    ) -> tuple:
+        """(entry, exit): the ray parameters where the ray is inside the volume's sample box
+        [0, N - 1]^3 (entry >= 0; empty when entry >= exit)."""
+        upper_offset = (n - 1) * voxel_size
+        lo0, hi0 = axis_interval(origin[0], d0, volume_origin[0], volume_origin[0] + upper_offset)
+        lo1, hi1 = axis_interval(origin[1], d1, volume_origin[1], volume_origin[1] + upper_offset)
+        lo2, hi2 = axis_interval(origin[2], d2, volume_origin[2], volume_origin[2] + upper_offset)
+        return max(max(max(lo0, lo1), lo2), 0.0), min(min(hi0, hi1), hi2)
+
+    @jit
+    def zero_crossing(t0: float, f0: float, t1: float, f1: float) -> float:
+        return t0 + (t1 - t0) * f0 / (f0 - f1)
+
+    @jit
+    def sample_along(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        t: float,
+        volume_origin: Any,
+        voxel_size: float,
+    ) -> float:
+        cx = (origin[0] + t * d0 - volume_origin[0]) / voxel_size
+        cy = (origin[1] + t * d1 - volume_origin[1]) / voxel_size
+        cz = (origin[2] + t * d2 - volume_origin[2]) / voxel_size
+        return sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
+
+    @jit
+    def refine_crossing(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        t0: float,
+        f0: float,
+        t1: float,
+        f1: float,
+        volume_origin: Any,
+        voxel_size: float,
+    ) -> float:
+        """The ray distance of the surface between samples t0 (F > 0) and t1 (F < 0): one
+        secant step, then a second on whichever side the estimate falls (the reference's)."""
+        estimate = zero_crossing(t0, f0, t1, f1)
+        f = sample_along(
+            tsdf_weight, o0, o1, o2, origin, d0, d1, d2, estimate, volume_origin, voxel_size
+        )
+        if f > 0:
+            return zero_crossing(estimate, f, t1, f1)
+        if f < 0:
+            return zero_crossing(t0, f0, estimate, f)
+        return estimate
+
+    @jit
+    def fine_index(c: float, n: int, last: int) -> int:
+        """Fine brick of the lower corner voxel of a sample at voxel coordinate c (clamped as
+        sample_tsdf_at clamps it), at most `last`."""
+        return min(min(max(int(math.floor(c)), 0), n - 2) // FINE, last)
+
+    @jit
+    def samples_to_leave(c: float, dc: float, inverse: float, lower: float, upper: float) -> float:
+        """Samples (a real number) until the coordinate c + m dc leaves [lower, upper) shrunk
+        by JUMP_MARGIN voxels, `inverse` = 1 / dc; inf when dc = 0. The margin dwarfs the
+        rounding of the samples' exactly computed coordinates (~1e-13 voxels), so every sample
+        before the returned count lies inside [lower, upper) as computed."""
+        if dc > 0:
+            return (upper - JUMP_MARGIN - c) * inverse
+        if dc < 0:
+            return (lower + JUMP_MARGIN - c) * inverse
+        return np.inf
+
+    @jit
+    def first_sample_outside(
+        m: int,
+        cx: float,
+        cy: float,
+        cz: float,
+        dcx: float,
+        dcy: float,
+        dcz: float,
+        ix: float,
+        iy: float,
+        iz: float,
+        lower_x: float,
+        lower_y: float,
+        lower_z: float,
+        size: float,
+    ) -> int:
+        """Index of the first sample after sample m (at voxel coordinates c, advancing dc per
+        sample, i = 1 / dc) that may lie outside the cube [lower, lower + size)^3; at least
+        m + 1. Multiplications only: the margin of samples_to_leave keeps it conservative."""
+        to_leave = min(
+            min(
+                samples_to_leave(cx, dcx, ix, lower_x, lower_x + size),
+                samples_to_leave(cy, dcy, iy, lower_y, lower_y + size),
+            ),
+            samples_to_leave(cz, dcz, iz, lower_z, lower_z + size),
+        )
+        return m + max(int(math.floor(to_leave)) + 1, 1)
+
+    @jit
+    def inverse_or_zero(x: float) -> float:
+        return 1.0 / x if x != 0 else 0.0
+
+    @jit_called
+    def march_ray(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        safe_until: float,
+    ) -> float:
+        """Ray parameter of the first + to - crossing (regula-falsi refined), NaN if none; the
+        samples lie at entry + m step (kintinuous_ref.raycast.march), marched from the first
+        sample at or past `safe_until` (cone_safe_until's: no sample before it can be negative,
+        so they are skipped like those of a jump; 0 starts at the entry).
+
+        Empty space is skipped exactly with a distance map at two levels. `empty` is the brick
+        distance map of kintinuous_ref.raycast._empty_space (logical bricks of BRICK^3 voxels):
+        no sample in the cube of bricks within D - 1 of a brick at distance D can be negative,
+        as there. `fine_distance` is finer, over FINE^3 bricks: fine_distance[f] = D >= 1 says
+        no fine brick within chessboard distance D - 1 of f is `near` (may hold the lower
+        corner of a negative sample), so every sample whose lower corner lies in that cube is
+        >= 0 or unknown and, unless the sample before the first of them was negative, is
+        skipped at once. Bricks at a distance below FINE_LEVEL_BELOW read the fine map. Maps
+        of shape (1, 1, 1) holding 0 skip nothing: the plain march. Jump lengths come from
+        the samples' nominal coordinates (linear in the sample index) with a margin, so the
+        samples skipped are a subset of those the exact test would skip: the same answer.
+        The march is march_start, then march_step until it says the ray is done.
+        """
+        ray = march_start(
+            origin, d0, d1, d2, volume_origin, voxel_size, tsdf_weight.shape[0], step, safe_until
+        )
+        m, previous, previous_known, hit = ray[0], np.nan, ray[0] == 0, np.nan
+        while m >= 0:
+            m, previous, previous_known, hit = march_step(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d0, d1, d2,
+                volume_origin, voxel_size, step, ray, m, previous, previous_known,
+            )  # fmt: skip
+        return hit
+
+    @jit_called
+    def march_two_rays(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        origin: Any,
+        a: tuple,
+        b: tuple,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        safe_until: float,
+    ) -> tuple:
+        """march_ray of two rays (unit directions a and b) in lockstep: each step of
+        one is a chain of dependent loads and roundings, so the core works on the other's
+        meanwhile. The same answers as marching them one after the other."""
+        n = tsdf_weight.shape[0]
+        ray_a = march_start(
+            origin, a[0], a[1], a[2], volume_origin, voxel_size, n, step, safe_until
+        )
+        ray_b = march_start(
+            origin, b[0], b[1], b[2], volume_origin, voxel_size, n, step, safe_until
+        )
+        m_a, previous_a, known_a, hit_a = ray_a[0], np.nan, ray_a[0] == 0, np.nan
+        m_b, previous_b, known_b, hit_b = ray_b[0], np.nan, ray_b[0] == 0, np.nan
+        while m_a >= 0 or m_b >= 0:
+            if m_a >= 0:
+                m_a, previous_a, known_a, hit_a = march_step(
+                    tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
+                    volume_origin, voxel_size, step, ray_a, m_a, previous_a, known_a,
+                )  # fmt: skip
+            if m_b >= 0:
+                m_b, previous_b, known_b, hit_b = march_step(
+                    tsdf_weight, o0, o1, o2, empty, fine_distance, origin, b[0], b[1], b[2],
+                    volume_origin, voxel_size, step, ray_b, m_b, previous_b, known_b,
+                )  # fmt: skip
+        return hit_a, hit_b
+
+    @jit
+    def march_start(
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        n: int,
+        step: float,
+        safe_until: float,
+    ) -> tuple:
+        """(m, entry, exit, sx, sy, sz, dcx, dcy, dcz, ix, iy, iz) of a skipping march: the first
+        sample m to look at (-1: the ray has none), the ray's span in the volume, the voxel
+        coordinates of sample 0, their advance per sample and its inverses (0 where none)."""
+        entry, exit_ = ray_span(origin, d0, d1, d2, volume_origin, voxel_size, n)
+        m = 0
+        if not entry < exit_:
+            m = -1
+        elif safe_until > entry:
+            if not safe_until <= exit_:
+                m = -1
+            else:
+                m = int(math.ceil((safe_until - entry) / step))
+                if not entry + m * step <= exit_:
+                    m = -1
+        # voxel coordinates of sample m, nominally: start + m * per_sample (jump lengths only)
+        dcx, dcy, dcz = step * d0 / voxel_size, step * d1 / voxel_size, step * d2 / voxel_size
+        return (
+            m,
+            entry,
+            exit_,
+            (origin[0] + entry * d0 - volume_origin[0]) / voxel_size,
+            (origin[1] + entry * d1 - volume_origin[1]) / voxel_size,
+            (origin[2] + entry * d2 - volume_origin[2]) / voxel_size,
+            dcx,
+            dcy,
+            dcz,
+            inverse_or_zero(dcx),
+            inverse_or_zero(dcy),
+            inverse_or_zero(dcz),
+        )
+
+    @jit
+    def march_step(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        ray: tuple,
+        m: int,
+        previous: float,
+        previous_known: bool,
+    ) -> tuple:
+        """One step of march_ray at sample m: a jump or a sample. Returns (m,
+        previous, previous_known, hit) for the next step; m = -1 once the ray is done, hit then
+        its answer (NaN: no surface)."""
+        entry, exit_ = ray[1], ray[2]
+        t = entry + m * step
+        # The maps are read at the nominal coordinates (one multiply-add, no division). They
+        # differ from the exact ones (the reference's, used for the samples) by rounding
+        # only, so they name the same brick and fine brick unless within JUMP_MARGIN of a
+        # fine brick's face: there the exact ones decide.
+        cx, cy, cz = ray[3] + m * ray[6], ray[4] + m * ray[7], ray[5] + m * ray[8]
+        if not (clear_of_faces(cx) and clear_of_faces(cy) and clear_of_faces(cz)):
+            cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
+        bricks = empty.shape[0]
+        bx = min(max(int(math.floor(cx / BRICK)), 0), bricks - 1)
+        by = min(max(int(math.floor(cy / BRICK)), 0), bricks - 1)
+        bz = min(max(int(math.floor(cz / BRICK)), 0), bricks - 1)
+        radius = int(empty[bx, by, bz])
+        fine, fx, fy, fz = 0, 0, 0, 0
+        if radius < FINE_LEVEL_BELOW and not (previous_known and previous < 0):
+            n, last_fine = tsdf_weight.shape[0], fine_distance.shape[0] - 1
+            fx = fine_index(cx, n, last_fine)
+            fy = fine_index(cy, n, last_fine)
+            fz = fine_index(cz, n, last_fine)
+            fine = int(fine_distance[fx, fy, fz])
+        if radius >= FINE_LEVEL_BELOW:  # far from surfaces: past the empty cube of bricks
+            reach = radius - 1
+            m_next = first_sample_outside(
+                m, cx, cy, cz, ray[6], ray[7], ray[8], ray[9], ray[10], ray[11],
+                (bx - reach) * BRICK, (by - reach) * BRICK, (bz - reach) * BRICK,
+                (2 * reach + 1) * BRICK,
+            )  # fmt: skip
+            previous_known = False
+        elif fine > 0:  # no sample in the cube of fine bricks can be negative: jump past it
+            reach = fine - 1
+            m_next = first_sample_outside(
+                m, cx, cy, cz, ray[6], ray[7], ray[8], ray[9], ray[10], ray[11],
+                (fx - reach) * FINE, (fy - reach) * FINE, (fz - reach) * FINE,
+                (2 * reach + 1) * FINE,
+            )  # fmt: skip
+            previous_known = False
+        else:
+            value = sample_along(
+                tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
+            )
+            # A skipped sample is >= 0 or unknown, so after a jump the one before matters
+            # only if this one is negative (a crossing, never a back face): fetched then.
+            if not previous_known and value < 0:
+                previous = np.nan
+                if m > 0:
+                    previous = sample_along(
+                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
+                        entry + (m - 1) * step, volume_origin, voxel_size,
+                    )  # fmt: skip
+            elif not previous_known:
+                previous = np.nan
+            if previous > 0 and value < 0:
+                hit = refine_crossing(
+                    tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t - step, previous, t,
+                    value, volume_origin, voxel_size,
+                )  # fmt: skip
+                return -1, previous, True, hit
+            if previous < 0 and value > 0:
+                return -1, previous, True, np.nan  # a back face
+            previous = value
+            previous_known = True
+            m_next = m + 1
+        if not entry + m_next * step <= exit_:
+            return -1, previous, previous_known, np.nan
+        return m_next, previous, previous_known, np.nan
+
+    @jit
+    def box_inside(c: float, half: float, lower: float, upper: float) -> bool:
+        """Whether [c - half, c + half] lies in [lower, upper] with CONE_MARGIN to spare."""
+        return c - half >= lower + CONE_MARGIN and c + half <= upper - CONE_MARGIN
+
+    @jit
+    def box_advance(
+        c: float, half: float, v: float, spread: float, lower: float, upper: float
+    ) -> float:
+        """Largest dt keeping [c - half, c + half] inside [lower, upper] (less CONE_MARGIN)
+        while its centre moves at v and its half-width grows at `spread` per unit of dt."""
+        dt = np.inf
+        if v + spread > 0:
+            dt = (upper - CONE_MARGIN - c - half) / (v + spread)
+        if v - spread < 0:
+            dt = min(dt, (c - half - lower - CONE_MARGIN) / (spread - v))
+        return dt
+
+    @jit_called
+    def cone_safe_until(
+        empty: Any,
+        fine_distance: Any,
+        n: int,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        spread: float,
+        volume_origin: Any,
+        voxel_size: float,
+        start: float,
+    ) -> float:
+        """A ray parameter T >= `start` (where none of the rays has entered the volume yet)
+        such that no sample at t <= T of any ray whose unit direction
+        differs from (d0, d1, d2) by at most `spread` in each component can be negative: the
+        shared free space in front of a tile of pixels, marched once for all its rays.
+
+        At t those rays lie in a box of half-width t * spread / voxel_size voxels around the
+        centre ray's point. The box is walked through the safe cubes of the two distance maps
+        (march_ray's: samples whose brick, or whose lower corner's fine brick, lies in
+        the cube cannot be negative), each time as far as it stays inside the cube, choosing
+        the cube just ahead of the centre; the walk stops where no cube holds the whole box
+        (next to the tile's nearest surface). Points outside [0, N - 1]^3 are no samples: the
+        box may start and end outside the volume."""
+        sx = (origin[0] - volume_origin[0]) / voxel_size
+        sy = (origin[1] - volume_origin[1]) / voxel_size
+        sz = (origin[2] - volume_origin[2]) / voxel_size
+        vx, vy, vz = d0 / voxel_size, d1 / voxel_size, d2 / voxel_size
+        grow = spread / voxel_size
+        # The next cube is the one around a point just past the box's leading face along the
+        # ray's dominant axis (the face the last advance stopped at, unless growth stopped it).
+        dominant = max(max(abs(vx), abs(vy)), abs(vz))
+        # Lower corners are clamped to N - 2: past it, that names another fine brick than the
+        # coordinates do only when N - 1 starts a fine brick.
+        top = n - 2.0 if (n - 1) % FINE == 0 else np.inf
+        t = start
+        for _ in range(CONE_STEPS):
+            cx, cy, cz = sx + t * vx, sy + t * vy, sz + t * vz
+            half = t * grow
+            if not (
+                box_inside(cx, half, -np.inf, top)
+                and box_inside(cy, half, -np.inf, top)
+                and box_inside(cz, half, -np.inf, top)
+            ):
+                return t
+            ahead = (half + CONE_LOOKAHEAD) / dominant
+            ax = min(max(cx + ahead * vx, 0.0), n - 1.0)
+            ay = min(max(cy + ahead * vy, 0.0), n - 1.0)
+            az = min(max(cz + ahead * vz, 0.0), n - 1.0)
+            # clamped as march_step clamps them (a (1, 1, 1) map of 0 then skips nothing)
+            last_brick, last_fine = empty.shape[0] - 1, fine_distance.shape[0] - 1
+            bx = min(int(ax) // BRICK, last_brick)
+            by = min(int(ay) // BRICK, last_brick)
+            bz = min(int(az) // BRICK, last_brick)
+            radius = int(empty[bx, by, bz])
+            size, fx, fy, fz = BRICK, bx, by, bz
+            if radius < 1 or not (
+                box_inside(cx, half, (bx - radius + 1) * BRICK, (bx + radius) * BRICK)
+                and box_inside(cy, half, (by - radius + 1) * BRICK, (by + radius) * BRICK)
+                and box_inside(cz, half, (bz - radius + 1) * BRICK, (bz + radius) * BRICK)
+            ):
+                size = FINE
+                fx = min(int(ax) // FINE, last_fine)
+                fy = min(int(ay) // FINE, last_fine)
+                fz = min(int(az) // FINE, last_fine)
+                radius = int(fine_distance[fx, fy, fz])
+                if radius < 1 or not (
+                    box_inside(cx, half, (fx - radius + 1) * FINE, (fx + radius) * FINE)
+                    and box_inside(cy, half, (fy - radius + 1) * FINE, (fy + radius) * FINE)
+                    and box_inside(cz, half, (fz - radius + 1) * FINE, (fz + radius) * FINE)
+                ):
+                    return t
+            dt = min(
+                min(
+                    box_advance(cx, half, vx, grow, (fx - radius + 1) * size, (fx + radius) * size),
+                    box_advance(cy, half, vy, grow, (fy - radius + 1) * size, (fy + radius) * size),
+                ),
+                box_advance(cz, half, vz, grow, (fz - radius + 1) * size, (fz + radius) * size),
+            )
+            if not dt * dominant >= CONE_LOOKAHEAD:
+                return t  # the box has (nearly) outgrown the cubes: leave the rest to each ray
+            t += dt
+        return t
+
+    @jit
+    def clear_of_faces(c: float) -> bool:
+        """Whether coordinate c is more than JUMP_MARGIN voxels from every fine brick face."""
+        r = c * (1.0 / FINE)
+        f = r - math.floor(r)
+        return f >= JUMP_MARGIN / FINE and f <= 1.0 - JUMP_MARGIN / FINE
+
+    @jit
+    def voxel_coordinates(
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        t: float,
+        volume_origin: Any,
+        voxel_size: float,
+    ) -> tuple:
+        """Continuous voxel coordinates of the ray point at t (sample_along's)."""
+        cx = (origin[0] + t * d0 - volume_origin[0]) / voxel_size
+        cy = (origin[1] + t * d1 - volume_origin[1]) / voxel_size
+        cz = (origin[2] + t * d2 - volume_origin[2]) / voxel_size
+        return cx, cy, cz
+
+    @jit
+    def ray_direction(u: int, v: int, camera: Any, rotation: Any) -> tuple:
+        """Unit world-frame direction of pixel (u, v)'s ray (`camera` float64 fx, fy, cx, cy)."""
+        rx = (u - camera[2]) * 1.0 / camera[0]
+        ry = (v - camera[3]) * 1.0 / camera[1]
+        d0 = rotation[0, 0] * rx + rotation[0, 1] * ry + rotation[0, 2]
+        d1 = rotation[1, 0] * rx + rotation[1, 1] * ry + rotation[1, 2]
+        d2 = rotation[2, 0] * rx + rotation[2, 1] * ry + rotation[2, 2]
+        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        return d0 / norm, d1 / norm, d2 / norm
+
+    @jit
+    def raycast_pixels(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        empty: Any,
+        fine_distance: Any,
+        u: int,
+        v: int,
+        camera: Any,
+        rotation: Any,
+        origin: Any,
+        volume_origin: Any,
+        voxel_size: float,
+        step: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+        safe_until: float,
+        partner: int,
+    ) -> None:
+        """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
+        march_ray from `safe_until` on (cone_safe_until of the pixel's tile, or 0), and with
+        `partner` > 0 of pixel (u + partner, v) too, the two rays marched in lockstep
+        (march_two_rays). `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0
+        beforehand."""
+        a = ray_direction(u, v, camera, rotation)
+        if partner > 0:
+            b = ray_direction(u + partner, v, camera, rotation)
+            t_a, t_b = march_two_rays(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
+                voxel_size, step, safe_until,
+            )  # fmt: skip
+            shade_pixel(
+                tsdf_weight, colour_volume, has_colour, o0, o1, o2, u + partner, v, t_b, origin,
+                b[0], b[1], b[2], volume_origin, voxel_size, vertices, normals, colours,
+            )  # fmt: skip
+        else:
+            t_a = march_ray(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
+                volume_origin, voxel_size, step, safe_until,
+            )  # fmt: skip
+        shade_pixel(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t_a, origin, a[0], a[1],
+            a[2], volume_origin, voxel_size, vertices, normals, colours,
+        )  # fmt: skip
+
+    @jit
+    def shade_pixel(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        u: int,
+        v: int,
+        t: float,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        volume_origin: Any,
+        voxel_size: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+    ) -> None:
+        """Vertex, normal and colour of pixel (u, v) whose ray met the surface at t (NaN: none)."""
+        if not math.isfinite(t):
+            return
+        px, py, pz = origin[0] + t * d0, origin[1] + t * d1, origin[2] + t * d2
+        cx = (px - volume_origin[0]) / voxel_size
+        cy = (py - volume_origin[1]) / voxel_size
+        cz = (pz - volume_origin[2]) / voxel_size
+        nx, ny, nz = gradient_normal(tsdf_weight, o0, o1, o2, cx, cy, cz)
+        if math.isnan(nx):
+            return  # no usable normal: no use to ICP, dropped
+        vertices[v, u, 0], vertices[v, u, 1], vertices[v, u, 2] = px, py, pz
+        normals[v, u, 0], normals[v, u, 1], normals[v, u, 2] = nx, ny, nz
+        if has_colour:
+            r, g, b = surface_colour_at(colour_volume, o0, o1, o2, cx, cy, cz)
+            colours[v, u, 0], colours[v, u, 1], colours[v, u, 2] = r, g, b
+
+    return SimpleNamespace(
+        axis_interval=axis_interval,
+        box_advance=box_advance,
+        box_inside=box_inside,
+        clear_of_faces=clear_of_faces,
+        cone_safe_until=cone_safe_until,
+        fine_index=fine_index,
+        first_sample_outside=first_sample_outside,
+        inverse_or_zero=inverse_or_zero,
+        march_ray=march_ray,
+        march_start=march_start,
+        march_step=march_step,
+        march_two_rays=march_two_rays,
+        ray_direction=ray_direction,
+        ray_span=ray_span,
+        raycast_pixels=raycast_pixels,
+        refine_crossing=refine_crossing,
+        sample_along=sample_along,
+        samples_to_leave=samples_to_leave,
+        shade_pixel=shade_pixel,
+        voxel_coordinates=voxel_coordinates,
+        zero_crossing=zero_crossing,
+    )
