@@ -22,6 +22,7 @@ from numba import prange
 from kintinuous_fast._volume import FastTsdfVolume
 from kintinuous_fast.cpu.tsdf import negative_counts
 from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, march
+from kintinuous_fast.ops.march import FINE_DISTANCE_CAP
 from kintinuous_fast.ops.volume import BRICK, FINE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
@@ -33,9 +34,6 @@ raycast_pixels = _ops.raycast_pixels
 ray_direction = _ops.ray_direction
 cone_safe_until = _ops.cone_safe_until
 ray_span = _ops.ray_span
-# Largest fine-brick distance kept: a jump leaves a cube reaching 15 fine bricks (30 voxels) to
-# either side, as far as a brick at distance 4 would (bricks below ops.FINE_LEVEL_BELOW read it).
-FINE_DISTANCE_CAP = 16
 TILE = 8  # pixels per side of the tiles whose rays march their shared free space once
 
 

@@ -33,7 +33,8 @@ _FAR = 1 << 30
 
 def _map_that_skips_nothing() -> Any:
     """A (1, 1, 1) distance map of 0 on the device (kept for the run): as march_ray's fine map,
-    every sample in a brick at distance < FINE_LEVEL_BELOW is taken; as both maps, every
+    the brick map decides every step (a jump from distance FINE_LEVEL_BELOW on, else a
+    sample); as both maps, every
     sample (the plain march, whose answer the exact skipping returns too)."""
     if not _NOTHING_SKIPPED:
         _NOTHING_SKIPPED.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.uint8)))
