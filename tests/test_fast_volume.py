@@ -10,6 +10,8 @@ import pytest
 from kintinuous_fast import _volume
 from kintinuous_fast.cpu import raycast as cpu_raycast
 from kintinuous_fast.cpu import tsdf as cpu_tsdf
+from kintinuous_fast.ops import cpu_jit
+from kintinuous_fast.ops import volume as volume_ops
 from kintinuous_ref import tsdf as ref_tsdf
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.errors import ConfigError
@@ -59,10 +61,12 @@ def test_fast_make_volume_refuses_what_cannot_fit():
         cpu_tsdf.make_volume(VolumeConfig(resolution=16, placement="behind"), np.eye(4))
 
 
-def test_dequantise_is_the_float32_division_for_every_int16():
-    """ops.volume.dequantise multiplies in float64 instead of dividing in float32; the result
-    must be the correctly rounded q / 32767 (to_reference_volume's) for every stored value."""
-    dequantise = cpu_tsdf._voxels.dequantise
+@pytest.mark.parametrize("table", [False, True], ids=["arithmetic", "table"])
+def test_dequantise_is_the_float32_division_for_every_int16(table):
+    """ops.volume.dequantise multiplies in float64 instead of dividing in float32 (cuda), or
+    reads a table made so (cpu); the result must be the correctly rounded q / 32767
+    (to_reference_volume's) for every stored value."""
+    dequantise = volume_ops.build_ops(cpu_jit, dequantise_table=table).dequantise
     q = np.arange(-32767, 32768, dtype=np.int16)
     got = np.array([dequantise(value) for value in q], dtype=np.float32)
     np.testing.assert_array_equal(got, q.astype(np.float32) / np.float32(32767.0))

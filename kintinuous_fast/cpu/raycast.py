@@ -21,7 +21,7 @@ from numba import prange
 
 from kintinuous_fast._volume import FastTsdfVolume
 from kintinuous_fast.cpu.tsdf import negative_counts
-from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, march
+from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, march, volume
 from kintinuous_fast.ops.march import FINE_DISTANCE_CAP
 from kintinuous_fast.ops.volume import BRICK, FINE
 from kintinuous_ref.camera import Intrinsics
@@ -29,7 +29,11 @@ from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
-_ops = march.build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called)
+_ops = march.build_ops(
+    cpu_jit_numpy_errors,
+    cpu_jit_numpy_errors_called,
+    volume.build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, dequantise_table=True),
+)
 raycast_pixels = _ops.raycast_pixels
 ray_direction = _ops.ray_direction
 cone_safe_until = _ops.cone_safe_until

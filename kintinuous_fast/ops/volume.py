@@ -33,23 +33,37 @@ FINE = 2
 
 
 def build_ops(
-    jit: Callable[[Any], Any], jit_called: Callable[[Any], Any] | None = None
+    jit: Callable[[Any], Any],
+    jit_called: Callable[[Any], Any] | None = None,
+    dequantise_table: bool = False,
 ) -> SimpleNamespace:
     """The voxel functions compiled with `jit`; the two large per-ray ones (a normal, a colour)
     with `jit_called` (default `jit`). The cpu backend's `jit` inlines at numba IR level, which
     is what makes the per-voxel loops fast, but inlining a whole march and its samples into
     every caller made the raycast take minutes to compile; called once per ray, these lose
-    nothing by being calls."""
+    nothing by being calls. With `dequantise_table`, dequantise reads its (equal) values from a
+    table of all 65536 (256 KiB): a load instead of three conversions and a multiply made the
+    cpu raycast ~4 % faster. CUDA keeps the arithmetic: its constant memory holds 64 KiB."""
     jit_called = jit_called or jit
 
     @jit
-    def dequantise(q: Any) -> Any:
+    def dequantise_arithmetic(q: Any) -> Any:
         """float32 TSDF of a stored int16: q / 32767 correctly rounded to float32, the division
         to_reference_volume does. Computed as a float64 product (a float32 division costs ~4x a
         multiply, and the raycast's normals take 48 of them): its error (~1e-16 relative) is far
         below the gap between q / 32767 and any float32 rounding midpoint (> 2^-39 relative,
         as 32767 is odd), so it rounds the same way; checked for every int16 by the tests."""
         return np.float32(float(q) * TSDF_INVERSE_SCALE)
+
+    # numba freezes the closure's table into the compiled code as a constant
+    table = (np.arange(-32768, 32768) * TSDF_INVERSE_SCALE).astype(np.float32)
+
+    @jit
+    def dequantise_lookup(q: Any) -> Any:
+        """dequantise_arithmetic's value, read from the table of every int16."""
+        return table[np.intp(q) + 32768]
+
+    dequantise = dequantise_lookup if dequantise_table else dequantise_arithmetic
 
     @jit
     def quantise(f: Any) -> int:
