@@ -148,7 +148,7 @@ def test_cpu_fine_distance_is_the_capped_chessboard_distance():
         near = rng.random((m, m, m)) < density
         for cap in (1, 3, 16):
             got = np.empty(near.shape, dtype=np.uint8)
-            cpu_raycast._fine_distance(near, cap, got)
+            cpu_raycast._fine_distance(near, cap, np.empty_like(got), got)
             if near.any():
                 want = ndimage.distance_transform_cdt(~near, metric="chessboard")
                 want = np.minimum(want, cap)

@@ -13,7 +13,9 @@ holding a counted voxel, and the fine map marks the fine bricks whose samples ma
 
 from __future__ import annotations
 
+import functools
 import math
+from types import SimpleNamespace
 
 import numba
 import numpy as np
@@ -81,17 +83,29 @@ def _or_into(target, source):
         target[j] = target[j] | source[j]
 
 
-def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
-    """(empty, near): kintinuous_ref.raycast._empty_space of the volume (int64 brick distances)
-    and the `near` map of fine bricks (bool) that skip_maps turns into distances, both from the
-    negative-voxel counts."""
+@functools.lru_cache(maxsize=2)
+def _work_arrays(fine_bricks: int, bricks: int) -> SimpleNamespace:
+    """The skip maps' work arrays for one volume size, kept from frame to frame: at 256^3,
+    fresh ones cost ~2 ms of page faults per frame (of the maps' ~6.5 ms)."""
+    fine_shape, shape = (fine_bricks,) * 3, (bricks,) * 3
+    return SimpleNamespace(
+        pairs=np.empty(fine_shape, dtype=np.bool_),
+        near=np.empty(fine_shape, dtype=np.bool_),
+        along=np.empty(fine_shape, dtype=np.uint8),
+        fine_distance=np.empty(fine_shape, dtype=np.uint8),
+        negative=np.empty(shape, dtype=np.bool_),
+    )
+
+
+def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, SimpleNamespace]:
+    """(empty, work): kintinuous_ref.raycast._empty_space of the volume (int64 brick distances)
+    and the work arrays, whose `near` map of fine bricks (bool) skip_maps turns into distances,
+    both from the negative-voxel counts."""
     counts = negative_counts(volume)
-    m = counts.shape[0]
-    near = np.empty((m, m, m), dtype=np.bool_)
-    b = -(-volume.resolution // BRICK)
-    negative = np.zeros((b, b, b), dtype=np.bool_)
-    _brick_maps_loop(counts, np.empty_like(near), near, negative)
-    return _brick_distance(negative), near
+    work = _work_arrays(counts.shape[0], -(-volume.resolution // BRICK))
+    work.negative.fill(False)
+    _brick_maps_loop(counts, work.pairs, work.near, work.negative)
+    return _brick_distance(work.negative), work
 
 
 def _brick_distance(negative: np.ndarray) -> np.ndarray:
@@ -104,20 +118,20 @@ def _brick_distance(negative: np.ndarray) -> np.ndarray:
     if not negative.any():
         return np.full(negative.shape, 2 * b, dtype=np.int64)  # nothing anywhere: skip it all
     distance = np.empty(negative.shape, dtype=np.uint8)
-    _fine_distance(negative, b + 1, distance)
+    _fine_distance(negative, b + 1, np.empty_like(distance), distance)
     return np.maximum(distance.astype(np.int64) - 1, 0)
 
 
 @numba.njit(parallel=True, cache=True)
-def _fine_distance(near, cap, out):
+def _fine_distance(near, cap, along, out):
     """out = min(cap, chessboard distance in fine bricks to the nearest `near` one), uint8,
     cap < 255. Separable (the chessboard metric is the max of the per-axis distances, so the
     minimum can be taken one axis at a time): the distance along axis 2 by two sweeps, then
     along axes 1 and 0 d(x) = min over |k| < cap of max(k, d(x + k e)), as elementwise
-    operations on whole planes of uint8 (vectorised; rows would be too short)."""
+    operations on whole planes of uint8 (vectorised; rows would be too short). `along` is
+    work space of out's shape."""
     m = near.shape[0]
     top = np.uint8(cap)
-    along = np.empty_like(out)
     for p in prange(m):
         for f1 in range(m):
             _sweeps(near[p, f1], along[p, f1], top)
@@ -162,12 +176,12 @@ def _min_max(target, source, k):
 
 def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     """(empty, fine_distance): the brick distance map of _brick_maps and the capped distance
-    map over its fine bricks (ops.march.march_ray's)."""
-    empty, near = _brick_maps(volume)
-    fine_distance = np.empty(near.shape, dtype=np.uint8)
-    _fine_distance(near, FINE_DISTANCE_CAP, fine_distance)
+    map over its fine bricks (ops.march.march_ray's). The fine map is a work array: the next
+    call for a volume of the same resolution overwrites it."""
+    empty, work = _brick_maps(volume)
+    _fine_distance(work.near, FINE_DISTANCE_CAP, work.along, work.fine_distance)
     # uint8: the map stays in the first-level cache; a smaller distance only means shorter jumps
-    return np.minimum(empty, 255).astype(np.uint8), fine_distance
+    return np.minimum(empty, 255).astype(np.uint8), work.fine_distance
 
 
 def empty_space(volume: FastTsdfVolume) -> np.ndarray:
