@@ -44,7 +44,7 @@ __all__ = [
     "volume_origin",
 ]
 
-_voxels = volume.build_ops(cpu_jit_numpy_errors, dequantise_table=True)
+_voxels = volume.build_ops(cpu_jit_numpy_errors)
 _ops = integration.build_ops(cpu_jit_numpy_errors, _voxels)
 update_voxel = _ops.update_voxel
 column_range = _ops.column_range

@@ -34,8 +34,8 @@ _FAR = 1 << 30
 def _map_that_skips_nothing() -> Any:
     """A (1, 1, 1) distance map of 0 on the device (kept for the run): as march_ray's fine map,
     the brick map decides every step (a jump from distance FINE_LEVEL_BELOW on, else a
-    sample); as both maps, every
-    sample (the plain march, whose answer the exact skipping returns too)."""
+    sample); as both maps, every sample is taken (the plain march, whose answer the exact
+    skipping returns too)."""
     if not _NOTHING_SKIPPED:
         _NOTHING_SKIPPED.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.uint8)))
     return _NOTHING_SKIPPED[0]

@@ -207,9 +207,9 @@ def build_ops(
         skipped at once. The brick map is read only where the fine distance is capped at
         FINE_DISTANCE_CAP, or the fine map is a (1, 1, 1) one of 0, and used from a distance
         of FINE_LEVEL_BELOW on. Maps of shape (1, 1, 1) holding 0 skip nothing: the plain
-        march. Jump lengths come from
-        the samples' nominal coordinates (linear in the sample index) with a margin, so the
-        samples skipped are a subset of those the exact test would skip: the same answer.
+        march. Jump lengths come from the samples' nominal coordinates (linear in the sample
+        index) with a margin, so the samples skipped are a subset of those the exact test
+        would skip: the same answer.
         The march is march_start, then march_step until it says the ray is done.
         """
         ray = march_start(
