@@ -264,41 +264,32 @@ def test_slab_view_reads_and_clears_only_the_box():
     np.testing.assert_array_equal(back.colour_weight[~cleared], reference.colour_weight[~cleared])
 
 
-def test_cpu_tile_cones_skip_only_samples_that_cannot_be_negative():
-    """The cpu raycast marches the free space in front of each 8x8 tile of pixels once
-    (ops.march.cone_safe_until) and starts the tile's rays there. Checked against every sample
-    of every ray (the reference-equivalent sample_tsdf): none before its tile's start is
-    negative; looking at the fused wall the cones skip most samples before the first negative
-    one; from behind the volume, where rays meet the wall's back at once, they still hold."""
+def test_cpu_near_starts_skip_only_samples_that_cannot_be_negative():
+    """The cpu raycast starts each ray at a lower bound of where it can meet a fine brick that
+    may hold a negative sample (cpu.raycast.near_starts: the boxes of the `near` fine bricks
+    projected into the image). Checked against every sample of every ray (the
+    reference-equivalent sample_tsdf): none before its pixel's start is negative; looking at the
+    fused wall the starts skip most samples before the first negative one; from behind the
+    volume, where rays meet the wall's back at once, and from inside it, they still hold."""
     camera = fe.camera_for(HEIGHT, WIDTH)
     fast, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, 64, 2, weighted=False)
-    maps = cpu_raycast.skip_maps(fast)
-    for name, pose in (("front", fe.moving_poses(2)[1]), ("behind", _oblique_pose_behind_wall())):
-        start = _tile_starts(fast, maps, pose, camera)
+    near = cpu_raycast._skip_maps_and_near(fast)[2]
+    inside = np.eye(4)
+    inside[:3, 3] = np.asarray(fast.origin) + 0.5 * fast.resolution * fast.voxel_size
+    views = (
+        ("front", fe.moving_poses(2)[1]), ("behind", _oblique_pose_behind_wall()),
+        ("inside", inside),
+    )  # fmt: skip
+    for name, pose in views:
+        start = cpu_raycast.near_starts(fast, near, pose, camera)
         t, values = _samples_of_every_ray(fast, pose, camera)
-        assert not np.any(values[t < start[..., None]] < 0)
+        assert not np.any(values[t < start[..., None]] < 0), name
         negative = values < 0
         before_negative = np.where(negative.any(axis=2), negative.argmax(axis=2), t.shape[2])
         skipped = np.count_nonzero(t < start[..., None], axis=2)
         if name == "front":
             assert np.median(before_negative) > 10
             assert np.median(skipped) > 0.7 * np.median(before_negative)
-
-
-def _tile_starts(volume, maps, pose, camera) -> np.ndarray:
-    """Per pixel, the start of its tile's rays in the cpu raycast (cone_safe_until)."""
-    tile = cpu_raycast.TILE
-    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
-    start = np.empty((camera.height, camera.width))
-    for v0 in range(0, camera.height, tile):
-        for u0 in range(0, camera.width, tile):
-            v1, u1 = min(v0 + tile, camera.height), min(u0 + tile, camera.width)
-            start[v0:v1, u0:u1] = cpu_raycast._tile_safe_until(
-                *maps, volume.resolution, u0, u1, v0, v1, 1, intrinsics,
-                np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
-                np.asarray(volume.origin, dtype=np.float64), volume.voxel_size,
-            )  # fmt: skip
-    return start
 
 
 def _samples_of_every_ray(volume, pose, camera) -> tuple[np.ndarray, np.ndarray]:
@@ -308,11 +299,11 @@ def _samples_of_every_ray(volume, pose, camera) -> tuple[np.ndarray, np.ndarray]
     rotation, origin = np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3])
     volume_origin = np.asarray(volume.origin, dtype=np.float64)
     directions = np.array(
-        [[cpu_raycast.ray_direction(u, v, intrinsics, rotation) for u in range(camera.width)]
+        [[cpu_raycast._ops.ray_direction(u, v, intrinsics, rotation) for u in range(camera.width)]
          for v in range(camera.height)]
     )  # fmt: skip
     span = np.array(
-        [[cpu_raycast.ray_span(origin, *d, volume_origin, volume.voxel_size, volume.resolution)
+        [[cpu_raycast._ops.ray_span(origin, *d, volume_origin, volume.voxel_size, volume.resolution)
           for d in row] for row in directions]
     )  # fmt: skip
     step = STEP_FRACTION * volume.truncation

@@ -1,5 +1,5 @@
 """Per-ray maths of kintinuous_ref.raycast, written once for the CPU and the CUDA target: the
-march along a ray with exact empty-space skipping (brick and fine distance maps, tile cones),
+march along a ray with exact empty-space skipping (brick and fine distance maps),
 the regula-falsi refinement of the crossing, and the shading of the hit (vertex, TSDF-gradient
 normal, colour) from the voxel functions of kintinuous_fast.ops.volume.
 """
@@ -27,13 +27,6 @@ JUMP_MARGIN = 1e-6
 # FINE_LEVEL_BELOW on, it jumps by bricks.
 FINE_DISTANCE_CAP = 16
 FINE_LEVEL_BELOW = 4
-# The cpu raycast's tile cones (cone_safe_until): the slack, in voxels, by which the box of rays
-# stays inside a safe cube (far above rounding, ~1e-13 voxels), the most cubes walked, and the
-# voxels past the box's leading face where the next cube is looked up (also the least advance,
-# along the ray's dominant axis, worth another cube).
-CONE_MARGIN = 1e-3
-CONE_STEPS = 64
-CONE_LOOKAHEAD = 0.5
 
 
 def build_ops(
@@ -41,8 +34,8 @@ def build_ops(
     jit_called: Callable[[Any], Any] | None = None,
     voxels: SimpleNamespace | None = None,
 ) -> SimpleNamespace:
-    """The march functions compiled with `jit`; the few large per-ray ones (a whole march, the
-    cone of a tile) with `jit_called` (default `jit`, see ops.volume.build_ops), on `voxels`
+    """The march functions compiled with `jit`; the large per-ray ones (a whole march) with
+    `jit_called` (default `jit`, see ops.volume.build_ops), on `voxels`
     (ops.volume.build_ops(jit, jit_called) unless given)."""
     jit_called = jit_called or jit
     voxels = voxels or voxel_ops.build_ops(jit, jit_called)
@@ -194,8 +187,8 @@ def build_ops(
     ) -> float:
         """Ray parameter of the first + to - crossing (regula-falsi refined), NaN if none; the
         samples lie at entry + m step (kintinuous_ref.raycast.march), marched from the first
-        sample at or past `safe_until` (cone_safe_until's: no sample before it can be negative,
-        so they are skipped like those of a jump; 0 starts at the entry).
+        sample at or past `safe_until` (cpu.raycast.near_starts': no sample before it can be
+        negative, so they are skipped like those of a jump; 0 starts at the entry).
 
         Empty space is skipped exactly with a distance map at two levels. `empty` is the brick
         distance map of kintinuous_ref.raycast._empty_space (logical bricks of BRICK^3 voxels):
@@ -403,110 +396,6 @@ def build_ops(
         return m_next, previous, previous_known, np.nan
 
     @jit
-    def box_inside(c: float, half: float, lower: float, upper: float) -> bool:
-        """Whether [c - half, c + half] lies in [lower, upper] with CONE_MARGIN to spare."""
-        return c - half >= lower + CONE_MARGIN and c + half <= upper - CONE_MARGIN
-
-    @jit
-    def box_advance(
-        c: float, half: float, v: float, spread: float, lower: float, upper: float
-    ) -> float:
-        """Largest dt keeping [c - half, c + half] inside [lower, upper] (less CONE_MARGIN)
-        while its centre moves at v and its half-width grows at `spread` per unit of dt."""
-        dt = np.inf
-        if v + spread > 0:
-            dt = (upper - CONE_MARGIN - c - half) / (v + spread)
-        if v - spread < 0:
-            dt = min(dt, (c - half - lower - CONE_MARGIN) / (spread - v))
-        return dt
-
-    @jit_called
-    def cone_safe_until(
-        empty: Any,
-        fine_distance: Any,
-        n: int,
-        origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
-        spread: float,
-        volume_origin: Any,
-        voxel_size: float,
-        start: float,
-    ) -> float:
-        """A ray parameter T >= `start` (where none of the rays has entered the volume yet)
-        such that no sample at t <= T of any ray whose unit direction
-        differs from (d0, d1, d2) by at most `spread` in each component can be negative: the
-        shared free space in front of a tile of pixels, marched once for all its rays.
-
-        At t those rays lie in a box of half-width t * spread / voxel_size voxels around the
-        centre ray's point. The box is walked through the safe cubes of the two distance maps
-        (march_ray's: samples whose brick, or whose lower corner's fine brick, lies in
-        the cube cannot be negative), each time as far as it stays inside the cube, choosing
-        the cube just ahead of the centre; the walk stops where no cube holds the whole box
-        (next to the tile's nearest surface). Points outside [0, N - 1]^3 are no samples: the
-        box may start and end outside the volume."""
-        sx = (origin[0] - volume_origin[0]) / voxel_size
-        sy = (origin[1] - volume_origin[1]) / voxel_size
-        sz = (origin[2] - volume_origin[2]) / voxel_size
-        vx, vy, vz = d0 / voxel_size, d1 / voxel_size, d2 / voxel_size
-        grow = spread / voxel_size
-        # The next cube is the one around a point just past the box's leading face along the
-        # ray's dominant axis (the face the last advance stopped at, unless growth stopped it).
-        dominant = max(max(abs(vx), abs(vy)), abs(vz))
-        # Lower corners are clamped to N - 2: past it, that names another fine brick than the
-        # coordinates do only when N - 1 starts a fine brick.
-        top = n - 2.0 if (n - 1) % FINE == 0 else np.inf
-        t = start
-        for _ in range(CONE_STEPS):
-            cx, cy, cz = sx + t * vx, sy + t * vy, sz + t * vz
-            half = t * grow
-            if not (
-                box_inside(cx, half, -np.inf, top)
-                and box_inside(cy, half, -np.inf, top)
-                and box_inside(cz, half, -np.inf, top)
-            ):
-                return t
-            ahead = (half + CONE_LOOKAHEAD) / dominant
-            ax = min(max(cx + ahead * vx, 0.0), n - 1.0)
-            ay = min(max(cy + ahead * vy, 0.0), n - 1.0)
-            az = min(max(cz + ahead * vz, 0.0), n - 1.0)
-            # clamped as march_step clamps them (a (1, 1, 1) map of 0 then skips nothing)
-            last_brick, last_fine = empty.shape[0] - 1, fine_distance.shape[0] - 1
-            bx = min(int(ax) // BRICK, last_brick)
-            by = min(int(ay) // BRICK, last_brick)
-            bz = min(int(az) // BRICK, last_brick)
-            radius = int(empty[bx, by, bz])
-            size, fx, fy, fz = BRICK, bx, by, bz
-            if radius < 1 or not (
-                box_inside(cx, half, (bx - radius + 1) * BRICK, (bx + radius) * BRICK)
-                and box_inside(cy, half, (by - radius + 1) * BRICK, (by + radius) * BRICK)
-                and box_inside(cz, half, (bz - radius + 1) * BRICK, (bz + radius) * BRICK)
-            ):
-                size = FINE
-                fx = min(int(ax) // FINE, last_fine)
-                fy = min(int(ay) // FINE, last_fine)
-                fz = min(int(az) // FINE, last_fine)
-                radius = int(fine_distance[fx, fy, fz])
-                if radius < 1 or not (
-                    box_inside(cx, half, (fx - radius + 1) * FINE, (fx + radius) * FINE)
-                    and box_inside(cy, half, (fy - radius + 1) * FINE, (fy + radius) * FINE)
-                    and box_inside(cz, half, (fz - radius + 1) * FINE, (fz + radius) * FINE)
-                ):
-                    return t
-            dt = min(
-                min(
-                    box_advance(cx, half, vx, grow, (fx - radius + 1) * size, (fx + radius) * size),
-                    box_advance(cy, half, vy, grow, (fy - radius + 1) * size, (fy + radius) * size),
-                ),
-                box_advance(cz, half, vz, grow, (fz - radius + 1) * size, (fz + radius) * size),
-            )
-            if not dt * dominant >= CONE_LOOKAHEAD:
-                return t  # the box has (nearly) outgrown the cubes: leave the rest to each ray
-            t += dt
-        return t
-
-    @jit
     def clear_of_faces(c: float) -> bool:
         """Whether coordinate c is more than JUMP_MARGIN voxels from every fine brick face."""
         r = c * (1.0 / FINE)
@@ -565,7 +454,7 @@ def build_ops(
         partner: int,
     ) -> None:
         """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
-        march_ray from `safe_until` on (cone_safe_until of the pixel's tile, or 0), and with
+        march_ray from `safe_until` on (the pair's near_starts, or 0), and with
         `partner` > 0 of pixel (u + partner, v) too, the two rays marched in lockstep
         (march_two_rays). `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0
         beforehand."""
@@ -629,10 +518,7 @@ def build_ops(
 
     return SimpleNamespace(
         axis_interval=axis_interval,
-        box_advance=box_advance,
-        box_inside=box_inside,
         clear_of_faces=clear_of_faces,
-        cone_safe_until=cone_safe_until,
         fine_index=fine_index,
         first_sample_outside=first_sample_outside,
         inverse_or_zero=inverse_or_zero,
