@@ -39,7 +39,7 @@ ODOMETRY_CHOICES = (
 FAST_ODOMETRY_HELP = (
     "dense trackers skip the finest pyramid level (the original's CPU option) and the model is "
     "raycast for the quarter of the pixels they read: ~4x faster tracking and ~3x faster "
-    "raycasting on the cpu backend (15-18 instead of 6.5-7.5 frames/s on redkitchen); the "
+    "raycasting on the cpu backend (16-18 instead of 7-7.6 frames/s on redkitchen); the "
     "same ATE over 300 frames (+17%% in an earlier, shorter run), ~10%% more frame-to-frame error"
 )
 
