@@ -88,9 +88,9 @@ def test_equivalence_cpu_raycast_skipping_is_exact(plain):
 @pytest.mark.parametrize("view", [(HEIGHT, WIDTH), (45, 77)], ids=["80x60", "77x45"])
 def test_cpu_fine_skipping_is_bit_exact_with_back_faces(view):
     """Both levels of the cpu raycast's skipping (8^3 bricks, then fine bricks next to the
-    surface), its tile cones and its rays marched two at a time return the plain march's maps
-    bit for bit, also from behind the fused wall, where rays meet negative samples first and
-    stop at a back face; 77x45 leaves partial tiles with an odd pixel out."""
+    surface), its per-pixel starts and its rays marched two at a time return the plain march's
+    maps bit for bit, also from behind the fused wall, where rays meet negative samples first
+    and stop at a back face; 77x45 leaves a partial band of rows and an odd pixel out."""
     camera = fe.camera_for(*view)
     fast, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, 64, 2, weighted=False)
     behind = np.eye(4)

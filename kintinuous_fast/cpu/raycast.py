@@ -314,9 +314,9 @@ def near_starts(
     included). Its distance from the camera is then at least the camera's distance to the box,
     and the box's projection holds the pixel's centre, since the sample lies on the pixel's
     ray. So the least distance over the boxes whose projected bounds (grown by half a pixel)
-    hold the pixel bounds every negative sample's, as a jump does: the same answer. About 3.6
-    ms at 256^3 on 2 threads, where the tile cones it replaces took ~3.5 ms and left 2.2 more
-    jumps per ray (8.47 -> 6.29 steps, measured)."""
+    hold the pixel bounds every negative sample's, as a jump does: the same answer. About 3.4
+    ms at 256^3 on 2 threads; the tile cones it replaced (session 7, docs/benchmarks.md) took
+    about as long and left 2.2 more jumps per ray (8.47 -> 6.29 steps, measured)."""
     chunks = _chunk_starts(numba.get_num_threads(), camera.height, camera.width)
     _near_box_starts(
         near,
