@@ -297,6 +297,18 @@ def _least_over_chunks(starts, out):
             out[v, u] = least
 
 
+def _view_constants(volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics) -> tuple:
+    """(camera as float64 fx, fy, cx, cy; rotation; origin; volume origin; voxel size): the
+    view's arguments of the raycast's loops."""
+    return (
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
+        np.ascontiguousarray(pose[:3, :3], dtype=np.float64),
+        np.ascontiguousarray(pose[:3, 3], dtype=np.float64),
+        np.asarray(volume.origin, dtype=np.float64),
+        float(volume.voxel_size),
+    )
+
+
 @functools.lru_cache(maxsize=2)
 def _chunk_starts(chunks: int, height: int, width: int) -> np.ndarray:
     """near_starts' per-chunk images, kept from frame to frame (fresh ones cost page faults)."""
@@ -318,15 +330,7 @@ def near_starts(
     ms at 256^3 on 2 threads; the tile cones it replaced (session 7, docs/benchmarks.md) took
     about as long and left 2.2 more jumps per ray (8.47 -> 6.29 steps, measured)."""
     chunks = _chunk_starts(numba.get_num_threads(), camera.height, camera.width)
-    _near_box_starts(
-        near,
-        np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
-        np.ascontiguousarray(pose[:3, :3]),
-        np.ascontiguousarray(pose[:3, 3]),
-        np.asarray(volume.origin, dtype=np.float64),
-        float(volume.voxel_size),
-        chunks,
-    )
+    _near_box_starts(near, *_view_constants(volume, pose, camera), chunks)
     starts = np.empty((camera.height, camera.width), dtype=np.float64)
     _least_over_chunks(chunks, starts)
     return starts
@@ -407,11 +411,7 @@ def raycast(
             *volume.offsets(),
             empty,
             fine_distance,
-            np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
-            np.ascontiguousarray(pose[:3, :3]),
-            np.ascontiguousarray(pose[:3, 3]),
-            np.asarray(volume.origin, dtype=np.float64),
-            float(volume.voxel_size),
+            *_view_constants(volume, pose, camera),
             STEP_FRACTION * volume.truncation,
             vertices,
             normals,

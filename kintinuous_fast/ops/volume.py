@@ -48,24 +48,27 @@ def build_ops(
     does CUDA, whose constant memory holds 64 KiB."""
     jit_called = jit_called or jit
 
-    @jit
-    def dequantise_arithmetic(q: Any) -> Any:
-        """float32 TSDF of a stored int16: q / 32767 correctly rounded to float32, the division
-        to_reference_volume does. Computed as a float64 product (a float32 division costs ~4x a
-        multiply, and the raycast's normals take 48 of them): its error (~1e-16 relative) is far
-        below the gap between q / 32767 and any float32 rounding midpoint (> 2^-39 relative,
-        as 32767 is odd), so it rounds the same way; checked for every int16 by the tests."""
-        return np.float32(float(q) * TSDF_INVERSE_SCALE)
+    if dequantise_table:
+        # the same products as below, for every int16; numba freezes the closure's table into
+        # the compiled code as a constant
+        table = (np.arange(-32768, 32768) * TSDF_INVERSE_SCALE).astype(np.float32)
 
-    # numba freezes the closure's table into the compiled code as a constant
-    table = (np.arange(-32768, 32768) * TSDF_INVERSE_SCALE).astype(np.float32)
+        @jit
+        def dequantise(q: Any) -> Any:
+            """The arithmetic dequantise's value, read from the table of every int16."""
+            return table[np.intp(q) + 32768]
 
-    @jit
-    def dequantise_lookup(q: Any) -> Any:
-        """dequantise_arithmetic's value, read from the table of every int16."""
-        return table[np.intp(q) + 32768]
+    else:
 
-    dequantise = dequantise_lookup if dequantise_table else dequantise_arithmetic
+        @jit
+        def dequantise(q: Any) -> Any:
+            """float32 TSDF of a stored int16: q / 32767 correctly rounded to float32, the
+            division to_reference_volume does. Computed as a float64 product (a float32
+            division costs ~4x a multiply, and the raycast's normals take 48 of them): its
+            error (~1e-16 relative) is far below the gap between q / 32767 and any float32
+            rounding midpoint (> 2^-39 relative, as 32767 is odd), so it rounds the same way;
+            checked for every int16 by the tests."""
+            return np.float32(float(q) * TSDF_INVERSE_SCALE)
 
     @jit
     def quantise(f: Any) -> int:
