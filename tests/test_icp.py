@@ -84,6 +84,25 @@ def test_normal_equations_are_double_precision_sums():
     assert system.cost == pytest.approx(float(r64 @ r64), rel=1e-12)
 
 
+def test_a_level_ends_at_its_first_step_shorter_than_converged():
+    # Steps of 1 cm shrinking 0.3x each (the geometric tail of a converging Gauss-Newton): the
+    # first under 10 um is the 7th, 0.01 * 0.3**6 = 7.3 um, so the level stops after 7 of its
+    # 10 iterations; with a threshold of 0 it runs all 10.
+    def shrinking_steps(steps: list[float]):  # noqa: ANN202
+        def system_at(level: int, pose: np.ndarray) -> LinearSystem:
+            steps.append(0.01 * 0.3 ** len(steps))
+            return LinearSystem(np.eye(6), np.array([0, 0, 0, -steps[-1], 0, 0]), 100, 0.0)
+
+        return system_at
+
+    for converged, expected in ((1e-5, 7), (0.0, 10)):
+        steps: list[float] = []
+        pose, reason = refine(np.eye(4), shrinking_steps(steps), (10,), converged=converged)
+        assert reason == "" and len(steps) == expected
+        # translations along x add up exactly: the sum of the steps taken
+        assert pose[0, 3] == pytest.approx(sum(steps), rel=1e-12)
+
+
 def test_solve_is_the_least_squares_step():
     rng = np.random.default_rng(3)
     jacobian = rng.normal(size=(6, 200))

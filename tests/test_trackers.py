@@ -81,6 +81,36 @@ def test_dense_trackers_recover_a_known_motion(room, method):
     assert translation_mm < 1.0 and rotation_deg < 0.1  # noise-free: 1 mm / 0.1 degree
 
 
+def test_levels_end_early_at_the_configured_step(room, monkeypatch):
+    # The default ends a level at a step under 10 um: fewer Gauss-Newton steps than every
+    # iteration of 10/5/4, and a pose within that distance of the full schedule's.
+    import kintinuous_ref.odometry as odometry
+
+    previous, current, previous_frame, current_frame, model = room
+    steps: list[int] = []
+
+    def counted_refine(pose, system_at, *args):  # noqa: ANN001, ANN202
+        def counted(level: int, estimate: np.ndarray):  # noqa: ANN202
+            steps[-1] += 1
+            return system_at(level, estimate)
+
+        steps.append(0)
+        return odometry.solve.refine(pose, counted, *args)
+
+    monkeypatch.setattr(odometry, "refine", counted_refine)
+    poses = []
+    for converged_step in (Config().tracking.converged_step, 0.0):
+        config = with_overrides(Config(), {"tracking.converged_step": converged_step})
+        tracker = make_tracker("icp+rgbd", config, scene.CAMERA)
+        result = tracker.track(previous_frame, current_frame, model, previous)
+        assert result.ok
+        poses.append(result.pose)
+    assert Config().tracking.converged_step == 1e-5
+    assert steps[1] == 19 and steps[0] < 19, steps
+    translation_mm, rotation_deg = pose_error(poses[0], poses[1])
+    assert translation_mm < 0.01 and rotation_deg < np.degrees(1e-5)
+
+
 @pytest.mark.parametrize("method", ["fovis", "fovis/icp", "fovis/rgbd", "fovis/icp+rgbd"])
 def test_fovis_trackers_follow_the_switching_rule(room, method):
     previous, current, previous_frame, current_frame, model = room

@@ -221,7 +221,11 @@ class DenseTracker:
             # One stream is stale: track on the fresh one alone for this frame.
             problem = problem.icp if colour_repeated else problem.rgbd
         pose, reason = refine(
-            previous_pose.copy(), problem.system, self.iterations, tracking.min_correspondences
+            previous_pose.copy(),
+            problem.system,
+            self.iterations,
+            tracking.min_correspondences,
+            tracking.converged_step,
         )
         if reason:
             return pose, reason
