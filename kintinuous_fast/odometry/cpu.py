@@ -26,7 +26,7 @@ from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
 
 from . import _host
-from .ops import NV, build_ops
+from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, build_ops
 
 __all__ = [
     "METHODS",
@@ -75,6 +75,9 @@ _ops = build_ops(numba.njit(cache=True, inline="always"))
 icp_match = _ops.icp_match
 project_nearest = _ops.project_nearest
 match_pixel = _ops.match_pixel
+is_compatible = _ops.is_compatible
+transform = _ops.transform
+rotate = _ops.rotate
 map_point = _ops.map_point
 point_to_plane_row = _ops.point_to_plane_row
 is_interest = _ops.is_interest
@@ -132,35 +135,93 @@ def _project_block(points, start, stop, to_model, fx, fy, cx, cy, width, height,
         )
 
 
+@numba.njit(cache=True)
+def _gather_model_block(rows, cols, count, mv, mn, model):
+    """The model vertex and normal at each point's pixel (rows / cols; pixel (0, 0) for a point
+    without one, masked out later) into model[k * BLOCK + m], k = qx, qy, qz, ux, uy, uz. A loop
+    of its own: LLVM does not vectorise gathers for this CPU, and kept out of the arithmetic
+    below they leave that loop free to vectorise."""
+    for m in range(count):
+        v, u = max(rows[m], 0), max(cols[m], 0)
+        model[m], model[BLOCK + m], model[2 * BLOCK + m] = mv[v, u, 0], mv[v, u, 1], mv[v, u, 2]
+        model[3 * BLOCK + m], model[4 * BLOCK + m] = mn[v, u, 0], mn[v, u, 1]
+        model[5 * BLOCK + m] = mn[v, u, 2]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _icp_rows_block(points, start, stop, pose, rows, model, dist2, cos_min, out):
+    """match_pixel and point_to_plane_row of points[:, start:stop] and their gathered model
+    pixels, branch-free so that it vectorises: out[k * BLOCK + m] = (j0..j5, r, 1) of a kept pair,
+    zeros for any other point (which then add nothing to the sums)."""
+    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
+    nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
+    for m in range(stop - start):
+        qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
+        ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
+        uz = float(model[5 * BLOCK + m])
+        wx, wy, wz = transform(pose, x[m], y[m], z[m])
+        gx, gy, gz = rotate(pose, nx[m], ny[m], nz[m])
+        kept = (rows[m] >= 0) & is_compatible(
+            wx, wy, wz, gx, gy, gz, qx, qy, qz, ux, uy, uz, dist2, cos_min
+        )
+        j0, j1, j2, j3, j4, j5, r = point_to_plane_row(wx, wy, wz, qx, qy, qz, ux, uy, uz)
+        out[m] = j0 if kept else 0.0
+        out[BLOCK + m] = j1 if kept else 0.0
+        out[2 * BLOCK + m] = j2 if kept else 0.0
+        out[3 * BLOCK + m] = j3 if kept else 0.0
+        out[4 * BLOCK + m] = j4 if kept else 0.0
+        out[5 * BLOCK + m] = j5 if kept else 0.0
+        out[6 * BLOCK + m] = r if kept else 0.0
+        out[7 * BLOCK + m] = 1.0 if kept else 0.0
+
+
+@numba.njit(cache=True, fastmath={"reassoc"})
+def _add_block(acc, weighted, rows, count):
+    """add_row of a block's first `count` rows, as sums over the block entry by entry so that
+    each vectorises: rows = (j0..j5, r, 1 or 0 for a row to count), weighted = (w j0..w j5, w r)
+    (the ICP passes its rows as both). Reassociated within the block: the order of the
+    additions still depends on BLOCK only, never on the thread count."""
+    slot = 0
+    for i in range(6):
+        a = weighted[i]
+        for j in range(i, 7):
+            b = rows[j]
+            total = 0.0
+            for m in range(count):
+                total += a[m] * b[m]
+            acc[SLOT_B + i if j == 6 else slot] += total
+            slot += j < 6
+    for target, a, b in ((SLOT_COST, weighted[6], rows[6]), (SLOT_COUNT, rows[7], rows[7])):
+        total = 0.0
+        for m in range(count):
+            total += a[m] * b[m]
+        acc[target] += total
+
+
 @_loop
 def _icp_loop(points, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
-    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points)."""
+    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). Block by
+    block, in four loops: projection, gathers, rows and sums (all but the gathers vectorise;
+    one loop of all four took 1.6x as long)."""
     height, width = mv.shape[0], mv.shape[1]
     n = points.shape[1]
     chunks = out.shape[0]
     for c in prange(chunks):
-        acc = np.zeros(NV)  # not out[c]: LLVM then keeps the sums apart from the other arrays
+        acc = np.zeros(NV)
         rows = np.empty(BLOCK, dtype=np.int64)
         cols = np.empty(BLOCK, dtype=np.int64)
+        model = np.empty(6 * BLOCK, dtype=mv.dtype)
+        pair_rows = np.empty(8 * BLOCK)
+        pair_matrix = pair_rows.reshape((8, BLOCK))
         start, stop = c * n // chunks, (c + 1) * n // chunks
         acc[NV - 1] += stop - start
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
             _project_block(points, block, end, to_model, fx, fy, cx, cy, width, height, rows, cols)
-            for k in range(block, end):
-                iv = rows[k - block]
-                if iv < 0:
-                    continue
-                kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = match_pixel(
-                    points[0, k], points[1, k], points[2, k], points[3, k], points[4, k],
-                    points[5, k], pose, mv, mn, iv, cols[k - block], dist2, cos_min,
-                )  # fmt: skip
-                if kept:
-                    j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
-                        wx, wy, wz, qx, qy, qz, ux, uy, uz
-                    )
-                    add_row(acc, j0, j1, j2, j3, j4, j5, r, 1.0)
+            _gather_model_block(rows, cols, end - block, mv, mn, model)
+            _icp_rows_block(points, block, end, pose, rows, model, dist2, cos_min, pair_rows)
+            _add_block(acc, pair_matrix, pair_matrix, end - block)
         out[c] = acc
 
 
@@ -326,10 +387,11 @@ def _photometric_loop(world, warped_points, gradient, previous_pose, fx, fy, jac
 
 @numba.njit(cache=True, error_model="numpy")
 def _weighted_rows_block(pairs, start, stop, previous_pose, fx, fy, sigma, rows):
-    """photometric_row and the squared robust weight of pairs[:, start:stop] (_correspond_loop's
-    columns) into rows[m * BLOCK + i] (m = j0..j5, w^2): branch-free, so it vectorises; a pair
-    not kept (NaN r) gives NaN, skipped by the caller. rows is flat: with constant offsets LLVM
-    sees one output region (a (7, BLOCK) array's 7 rows were too many overlap checks for it)."""
+    """photometric_row and the squared robust weight w of pairs[:, start:stop] (_correspond_loop's
+    columns), branch-free so that it vectorises: rows[k * BLOCK + m] = (j0..j5, r, 1) for
+    k = 0..7 and (w j0..w j5, w r) for k = 8..14 of a kept pair, zeros for a pair not kept (NaN
+    r). rows is flat: with constant offsets LLVM sees one output region (a (7, BLOCK) array's 7
+    rows were too many overlap checks for it)."""
     # the rows as slices indexed from 0 (see _project_block)
     r, wx, wy = pairs[0, start:stop], pairs[1, start:stop], pairs[2, start:stop]
     wz, x, y = pairs[3, start:stop], pairs[4, start:stop], pairs[5, start:stop]
@@ -338,34 +400,35 @@ def _weighted_rows_block(pairs, start, stop, previous_pose, fx, fy, sigma, rows)
         j0, j1, j2, j3, j4, j5 = photometric_row(
             wx[i], wy[i], wz[i], x[i], y[i], z[i], gx[i], gy[i], previous_pose, fx, fy
         )
+        kept = not np.isnan(r[i])
+        w = robust_weight(r[i], sigma)
+        w = w * w
+        residual = r[i] if kept else 0.0
+        j0, j1, j2 = (j0, j1, j2) if kept else (0.0, 0.0, 0.0)
+        j3, j4, j5 = (j3, j4, j5) if kept else (0.0, 0.0, 0.0)
         rows[i], rows[BLOCK + i], rows[2 * BLOCK + i] = j0, j1, j2
         rows[3 * BLOCK + i], rows[4 * BLOCK + i], rows[5 * BLOCK + i] = j3, j4, j5
-        w = robust_weight(r[i], sigma)
-        rows[6 * BLOCK + i] = w * w
+        rows[6 * BLOCK + i], rows[7 * BLOCK + i] = residual, 1.0 if kept else 0.0
+        rows[8 * BLOCK + i], rows[9 * BLOCK + i], rows[10 * BLOCK + i] = w * j0, w * j1, w * j2
+        rows[11 * BLOCK + i], rows[12 * BLOCK + i] = w * j3, w * j4
+        rows[13 * BLOCK + i], rows[14 * BLOCK + i] = w * j5, w * residual
 
 
 @_loop
 def _rgbd_rows_loop(pairs, previous_pose, fx, fy, sigma, out):
-    """Robustly weighted photometric rows of the kept pairs, summed per chunk (each block's rows
-    first, in a loop that vectorises)."""
+    """Robustly weighted photometric rows of the kept pairs, summed per chunk (block by block:
+    the rows, then their sums, each in a loop that vectorises)."""
     n = pairs.shape[1]
     chunks = out.shape[0]
     for c in prange(chunks):
-        acc = np.zeros(NV)  # not out[c]: LLVM then keeps the sums apart from the other arrays
-        rows = np.empty(7 * BLOCK)
+        acc = np.zeros(NV)
+        rows = np.empty(15 * BLOCK)
+        matrix = rows.reshape((15, BLOCK))
         start, stop = c * n // chunks, (c + 1) * n // chunks
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
             _weighted_rows_block(pairs, block, end, previous_pose, fx, fy, sigma, rows)
-            for k in range(block, end):
-                r = pairs[0, k]
-                if np.isnan(r):
-                    continue
-                i = k - block
-                add_row(
-                    acc, rows[i], rows[BLOCK + i], rows[2 * BLOCK + i], rows[3 * BLOCK + i],
-                    rows[4 * BLOCK + i], rows[5 * BLOCK + i], r, rows[6 * BLOCK + i],
-                )  # fmt: skip
+            _add_block(acc, matrix[8:], matrix[:8], end - block)
         out[c] = acc
 
 

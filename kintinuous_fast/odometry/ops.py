@@ -87,6 +87,33 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return (int(v) if inside else -1), (int(u) if inside else -1)
 
     @jit
+    def is_compatible(
+        wx: float,
+        wy: float,
+        wz: float,
+        gx: float,
+        gy: float,
+        gz: float,
+        qx: float,
+        qy: float,
+        qz: float,
+        ux: float,
+        uy: float,
+        uz: float,
+        dist2: float,
+        cos_min: float,
+    ) -> bool:
+        """The ICP pair tests of a world point w with normal g against a model vertex q with
+        normal u: at most the distance threshold apart, normals within the angle threshold
+        (NaN fails both)."""
+        dx = wx - qx
+        dy = wy - qy
+        dz = wz - qz
+        squared = dx * dx + dy * dy + dz * dz
+        cos_angle = gx * ux + gy * uy + gz * uz
+        return (squared <= dist2) & (cos_angle >= cos_min)
+
+    @jit
     def match_pixel(
         px: float,
         py: float,
@@ -114,12 +141,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         uy = float(model_normals[iv, iu, 1])
         uz = float(model_normals[iv, iu, 2])
         gx, gy, gz = rotate(pose, nx, ny, nz)
-        dx = wx - qx
-        dy = wy - qy
-        dz = wz - qz
-        squared = dx * dx + dy * dy + dz * dz
-        cos_angle = gx * ux + gy * uy + gz * uz
-        if squared <= dist2 and cos_angle >= cos_min:
+        if is_compatible(wx, wy, wz, gx, gy, gz, qx, qy, qz, ux, uy, uz, dist2, cos_min):
             return True, wx, wy, wz, qx, qy, qz, ux, uy, uz
         nan = math.nan
         return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
@@ -396,6 +418,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         rotate=rotate,
         project_nearest=project_nearest,
         match_pixel=match_pixel,
+        is_compatible=is_compatible,
         icp_match=icp_match,
         map_point=map_point,
         point_to_plane_row=point_to_plane_row,
