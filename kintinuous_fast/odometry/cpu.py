@@ -74,7 +74,6 @@ _ops = build_ops(numba.njit(cache=True, inline="always"))
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 icp_match = _ops.icp_match
 project_nearest = _ops.project_nearest
-match_pixel = _ops.match_pixel
 is_compatible = _ops.is_compatible
 transform = _ops.transform
 rotate = _ops.rotate
@@ -198,59 +197,72 @@ def _add_block(acc, weighted, rows, count):
         acc[target] += total
 
 
+@numba.njit(cache=True)
+def _pair_rows_block(points, start, stop, pose, to_model, mv, mn, camera, dist2, cos_min, work):
+    """The ICP rows of points[:, start:stop] (_icp_rows_block's) in three loops: projection,
+    gathers, rows (all but the gathers vectorise; one loop of the three and the sums took 1.6x
+    as long). `camera` = (fx, fy, cx, cy), `work` = _block_work()."""
+    rows, cols, model, pair_rows = work
+    fx, fy, cx, cy = camera
+    _project_block(
+        points, start, stop, to_model, fx, fy, cx, cy, mv.shape[1], mv.shape[0], rows, cols
+    )
+    _gather_model_block(rows, cols, stop - start, mv, mn, model)
+    _icp_rows_block(points, start, stop, pose, rows, model, dist2, cos_min, pair_rows)
+
+
+@numba.njit(cache=True)
+def _block_work(dtype):
+    """Work arrays of _pair_rows_block: pixel rows and columns, gathered model values (of the
+    model maps' dtype), pair rows."""
+    return (
+        np.empty(BLOCK, dtype=np.int64),
+        np.empty(BLOCK, dtype=np.int64),
+        np.empty(6 * BLOCK, dtype=dtype),
+        np.empty(8 * BLOCK),
+    )
+
+
 @_loop
-def _icp_loop(points, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
+def _icp_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
-    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). Block by
-    block, in four loops: projection, gathers, rows and sums (all but the gathers vectorise;
-    one loop of all four took 1.6x as long)."""
-    height, width = mv.shape[0], mv.shape[1]
+    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points)."""
     n = points.shape[1]
     chunks = out.shape[0]
     for c in prange(chunks):
         acc = np.zeros(NV)
-        rows = np.empty(BLOCK, dtype=np.int64)
-        cols = np.empty(BLOCK, dtype=np.int64)
-        model = np.empty(6 * BLOCK, dtype=mv.dtype)
-        pair_rows = np.empty(8 * BLOCK)
-        pair_matrix = pair_rows.reshape((8, BLOCK))
+        work = _block_work(mv.dtype)
+        pair_matrix = work[3].reshape((8, BLOCK))
         start, stop = c * n // chunks, (c + 1) * n // chunks
         acc[NV - 1] += stop - start
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
-            _project_block(points, block, end, to_model, fx, fy, cx, cy, width, height, rows, cols)
-            _gather_model_block(rows, cols, end - block, mv, mn, model)
-            _icp_rows_block(points, block, end, pose, rows, model, dist2, cos_min, pair_rows)
+            _pair_rows_block(
+                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min, work
+            )
             _add_block(acc, pair_matrix, pair_matrix, end - block)
         out[c] = acc
 
 
 @_loop
-def _icp_pairs_loop(vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
-    """out[v] = (valid current points, ICP pairs) of row v: the counts of _icp_loop without its
-    rows, straight from the maps (each row's valid points compacted into a buffer in L1)."""
-    height, width = mv.shape[0], mv.shape[1]
-    for v in prange(vertices.shape[0]):
-        points = np.empty((6, vertices.shape[1]))
-        rows = np.empty(vertices.shape[1], dtype=np.int64)
-        cols = np.empty(vertices.shape[1], dtype=np.int64)
-        n = 0
-        for u in range(vertices.shape[1]):
-            ok, px, py, pz, nx, ny, nz = map_point(vertices, normals, v, u)
-            if ok:
-                points[0, n], points[1, n], points[2, n] = px, py, pz
-                points[3, n], points[4, n], points[5, n] = nx, ny, nz
-                n += 1
-        _project_block(points, 0, n, to_model, fx, fy, cx, cy, width, height, rows, cols)
-        pairs = 0
-        for k in range(n):
-            if rows[k] >= 0:
-                pairs += match_pixel(
-                    points[0, k], points[1, k], points[2, k], points[3, k], points[4, k],
-                    points[5, k], pose, mv, mn, rows[k], cols[k], dist2, cos_min,
-                )[0]  # fmt: skip
-        out[v, 0] = n
-        out[v, 1] = pairs
+def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, out):
+    """out[c] = (valid current points, ICP pairs) of chunk c: the counts of _icp_loop without
+    its sums."""
+    n = points.shape[1]
+    chunks = out.shape[0]
+    for c in prange(chunks):
+        work = _block_work(mv.dtype)
+        kept = work[3][7 * BLOCK :]
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        pairs = 0.0
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _pair_rows_block(
+                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min, work
+            )
+            pairs += kept[: end - block].sum()
+        out[c, 0] = stop - start
+        out[c, 1] = pairs
 
 
 @_loop
@@ -491,25 +503,48 @@ def valid_points(vertices, normals) -> np.ndarray:
     return points
 
 
+def _run_on_points(
+    loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
+    distance_threshold, angle_threshold_deg, model_inverse,
+) -> None:  # fmt: skip
+    """Run an ICP loop over the valid current points into `out` (its per-chunk rows)."""
+    _host.check_map("model vertex map", model_vertices, camera)
+    _host.check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = _host.icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
+    )
+    _run(
+        loop, points.shape[1], points, pose, to_model, model_vertices, model_normals,
+        _host.camera_constants(camera), dist2, cos_min, out,
+    )  # fmt: skip
+
+
 def icp_points_system(
     points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
     angle_threshold_deg, model_inverse=None,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
     """icp_system of the valid current points (`valid_points`) and their number (for the inlier
     fraction); `model_inverse` as in _host.icp_constants."""
-    _host.check_map("model vertex map", model_vertices, camera)
-    _host.check_map("model normal map", model_normals, camera)
-    pose, to_model, dist2, cos_min = _host.icp_constants(
-        pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
-    )
     out = _partials(points.shape[1])
-    _run(
-        _icp_loop,
-        points.shape[1],
-        points, pose, to_model, model_vertices, model_normals,
-        *_host.camera_constants(camera), dist2, cos_min, out,
+    _run_on_points(
+        _icp_loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
+        distance_threshold, angle_threshold_deg, model_inverse,
     )  # fmt: skip
     return _host.sum_partials(out)
+
+
+def icp_points_pairs(
+    points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
+    angle_threshold_deg, model_inverse=None,
+) -> tuple[int, int]:  # fmt: skip
+    """icp_pairs of the valid current points (`valid_points`)."""
+    out = np.zeros((_host.chunks_for(points.shape[1], CHUNKS), 2))
+    _run_on_points(
+        _icp_pairs_loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
+        distance_threshold, angle_threshold_deg, model_inverse,
+    )  # fmt: skip
+    valid, pairs = out.sum(axis=0)
+    return int(pairs), int(valid)
 
 
 def icp_pairs(
@@ -517,24 +552,13 @@ def icp_pairs(
     distance_threshold, angle_threshold_deg, model_inverse=None,
 ) -> tuple[int, int]:  # fmt: skip
     """(ICP pairs, valid current points): the count of icp_system_and_valid's system and its
-    second value, without the rows (all the inlier fraction needs)."""
-    for name, image in (
-        ("current vertex map", vertices), ("current normal map", normals),
-        ("model vertex map", model_vertices), ("model normal map", model_normals),
-    ):  # fmt: skip
-        _host.check_map(name, image, camera)
-    pose, to_model, dist2, cos_min = _host.icp_constants(
-        pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
-    )
-    out = np.empty((vertices.shape[0], 2), dtype=np.int64)
-    _run(
-        _icp_pairs_loop,
-        vertices.shape[0] * vertices.shape[1],
-        vertices, normals, pose, to_model, model_vertices, model_normals,
-        *_host.camera_constants(camera), dist2, cos_min, out,
+    second value, without the sums (all the inlier fraction needs)."""
+    _host.check_map("current vertex map", vertices, camera)
+    _host.check_map("current normal map", normals, camera)
+    return icp_points_pairs(
+        valid_points(vertices, normals), model_vertices, model_normals, pose, model_pose, camera,
+        distance_threshold, angle_threshold_deg, model_inverse,
     )  # fmt: skip
-    valid, pairs = out.sum(axis=0)
-    return int(pairs), int(valid)
 
 
 def icp_system_and_valid(
@@ -816,25 +840,26 @@ class IcpProblem(_host.IcpProblemBase):
     current points are compacted once, on first use, for all of its iterations."""
 
     def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
+        return self._on_points(icp_points_system, level, pose)
+
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """As the base class, from the pair count alone (icp_points_pairs): no sums for this
+        one look."""
+        pairs, valid = self._on_points(icp_points_pairs, level, pose)
+        return pairs / valid if valid else 0.0
+
+    def _on_points(self, function, level: int, pose: np.ndarray):  # noqa: ANN001, ANN202
+        """function(level's valid current points, model maps, pose, ...)."""
         vertices, normals, model_vertices, model_normals = self.maps(level)
         camera = self.current_levels[level].camera
         if level not in self._points:
             _host.check_map("current vertex map", vertices, camera)
             _host.check_map("current normal map", normals, camera)
             self._points[level] = valid_points(vertices, normals)
-        return icp_points_system(
+        return function(
             self._points[level], model_vertices, model_normals, pose, self.model_pose, camera,
             self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
         )  # fmt: skip
-
-    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
-        """As the base class, from the pair count alone (icp_pairs): no rows are built for this
-        one look."""
-        pairs, valid = icp_pairs(
-            *self.maps(level), pose, self.model_pose, self.current_levels[level].camera,
-            self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
-        )  # fmt: skip
-        return pairs / valid if valid else 0.0
 
 
 class RgbdProblem(_host.RgbdProblemBase):
