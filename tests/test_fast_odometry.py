@@ -80,7 +80,7 @@ def test_equivalence_cpu_tracker(method, iterations):
 
 
 def test_cpu_inlier_fraction_counts_the_reference_pairs():
-    # The CPU counts the pairs without the sums (cpu.icp_pairs): the same integers.
+    # The CPU counts the pairs without the sums (cpu.icp_points_pairs): the same integers.
     from kintinuous_ref.odometry.icp import IcpProblem
     from kintinuous_ref.preprocess import model_pyramid
 

@@ -43,7 +43,6 @@ __all__ = [
     "associate",
     "correspond",
     "icp_scale",
-    "icp_pairs",
     "icp_system",
     "interest_points",
     "joint_system",
@@ -547,20 +546,6 @@ def icp_points_pairs(
     )  # fmt: skip
     valid, pairs = out.sum(axis=0)
     return int(pairs), int(valid)
-
-
-def icp_pairs(
-    vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg, model_inverse=None,
-) -> tuple[int, int]:  # fmt: skip
-    """(ICP pairs, valid current points): the count of icp_system_and_valid's system and its
-    second value, without the sums (all the inlier fraction needs)."""
-    _host.check_map("current vertex map", vertices, camera)
-    _host.check_map("current normal map", normals, camera)
-    return icp_points_pairs(
-        valid_points(vertices, normals), model_vertices, model_normals, pose, model_pose, camera,
-        distance_threshold, angle_threshold_deg, model_inverse,
-    )  # fmt: skip
 
 
 def icp_system_and_valid(

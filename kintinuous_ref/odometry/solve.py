@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kintinuous_ref import se3
+from kintinuous_ref.config import TrackingConfig
 
 # A system whose scaled condition number exceeds this has (numerically) lost at least one degree of
 # freedom: its increment along that direction would be noise amplified by the inverse.
@@ -130,13 +131,14 @@ def refine(
     system_at: Callable[[int, np.ndarray], LinearSystem],
     iterations: Sequence[int],
     min_count: int = 6,
-    converged: float = 1e-9,
+    converged: float = TrackingConfig.converged_step,
 ) -> tuple[np.ndarray, str]:
-    """Coarse-to-fine Gauss-Newton: `iterations[l]` steps at level l, coarsest level first.
+    """Coarse-to-fine Gauss-Newton: at most `iterations[l]` steps at level l, coarsest first.
 
     `system_at(level, pose)` builds the normal equations at a level for a pose estimate. Returns
     the refined pose and '' or, at the first step without a solution, the pose so far and why.
-    A step smaller than `converged` (twist norm) ends the level early: it would change nothing.
+    A step shorter than `converged` (twist norm; the trackers pass tracking.converged_step) ends
+    the level early: the steps after it would move the pose by less than about as much again.
     """
     for level in reversed(range(len(iterations))):
         for _ in range(iterations[level]):
