@@ -379,8 +379,9 @@ def check_raycast(
 
     Tolerances: ray directions come from R K^-1 [u, v, 1] evaluated in the kernel, the
     reference's from a BLAS matrix product: they may differ in the last bit (1e-16), which moves
-    samples by ~1e-16 m; vertices (float32) by 1 ulp, normals by 1e-6 at most. A ray that
-    grazes a zero crossing could flip between hit and miss: at most 0.2% of the pixels may.
+    samples by ~1e-16 m; vertices (float32) by 1 ulp, normals by 1e-6 at most (the reference's
+    float32 samples, test_equivalence_cpu_gradient_normal). A ray that grazes a zero crossing
+    could flip between hit and miss: at most 0.2% of the pixels may.
     """
     from kintinuous_fast._volume import to_reference_volume
     from kintinuous_ref import raycast as ref_raycast

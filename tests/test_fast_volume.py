@@ -43,6 +43,58 @@ def test_equivalence_cpu_raycast(size):
     fe.check_raycast(cpu_tsdf, cpu_raycast, *size)
 
 
+@pytest.mark.parametrize("offset", [(0, 0, 0), (5, 0, 17)], ids=["fixed", "shifted"])
+def test_equivalence_cpu_gradient_normal(offset):
+    """ops.volume.gradient_normal against kintinuous_ref.raycast._gradient_normals on a fused
+    volume, plain and as a shifted cyclical buffer, at points inside (one blend of stored
+    differences) and on and next to the one-voxel border (six clipped samples).
+
+    Tolerance 5e-7 / |g| per component, g the reference's gradient: it rounds each of its six
+    samples to float32 (half an ulp of F ~ 1 is 6e-8) before differencing, so each component
+    of g carries up to 1.2e-7 of rounding, and a unit normal 1.2e-7 * sqrt(3) * 2 / |g|.
+    At a surface |g| is ~0.8 (F falls by 2 voxels / truncation per 2 voxels): 6e-7. Where g
+    is within its rounding of zero (<= 1e-5) there is no direction to compare. Where it is
+    exactly 0 (unobserved space, flat TSDF) the normal is NaN, but at a few points a hair
+    from the border, where the fraction is 1 - 1e-12 and the blend keeps a 1e-12 share of a
+    difference that the reference's rounding drops."""
+    from kintinuous_ref.raycast import _gradient_normals
+
+    fast, _ = fe.fused_volumes(cpu_tsdf, 60, 80, 32, 2, weighted=False)
+    n = fast.resolution
+    fast.tsdf_weight = np.roll(fast.tsdf_weight, offset, axis=(0, 1, 2))
+    fast.offset = np.array(offset, dtype=np.int64)
+    reference = _volume.to_reference_volume(fast)
+    rng = np.random.default_rng(3)
+    inside = rng.uniform(0.0, n - 1.0, (4000, 3))
+    edges = np.array([0.0, 0.4, 1.0 - 1e-12, 1.0, n - 2.0 - 1e-12, n - 2.0, n - 1.5, n - 1.0])
+    border = inside[:2000].copy()
+    border[np.arange(2000), rng.integers(0, 3, 2000)] = rng.choice(edges, 2000)
+    coordinates = np.concatenate([inside, border])
+    gradient_normal = volume_ops.build_ops(cpu_jit).gradient_normal
+    got = np.array([gradient_normal(fast.tsdf_weight, *fast.offsets(), *c) for c in coordinates])
+    want = _gradient_normals(reference, reference.voxel_to_world(coordinates))
+    length = np.linalg.norm(reference_gradient(reference, coordinates), axis=-1)
+    defined = length > 1e-5
+    assert defined.mean() > 0.2  # a quarter of the box sees a gradient (the rest: unobserved)
+    error = np.abs(got[defined] - want[defined]).max(axis=-1)
+    assert (error <= 5e-7 / length[defined]).all(), error.max()
+    flat = length == 0
+    assert np.isnan(got[flat]).all(axis=-1).mean() > 0.995
+
+
+def reference_gradient(volume: ref_tsdf.TsdfVolume, coordinates: np.ndarray) -> np.ndarray:
+    """The TSDF gradient that kintinuous_ref.raycast._gradient_normals normalises."""
+    limit = volume.resolution - 1
+    return np.stack(
+        [
+            ref_tsdf.trilinear(volume.tsdf, np.clip(coordinates + e, 0, limit), volume.offset)
+            - ref_tsdf.trilinear(volume.tsdf, np.clip(coordinates - e, 0, limit), volume.offset)
+            for e in np.eye(3)
+        ],
+        axis=-1,
+    )
+
+
 def test_fast_volume_is_eight_bytes_per_voxel_and_round_trips():
     config = VolumeConfig(resolution=512, size=6.0)
     assert _volume.memory_bytes(config) == 2**30  # the paper's 512^3 in 1 GiB

@@ -153,7 +153,87 @@ def build_ops(
         tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
     ) -> tuple:
         """Unit TSDF gradient by central differences one voxel apart (raycast._gradient_normals);
-        NaN when it vanishes."""
+        NaN when it vanishes. Inside the grid's one-voxel border the six trilinear samples
+        share their fractions, so each difference is one trilinear blend of differences of
+        stored values (interior_gradient); at the border, six clipped samples as the reference."""
+        n = tsdf_weight.shape[0]
+        if cx >= 1 and cx < n - 2 and cy >= 1 and cy < n - 2 and cz >= 1 and cz < n - 2:
+            gx, gy, gz = interior_gradient(tsdf_weight, o0, o1, o2, cx, cy, cz)
+        else:
+            gx, gy, gz = clipped_gradient(tsdf_weight, o0, o1, o2, cx, cy, cz)
+        length = math.sqrt(gx * gx + gy * gy + gz * gz)
+        if not length > 0:
+            return np.nan, np.nan, np.nan
+        return gx / length, gy / length, gz / length
+
+    @jit
+    def interior_gradient(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
+    ) -> tuple:
+        """The TSDF gradient (ahead - behind per axis, as clipped_gradient) at a point with
+        1 <= c < N - 2 on every axis, in stored int16 units (a normal does not depend on the
+        scale). Samples at c +- 1 have c's fractions, so T(c + e) - T(c - e) is the trilinear
+        blend of v(i + 1) - v(i - 1): 32 stored values instead of 48 samples' corners, and
+        no dequantising. Equal to the six samples' difference up to their float32 rounding
+        (~1e-7 of the gradient)."""
+        n = tsdf_weight.shape[0]
+        bx, by, bz = int(math.floor(cx)), int(math.floor(cy)), int(math.floor(cz))
+        fx, fy, fz = cx - bx, cy - by, cz - bz
+        x0, x1, x2, x3 = four_cells(bx, o0, n)
+        y0, y1, y2, y3 = four_cells(by, o1, n)
+        z0, z1, z2, z3 = four_cells(bz, o2, n)
+        t = tsdf_weight
+        gx = bilinear(
+            fy, fz,
+            difference(t[x0, y1, z1, 0], t[x1, y1, z1, 0], t[x2, y1, z1, 0], t[x3, y1, z1, 0], fx),
+            difference(t[x0, y1, z2, 0], t[x1, y1, z2, 0], t[x2, y1, z2, 0], t[x3, y1, z2, 0], fx),
+            difference(t[x0, y2, z1, 0], t[x1, y2, z1, 0], t[x2, y2, z1, 0], t[x3, y2, z1, 0], fx),
+            difference(t[x0, y2, z2, 0], t[x1, y2, z2, 0], t[x2, y2, z2, 0], t[x3, y2, z2, 0], fx),
+        )  # fmt: skip
+        gy = bilinear(
+            fx, fz,
+            difference(t[x1, y0, z1, 0], t[x1, y1, z1, 0], t[x1, y2, z1, 0], t[x1, y3, z1, 0], fy),
+            difference(t[x1, y0, z2, 0], t[x1, y1, z2, 0], t[x1, y2, z2, 0], t[x1, y3, z2, 0], fy),
+            difference(t[x2, y0, z1, 0], t[x2, y1, z1, 0], t[x2, y2, z1, 0], t[x2, y3, z1, 0], fy),
+            difference(t[x2, y0, z2, 0], t[x2, y1, z2, 0], t[x2, y2, z2, 0], t[x2, y3, z2, 0], fy),
+        )  # fmt: skip
+        gz = bilinear(
+            fx, fy,
+            difference(t[x1, y1, z0, 0], t[x1, y1, z1, 0], t[x1, y1, z2, 0], t[x1, y1, z3, 0], fz),
+            difference(t[x1, y2, z0, 0], t[x1, y2, z1, 0], t[x1, y2, z2, 0], t[x1, y2, z3, 0], fz),
+            difference(t[x2, y1, z0, 0], t[x2, y1, z1, 0], t[x2, y1, z2, 0], t[x2, y1, z3, 0], fz),
+            difference(t[x2, y2, z0, 0], t[x2, y2, z1, 0], t[x2, y2, z2, 0], t[x2, y2, z3, 0], fz),
+        )  # fmt: skip
+        return gx, gy, gz
+
+    @jit
+    def four_cells(index: int, offset: int, n: int) -> tuple:
+        """The cells of logical indices index - 1 .. index + 2."""
+        return (
+            cell(index - 1, offset, n),
+            cell(index, offset, n),
+            cell(index + 1, offset, n),
+            cell(index + 2, offset, n),
+        )
+
+    @jit
+    def difference(v0: int, v1: int, v2: int, v3: int, f: float) -> float:
+        """T(c + 1) - T(c - 1) along one axis from the stored values at floor(c) - 1 .. + 2."""
+        return (1.0 - f) * float(np.int32(v2) - np.int32(v0)) + f * float(
+            np.int32(v3) - np.int32(v1)
+        )
+
+    @jit
+    def bilinear(f: float, g: float, d00: float, d01: float, d10: float, d11: float) -> float:
+        """Bilinear blend of values at the corners (0, 0), (0, 1), (1, 0), (1, 1)."""
+        return (1.0 - f) * ((1.0 - g) * d00 + g * d01) + f * ((1.0 - g) * d10 + g * d11)
+
+    @jit
+    def clipped_gradient(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
+    ) -> tuple:
+        """The TSDF gradient from six trilinear samples at c +- 1 per axis, clipped to the grid
+        (raycast._gradient_normals), in normalised TSDF units."""
         limit = tsdf_weight.shape[0] - 1.0
         px, py, pz = clip(cx, limit), clip(cy, limit), clip(cz, limit)
         t = tsdf_weight
@@ -166,11 +246,7 @@ def build_ops(
         gz = trilinear_tsdf(t, o0, o1, o2, px, py, clip(cz + 1.0, limit)) - trilinear_tsdf(
             t, o0, o1, o2, px, py, clip(cz - 1.0, limit)
         )
-        gx, gy, gz = float(gx), float(gy), float(gz)
-        length = math.sqrt(gx * gx + gy * gy + gz * gz)
-        if not length > 0:
-            return np.nan, np.nan, np.nan
-        return gx / length, gy / length, gz / length
+        return float(gx), float(gy), float(gz)
 
     @jit_called
     def surface_colour_at(
@@ -232,10 +308,15 @@ def build_ops(
 
     return SimpleNamespace(
         cell=cell,
+        bilinear=bilinear,
         clip=clip,
+        difference=difference,
+        four_cells=four_cells,
         count_negative=count_negative,
         dequantise=dequantise,
+        clipped_gradient=clipped_gradient,
         gradient_normal=gradient_normal,
+        interior_gradient=interior_gradient,
         quantise=quantise,
         sample_tsdf_at=sample_tsdf_at,
         surface_colour_at=surface_colour_at,
