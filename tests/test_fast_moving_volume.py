@@ -16,6 +16,7 @@ from kintinuous_fast._volume import (
 )
 from kintinuous_fast.cpu import raycast as cpu_raycast
 from kintinuous_fast.cpu import tsdf as cpu_tsdf
+from kintinuous_fast.ops.volume import FINE
 from kintinuous_ref import raycast as ref_raycast
 from kintinuous_ref import tsdf as ref_tsdf
 from kintinuous_ref.config import VolumeConfig
@@ -265,23 +266,41 @@ def test_slab_view_reads_and_clears_only_the_box():
 
 
 def test_cpu_near_starts_skip_only_samples_that_cannot_be_negative():
-    """The cpu raycast starts each ray at a lower bound of where it can meet a fine brick that
-    may hold a negative sample (cpu.raycast.near_starts: the boxes of the `near` fine bricks
-    projected into the image). Checked against every sample of every ray (the
-    reference-equivalent sample_tsdf): none before its pixel's start is negative; looking at the
-    fused wall the starts skip most samples before the first negative one; from behind the
-    volume, where rays meet the wall's back at once, and from inside it, they still hold."""
+    """The cpu raycast starts each ray where it first enters a fine brick that may hold a
+    negative sample (cpu.raycast.near_starts: slab tests against the boxes of the `near` fine
+    bricks). Checked against every sample of every ray (the reference-equivalent sample_tsdf):
+    none before its pixel's start is negative; looking at the fused wall the starts skip most
+    samples before the first negative one; from behind the volume, where rays meet the wall's
+    back at once, and from inside it, they still hold. And for 300 pixels each start lies
+    between two first entries found by brute force (float64 slab tests against every near
+    box): into the boxes themselves, and into the boxes grown by twice the float32 test's
+    margin, less twice its slack."""
     camera = fe.camera_for(HEIGHT, WIDTH)
     fast, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, 64, 2, weighted=False)
     near = cpu_raycast._skip_maps_and_near(fast)[2]
     inside = np.eye(4)
     inside[:3, 3] = np.asarray(fast.origin) + 0.5 * fast.resolution * fast.voxel_size
+    slanted = np.eye(4)  # optical axis nearer x than z: near_starts takes boxes one by one
+    angle = np.radians(50.0)
+    slanted[:3, :3] = [
+        [np.cos(angle), 0, np.sin(angle)],
+        [0, 1, 0],
+        [-np.sin(angle), 0, np.cos(angle)],
+    ]
+    slanted[:3, 3] = [-1.0, 0.0, 0.0]
     views = (
         ("front", fe.moving_poses(2)[1]), ("behind", _oblique_pose_behind_wall()),
-        ("inside", inside),
+        ("inside", inside), ("slanted", slanted),
     )  # fmt: skip
+    pixels = np.random.default_rng(5).integers(0, (WIDTH, HEIGHT), (300, 2))
     for name, pose in views:
         start = cpu_raycast.near_starts(fast, near, pose, camera)
+        exact = _first_near_entry(fast, near, pose, camera, pixels)
+        grown = _first_near_entry(fast, near, pose, camera, pixels, 2 * cpu_raycast.ENTRY_MARGIN)
+        got = start[pixels[:, 1], pixels[:, 0]]
+        assert np.isfinite(exact).sum() > 30, name
+        assert np.all(got <= exact), name
+        assert np.all(got >= grown * (1 - 2 * cpu_raycast.ENTRY_SLACK)), name
         t, values = _samples_of_every_ray(fast, pose, camera)
         assert not np.any(values[t < start[..., None]] < 0), name
         negative = values < 0
@@ -290,6 +309,27 @@ def test_cpu_near_starts_skip_only_samples_that_cannot_be_negative():
         if name == "front":
             assert np.median(before_negative) > 10
             assert np.median(skipped) > 0.7 * np.median(before_negative)
+
+
+def _first_near_entry(volume, near, pose, camera, pixels, grow: float = 0.0) -> np.ndarray:
+    """Per pixel (u, v), the ray distance where its ray first enters the closed box of a
+    `near` fine brick grown by `grow` metres on every side (inf: it enters none), by float64
+    slab tests against all of them."""
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    rotation, origin = np.ascontiguousarray(pose[:3, :3]), pose[:3, 3]
+    size = FINE * volume.voxel_size
+    lower = np.asarray(volume.origin) + size * np.argwhere(near) - origin - grow
+    size += 2 * grow
+    entries = []
+    for u, v in pixels:
+        direction = np.array(cpu_raycast._ops.ray_direction(u, v, intrinsics, rotation))
+        direction[direction == 0] = 1e-300  # parallel to a face: its slab is all or nothing
+        with np.errstate(over="ignore"):
+            near_face, far_face = lower / direction, (lower + size) / direction
+        enter = np.maximum(np.minimum(near_face, far_face).max(axis=1), 0.0)
+        leave = np.maximum(near_face, far_face).min(axis=1)
+        entries.append(enter[enter <= leave].min(initial=np.inf))
+    return np.array(entries)
 
 
 def _samples_of_every_ray(volume, pose, camera) -> tuple[np.ndarray, np.ndarray]:
