@@ -118,10 +118,11 @@ def build_ops(
         return estimate
 
     @jit
-    def fine_index(c: float, n: int, last: int) -> int:
+    def fine_index(whole: int, n: int, last: int) -> int:
         """Fine brick of the lower corner voxel of a sample at voxel coordinate c (clamped as
-        sample_tsdf_at clamps it), at most `last`."""
-        return min(min(max(int(math.floor(c)), 0), n - 2) // FINE, last)
+        sample_tsdf_at clamps it), at most `last`, from whole = floor(c / FINE): floor(c) //
+        FINE clamped to [0, (N - 2) // FINE] is floor(c / FINE) clamped the same way."""
+        return min(max(int(whole), 0), min((n - 2) // FINE, last))
 
     @jit
     def samples_to_leave(c: float, dc: float, inverse: float, lower: float, upper: float) -> float:
@@ -330,17 +331,19 @@ def build_ops(
         # only, so they name the same brick and fine brick unless within JUMP_MARGIN of a
         # fine brick's face: there the exact ones decide.
         cx, cy, cz = ray[3] + m * ray[6], ray[4] + m * ray[7], ray[5] + m * ray[8]
-        if not (clear_of_faces(cx) and clear_of_faces(cy) and clear_of_faces(cz)):
+        wx, wy, wz = whole_fine(cx), whole_fine(cy), whole_fine(cz)
+        if not (clear_of_faces(cx, wx) and clear_of_faces(cy, wy) and clear_of_faces(cz, wz)):
             cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
+            wx, wy, wz = whole_fine(cx), whole_fine(cy), whole_fine(cz)
         # The fine map first: near surfaces, where most steps are, the brick map has nothing to
         # add, and one dependent load less per step made the cpu raycast ~4% faster.
         fine, fx, fy, fz = 0, 0, 0, 0
         last_fine = fine_distance.shape[0] - 1
         if not (previous_known and previous < 0):
             n = tsdf_weight.shape[0]
-            fx = fine_index(cx, n, last_fine)
-            fy = fine_index(cy, n, last_fine)
-            fz = fine_index(cz, n, last_fine)
+            fx = fine_index(wx, n, last_fine)
+            fy = fine_index(wy, n, last_fine)
+            fz = fine_index(wz, n, last_fine)
             fine = int(fine_distance[fx, fy, fz])
         radius, bx, by, bz = 0, 0, 0, 0
         if last_fine == 0 or fine >= FINE_DISTANCE_CAP:
@@ -396,10 +399,15 @@ def build_ops(
         return m_next, previous, previous_known, np.nan
 
     @jit
-    def clear_of_faces(c: float) -> bool:
-        """Whether coordinate c is more than JUMP_MARGIN voxels from every fine brick face."""
-        r = c * (1.0 / FINE)
-        f = r - math.floor(r)
+    def whole_fine(c: float) -> int:
+        """floor(c / FINE): the fine brick of coordinate c, unclamped."""
+        return math.floor(c * (1.0 / FINE))
+
+    @jit
+    def clear_of_faces(c: float, whole: int) -> bool:
+        """Whether coordinate c (whole = whole_fine(c)) is more than JUMP_MARGIN voxels from
+        every fine brick face."""
+        f = c * (1.0 / FINE) - whole
         return f >= JUMP_MARGIN / FINE and f <= 1.0 - JUMP_MARGIN / FINE
 
     @jit
@@ -534,5 +542,6 @@ def build_ops(
         samples_to_leave=samples_to_leave,
         shade_pixel=shade_pixel,
         voxel_coordinates=voxel_coordinates,
+        whole_fine=whole_fine,
         zero_crossing=zero_crossing,
     )
