@@ -20,12 +20,15 @@ from kintinuous_fast.ops.volume import BRICK, FINE
 # coordinates (~1e-13 voxels), far below a sample step (~2 voxels).
 JUMP_MARGIN = 1e-6
 # The cpu raycast's fine distance map (in FINE^3 bricks) is capped here: a jump then leaves a
-# cube reaching 15 fine bricks (30 voxels) to either side, as far as a brick at distance 4
-# would. A step reads the fine map first (near surfaces its jumps are longer than the brick
-# map's, whose cube of radius D - 1 is a single brick at D = 1) and the brick map only where
-# the fine distance is capped, or where there is no fine map (cuda): from a brick distance of
-# FINE_LEVEL_BELOW on, it jumps by bricks.
-FINE_DISTANCE_CAP = 16
+# cube reaching at most 3 fine bricks (6 voxels) to either side. Rays start where they enter
+# the first fine brick that may hold a negative sample (cpu.raycast.near_starts), so long fine
+# jumps are rare: on redkitchen 1.70 jumps a ray after the start with a cap of 16, 1.72 at 8,
+# 1.84 at 4, while each step of the cap costs the map two more passes (~2 ms a frame from 16
+# to 4, single thread). A step reads the fine map first (near surfaces its jumps are longer
+# than the brick map's, whose cube of radius D - 1 is a single brick at D = 1) and the brick
+# map only where the fine distance is capped, or where there is no fine map (cuda): from a
+# brick distance of FINE_LEVEL_BELOW on, it jumps by bricks.
+FINE_DISTANCE_CAP = 4
 FINE_LEVEL_BELOW = 4
 
 
