@@ -415,20 +415,18 @@ def _raycast_loop(
 ):
     # Rays cost very different amounts: bands of BAND rows cast are handed out one at a time
     # (the caller sets the chunk size), so a thread that finishes early, or was descheduled,
-    # evens out. A pair of rays starts at the lesser of its two pixels' starts.
+    # evens out.
     height, width = vertices.shape[0], vertices.shape[1]
     span = BAND * stride
     for band in prange(-(-height // span)):
         for v in range(band * span, min((band + 1) * span, height), stride):
             for u in range(0, width, 2 * stride):  # pixels two at a time
                 partner = stride if u + stride < width else 0
-                start = starts[v, u]
-                if partner > 0:
-                    start = min(start, starts[v, u + partner])
                 raycast_pixels(
                     tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
                     u, v, camera, rotation, origin, volume_origin, voxel_size, step,
-                    vertices, normals, colours, start, partner,
+                    vertices, normals, colours, starts[v, u], partner,
+                    starts[v, u + partner],
                 )  # fmt: skip
 
 

@@ -144,7 +144,7 @@ def _raycast_kernel(
         raycast_pixels(
             tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
             camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
-            colours, 0.0, 0,
+            colours, 0.0, 0, 0.0,
         )  # fmt: skip
 
 

@@ -234,18 +234,16 @@ def build_ops(
         volume_origin: Any,
         voxel_size: float,
         step: float,
-        safe_until: float,
+        safe_a: float,
+        safe_b: float,
     ) -> tuple:
-        """march_ray of two rays (unit directions a and b) in lockstep: each step of
-        one is a chain of dependent loads and roundings, so the core works on the other's
-        meanwhile. The same answers as marching them one after the other."""
+        """march_ray of two rays (unit directions a and b, from safe_a and safe_b) in
+        lockstep: each step of one is a chain of dependent loads and roundings, so the core
+        works on the other's meanwhile. The same answers as marching them one after the
+        other."""
         n = tsdf_weight.shape[0]
-        ray_a = march_start(
-            origin, a[0], a[1], a[2], volume_origin, voxel_size, n, step, safe_until
-        )
-        ray_b = march_start(
-            origin, b[0], b[1], b[2], volume_origin, voxel_size, n, step, safe_until
-        )
+        ray_a = march_start(origin, a[0], a[1], a[2], volume_origin, voxel_size, n, step, safe_a)
+        ray_b = march_start(origin, b[0], b[1], b[2], volume_origin, voxel_size, n, step, safe_b)
         m_a, previous_a, known_a, hit_a = ray_a[0], np.nan, ray_a[0] == 0, np.nan
         m_b, previous_b, known_b, hit_b = ray_b[0], np.nan, ray_b[0] == 0, np.nan
         while m_a >= 0 or m_b >= 0:
@@ -463,10 +461,11 @@ def build_ops(
         colours: Any,
         safe_until: float,
         partner: int,
+        partner_safe_until: float,
     ) -> None:
         """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
-        march_ray from `safe_until` on (the pair's near_starts, or 0), and with
-        `partner` > 0 of pixel (u + partner, v) too, the two rays marched in lockstep
+        march_ray from `safe_until` on (its near_starts, or 0), and with `partner` > 0 of
+        pixel (u + partner, v) too, from partner_safe_until, the two rays marched in lockstep
         (march_two_rays). `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0
         beforehand."""
         a = ray_direction(u, v, camera, rotation)
@@ -474,7 +473,7 @@ def build_ops(
             b = ray_direction(u + partner, v, camera, rotation)
             t_a, t_b = march_two_rays(
                 tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
-                voxel_size, step, safe_until,
+                voxel_size, step, safe_until, partner_safe_until,
             )  # fmt: skip
             shade_pixel(
                 tsdf_weight, colour_volume, has_colour, o0, o1, o2, u + partner, v, t_b, origin,
