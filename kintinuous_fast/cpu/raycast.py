@@ -243,10 +243,9 @@ def _near_box_starts(
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _paint_box(i, j, k, run, offset, steps, camera, origin, volume_origin, size, inverse, start):
     """start = min(start, where the pixel's ray enters the box of fine bricks (i, j, k) ..
-    (i, j, k + run - 1)) over the
-    pixels of the bounding box of its projection, grown by half a pixel (the whole image when
-    the box reaches behind the camera's plane; nothing when it lies wholly behind), whose rays
-    meet the box."""
+    (i, j, k + run - 1)) over the pixels of the bounding box of its projection, grown by half a
+    pixel (the whole image when the box reaches behind the camera's plane; nothing when it lies
+    wholly behind), whose rays meet the box."""
     height, width = start.shape
     u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
     behind = 0
@@ -286,8 +285,8 @@ def _paint_box(i, j, k, run, offset, steps, camera, origin, volume_origin, size,
         u1 = min(int(math.ceil(u_hi + 0.5)), width - 1)
         v0 = max(int(math.floor(v_lo - 0.5)), 0)
         v1 = min(int(math.ceil(v_hi + 0.5)), height - 1)
-    # The box's faces relative to the camera, grown by the slack so that rounding in the slab
-    # test never misses a ray that touches it; a ray's slab distances are these times its
+    # The box's faces relative to the camera, grown by ENTRY_MARGIN so that rounding in the
+    # slab test never misses a ray that touches it; a ray's slab distances are these times its
     # inverse direction.
     low0 = np.float32(volume_origin[0] + i * size - origin[0] - ENTRY_MARGIN)
     low1 = np.float32(volume_origin[1] + j * size - origin[1] - ENTRY_MARGIN)
@@ -341,7 +340,8 @@ def _view_constants(volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _inverse_directions(camera, rotation, out):
     """out[:, v, u] = 1 / the unit direction of pixel (u, v)'s ray (ops.march.ray_direction),
-    1e300 for a zero component (its slab then bounds nothing, or everything, as it should)."""
+    1e30 for a component within 1e-30 of zero (its slab then bounds nothing, or everything, as
+    it should; float32 holds it)."""
     for v in prange(out.shape[1]):
         for u in range(out.shape[2]):
             d = ray_direction(u, v, camera, rotation)
