@@ -20,13 +20,14 @@ BYTES_COLOUR = 4  # uint8 R, G, B + uint8 colour weight
 
 
 @dataclass
-class NegativeCounts:
-    """Per logical fine brick (FINE^3 voxels) the number of observed voxels with negative TSDF,
-    for the cpu raycast's empty-space maps. Integration keeps them up to date; they describe
-    the logical bricks of the buffer offset they were counted at, so a shift (or clearing
-    cells) makes them stale and they are counted again from the volume when next needed."""
+class NegativeMasks:
+    """Per logical fine brick (FINE^3 voxels) a bit mask of its observed voxels with negative
+    TSDF (ops.volume.fine_voxel_bit), for the cpu raycast's empty-space maps. Integration keeps
+    them up to date; they describe the logical bricks of the buffer offset they were taken at,
+    so a shift (or clearing cells) makes them stale and they are taken again from the volume
+    when next needed."""
 
-    counts: np.ndarray  # (M, M, M) uint8, M = ceil(N / FINE)
+    masks: np.ndarray  # (M, M, M) uint8, M = ceil(N / FINE)
     offset: tuple[int, int, int]
 
 
@@ -49,9 +50,9 @@ class FastTsdfVolume:
     # (3,) int in [0, N): array cell of logical voxel (0, 0, 0), the cyclical buffer of the
     # moving volume (kintinuous_ref.tsdf.TsdfVolume.offset); zero until the volume shifts
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
-    # cpu backend only: the negative-voxel counts (NegativeCounts) or None when not known;
-    # whatever writes tsdf_weight other than integration must call forget_negative_counts()
-    negative_counts: NegativeCounts | None = field(default=None, repr=False, compare=False)
+    # cpu backend only: the negative-voxel masks (NegativeMasks) or None when not known;
+    # whatever writes tsdf_weight other than integration must call forget_negative_masks()
+    negative_masks: NegativeMasks | None = field(default=None, repr=False, compare=False)
 
     @property
     def resolution(self) -> int:
@@ -66,15 +67,15 @@ class FastTsdfVolume:
         o = np.asarray(self.offset, dtype=np.int64) % self.resolution
         return int(o[0]), int(o[1]), int(o[2])
 
-    def current_negative_counts(self) -> np.ndarray | None:
-        """The negative-voxel counts if they hold for the current offset, else None."""
-        known = self.negative_counts
+    def current_negative_masks(self) -> np.ndarray | None:
+        """The negative-voxel masks if they hold for the current offset, else None."""
+        known = self.negative_masks
         if known is None or known.offset != self.offsets():
             return None
-        return known.counts
+        return known.masks
 
-    def forget_negative_counts(self) -> None:
-        self.negative_counts = None
+    def forget_negative_masks(self) -> None:
+        self.negative_masks = None
 
     @property
     def size(self) -> float:
@@ -286,7 +287,7 @@ class _Field:
         if value != 0:
             raise ValueError("a fast volume's cells can only be cleared (set to 0)")
         array, _ = self._source()  # clearing: every channel of the voxel
-        self.volume.forget_negative_counts()
+        self.volume.forget_negative_masks()
         for _, src in _blocks(cells):
             if hasattr(array, "copy_to_device"):
                 block = array[src]

@@ -179,10 +179,11 @@ def test_cpu_brick_distance_is_the_references_grown_chessboard_distance():
         np.testing.assert_array_equal(got, want)
 
 
-def test_cpu_negative_counts_kept_by_integration_equal_a_recount():
-    """The per-fine-brick counts of observed negative voxels that integration keeps (and the
-    brick map built from them) equal a count from scratch, before and after the moving volume
-    shifts the buffer and clears slabs; the brick map is the reference's _empty_space."""
+def test_cpu_negative_masks_kept_by_integration_equal_fresh_ones():
+    """The per-fine-brick masks of observed negative voxels that integration keeps equal masks
+    taken from scratch, before and after the moving volume shifts the buffer and clears slabs,
+    and so does the `near` map built from them (against brute force: any such voxel among
+    voxels 2f .. 2f + 2 per axis); the brick map is the reference's _empty_space."""
     camera = fe.camera_for(HEIGHT, WIDTH)
     config = VolumeConfig(resolution=N, size=3.0, shift_threshold=2, min_extract_weight=1.0)
     poses = []
@@ -196,19 +197,35 @@ def test_cpu_negative_counts_kept_by_integration_equal_a_recount():
     shifted_checked = False
     for index, pose in enumerate(poses):
         moving.update(pose)
-        if fast.current_negative_counts() is None:  # stale after a shift: counted again here
+        if fast.current_negative_masks() is None:  # stale after a shift: counted again here
             shifted_checked = index > 0
             cpu_raycast.raycast(fast, pose, camera)
         cpu_tsdf.integrate(fast, fe.scene_depth(HEIGHT, WIDTH, seed=index), pose, camera, colour)
-        kept = fast.current_negative_counts()
+        kept = fast.current_negative_masks()
         assert kept is not None and kept.any()
         recount = from_reference_volume(to_reference_volume(fast))
         recount.offset[:] = fast.offset
-        np.testing.assert_array_equal(kept, cpu_tsdf.negative_counts(recount))
+        np.testing.assert_array_equal(kept, cpu_tsdf.negative_masks(recount))
+        np.testing.assert_array_equal(
+            cpu_raycast._skip_maps_and_near(fast)[2], _near_by_brute_force(fast)
+        )
         np.testing.assert_array_equal(
             cpu_raycast.empty_space(fast), ref_raycast._empty_space(to_reference_volume(fast))
         )
     assert shifted_checked and fast.shifted
+
+
+def _near_by_brute_force(volume: FastTsdfVolume) -> np.ndarray:
+    """Per fine brick f: any observed negative voxel among the logical voxels 2f .. 2f + 2
+    on every axis (those that a sample whose lower corner lies in f interpolates)."""
+    tsdf_weight = np.roll(volume.tsdf_weight, [-o for o in volume.offsets()], axis=(0, 1, 2))
+    negative = (tsdf_weight[..., 0] < 0) & (tsdf_weight[..., 1] > 0)
+    m = -(-volume.resolution // FINE)
+    near = np.zeros((m, m, m), dtype=bool)
+    for f in np.ndindex(near.shape):
+        window = tuple(slice(FINE * c, FINE * c + 3) for c in f)
+        near[f] = negative[window].any()
+    return near
 
 
 def test_equivalence_cpu_moving_volume_shifts_slices_and_clears():

@@ -6,10 +6,11 @@ brick that may hold a negative sample (near_starts: slab tests against those bri
 their projections), and rays go on from there two at a time, in lockstep
 (ops.march.march_two_rays). Every skip is exact: the maps are the plain march's.
 
-Both levels come from the per-fine-brick counts of observed negative voxels that integration
-keeps up to date (kintinuous_fast.cpu.tsdf.negative_counts), so no frame scans the volume: the
-brick map of kintinuous_ref.raycast._empty_space is the chessboard distance over the 8^3 bricks
-holding a counted voxel, and the fine map marks the fine bricks whose samples may be negative.
+Both levels come from the per-fine-brick bit masks of observed negative voxels that
+integration keeps up to date (kintinuous_fast.cpu.tsdf.negative_masks), so no frame scans the
+volume: the brick map of kintinuous_ref.raycast._empty_space is the chessboard distance over the
+8^3 bricks holding a marked voxel, and the fine map marks the fine bricks holding the lower
+corner of a sample that may be negative.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 from numba import prange
 
 from kintinuous_fast._volume import FastTsdfVolume
-from kintinuous_fast.cpu.tsdf import negative_counts
+from kintinuous_fast.cpu.tsdf import negative_masks
 from kintinuous_fast.ops import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, march, volume
 from kintinuous_fast.ops.march import FINE_DISTANCE_CAP
 from kintinuous_fast.ops.volume import BRICK, FINE
@@ -46,31 +47,39 @@ ENTRY_MARGIN = 1e-5
 ENTRY_SLACK = 1e-6
 
 
+# Bits of a fine brick's mask (ops.volume.fine_voxel_bit: 4 a + 2 b + c for voxel (a, b, c)
+# of the brick) at c = 0, and at b = c = 0.
+_AT_C0, _AT_B0_C0 = np.uint8(0b01010101), np.uint8(0b00010001)
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _brick_maps_loop(counts, pairs, near, negative):
-    """From the fine counts (M, M, M): near[f] = any count in f .. f + 1 along each axis (three
-    separable passes of "this or the next": along k and j into `pairs`, along i into `near`),
-    and negative[b] = any count in 8^3 brick b (kintinuous_ref.raycast._empty_space's). Rows
-    are combined with | rather than `or`, so the loops have no branches and vectorise."""
-    m = counts.shape[0]
+def _brick_maps_loop(masks, planes, near, negative):
+    """From the fine masks (M, M, M): near[f] = any marked voxel among voxels 2f .. 2f + 2 on
+    every axis, the corners of the samples whose lower corner lies in fine brick f, and
+    negative[b] = any marked voxel in 8^3 brick b (kintinuous_ref.raycast._empty_space's).
+    near comes from three separable passes: along k then j, a brick's voxels and the next
+    brick's first fold into its bits at c = 0, then at b = c = 0 (`planes`); along i, the same
+    decides `near`. Bytes are combined with | and &, so the loops have no branches and
+    vectorise."""
+    m = masks.shape[0]
     for f0 in prange(m):
         for f1 in range(m):
-            row, out = counts[f0, f1], pairs[f0, f1]
-            for f2 in range(m - 1):
-                out[f2] = (row[f2] | row[f2 + 1]) != 0
-            out[m - 1] = row[m - 1] != 0
-        for f1 in range(m - 1):
-            _or_into(pairs[f0, f1], pairs[f0, f1 + 1])
+            row = masks[f0, f1]
+            following = masks[f0, f1, 1:]
+            _fold(row[: m - 1], following, _AT_C0, 1, planes[f0, f1, : m - 1])
+            _fold(row[m - 1 :], row[m - 1 :], _AT_C0, 1, planes[f0, f1, m - 1 :])  # no next
+        for f1 in range(m):  # in place: row f1 + 1 still holds the k pass when row f1 reads it
+            following = planes[f0, min(f1 + 1, m - 1)]  # the last has no next: itself adds nothing
+            _fold(planes[f0, f1], following, _AT_B0_C0, 2, planes[f0, f1])
     for f0 in prange(m):
+        following = planes[min(f0 + 1, m - 1)]
         for f1 in range(m):
-            near[f0, f1] = pairs[f0, f1]
-            if f0 < m - 1:
-                _or_into(near[f0, f1], pairs[f0 + 1, f1])
+            _or_first(planes[f0, f1], following[f1], near[f0, f1])
     per_brick = BRICK // FINE
     for b0 in prange(negative.shape[0]):  # each thread writes its own slab of bricks
         for f0 in range(b0 * per_brick, min((b0 + 1) * per_brick, m)):
             for f1 in range(m):
-                row = counts[f0, f1]
+                row = masks[f0, f1]
                 for b2 in range(negative.shape[2]):
                     seen = np.uint8(0)
                     for f2 in range(b2 * per_brick, min((b2 + 1) * per_brick, m)):
@@ -80,10 +89,20 @@ def _brick_maps_loop(counts, pairs, near, negative):
 
 
 @numba.njit(cache=True, inline="always")
-def _or_into(target, source):
-    """target |= source, elementwise over 1-d bool arrays (vectorised)."""
-    for j in range(target.shape[0]):
-        target[j] = target[j] | source[j]
+def _fold(masks, following, first, shift, out):
+    """out = the bits of `first` (a brick's voxels at 0 on this axis) set where the voxel or
+    the one `shift` bits above it (at 1) is marked, or the following brick's voxel at 0 is,
+    elementwise over 1-d uint8 arrays (vectorised). Folding a row with itself keeps it."""
+    for j in range(out.shape[0]):
+        both = masks[j] | (following[j] & first)
+        out[j] = (both | (both >> shift)) & first
+
+
+@numba.njit(cache=True, inline="always")
+def _or_first(planes, following, near):
+    """near = any bit of planes, or the first (a = b = c = 0) of following, elementwise."""
+    for j in range(near.shape[0]):
+        near[j] = (planes[j] | (following[j] & np.uint8(1))) != 0
 
 
 @functools.lru_cache(maxsize=2)
@@ -92,7 +111,7 @@ def _work_arrays(fine_bricks: int, bricks: int) -> SimpleNamespace:
     fresh ones cost ~2 ms of page faults per frame (of the maps' ~6.5 ms)."""
     fine_shape, shape = (fine_bricks,) * 3, (bricks,) * 3
     return SimpleNamespace(
-        pairs=np.empty(fine_shape, dtype=np.bool_),
+        planes=np.empty(fine_shape, dtype=np.uint8),
         near=np.empty(fine_shape, dtype=np.bool_),
         along=np.empty(fine_shape, dtype=np.uint8),
         fine_distance=np.empty(fine_shape, dtype=np.uint8),
@@ -103,11 +122,11 @@ def _work_arrays(fine_bricks: int, bricks: int) -> SimpleNamespace:
 def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, SimpleNamespace]:
     """(empty, work): kintinuous_ref.raycast._empty_space of the volume (int64 brick distances)
     and the work arrays, whose `near` map of fine bricks (bool) skip_maps turns into distances,
-    both from the negative-voxel counts."""
-    counts = negative_counts(volume)
-    work = _work_arrays(counts.shape[0], -(-volume.resolution // BRICK))
+    both from the negative-voxel masks."""
+    masks = negative_masks(volume)
+    work = _work_arrays(masks.shape[0], -(-volume.resolution // BRICK))
     work.negative.fill(False)
-    _brick_maps_loop(counts, work.pairs, work.near, work.negative)
+    _brick_maps_loop(masks, work.planes, work.near, work.negative)
     return _brick_distance(work.negative), work
 
 

@@ -11,7 +11,7 @@ from numba import prange
 
 from kintinuous_fast._volume import (
     FastTsdfVolume,
-    NegativeCounts,
+    NegativeMasks,
     camera_frame_steps,
     check_depth,
     check_volume_config,
@@ -37,7 +37,7 @@ __all__ = [
     "integrate",
     "make_volume",
     "memory_bytes",
-    "negative_counts",
+    "negative_masks",
     "sample_tsdf",
     "slab_view",
     "to_reference_volume",
@@ -51,14 +51,15 @@ column_range = _ops.column_range
 cell = _voxels.cell
 ray_distance_pixel = _ops.ray_distance_pixel
 sample_tsdf_at = _voxels.sample_tsdf_at
-count_negative = _voxels.count_negative
+negative_mask = _voxels.negative_mask
+fine_voxel_bit = _voxels.fine_voxel_bit
 project_voxel = _ops.project_voxel
 voxel_norm = _ops.voxel_norm
 fuse_voxel = _ops.fuse_voxel
 column_start = _ops.column_start
 
 _loop = numba.njit(parallel=True, cache=True, error_model="numpy")
-_NO_COUNTS = np.zeros((1, 1, 1), dtype=np.uint8)  # typed placeholder: counts not kept
+_NO_MASKS = np.zeros((1, 1, 1), dtype=np.uint8)  # typed placeholder: masks not kept
 
 
 @_loop
@@ -90,8 +91,8 @@ def _integrate_slice(
     colour_weights,
     fuse_colour,
     colour_max_weight,
-    counts,
-    count,
+    masks,
+    keep_masks,
     n,
     height,
     width,
@@ -130,7 +131,7 @@ def _integrate_slice(
             _fuse_column(
                 tsdf_weight, colour_volume, ci, cell(j - 1, o1, n), o2, n, pixels[before],
                 sdfs[before], updated[before, 0], updated[before, 1], truncation, max_weight,
-                colour, colour_weights, fuse_colour, colour_max_weight, counts, count, i, j - 1,
+                colour, colour_weights, fuse_colour, colour_max_weight, masks, keep_masks, i, j - 1,
             )  # fmt: skip
 
 
@@ -177,7 +178,7 @@ def _prefetch_cells(volume, ci, cj, first, last, o2, n):
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _fuse_column(
     tsdf_weight, colour_volume, ci, cj, o2, n, pixels, sdfs, first, end, truncation, max_weight,
-    colour, colour_weights, fuse_colour, colour_max_weight, counts, count, i, j,
+    colour, colour_weights, fuse_colour, colour_max_weight, masks, keep_masks, i, j,
 ):  # fmt: skip
     """Pass 3: fuse_voxel on the voxels [first, end) of column (i, j) with sdf >= -mu."""
     span_sdfs, span_pixels = sdfs[first:end], pixels[first:end]
@@ -189,8 +190,10 @@ def _fuse_column(
             tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), span_pixels[m], span_sdfs[m],
             truncation, max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
         )  # fmt: skip
-        if count and change != 0:
-            counts[i // FINE, j // FINE, k // FINE] += change
+        if keep_masks and change != 0:
+            bit = fine_voxel_bit(i, j, k)
+            mask = masks[i // FINE, j // FINE, k // FINE]
+            masks[i // FINE, j // FINE, k // FINE] = mask | bit if change > 0 else mask & ~bit
 
 
 @_loop
@@ -213,44 +216,44 @@ def _integrate_loop(
     colour_weights,
     fuse_colour,
     colour_max_weight,
-    counts,
-    count,
+    masks,
+    keep_masks,
     height,
     width,
 ):
     # Voxel columns along k: only the k-range that can project into the image (column_range)
     # is visited, so the work follows the viewing pyramid, not its bounding box. Threads take
-    # whole fine bricks along i, so no two threads ever change the same brick's count.
+    # whole fine bricks along i, so no two threads ever change the same brick's mask.
     n = tsdf_weight.shape[0]
     for brick in prange(lo[0] // FINE, (hi[0] + FINE - 1) // FINE):
         for i in range(max(brick * FINE, lo[0]), min((brick + 1) * FINE, hi[0])):
             _integrate_slice(
                 tsdf_weight, colour_volume, o0, o1, o2, lo, hi, base, steps, intrinsics, far,
                 ray_distance, truncation, max_weight, colour, colour_weights, fuse_colour,
-                colour_max_weight, counts, count, n, height, width, i,
+                colour_max_weight, masks, keep_masks, n, height, width, i,
             )  # fmt: skip
 
 
 @_loop
-def _count_loop(tsdf_weight, o0, o1, o2, counts):
-    m = counts.shape[0]
+def _mask_loop(tsdf_weight, o0, o1, o2, masks):
+    m = masks.shape[0]
     for f0 in prange(m):
         for f1 in range(m):
             for f2 in range(m):
-                counts[f0, f1, f2] = count_negative(tsdf_weight, o0, o1, o2, f0, f1, f2, FINE)
+                masks[f0, f1, f2] = negative_mask(tsdf_weight, o0, o1, o2, f0, f1, f2)
 
 
-def negative_counts(volume: FastTsdfVolume) -> np.ndarray:
-    """Observed negative voxels per logical fine brick of FINE^3 voxels, (M, M, M) uint8:
-    those integration kept up to date, or counted from the volume now (after a shift, or
-    clearing) and kept for the following frames."""
-    counts = volume.current_negative_counts()
-    if counts is None:
+def negative_masks(volume: FastTsdfVolume) -> np.ndarray:
+    """Per logical fine brick of FINE^3 voxels, the bit mask of its observed negative voxels
+    (ops.volume.fine_voxel_bit), (M, M, M) uint8: those integration kept up to date, or taken
+    from the volume now (after a shift, or clearing) and kept for the following frames."""
+    masks = volume.current_negative_masks()
+    if masks is None:
         m = -(-volume.resolution // FINE)
-        counts = np.empty((m, m, m), dtype=np.uint8)
-        _count_loop(volume.tsdf_weight, *volume.offsets(), counts)
-        volume.negative_counts = NegativeCounts(counts, volume.offsets())
-    return counts
+        masks = np.empty((m, m, m), dtype=np.uint8)
+        _mask_loop(volume.tsdf_weight, *volume.offsets(), masks)
+        volume.negative_masks = NegativeMasks(masks, volume.offsets())
+    return masks
 
 
 @_loop
@@ -271,7 +274,7 @@ def make_volume(
         tsdf_weight=np.zeros((n, n, n, 2), dtype=np.int16),
         colour=np.zeros((n, n, n, 4), dtype=np.uint8) if config.colour else None,
         **volume_header(config, first_pose, colour_max_weight),
-        negative_counts=NegativeCounts(np.zeros((m, m, m), dtype=np.uint8), (0, 0, 0)),
+        negative_masks=NegativeMasks(np.zeros((m, m, m), dtype=np.uint8), (0, 0, 0)),
     )
 
 
@@ -305,7 +308,7 @@ def integrate(
         colour_weights = np.zeros(1, np.float32)
     colour_volume = volume.colour if volume.colour is not None else np.zeros((1, 1, 1, 4), np.uint8)
     base, steps = camera_frame_steps(volume, pose)
-    counts = volume.current_negative_counts()  # kept up to date where known
+    masks = volume.current_negative_masks()  # kept up to date where known
     with numba.parallel_chunksize(2):  # slabs cost different amounts: handed out dynamically
         _integrate_loop(
             volume.tsdf_weight,
@@ -324,8 +327,8 @@ def integrate(
             colour_weights,
             fuse_colour,
             np.float32(volume.colour_max_weight),
-            _NO_COUNTS if counts is None else counts,
-            counts is not None,
+            _NO_MASKS if masks is None else masks,
+            masks is not None,
             camera.height,
             camera.width,
         )

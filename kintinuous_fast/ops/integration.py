@@ -115,7 +115,7 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
         colour where |sdf| < mu and the pixel's colour weight > 0.
 
         Returns how the voxel's "observed and negative" state changed (+1, 0 or -1): the cpu
-        backend keeps a count of such voxels per fine brick for the raycast's empty-space
+        backend keeps a bit mask of such voxels per fine brick for the raycast's empty-space
         skipping. Values that do not change are not written back (a saturated free-space voxel,
         F = 1 at the weight cap, stays as it is: no store, no dirty cache line).
         """

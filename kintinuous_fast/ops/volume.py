@@ -23,8 +23,9 @@ TSDF_SCALE = 32767.0  # int16 units per unit of normalised TSDF
 TSDF_MAX = 32767  # the stored F = 1
 TSDF_INVERSE_SCALE = 1.0 / TSDF_SCALE
 BRICK = 8  # voxels per side of the empty-space bricks (kintinuous_ref.raycast.BRICK)
-# Voxels per side of the fine bricks whose observed negative voxels integration counts (the cpu
-# raycast's second level of empty-space skipping, inside the bricks next to a surface).
+# Voxels per side of the fine bricks whose observed negative voxels integration marks in a bit
+# mask per brick (the cpu raycast's second level of empty-space skipping, inside the bricks
+# next to a surface; fine_voxel_bit assumes 2).
 FINE = 2
 
 # Cyclical buffer (kintinuous_ref.tsdf, moving volume): logical voxel l lives in array cell
@@ -294,7 +295,7 @@ def build_ops(
         tsdf_weight: Any, o0: int, o1: int, o2: int, b0: int, b1: int, b2: int, size: int
     ) -> int:
         """Observed voxels with negative TSDF in the logical block (b0, b1, b2) of size^3 voxels
-        (the fine bricks of the cpu raycast, the bricks of the cuda one)."""
+        (the bricks of the cuda raycast's empty-space map)."""
         n = tsdf_weight.shape[0]
         count = 0
         for i in range(b0 * size, min((b0 + 1) * size, n)):
@@ -302,10 +303,36 @@ def build_ops(
             for j in range(b1 * size, min((b1 + 1) * size, n)):
                 cj = cell(j, o1, n)
                 for k in range(b2 * size, min((b2 + 1) * size, n)):
-                    ck = cell(k, o2, n)
-                    if tsdf_weight[ci, cj, ck, 0] < 0 and tsdf_weight[ci, cj, ck, 1] > 0:
+                    if observed_negative(tsdf_weight, ci, cj, cell(k, o2, n)):
                         count += 1
         return count
+
+    @jit
+    def negative_mask(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, f0: int, f1: int, f2: int
+    ) -> int:
+        """Bit mask (fine_voxel_bit) of the observed voxels with negative TSDF in the logical
+        fine brick (f0, f1, f2) (the cpu raycast's NegativeMasks)."""
+        n = tsdf_weight.shape[0]
+        mask = 0
+        for i in range(f0 * FINE, min((f0 + 1) * FINE, n)):
+            ci = cell(i, o0, n)
+            for j in range(f1 * FINE, min((f1 + 1) * FINE, n)):
+                cj = cell(j, o1, n)
+                for k in range(f2 * FINE, min((f2 + 1) * FINE, n)):
+                    if observed_negative(tsdf_weight, ci, cj, cell(k, o2, n)):
+                        mask |= fine_voxel_bit(i, j, k)
+        return mask
+
+    @jit
+    def observed_negative(tsdf_weight: Any, ci: int, cj: int, ck: int) -> bool:
+        return tsdf_weight[ci, cj, ck, 0] < 0 and tsdf_weight[ci, cj, ck, 1] > 0
+
+    @jit
+    def fine_voxel_bit(i: int, j: int, k: int) -> int:
+        """Logical voxel (i, j, k)'s bit in its fine brick's mask: bit 4 a + 2 b + c for its
+        place (a, b, c) = (i, j, k) mod 2 in the brick (FINE = 2: 8 voxels, 8 bits)."""
+        return 1 << (((i & 1) << 2) | ((j & 1) << 1) | (k & 1))
 
     return SimpleNamespace(
         cell=cell,
@@ -314,6 +341,9 @@ def build_ops(
         difference=difference,
         four_cells=four_cells,
         count_negative=count_negative,
+        fine_voxel_bit=fine_voxel_bit,
+        negative_mask=negative_mask,
+        observed_negative=observed_negative,
         dequantise=dequantise,
         clipped_gradient=clipped_gradient,
         gradient_normal=gradient_normal,
