@@ -434,10 +434,15 @@ def _raycast_loop(
 ):
     # Rays cost very different amounts: bands of BAND rows cast are handed out one at a time
     # (the caller sets the chunk size), so a thread that finishes early, or was descheduled,
-    # evens out.
+    # evens out. The thread that casts a band first clears its rows (NaN, black): numpy's
+    # fill of the three maps took ~2.5 ms on one thread, ~1.2 ms of a 2-thread raycast.
     height, width = vertices.shape[0], vertices.shape[1]
     span = BAND * stride
     for band in prange(-(-height // span)):
+        rows = slice(band * span, min((band + 1) * span, height))
+        vertices[rows] = np.nan
+        normals[rows] = np.nan
+        colours[rows] = 0
         for v in range(band * span, min((band + 1) * span, height), stride):
             for u in range(0, width, 2 * stride):  # pixels two at a time
                 partner = stride if u + stride < width else 0
@@ -463,9 +468,9 @@ def raycast(
     multiples of it (kintinuous_ref.raycast.raycast)."""
     check_stride(stride)
     shape = (camera.height, camera.width)
-    vertices = np.full((*shape, 3), np.nan, dtype=np.float32)
-    normals = np.full((*shape, 3), np.nan, dtype=np.float32)
-    colours = np.zeros((*shape, 3), dtype=np.uint8)
+    vertices = np.empty((*shape, 3), dtype=np.float32)  # _raycast_loop clears them
+    normals = np.empty((*shape, 3), dtype=np.float32)
+    colours = np.empty((*shape, 3), dtype=np.uint8)
     has_colour = colour and volume.colour is not None
     colour_volume = volume.colour if has_colour else np.zeros((1, 1, 1, 4), np.uint8)
     pose = np.asarray(pose, dtype=np.float64)
