@@ -147,7 +147,7 @@ def test_cpu_fine_distance_is_the_capped_chessboard_distance():
     rng = np.random.default_rng(3)
     for m, density in ((5, 0.05), (33, 0.002), (40, 0.0)):
         near = rng.random((m, m, m)) < density
-        for cap in (1, 3, 16):
+        for cap in (1, 3, 4, 8, 9, 16):  # shifts up to SHIFTS_UP_TO_CAP, sweeps above
             got = np.empty(near.shape, dtype=np.uint8)
             cpu_raycast._fine_distance(near, cap, np.empty_like(got), got)
             if near.any():

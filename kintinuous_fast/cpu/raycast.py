@@ -45,6 +45,9 @@ BAND = 8  # pixel rows handed to a thread at a time
 # ray's entry shrinks by ENTRY_SLACK of itself, so that rounding never makes a start late.
 ENTRY_MARGIN = 1e-5
 ENTRY_SLACK = 1e-6
+# _fine_distance along rows: shifted copies up to this cap (vectorised; the fine map's cap 4:
+# 2.5 -> 1.3 ms on one thread), serial sweeps above it (the brick map's B + 1).
+SHIFTS_UP_TO_CAP = 8
 
 
 # Bits of a fine brick's mask (ops.volume.fine_voxel_bit: 4 a + 2 b + c for voxel (a, b, c)
@@ -148,23 +151,24 @@ def _brick_distance(negative: np.ndarray) -> np.ndarray:
 def _fine_distance(near, cap, along, out):
     """out = min(cap, chessboard distance in fine bricks to the nearest `near` one), uint8,
     cap < 255. Separable (the chessboard metric is the max of the per-axis distances, so the
-    minimum can be taken one axis at a time): the distance along axis 2 by two sweeps, then
-    along axes 1 and 0 d(x) = min over |k| < cap of max(k, d(x + k e)), as elementwise
-    operations on whole planes of uint8 (vectorised; rows would be too short). `along` is
-    work space of out's shape."""
+    minimum can be taken one axis at a time): along each axis d(x) = min over |k| < cap of
+    max(k, d(x + k e)), as elementwise operations on whole rows (axis 2, from 0 at near
+    bricks and cap elsewhere) and on whole planes of uint8 (axes 1 and 0), which vectorise.
+    Along axis 2 a large cap takes two serial sweeps per row instead (their cost does not
+    grow with the cap). `along` is work space of out's shape."""
     m = near.shape[0]
     top = np.uint8(cap)
     for p in prange(m):
         for f1 in range(m):
-            _sweeps(near[p, f1], along[p, f1], top)
+            if cap > SHIFTS_UP_TO_CAP:
+                _sweeps(near[p, f1], along[p, f1], top)
+                continue
+            start = out[p, f1]  # work space here: the axis-1 pass overwrites it
+            _zero_at_near(near[p, f1], top, start)
+            _shifted_min_max(start, cap, along[p, f1], 1)
     for p in prange(m):  # along axis 1: shifts by whole rows inside the plane p
         f0 = np.int64(p)  # prange gives unsigned indices: signed arithmetic below
-        source = along[f0].reshape(m * m)
-        target = out[f0].reshape(m * m)
-        target[:] = source
-        for k in range(1, min(cap, m)):
-            _min_max(target[k * m :], source[: (m - k) * m], np.uint8(k))
-            _min_max(target[: (m - k) * m], source[k * m :], np.uint8(k))
+        _shifted_min_max(along[f0].reshape(m * m), cap, out[f0].reshape(m * m), m)
     for p in prange(m):  # along axis 0: whole planes
         f0 = np.int64(p)
         target = along[f0].reshape(m * m)
@@ -187,6 +191,27 @@ def _sweeps(near_row, row, top):
     for j in range(row.shape[0] - 1, -1, -1):
         d = min(row[j], min(np.uint8(d + np.uint8(1)), top))
         row[j] = d
+
+
+@numba.njit(cache=True, inline="always")
+def _zero_at_near(near_row, top, row):
+    """row = 0 where near_row, else top (vectorised select)."""
+    for j in range(row.shape[0]):
+        row[j] = np.uint8(0) if near_row[j] else top
+
+
+@numba.njit(cache=True, inline="always")
+def _shifted_min_max(source, cap, target, stride):
+    """target = min over |k| < cap of max(k, source shifted by k strides), clipped at the
+    ends (1-d uint8 arrays of the same length)."""
+    n = source.shape[0]
+    target[:] = source
+    for k in range(1, cap):
+        shift = k * stride
+        if shift >= n:
+            break
+        _min_max(target[shift:], source[: n - shift], np.uint8(k))
+        _min_max(target[: n - shift], source[shift:], np.uint8(k))
 
 
 @numba.njit(cache=True, inline="always")
