@@ -1,7 +1,7 @@
 """The whole pipeline, per stage, against Open3D's frame-to-model dense SLAM, in one run.
 
     .venv/bin/python benchmarks/pipeline_vs_open3d.py [--frames 30] [--ref-frames 4]
-        [--backends cpu,ref] [--json out.json] [--plot stages.png]
+        [--backends cpu,ref] [--rounds 1] [--json out.json] [--plot stages.png]
 
 Ours: `kintinuous_ref.pipeline.run` (icp+rgbd, 640x480, 256^3 over 3 m, the moving volume,
 raycast every frame) on each backend, plus the cpu backend with the "fast odometry" setting
@@ -13,6 +13,9 @@ at full resolution, and it stops a level early once converged), integrate and
 synthesize_model_frame (its raycast), timed stage by stage. Both start at the first ground-truth
 pose; accuracy is the ATE RMSE over the frames run (rigidly aligned, kintinuous_ref.metrics).
 Stage times are medians over frames 2..N (the first frame compiles and has nothing to track).
+Open3D runs right after our default column, and `--rounds R` repeats both (and the other
+columns but the reference) R times, pooling the frames: a noisy host then slows both sides
+alike, and the ratios of each round are printed too.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ def open3d_iterations(config: Config) -> Config:
 
 
 def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # noqa: ANN001
+    """Per stage the times of frames 2..N (lists), with `ate_mm` and `failures`."""
     groundtruth = sequence.groundtruth_for_frames()
     result = pipeline.run(
         sequence.frames(0, frames),
@@ -75,13 +79,14 @@ def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # no
         backend=select_backend(backend),
         predict_model=True,
     )
-    row = {stage: statistics.median(result.timings_ms[stage][1:]) for stage in STAGES}
+    row = {stage: list(result.timings_ms[stage][1:]) for stage in STAGES}
     row["ate_mm"] = ate_mm(result.poses, groundtruth, frames)
     row["failures"] = result.tracking_failures
     return row
 
 
 def run_open3d(sequence, voxel_size: float, max_depth: float, frames: int) -> dict | None:  # noqa: ANN001
+    """As run_ours, for Open3D's dense SLAM (None without open3d)."""
     try:
         import open3d as o3d
         import open3d.core as o3c
@@ -121,9 +126,56 @@ def run_open3d(sequence, voxel_size: float, max_depth: float, frames: int) -> di
             laps["raycast"].append(1000.0 * (end - integrated_at))
             laps["total"].append(1000.0 * (end - start))
         poses.append(first @ to_model)
-    row = {stage: statistics.median(values) for stage, values in laps.items()}
+    row: dict = dict(laps)
     row["ate_mm"] = ate_mm(poses, groundtruth, frames)
     return row
+
+
+def run_columns(sequence, config: Config, args: argparse.Namespace, with_reference: bool) -> dict:  # noqa: ANN001
+    """One round: each backend's column (the cpu one followed at once by Open3D's, then the
+    cpu variants); the reference only `with_reference`."""
+    runs: dict[str, dict] = {}
+    for backend in [name for name in args.backends.split(",") if name]:
+        if backend == "ref" and not with_reference:
+            continue
+        frames = args.ref_frames if backend == "ref" else args.frames
+        runs[backend] = run_ours(sequence, backend, config, frames)
+        if backend == "cpu":
+            open3d_row = run_open3d(
+                sequence, config.volume.voxel_size, config.preprocess.max_depth, args.frames
+            )
+            if open3d_row is not None:
+                runs["open3d"] = open3d_row
+            runs["cpu fast-odo"] = run_ours(sequence, "cpu", fast_odometry(config), frames)
+            runs["cpu 1/3/6"] = run_ours(sequence, "cpu", open3d_iterations(config), frames)
+    if "open3d" not in runs:
+        open3d_row = run_open3d(
+            sequence, config.volume.voxel_size, config.preprocess.max_depth, args.frames
+        )
+        if open3d_row is not None:
+            runs["open3d"] = open3d_row
+    # Open3D's column last, as before
+    return {name: runs[name] for name in sorted(runs, key=lambda name: name == "open3d")}
+
+
+def medians(row: dict) -> dict:
+    """Lists of frame times to their medians; other entries as they are."""
+    return {
+        key: statistics.median(value) if isinstance(value, list) else value
+        for key, value in row.items()
+    }
+
+
+def print_round_ratios(rounds: list[dict[str, dict]]) -> None:
+    """Per round, ours / Open3D's medians of the default column (the spread of the noise)."""
+    print("cpu / Open3D in each round:")
+    for stage in ("odometry", "integrate", "raycast", "total"):
+        ratios = [
+            statistics.median(runs["cpu"][stage]) / statistics.median(runs["open3d"][stage])
+            for runs in rounds
+            if "cpu" in runs and "open3d" in runs
+        ]
+        print(f"  {stage:10s} " + " ".join(f"{ratio:.2f}" for ratio in ratios))
 
 
 def print_table(table: dict[str, dict]) -> None:
@@ -183,6 +235,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--ref-frames", type=int, default=4)
     parser.add_argument("--backends", default="cpu,ref")
+    parser.add_argument("--rounds", type=int, default=1, help="repeat every column but ref")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--plot", type=Path, help="write a bar chart of the stages (PNG)")
     args = parser.parse_args()
@@ -195,19 +248,22 @@ def main() -> None:
         f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
         f"load average {os.getloadavg()[0]:.1f}"
     )
-    table: dict[str, dict] = {}
-    for backend in [name for name in args.backends.split(",") if name]:
-        frames = args.ref_frames if backend == "ref" else args.frames
-        table[backend] = run_ours(sequence, backend, config, frames)
-        if backend == "cpu":
-            table["cpu fast-odo"] = run_ours(sequence, "cpu", fast_odometry(config), frames)
-            table["cpu 1/3/6"] = run_ours(sequence, "cpu", open3d_iterations(config), frames)
-    open3d_row = run_open3d(
-        sequence, config.volume.voxel_size, config.preprocess.max_depth, args.frames
-    )
-    if open3d_row is not None:
-        table["open3d"] = open3d_row
+    pooled: dict[str, dict] = {}
+    rounds: list[dict[str, dict]] = []
+    for round_index in range(args.rounds):
+        runs = run_columns(sequence, config, args, with_reference=round_index == 0)
+        rounds.append(runs)
+        for name, row in runs.items():
+            into = pooled.setdefault(name, {"ate_mm": row["ate_mm"]})
+            for stage, values in row.items():
+                if isinstance(values, list):
+                    into.setdefault(stage, []).extend(values)
+            if "failures" in row:
+                into["failures"] = into.get("failures", 0) + row["failures"]
+    table = {name: medians(row) for name, row in pooled.items()}
     print_table(table)
+    if args.rounds > 1 and "open3d" in table:
+        print_round_ratios(rounds)
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     if args.json:
         args.json.write_text(json.dumps(table, indent=2) + "\n")
