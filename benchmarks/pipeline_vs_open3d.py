@@ -199,7 +199,7 @@ def print_table(table: dict[str, dict]) -> None:
                 print(f"  {name:12s} " + "  ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
 
 
-def plot_stages(table: dict[str, dict], path: Path) -> None:
+def plot_stages(table: dict[str, dict], path: Path, rounds: int = 1) -> None:
     """Stacked bars of the per-stage medians of every column but the reference (off the scale:
     its total is in the title), with the 10 frames/s budget marked."""
     import matplotlib
@@ -221,7 +221,7 @@ def plot_stages(table: dict[str, dict], path: Path) -> None:
     axes.set_yticks(range(len(names)), names)
     axes.invert_yaxis()
     axes.set_xlabel("median ms per frame (redkitchen 640x480, icp+rgbd, 256^3)")
-    title = "per-stage time, one run"
+    title = "per-stage time, one run" if rounds == 1 else f"per-stage time, {rounds} rounds"
     if "ref" in table:
         title += f" (the NumPy reference: {table['ref']['total']:.0f} ms per frame)"
     axes.set_title(title, fontsize=10)
@@ -268,7 +268,7 @@ def main() -> None:
     if args.json:
         args.json.write_text(json.dumps(table, indent=2) + "\n")
     if args.plot:
-        plot_stages(table, args.plot)
+        plot_stages(table, args.plot, args.rounds)
 
 
 if __name__ == "__main__":
