@@ -44,6 +44,7 @@ def build_ops(
     jit_called = jit_called or jit
     voxels = voxels or voxel_ops.build_ops(jit, jit_called)
     sample_tsdf_at, gradient_normal = voxels.sample_tsdf_at, voxels.gradient_normal
+    gradient_normals = voxels.gradient_normals
     surface_colour_at = voxels.surface_colour_at
 
     @jit
@@ -522,6 +523,12 @@ def build_ops(
                 tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
                 voxel_size, step, safe_until, partner_safe_until,
             )  # fmt: skip
+            if math.isfinite(t_a) and math.isfinite(t_b):
+                shade_two_pixels(
+                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, u + partner, v, t_a,
+                    t_b, origin, a, b, volume_origin, voxel_size, vertices, normals, colours,
+                )  # fmt: skip
+                return
             shade_pixel(
                 tsdf_weight, colour_volume, has_colour, o0, o1, o2, u + partner, v, t_b, origin,
                 b[0], b[1], b[2], volume_origin, voxel_size, vertices, normals, colours,
@@ -560,12 +567,80 @@ def build_ops(
         """Vertex, normal and colour of pixel (u, v) whose ray met the surface at t (NaN: none)."""
         if not math.isfinite(t):
             return
-        px, py, pz = origin[0] + t * d0, origin[1] + t * d1, origin[2] + t * d2
         cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
         nx, ny, nz = gradient_normal(tsdf_weight, o0, o1, o2, cx, cy, cz)
+        store_hit(
+            colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2, cx, cy, cz, nx,
+            ny, nz, vertices, normals, colours,
+        )  # fmt: skip
+
+    @jit
+    def shade_two_pixels(
+        tsdf_weight: Any,
+        colour_volume: Any,
+        has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        u_a: int,
+        u_b: int,
+        v: int,
+        t_a: float,
+        t_b: float,
+        origin: Any,
+        a: tuple,
+        b: tuple,
+        volume_origin: Any,
+        voxel_size: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+    ) -> None:
+        """shade_pixel of pixels (u_a, v) and (u_b, v), whose rays (directions a and b) met the
+        surface at t_a and t_b (both finite), their normals taken together (gradient_normals)."""
+        ax, ay, az = voxel_coordinates(origin, a[0], a[1], a[2], t_a, volume_origin, voxel_size)
+        bx, by, bz = voxel_coordinates(origin, b[0], b[1], b[2], t_b, volume_origin, voxel_size)
+        n = gradient_normals(tsdf_weight, o0, o1, o2, ax, ay, az, bx, by, bz)
+        store_hit(
+            colour_volume, has_colour, o0, o1, o2, u_a, v, t_a, origin, a[0], a[1], a[2], ax, ay,
+            az, n[0], n[1], n[2], vertices, normals, colours,
+        )  # fmt: skip
+        store_hit(
+            colour_volume, has_colour, o0, o1, o2, u_b, v, t_b, origin, b[0], b[1], b[2], bx, by,
+            bz, n[3], n[4], n[5], vertices, normals, colours,
+        )  # fmt: skip
+
+    @jit
+    def store_hit(
+        colour_volume: Any,
+        has_colour: bool,
+        o0: int,
+        o1: int,
+        o2: int,
+        u: int,
+        v: int,
+        t: float,
+        origin: Any,
+        d0: float,
+        d1: float,
+        d2: float,
+        cx: float,
+        cy: float,
+        cz: float,
+        nx: float,
+        ny: float,
+        nz: float,
+        vertices: Any,
+        normals: Any,
+        colours: Any,
+    ) -> None:
+        """Writes pixel (u, v)'s vertex (the ray point at t), normal and colour (at voxel
+        coordinates c); nothing when the normal is NaN (no use to ICP: dropped)."""
         if math.isnan(nx):
-            return  # no usable normal: no use to ICP, dropped
-        vertices[v, u, 0], vertices[v, u, 1], vertices[v, u, 2] = px, py, pz
+            return
+        vertices[v, u, 0] = origin[0] + t * d0
+        vertices[v, u, 1] = origin[1] + t * d1
+        vertices[v, u, 2] = origin[2] + t * d2
         normals[v, u, 0], normals[v, u, 1], normals[v, u, 2] = nx, ny, nz
         if has_colour:
             r, g, b = surface_colour_at(colour_volume, o0, o1, o2, cx, cy, cz)
@@ -588,6 +663,8 @@ def build_ops(
         sample_along=sample_along,
         samples_to_leave=samples_to_leave,
         shade_pixel=shade_pixel,
+        shade_two_pixels=shade_two_pixels,
+        store_hit=store_hit,
         voxel_coordinates=voxel_coordinates,
         whole_fine=whole_fine,
         zero_crossing=zero_crossing,
