@@ -135,25 +135,26 @@ def run_columns(sequence, config: Config, args: argparse.Namespace, with_referen
     """One round: each backend's column (the cpu one followed at once by Open3D's, then the
     cpu variants); the reference only `with_reference`."""
     runs: dict[str, dict] = {}
-    for backend in [name for name in args.backends.split(",") if name]:
+
+    def add_open3d() -> None:
+        row = run_open3d(
+            sequence, config.volume.voxel_size, config.preprocess.max_depth, args.frames
+        )
+        if row is not None:
+            runs["open3d"] = row
+
+    backends = [name for name in args.backends.split(",") if name]
+    for backend in backends:
         if backend == "ref" and not with_reference:
             continue
         frames = args.ref_frames if backend == "ref" else args.frames
         runs[backend] = run_ours(sequence, backend, config, frames)
         if backend == "cpu":
-            open3d_row = run_open3d(
-                sequence, config.volume.voxel_size, config.preprocess.max_depth, args.frames
-            )
-            if open3d_row is not None:
-                runs["open3d"] = open3d_row
+            add_open3d()
             runs["cpu fast-odo"] = run_ours(sequence, "cpu", fast_odometry(config), frames)
             runs["cpu 1/3/6"] = run_ours(sequence, "cpu", open3d_iterations(config), frames)
-    if "open3d" not in runs:
-        open3d_row = run_open3d(
-            sequence, config.volume.voxel_size, config.preprocess.max_depth, args.frames
-        )
-        if open3d_row is not None:
-            runs["open3d"] = open3d_row
+    if "cpu" not in backends:
+        add_open3d()
     # Open3D's column last, as before
     return {name: runs[name] for name in sorted(runs, key=lambda name: name == "open3d")}
 
