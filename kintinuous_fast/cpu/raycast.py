@@ -468,15 +468,17 @@ def _raycast_loop(
 ):
     # Rays cost very different amounts: bands of BAND rows cast are handed out one at a time
     # (the caller sets the chunk size), so a thread that finishes early, or was descheduled,
-    # evens out. The thread that casts a band first clears its rows (NaN, black): numpy's
-    # fill of the three maps took ~2.5 ms on one thread, ~1.2 ms of a 2-thread raycast.
+    # evens out. Every pixel cast is written once, hit or miss; with a stride, the thread that
+    # casts a band first clears its rows (NaN, black) for the pixels left out (numpy's fill of
+    # the three maps took ~2.5 ms on one thread, ~1.2 ms of a 2-thread raycast).
     height, width = vertices.shape[0], vertices.shape[1]
     span = BAND * stride
     for band in prange(-(-height // span)):
         rows = slice(band * span, min((band + 1) * span, height))
-        vertices[rows] = np.nan
-        normals[rows] = np.nan
-        colours[rows] = 0
+        if stride > 1:
+            vertices[rows] = np.nan
+            normals[rows] = np.nan
+            colours[rows] = 0
         for v in range(band * span, min((band + 1) * span, height), stride):
             for u in range(0, width, 2 * stride):  # pixels two at a time
                 partner = stride if u + stride < width else 0

@@ -167,8 +167,8 @@ def raycast(
     vertices = cuda.device_array((*shape, 3), dtype=np.float32)
     normals = cuda.device_array((*shape, 3), dtype=np.float32)
     colours = cuda.device_array((*shape, 3), dtype=np.uint8)
-    grid = grid_2d(*shape)
-    _clear_kernel[grid, BLOCK_2D](vertices, normals, colours)
+    if stride > 1:  # the pixels cast are all written; only those left out need clearing
+        _clear_kernel[grid_2d(*shape), BLOCK_2D](vertices, normals, colours)
     has_colour = colour and volume.colour is not None
     colour_volume = (
         volume.colour if has_colour else cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))

@@ -376,10 +376,10 @@ def build_ops(
         and previous the F before it (surface_at refines them), or NaN: no surface."""
         entry, exit_ = ray[1], ray[2]
         t = entry + m * step
-        # The maps are read at the nominal coordinates (one multiply-add, no division). They
-        # differ from the exact ones (the reference's, used for the samples) by rounding
-        # only, so they name the same brick and fine brick unless within JUMP_MARGIN of a
-        # fine brick's face: there the exact ones decide.
+        # The maps are read, and the sample taken, at the nominal coordinates (one
+        # multiply-add, no division). They differ from the exact ones (the reference's) by
+        # rounding only, so they name the same brick and fine brick unless within JUMP_MARGIN
+        # of a fine brick's face: there the exact ones decide.
         cx, cy, cz = ray[3] + m * ray[6], ray[4] + m * ray[7], ray[5] + m * ray[8]
         wx, wy, wz = whole_fine(cx), whole_fine(cy), whole_fine(cz)
         if not (clear_of_faces(cx, wx) and clear_of_faces(cy, wy) and clear_of_faces(cz, wz)):
@@ -419,9 +419,9 @@ def build_ops(
             )  # fmt: skip
             previous_known = False
         else:
-            value = sample_along(
-                tsdf_weight, o0, o1, o2, origin, d0, d1, d2, t, volume_origin, voxel_size
-            )
+            # (~1e-13 voxels from the reference's sample, a change in F far below its float32
+            # output; recomputing the exact coordinates cost the cpu raycast ~2.5 %)
+            value = sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
             # A skipped sample is >= 0 or unknown, so after a jump the one before matters
             # only if this one is negative (a crossing, never a back face): fetched then.
             if not previous_known and value < 0:
@@ -514,8 +514,8 @@ def build_ops(
         """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
         march_ray from `safe_until` on (its near_starts, or 0), and with `partner` > 0 of
         pixel (u + partner, v) too, from partner_safe_until, the two rays marched in lockstep
-        (march_two_rays). `camera` is float64 (fx, fy, cx, cy); outputs were filled with NaN / 0
-        beforehand."""
+        (march_two_rays). `camera` is float64 (fx, fy, cx, cy). Every pixel cast is written,
+        hit or miss, so the caller clears only the pixels a stride leaves out."""
         a = ray_direction(u, v, camera, rotation)
         if partner > 0:
             b = ray_direction(u + partner, v, camera, rotation)
@@ -566,6 +566,7 @@ def build_ops(
     ) -> None:
         """Vertex, normal and colour of pixel (u, v) whose ray met the surface at t (NaN: none)."""
         if not math.isfinite(t):
+            store_miss(u, v, vertices, normals, colours)
             return
         cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
         nx, ny, nz = gradient_normal(tsdf_weight, o0, o1, o2, cx, cy, cz)
@@ -635,16 +636,27 @@ def build_ops(
         colours: Any,
     ) -> None:
         """Writes pixel (u, v)'s vertex (the ray point at t), normal and colour (at voxel
-        coordinates c); nothing when the normal is NaN (no use to ICP: dropped)."""
+        coordinates c; black without `has_colour`); a miss when the normal is NaN (no use to
+        ICP: dropped)."""
         if math.isnan(nx):
+            store_miss(u, v, vertices, normals, colours)
             return
         vertices[v, u, 0] = origin[0] + t * d0
         vertices[v, u, 1] = origin[1] + t * d1
         vertices[v, u, 2] = origin[2] + t * d2
         normals[v, u, 0], normals[v, u, 1], normals[v, u, 2] = nx, ny, nz
+        r, g, b = 0, 0, 0
         if has_colour:
             r, g, b = surface_colour_at(colour_volume, o0, o1, o2, cx, cy, cz)
-            colours[v, u, 0], colours[v, u, 1], colours[v, u, 2] = r, g, b
+        colours[v, u, 0], colours[v, u, 1], colours[v, u, 2] = r, g, b
+
+    @jit
+    def store_miss(u: int, v: int, vertices: Any, normals: Any, colours: Any) -> None:
+        """Writes pixel (u, v) as seeing no surface: NaN vertex and normal, black."""
+        for c in range(3):
+            vertices[v, u, c] = np.nan
+            normals[v, u, c] = np.nan
+            colours[v, u, c] = 0
 
     return SimpleNamespace(
         axis_interval=axis_interval,
@@ -665,6 +677,7 @@ def build_ops(
         shade_pixel=shade_pixel,
         shade_two_pixels=shade_two_pixels,
         store_hit=store_hit,
+        store_miss=store_miss,
         voxel_coordinates=voxel_coordinates,
         whole_fine=whole_fine,
         zero_crossing=zero_crossing,

@@ -101,24 +101,34 @@ def build_ops(
         fx = min(max(cx - bx, 0.0), 1.0)
         fy = min(max(cy - by, 0.0), 1.0)
         fz = min(max(cz - bz, 0.0), 1.0)
-        total = 0.0
-        coverage = 0.0
-        for a in range(2):
-            wa = fx if a else 1.0 - fx
-            ia = cell(bx + a, o0, n)
-            for b in range(2):
-                wb = fy if b else 1.0 - fy
-                ib = cell(by + b, o1, n)
-                for c in range(2):
-                    wc = fz if c else 1.0 - fz
-                    ic = cell(bz + c, o2, n)
-                    if tsdf_weight[ia, ib, ic, 1] > 0:
-                        w = wa * wb * wc
-                        total += w * float(dequantise(tsdf_weight[ia, ib, ic, 0]))
-                        coverage += w
+        i0, i1 = cell(bx, o0, n), cell(bx + 1, o0, n)
+        j0, j1 = cell(by, o1, n), cell(by + 1, o1, n)
+        k0, k1 = cell(bz, o2, n), cell(bz + 1, o2, n)
+        gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
+        t = tsdf_weight
+        # Summed as trees, not in a chain of eight: the march waits on every sample, and the
+        # chain's latency made the cpu raycast ~2 % slower.
+        w000, p000 = observed_corner(t, i0, j0, k0, gx * gy * gz)
+        w001, p001 = observed_corner(t, i0, j0, k1, gx * gy * fz)
+        w010, p010 = observed_corner(t, i0, j1, k0, gx * fy * gz)
+        w011, p011 = observed_corner(t, i0, j1, k1, gx * fy * fz)
+        w100, p100 = observed_corner(t, i1, j0, k0, fx * gy * gz)
+        w101, p101 = observed_corner(t, i1, j0, k1, fx * gy * fz)
+        w110, p110 = observed_corner(t, i1, j1, k0, fx * fy * gz)
+        w111, p111 = observed_corner(t, i1, j1, k1, fx * fy * fz)
+        total = ((p000 + p001) + (p010 + p011)) + ((p100 + p101) + (p110 + p111))
+        coverage = ((w000 + w001) + (w010 + w011)) + ((w100 + w101) + (w110 + w111))
         if not coverage > 1e-6:
             return np.nan
         return total / coverage
+
+    @jit
+    def observed_corner(tsdf_weight: Any, i: int, j: int, k: int, weight: float) -> tuple:
+        """(weight, weight * F) of stored voxel (i, j, k), or (0, 0) when it is unobserved
+        (branch free: both loads share a cache line)."""
+        value = float(dequantise(tsdf_weight[i, j, k, 0]))
+        observed = weight if tsdf_weight[i, j, k, 1] > 0 else 0.0
+        return observed, observed * value
 
     @jit
     def trilinear_tsdf(
@@ -379,6 +389,7 @@ def build_ops(
         count_negative=count_negative,
         fine_voxel_bit=fine_voxel_bit,
         negative_mask=negative_mask,
+        observed_corner=observed_corner,
         observed_negative=observed_negative,
         dequantise=dequantise,
         clipped_gradient=clipped_gradient,
