@@ -141,18 +141,17 @@ def test_cpu_fine_skipping_stops_at_a_back_face():
     np.testing.assert_array_equal(got.normals, want.normals)
 
 
-def test_cpu_fine_distance_is_the_capped_chessboard_distance():
-    """The cpu raycast's fine distance map (separable, vectorised) equals scipy's chessboard
-    distance transform, capped, including sizes that are not a multiple of anything and a map
-    without any near brick."""
+def test_cpu_capped_distance_is_the_capped_chessboard_distance():
+    """The cpu raycast's capped distance maps (separable, vectorised) equal scipy's chessboard
+    distance transform, capped, including sizes that are not a multiple of anything, caps
+    past the size, and a map without any near brick."""
     from scipy import ndimage
 
     rng = np.random.default_rng(3)
     for m, density in ((5, 0.05), (33, 0.002), (40, 0.0)):
         near = rng.random((m, m, m)) < density
-        for cap in (1, 3, 4, 8, 9, 16):  # shifts up to SHIFTS_UP_TO_CAP, sweeps above
-            got = np.empty(near.shape, dtype=np.uint8)
-            cpu_raycast._fine_distance(near, cap, np.empty_like(got), got)
+        for cap in (1, 3, 4, 8, 9, 16, 41, 60):  # 41, 60: shifts past the grid's size
+            got = cpu_raycast.capped_distance(near, cap)
             if near.any():
                 want = ndimage.distance_transform_cdt(~near, metric="chessboard")
                 want = np.minimum(want, cap)

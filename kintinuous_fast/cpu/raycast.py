@@ -45,9 +45,7 @@ BAND = 8  # pixel rows handed to a thread at a time
 # ray's entry shrinks by ENTRY_SLACK of itself, so that rounding never makes a start late.
 ENTRY_MARGIN = 1e-5
 ENTRY_SLACK = 1e-6
-# _fine_distance along rows: shifted copies up to this cap (vectorised; the fine map's cap 4:
-# 2.5 -> 1.3 ms on one thread), serial sweeps above it (the brick map's B + 1).
-SHIFTS_UP_TO_CAP = 8
+NEAR_BLOCK = 16  # near_starts looks for the next run of near bricks this many at a time
 
 
 # Bits of a fine brick's mask (ops.volume.fine_voxel_bit: 4 a + 2 b + c for voxel (a, b, c)
@@ -126,8 +124,6 @@ def _work_arrays(fine_bricks: int, bricks: int) -> SimpleNamespace:
         rows=np.empty(fine_shape, dtype=np.uint8),
         planes=np.empty(fine_shape, dtype=np.uint8),
         near=np.empty(fine_shape, dtype=np.bool_),
-        along=np.empty(fine_shape, dtype=np.uint8),
-        fine_distance=np.empty(fine_shape, dtype=np.uint8),
         negative=np.empty(shape, dtype=np.bool_),
     )
 
@@ -145,61 +141,78 @@ def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, SimpleNamespace]:
 def _brick_distance(negative: np.ndarray) -> np.ndarray:
     """kintinuous_ref.raycast._empty_space from its (B, B, B) map of bricks holding an observed
     negative voxel (int64). Growing by one brick and then taking the chessboard distance is the
-    chessboard distance less one, floored at 0; _fine_distance gives it with a cap (B + 1) that
-    no distance inside the grid reaches (numba, ~0.1 ms at B = 32 where scipy's dilation and
-    transform took ~1.4)."""
+    chessboard distance less one, floored at 0; capped_distance gives it with a cap (B + 1)
+    that no distance inside the grid reaches (numba, ~0.1 ms at B = 32 where scipy's dilation
+    and transform took ~1.4)."""
     b = negative.shape[0]
     if not negative.any():
         return np.full(negative.shape, 2 * b, dtype=np.int64)  # nothing anywhere: skip it all
-    distance = np.empty(negative.shape, dtype=np.uint8)
-    _fine_distance(negative, b + 1, np.empty_like(distance), distance)
+    distance = capped_distance(negative, b + 1)
     return np.maximum(distance.astype(np.int64) - 1, 0)
 
 
+def capped_distance(near: np.ndarray, cap: int) -> np.ndarray:
+    """min(cap, chessboard distance to the nearest True of `near` (M, M, M)), uint8, cap < 255:
+    a work array that the next call for the same size and cap overwrites."""
+    work = _distance_work(near.shape[0], cap)
+    _capped_distance_passes(near, cap, *work)
+    return work[0]
+
+
+@functools.lru_cache(maxsize=4)
+def _distance_work(m: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """capped_distance's result and two work arrays for one size and cap, kept from frame to
+    frame; the work arrays' rows are padded by cap - 1 on both sides (_capped_distance_passes)."""
+    padded = (m, m, m + 2 * (cap - 1))
+    return (
+        np.empty((m, m, m), dtype=np.uint8),
+        np.empty(padded, dtype=np.uint8),
+        np.empty(padded, dtype=np.uint8),
+    )
+
+
 @numba.njit(parallel=True, cache=True)
-def _fine_distance(near, cap, along, out):
-    """out = min(cap, chessboard distance in fine bricks to the nearest `near` one), uint8,
-    cap < 255. Separable (the chessboard metric is the max of the per-axis distances, so the
-    minimum can be taken one axis at a time): along each axis d(x) = min over |k| < cap of
-    max(k, d(x + k e)), as elementwise operations on whole rows (axis 2, from 0 at near
-    bricks and cap elsewhere) and on whole planes of uint8 (axes 1 and 0), which vectorise.
-    Along axis 2 a large cap takes two serial sweeps per row instead (their cost does not
-    grow with the cap). `along` is work space of out's shape."""
+def _capped_distance_passes(near, cap, out, result, work):
+    """out = capped_distance(near, cap), by way of `result` and `work`, (M, M, M + 2 pad) with
+    pad = cap - 1. Separable (the chessboard metric is the max of the per-axis
+    distances, so the minimum can be taken one axis at a time): along each axis
+    d(x) = min over |k| < cap of max(k, d(x + k e)), from 0 at near entries and cap elsewhere.
+    Each pass is elementwise over whole planes of uint8, which vectorises: shifts by k entries
+    (axis 2: rows padded with cap, which never lowers a minimum, so no row reads the next), by
+    k rows (axis 1) and by k planes (axis 0). The passes may lower a pad; no entry reads one
+    after the first pass. Shifting each row of 128 on its own cost more than the shifts: the
+    fine map took 2.5 ms on one thread, 0.7 now (session 12)."""
     m = near.shape[0]
+    pad = cap - 1
+    row = m + 2 * pad
     top = np.uint8(cap)
-    for p in prange(m):
+    for p in prange(m):  # along axis 2
+        plane = work[p]
         for f1 in range(m):
-            if cap > SHIFTS_UP_TO_CAP:
-                _sweeps(near[p, f1], along[p, f1], top)
-                continue
-            start = out[p, f1]  # work space here: the axis-1 pass overwrites it
-            _zero_at_near(near[p, f1], top, start)
-            _shifted_min_max(start, cap, along[p, f1], 1)
-    for p in prange(m):  # along axis 1: shifts by whole rows inside the plane p
+            plane[f1, :pad] = top
+            plane[f1, pad + m :] = top
+            _zero_at_near(near[p, f1], top, plane[f1, pad : pad + m])
+        _shifted_min_max(plane.reshape(m * row), cap, result[p].reshape(m * row), 1)
+    for p in prange(m):  # along axis 1
+        _shifted_min_max(result[p].reshape(m * row), cap, work[p].reshape(m * row), row)
+    for p in prange(m):  # along axis 0
         f0 = np.int64(p)  # prange gives unsigned indices: signed arithmetic below
-        _shifted_min_max(along[f0].reshape(m * m), cap, out[f0].reshape(m * m), m)
-    for p in prange(m):  # along axis 0: whole planes
-        f0 = np.int64(p)
-        target = along[f0].reshape(m * m)
-        target[:] = out[f0].reshape(m * m)
+        target = result[f0].reshape(m * row)
+        target[:] = work[f0].reshape(m * row)
         for k in range(1, min(cap, m)):
             for g in (f0 - k, f0 + k):
                 if 0 <= g < m:
-                    _min_max(target, out[g].reshape(m * m), np.uint8(k))
-    out[...] = along
+                    _min_max(target, work[g].reshape(m * row), np.uint8(k))
+        for f1 in range(m):
+            _copy(result[f0, f1, pad : pad + m], out[f0, f1])
 
 
 @numba.njit(cache=True, inline="always")
-def _sweeps(near_row, row, top):
-    """row = min(top, distance along the row to the nearest near_row entry)."""
-    d = top
-    for j in range(row.shape[0]):
-        d = np.uint8(0) if near_row[j] else min(np.uint8(d + np.uint8(1)), top)
-        row[j] = d
-    d = top
-    for j in range(row.shape[0] - 1, -1, -1):
-        d = min(row[j], min(np.uint8(d + np.uint8(1)), top))
-        row[j] = d
+def _copy(source, target):
+    """target = source, elementwise over 1-d arrays (numba's slice assignment took 5x longer
+    on rows of 128)."""
+    for j in range(target.shape[0]):
+        target[j] = source[j]
 
 
 @numba.njit(cache=True, inline="always")
@@ -240,9 +253,9 @@ def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
 def _skip_maps_and_near(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """skip_maps and the `near` map of fine bricks they come from (work arrays)."""
     empty, work = _brick_maps(volume)
-    _fine_distance(work.near, FINE_DISTANCE_CAP, work.along, work.fine_distance)
+    fine_distance = capped_distance(work.near, FINE_DISTANCE_CAP)
     # uint8: the map stays in the first-level cache; a smaller distance only means shorter jumps
-    return np.minimum(empty, 255).astype(np.uint8), work.fine_distance, work.near
+    return np.minimum(empty, 255).astype(np.uint8), fine_distance, work.near
 
 
 def empty_space(volume: FastTsdfVolume) -> np.ndarray:
@@ -278,11 +291,10 @@ def _near_box_starts(
         for i in range(c, m, chunks):  # slabs dealt round-robin: surfaces spread over them
             for j in range(m):
                 row = near[i, j]
-                k = 0
+                if not _any(row, 0, m):  # most rows: scanning them byte by byte took ~1 ms
+                    continue
+                k = _next_near(row, 0)
                 while k < m:  # each run of near bricks along k is one box
-                    if not row[k]:
-                        k += 1
-                        continue
                     end = k + 1
                     while end < min(m, k + longest) and row[end]:
                         end += 1
@@ -290,7 +302,31 @@ def _near_box_starts(
                         i, j, k, end - k, offset, steps, camera, origin, volume_origin, size,
                         inverse, starts[c],
                     )  # fmt: skip
-                    k = end
+                    k = _next_near(row, end)
+
+
+@numba.njit(cache=True, inline="always")
+def _any(row, start, stop):
+    """Whether any of row[start:stop] is True (an OR over the block, vectorised)."""
+    seen = False
+    for k in range(start, stop):
+        seen |= row[k]
+    return seen
+
+
+@numba.njit(cache=True, inline="always")
+def _next_near(row, k):
+    """The first index >= k of a True entry of `row` (its length if none), passing over
+    aligned blocks of NEAR_BLOCK entries that hold none."""
+    m = row.shape[0]
+    while k < m:
+        if k % NEAR_BLOCK == 0 and k + NEAR_BLOCK <= m and not _any(row, k, k + NEAR_BLOCK):
+            k += NEAR_BLOCK
+        elif row[k]:
+            return k
+        else:
+            k += 1
+    return m
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
