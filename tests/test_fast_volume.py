@@ -164,3 +164,35 @@ def test_equivalence_cpu_colour_weights(angle, check):
     got = cpu_colour.colour_weights(frame, config)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, colour_weights(frame, config))
+
+
+@pytest.mark.parametrize("pose_index", [0, 3], ids=["facing", "turned"])
+def test_cpu_integration_visits_every_voxel_the_reference_updates(pose_index):
+    """The column ranges cpu integration visits (cpu.tsdf._columns_to_visit: bricks that may
+    hold an update, from a max pyramid of lambda D) hold every voxel that the reference's
+    integration of the frame updates, and leave out a real share of the frustum's voxels
+    (those far behind the wall)."""
+    from kintinuous_fast._volume import camera_frame_steps, frustum_box
+
+    height, width, n = 120, 160, 64
+    camera = fe.camera_for(height, width)
+    config = VolumeConfig(resolution=n, size=4.0)
+    pose = fe.moving_poses(4)[pose_index]
+    depth = fe.scene_depth(height, width, seed=pose_index)
+    reference = ref_tsdf.make_volume(config, fe.moving_poses(1)[0])
+    ref_tsdf.integrate(reference, depth, pose, camera)
+    updated = np.argwhere(reference.weight > 0)
+    assert len(updated) > 0.05 * n**3  # a real test
+
+    fast = cpu_tsdf.make_volume(config, fe.moving_poses(1)[0])
+    box = frustum_box(fast, float(depth.max()), pose, camera)
+    ray_distance = np.empty(depth.size + 1, dtype=np.float32)
+    cpu_tsdf._ray_distance_loop(depth, camera.fx, camera.fy, camera.cx, camera.cy, ray_distance)
+    base, steps = camera_frame_steps(fast, pose)
+    visit = cpu_tsdf._columns_to_visit(fast, box, base, steps, camera, ray_distance, pose)
+    bundle = visit[updated[:, 0] // cpu_tsdf.CULL_BRICK[0], updated[:, 1] // cpu_tsdf.CULL_BRICK[1]]
+    assert np.all((bundle[:, 0] <= updated[:, 2]) & (updated[:, 2] < bundle[:, 1]))
+    i, j = np.mgrid[box[0][0] : box[1][0], box[0][1] : box[1][1]]
+    columns = visit[i // cpu_tsdf.CULL_BRICK[0], j // cpu_tsdf.CULL_BRICK[1]]
+    visited = np.maximum(columns[..., 1] - columns[..., 0], 0).sum()
+    assert visited < 0.8 * np.prod(box[1] - box[0])
