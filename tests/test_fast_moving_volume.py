@@ -151,7 +151,7 @@ def test_cpu_capped_distance_is_the_capped_chessboard_distance():
     for m, density in ((5, 0.05), (33, 0.002), (40, 0.0)):
         near = rng.random((m, m, m)) < density
         for cap in (1, 3, 4, 8, 9, 16, 41, 60):  # 41, 60: shifts past the grid's size
-            got = cpu_raycast.capped_distance(near, cap)
+            got = cpu_raycast._capped_distance(near, cap)
             if near.any():
                 want = ndimage.distance_transform_cdt(~near, metric="chessboard")
                 want = np.minimum(want, cap)

@@ -141,17 +141,17 @@ def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, SimpleNamespace]:
 def _brick_distance(negative: np.ndarray) -> np.ndarray:
     """kintinuous_ref.raycast._empty_space from its (B, B, B) map of bricks holding an observed
     negative voxel (int64). Growing by one brick and then taking the chessboard distance is the
-    chessboard distance less one, floored at 0; capped_distance gives it with a cap (B + 1)
+    chessboard distance less one, floored at 0; _capped_distance gives it with a cap (B + 1)
     that no distance inside the grid reaches (numba, ~0.1 ms at B = 32 where scipy's dilation
     and transform took ~1.4)."""
     b = negative.shape[0]
     if not negative.any():
         return np.full(negative.shape, 2 * b, dtype=np.int64)  # nothing anywhere: skip it all
-    distance = capped_distance(negative, b + 1)
+    distance = _capped_distance(negative, b + 1)
     return np.maximum(distance.astype(np.int64) - 1, 0)
 
 
-def capped_distance(near: np.ndarray, cap: int) -> np.ndarray:
+def _capped_distance(near: np.ndarray, cap: int) -> np.ndarray:
     """min(cap, chessboard distance to the nearest True of `near` (M, M, M)), uint8, cap < 255:
     a work array that the next call for the same size and cap overwrites."""
     work = _distance_work(near.shape[0], cap)
@@ -161,7 +161,7 @@ def capped_distance(near: np.ndarray, cap: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=4)
 def _distance_work(m: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """capped_distance's result and two work arrays for one size and cap, kept from frame to
+    """_capped_distance's result and two work arrays for one size and cap, kept from frame to
     frame; the work arrays' rows are padded by cap - 1 on both sides (_capped_distance_passes)."""
     padded = (m, m, m + 2 * (cap - 1))
     return (
@@ -173,7 +173,7 @@ def _distance_work(m: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 @numba.njit(parallel=True, cache=True)
 def _capped_distance_passes(near, cap, out, result, work):
-    """out = capped_distance(near, cap), by way of `result` and `work`, (M, M, M + 2 pad) with
+    """out = _capped_distance(near, cap), by way of `result` and `work`, (M, M, M + 2 pad) with
     pad = cap - 1. Separable (the chessboard metric is the max of the per-axis
     distances, so the minimum can be taken one axis at a time): along each axis
     d(x) = min over |k| < cap of max(k, d(x + k e)), from 0 at near entries and cap elsewhere.
@@ -253,7 +253,7 @@ def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
 def _skip_maps_and_near(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """skip_maps and the `near` map of fine bricks they come from (work arrays)."""
     empty, work = _brick_maps(volume)
-    fine_distance = capped_distance(work.near, FINE_DISTANCE_CAP)
+    fine_distance = _capped_distance(work.near, FINE_DISTANCE_CAP)
     # uint8: the map stays in the first-level cache; a smaller distance only means shorter jumps
     return np.minimum(empty, 255).astype(np.uint8), fine_distance, work.near
 
