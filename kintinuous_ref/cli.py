@@ -407,6 +407,10 @@ def _add_benchmark(commands: argparse._SubParsersAction) -> None:
         help=FAST_ODOMETRY_HELP,
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--config", type=Path, help="JSON file of configuration values")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="as for reconstruct"
+    )
     parser.set_defaults(handler=_run_benchmark)
 
 
@@ -414,9 +418,10 @@ def _run_benchmark(args: argparse.Namespace) -> None:
     import json
 
     from kintinuous_fast.benchmark import benchmark, format_table
-    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
+    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry, with_overrides
 
     config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
+    config = with_overrides(config, _config_overrides(args.config, args.set))
     if args.fast_odometry:
         config = fast_odometry(config)
     report = benchmark(

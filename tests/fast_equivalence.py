@@ -94,6 +94,19 @@ def depth_cases(height: int, width: int) -> dict[str, np.ndarray]:
 # Comparison
 
 
+# A GPU contracts a * b + c into one fused multiply-add (one rounding where NumPy rounds twice), so
+# on real hardware float32 results may differ from the reference in the last bit. The CPU loops
+# and the simulator round as NumPy does and stay bit-exact; test_fast_cuda.py sets CONTRACTED on a
+# GPU, and the checks below that demand exactness then allow these tolerances instead.
+CONTRACTED = False
+
+
+def last_bits(atol: float) -> dict[str, float]:
+    """{} (exact), or on a contracting GPU {atol, rtol}: a few float32 ulps of values whose
+    magnitude makes `atol` a few ulps (1e-6 for unit normals, 1e-4 for 0..255 intensities)."""
+    return {"atol": atol, "rtol": 1e-6} if CONTRACTED else {}
+
+
 def assert_equivalent(
     name: str, fast: np.ndarray, reference: np.ndarray, atol: float = 0.0, rtol: float = 0.0
 ) -> None:
@@ -172,13 +185,18 @@ def check_vertex_normal_maps(impl: ModuleType, height: int, width: int) -> None:
     for name, depth in depth_cases(height, width).items():
         vertices = ref.vertex_map(depth, camera)
         assert_equivalent(f"vertex_map {name}", impl.vertex_map(depth, camera), vertices)
-        assert_equivalent(f"normal_map {name}", impl.normal_map(vertices), ref.normal_map(vertices))
+        assert_equivalent(
+            f"normal_map {name}",
+            impl.normal_map(vertices),
+            ref.normal_map(vertices),
+            **last_bits(1e-6),
+        )
 
 
 def check_intensity(impl: ModuleType, height: int, width: int) -> None:
     colour = scene_colour(height, width)
     intensity = ref.intensity_image(colour)
-    assert_equivalent("intensity_image", impl.intensity_image(colour), intensity)
+    assert_equivalent("intensity_image", impl.intensity_image(colour), intensity, **last_bits(1e-4))
     for sigma in (0.8,) if QUICK else (0.8, 2.0):
         fast_dx, fast_dy = impl.intensity_gradients(intensity, sigma)
         ref_dx, ref_dy = ref.intensity_gradients(intensity, sigma)
@@ -230,9 +248,13 @@ def compare_frames(fast: ref.PreprocessedFrame, reference: ref.PreprocessedFrame
         # vertices come from the bilateral-filtered depth: its tolerance carries over
         assert_equivalent(f"level {index} vertices", a.vertices, b.vertices, atol=1e-6, rtol=2.4e-7)
         assert_equivalent(f"level {index} normals", a.normals, b.normals, atol=1e-4)
-        assert_equivalent(f"level {index} intensity", a.intensity, b.intensity)
-        assert_equivalent(f"level {index} intensity_dx", a.intensity_dx, b.intensity_dx)
-        assert_equivalent(f"level {index} intensity_dy", a.intensity_dy, b.intensity_dy)
+        for name in ("intensity", "intensity_dx", "intensity_dy"):
+            assert_equivalent(
+                f"level {index} {name}",
+                getattr(a, name),
+                getattr(b, name),
+                **last_bits(1e-4),
+            )
 
 
 # ----------------------------------------------------------------------------------------------

@@ -31,3 +31,13 @@ def test_benchmark_json_reports_stages_and_fps(capsys, fast):
     assert parts <= stages["total"]["mean"] * (1 + 1e-9)
     assert report["fps"] == pytest.approx(1000.0 / stages["total"]["median"])
     assert np.isfinite(report["fps"])
+
+
+def test_benchmark_takes_configuration_overrides(capsys):
+    # --set reaches the benchmarked configuration (as for reconstruct), after --resolution
+    arguments = ["benchmark", str(TINY_DESK), "--backend", "cpu", "--frames", "2", "--json"]
+    arguments += ["--resolution", "32", "--set", "icp.iterations=[3,2,1]"]
+    main(arguments + ["--set", "volume.moving=false"])
+    report = json.loads(capsys.readouterr().out)
+    assert report["icp_iterations"] == [3, 2, 1]
+    assert report["resolution"] == 32

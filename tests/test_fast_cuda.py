@@ -29,6 +29,12 @@ RADIUS = 3 if SIMULATED else 6
 SIM_CONFIG = PreprocessConfig(bilateral_radius=RADIUS, pyramid_levels=3)
 
 
+@pytest.fixture(autouse=True)
+def gpu_rounding(monkeypatch):
+    # fused multiply-adds on real hardware (fast_equivalence.CONTRACTED), for these tests only
+    monkeypatch.setattr(fe, "CONTRACTED", not SIMULATED)
+
+
 @pytest.fixture(scope="module")
 def gpu():
     from kintinuous_fast.cuda import preprocess

@@ -247,14 +247,12 @@ class FastDenseTracker(RefDenseTracker):
         return compare(previous, current)
 
     def _problem(self, previous, current, model, previous_pose):  # noqa: ANN001, ANN202
-        from kintinuous_ref.preprocess import model_pyramid
-
         levels = len(self.iterations)
         icp = rgbd = None
         if self.method in ("icp", "icp+rgbd"):
             icp = self.kernels.IcpProblem(
                 current.levels,
-                model_pyramid(model.vertices, model.normals, levels),
+                self.kernels.model_pyramid(model.vertices, model.normals, levels),
                 model.pose,
                 self.config.icp.distance_threshold,
                 self.config.icp.angle_threshold_deg,

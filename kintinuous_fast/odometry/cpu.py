@@ -24,6 +24,7 @@ from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
 from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
+from kintinuous_ref.preprocess import model_pyramid
 
 from . import _host
 from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, build_ops
@@ -47,6 +48,7 @@ __all__ = [
     "interest_points",
     "joint_system",
     "make_tracker",
+    "model_pyramid",
     "photometric_rows",
     "point_to_plane_rows",
     "prepare_level",

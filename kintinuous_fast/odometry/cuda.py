@@ -28,6 +28,7 @@ import numpy as np
 from numba import cuda, float64, int32, int64
 
 from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, is_device, to_device
+from kintinuous_fast.cuda.preprocess import model_pyramid
 from kintinuous_fast.ops import cuda_device_jit
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
@@ -59,6 +60,7 @@ __all__ = [
     "interest_points",
     "joint_system",
     "make_tracker",
+    "model_pyramid",
     "photometric_rows",
     "point_to_plane_rows",
     "prepare_level",

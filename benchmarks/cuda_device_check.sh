@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# The checks that need a GPU, in one go: the CUDA equivalence tests on the device (sizes of the
+# CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 256^3 and 512^3.
+# Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
+# (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
+# Writes cuda_tests.log and bench_cuda_{256,512}.json into OUT_DIR (default: the current folder).
+set -u
+data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
+out=${2:-.}
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
+date -u
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', numpy.__version__)"
+python3 -m kintinuous_ref.cli info
+timeout 200 python3 -m pytest -q -p no:cacheprovider --continue-on-collection-errors -k cuda \
+    tests/test_fast_cuda.py tests/test_fast_cuda_pipeline.py tests/test_fast_odometry_cuda.py \
+    tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \
+    2>&1 | tee "$out/cuda_tests.log" | tail -40
+for resolution in 256 512; do
+    start=$(date +%s)
+    timeout 100 python3 -m kintinuous_ref.cli benchmark "$data" --backend cuda "${@:3}" \
+        --resolution "$resolution" --frames 100 --json >"$out/bench_cuda_$resolution.json"
+    echo "benchmark $resolution^3: exit $?, $(($(date +%s) - start)) s wall, compilation included"
+    python3 -m json.tool "$out/bench_cuda_$resolution.json" | head -60
+done
+# the NumPy reference on the same machine, for the ratio (a few frames: seconds each)
+timeout 120 python3 -m kintinuous_ref.cli benchmark "$data" --backend ref "${@:3}" --frames 4 \
+    --json >"$out/bench_ref_256.json"
+python3 -m json.tool "$out/bench_ref_256.json" | grep -A3 '"total"'
