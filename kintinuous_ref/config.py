@@ -99,6 +99,9 @@ class CombinedConfig:
     # "original-code": A = A_rgbd + 100 A_icp, b = b_rgbd + 10 b_icp (the public code's scaling)
     weighting: str = "paper"
     original_code_icp_scale: float = 10.0  # "original-code": A_rgbd + s^2 A_icp, b_rgbd + s b_icp
+    # "degeneracy-aware": ICP eigen-directions observed by less than this share of its pairs are
+    # left to RGB-D (odometry/combined.py)
+    degeneracy_threshold: float = 0.02
 
 
 @dataclass(frozen=True)

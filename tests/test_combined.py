@@ -9,10 +9,16 @@ import pytest
 
 from kintinuous_ref import se3
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.odometry.combined import CombinedProblem, joint_system
+from kintinuous_ref.odometry.combined import (
+    DEGENERACY_THRESHOLD,
+    CombinedProblem,
+    information_spectrum,
+    joint_system,
+    without_degenerate_directions,
+)
 from kintinuous_ref.odometry.icp import IcpProblem, associate, point_to_plane_rows
 from kintinuous_ref.odometry.rgbd import RgbdProblem, correspond, photometric_rows
-from kintinuous_ref.odometry.solve import refine
+from kintinuous_ref.odometry.solve import accumulate, refine, solve
 
 
 def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -111,3 +117,83 @@ def test_corridor_icp_is_singular_and_joint_holds():
     assert reason == ""
     translation_mm, rotation_deg = pose_error(estimate, current)
     assert translation_mm < 1.0 and rotation_deg < 0.1
+
+
+def corridor_systems(camera: np.ndarray, truth: np.ndarray):
+    """ICP rows of a corridor along world z (walls x = +-1, floor and ceiling y = +-1 around the
+    camera) with 2 % stray normals that pull 20 mm along z, and exact-but-noisy RGB-D rows that
+    see every direction: the case the degeneracy-aware weighting is for."""
+    rng = np.random.default_rng(0)
+    count = 4000
+    side, across = rng.integers(0, 4, count), rng.uniform(-1, 1, count)
+    points, normals = np.zeros((3, count)), np.zeros((3, count))
+    for k, (axis, sign) in enumerate(((0, 1), (0, -1), (1, 1), (1, -1))):
+        wall = side == k
+        normals[axis, wall] = -sign
+        points[axis, wall] = camera[axis] + sign
+        points[1 - axis, wall] = camera[1 - axis] + across[wall]
+    points[2] = camera[2] + rng.uniform(0.5, 6, count)
+    stray = rng.choice(count, count // 50, replace=False)
+    normals[:, stray] += rng.normal(0, 0.3, (3, stray.size)) + np.array([[0], [0], [0.5]])
+    normals /= np.linalg.norm(normals, axis=0)
+    jacobian = np.concatenate([np.cross(points, normals, axis=0), normals])
+    residuals = -(jacobian.T @ truth) + rng.normal(0, 0.002, count)
+    residuals[stray] += 0.02
+    # photometric rows carry ~2e3 per pair here (real frames: 1e4-1e5 in the scaled coordinates)
+    photometric = rng.normal(0, 40, (6, 3000)) * np.array([[3, 3, 3, 1, 1, 1]]).T
+    rgbd = accumulate(photometric, -(photometric.T @ truth) + rng.normal(0, 0.4, 3000))
+    return accumulate(jacobian, residuals), rgbd, points, normals, residuals
+
+
+def test_degeneracy_aware_leaves_the_corridor_direction_to_rgbd():
+    camera = np.array([5.0, -3.0, 10.0])
+    truth = np.array([0.002, -0.001, 0.003, 0.01, -0.02, 0.015])
+    icp, rgbd, *_ = corridor_systems(camera, truth)
+    eigenvalues, eigenvectors, _ = information_spectrum(icp, camera)
+    # one direction observed by ~0.4 % of the pairs: the translation along the corridor
+    assert eigenvalues[0] < DEGENERACY_THRESHOLD < eigenvalues[1]
+    assert abs(eigenvectors[5, 0]) > 0.99
+    along = {}
+    for weighting in ("paper", "degeneracy-aware"):
+        xi, reason = solve(joint_system(icp, rgbd, 1.0, weighting, camera_position=camera))
+        assert reason == ""
+        along[weighting] = abs(xi[5] - truth[5])
+    rgbd_alone, _ = solve(rgbd)
+    icp_alone, _ = solve(icp)
+    assert abs(icp_alone[5] - truth[5]) > 0.03  # ICP alone slides with its stray normals
+    # the sum is still pulled by them; without ICP's unobserved direction it is RGB-D's estimate
+    assert along["paper"] > 1.8 * along["degeneracy-aware"]
+    assert along["degeneracy-aware"] < 1.1 * abs(rgbd_alone[5] - truth[5])
+    # a well-observed system is left as it is, and so is one whose partner knows even less (in
+    # the dark, RGB-D cannot take the corridor over)
+    assert without_degenerate_directions(icp, camera, 0.0) is icp
+    dark = rgbd.scaled(1e-6)
+    assert without_degenerate_directions(icp, camera, 0.02, 1 / 0.005**2, dark) is icp
+
+
+def test_information_spectrum_does_not_depend_on_the_world_origin():
+    camera, truth = np.array([5.0, -3.0, 10.0]), np.zeros(6)
+    icp, _, points, normals, residuals = corridor_systems(camera, truth)
+    offset = np.array([[-40.0], [12.0], [7.0]])
+    moved = accumulate(
+        np.concatenate([np.cross(points + offset, normals, axis=0), normals]), residuals
+    )
+    np.testing.assert_allclose(
+        information_spectrum(moved, camera + offset[:, 0])[0],
+        information_spectrum(icp, camera)[0],
+        rtol=1e-8,
+        atol=1e-12,
+    )
+
+
+def test_information_and_elasticfusion_weightings(room):
+    previous, current, icp, rgbd = room
+    pose = previous @ se3.exp(0.5 * se3.log(se3.inverse(previous) @ current))
+    a, b = icp.system(1, pose), rgbd.system(1, pose)
+    joint = joint_system(a, b, 0.5, "information")
+    expected = a.A / (a.cost / a.count) + 0.5 * b.A / (b.cost / b.count)
+    np.testing.assert_allclose(joint.A, expected, rtol=1e-12)
+    # ElasticFusion combines A_rgbd + w^2 A_icp, b_rgbd + w b_icp: the authors' Kintinuous code
+    ef = joint_system(a, b, weighting="elasticfusion", original_code_icp_scale=10.0)
+    np.testing.assert_allclose(ef.A, b.A + 100 * a.A, rtol=1e-12)
+    np.testing.assert_allclose(ef.b, b.b + 10 * a.b, rtol=1e-12)

@@ -268,14 +268,7 @@ class FastDenseTracker(RefDenseTracker):
                 self.config.rgbd.gradient,
             )
         if icp is not None and rgbd is not None:
-            combined = self.config.combined
-            return CombinedProblem(
-                icp,
-                rgbd,
-                combined.rgbd_weight,
-                combined.weighting,
-                combined.original_code_icp_scale,
-            )
+            return CombinedProblem.from_config(icp, rgbd, self.config.combined)
         return icp if icp is not None else rgbd
 
 

@@ -39,6 +39,22 @@ texture; the literal sum with ICP in metres ("paper-metres") lets a photometric 
 geometric one about a thousandfold, i.e. frame-to-frame RGB-D drift on real data. w = 1 is the
 only one of these that meets all of issue 4's targets at once.
 
+The other weightings (docs/odometry.md measures each on every scene):
+
+- "information": both terms in units of their own noise, E_icp / sigma_icp^2 + w E_rgbd /
+  sigma_rgbd^2, sigma_rgbd^2 the mean squared *weighted* photometric residual (inverse-variance
+  weighting of each term as a whole).
+- "degeneracy-aware" (Zhang, Kaess and Singh, ICRA 2016): "paper", except that ICP says nothing
+  along the directions it cannot observe. Its information matrix is taken about the camera
+  (a twist that rotates about the camera centre, so that rotations and translations separate),
+  rotations scaled by the RMS lever arm rho of the pairs, and divided by the pair count: a
+  dimensionless 6x6 whose eigenvalues say what share of the pairs constrains each direction
+  (the translational ones sum to 1). Eigen-directions below `degeneracy_threshold` are removed
+  from the ICP term (its A and b projected onto the others), so RGB-D alone decides them: the
+  walking direction in a corridor of flat walls, the in-plane motion over a floor.
+- "elasticfusion": ElasticFusion's combination, which is the authors' Kintinuous code's
+  ("original-code") formula with its own ICP weight of 10: the same system.
+
 `weighting="original-code"` reproduces the authors' public code instead: A = A_rgbd + s^2 A_icp,
 b = b_rgbd + s b_icp with s = 10 (config.combined.original_code_icp_scale). A and b are scaled
 inconsistently there, so its step is not the minimiser of any weighted sum of the two costs; it is
@@ -49,15 +65,27 @@ from __future__ import annotations
 
 import numpy as np
 
+from kintinuous_ref import se3
+from kintinuous_ref.config import CombinedConfig
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
 
-WEIGHTINGS = ("paper", "paper-metres", "original-code")
+WEIGHTINGS = (
+    "paper",
+    "paper-metres",
+    "original-code",
+    "elasticfusion",
+    "information",
+    "degeneracy-aware",
+)
 # Floor of the ICP residual scale (metres): far below any depth sensor's noise, it only keeps a
 # perfect, noise-free alignment from dividing by zero.
 MIN_ICP_SCALE = 1e-4
+# "degeneracy-aware": an eigen-direction of ICP's per-pair information (module docstring) below
+# this share is one that ICP does not observe (config.combined.degeneracy_threshold).
+DEGENERACY_THRESHOLD = 0.02
 
 
 def icp_scale(icp: LinearSystem) -> float:
@@ -67,23 +95,105 @@ def icp_scale(icp: LinearSystem) -> float:
     return max(float(np.sqrt(icp.cost / icp.count)), MIN_ICP_SCALE)
 
 
+def rgbd_scale(rgbd: LinearSystem) -> float:
+    """sigma_rgbd: the RMS weighted photometric residual (dimensionless), at least 1e-6."""
+    if rgbd.count == 0:
+        return 1.0
+    return max(float(np.sqrt(rgbd.cost / rgbd.count)), 1e-6)
+
+
+def about_camera(camera_position: np.ndarray) -> np.ndarray:
+    """M with xi = M xi_c: xi_c = [omega, t] rotates by omega about the camera centre c and then
+    translates by t, the world-frame twist xi = [omega, u] about the world origin has
+    u = t + c x omega (both move a point p by omega x p + u to first order)."""
+    change = np.eye(6)
+    change[3:, :3] = se3.skew(np.asarray(camera_position, dtype=np.float64))
+    return change
+
+
+def information_spectrum(
+    icp: LinearSystem, camera_position: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ICP's dimensionless per-pair information about the camera: (eigenvalues ascending,
+    eigenvectors as columns, D) with eigen-decomposition of D M^T A M D / count, where
+    D = diag(1 / rho x3, 1 x3) and rho^2 = trace of the rotational block / trace of the
+    translational one (the mean squared lever arm of the pairs)."""
+    change = about_camera(camera_position)
+    centred = change.T @ icp.A @ change
+    translational = max(float(np.trace(centred[3:, 3:])), 1e-300)
+    lever = np.sqrt(max(float(np.trace(centred[:3, :3])), 1e-300) / translational)
+    scale = np.diag([1 / lever] * 3 + [1.0] * 3)
+    eigenvalues, eigenvectors = np.linalg.eigh(scale @ centred @ scale / max(icp.count, 1))
+    return eigenvalues, eigenvectors, scale
+
+
+def without_degenerate_directions(
+    icp: LinearSystem,
+    camera_position: np.ndarray,
+    threshold: float = DEGENERACY_THRESHOLD,
+    icp_weight: float = 1.0,
+    other: LinearSystem | None = None,
+) -> LinearSystem:
+    """The ICP system with A and b projected off its unobserved eigen-directions
+    (`information_spectrum` below `threshold`); unchanged when it observes all six. With
+    `other` (the other term, weighted), a direction is given up only where `other` holds more
+    information than ICP would at the threshold (`icp_weight` * threshold * pairs): in the dark,
+    ICP keeps what it has."""
+    eigenvalues, eigenvectors, scale = information_spectrum(icp, camera_position)
+    # In the scaled coordinates eta (xi = M D eta): A_eta = D M^T A M D, b_eta = D M^T b.
+    to_scaled = about_camera(camera_position) @ scale
+    weak = eigenvalues < threshold
+    if other is not None:
+        other_along = np.einsum(
+            "ij,ik,kj->j", eigenvectors, to_scaled.T @ other.A @ to_scaled, eigenvectors
+        )
+        weak &= other_along > icp_weight * threshold * icp.count
+    if not weak.any():
+        return icp
+    kept = eigenvectors[:, ~weak]
+    projector = kept @ kept.T
+    a_eta = projector @ (to_scaled.T @ icp.A @ to_scaled) @ projector
+    b_eta = projector @ (to_scaled.T @ icp.b)
+    from_scaled = np.linalg.inv(to_scaled)
+    return LinearSystem(
+        from_scaled.T @ a_eta @ from_scaled, from_scaled.T @ b_eta, icp.count, icp.cost
+    )
+
+
 def joint_system(
     icp: LinearSystem,
     rgbd: LinearSystem,
     rgbd_weight: float = 1.0,
     weighting: str = "paper",
     original_code_icp_scale: float = 10.0,
+    camera_position: np.ndarray | None = None,
+    degeneracy_threshold: float = DEGENERACY_THRESHOLD,
 ) -> LinearSystem:
     """The joint normal equations of eq. 12-13 (or the original code's combination).
 
     "paper": E = E_icp / sigma_icp^2 + w E_rgbd, both terms dimensionless (module docstring).
     "paper-metres": E = E_icp + w E_rgbd with E_icp in square metres, literally.
+    "information": E = E_icp / sigma_icp^2 + w E_rgbd / sigma_rgbd^2.
+    "degeneracy-aware": "paper" with ICP's unobserved directions removed; `camera_position`
+    (world frame, the current estimate's) is the centre its information is measured about.
+    "original-code", "elasticfusion": A = A_rgbd + s^2 A_icp, b = b_rgbd + s b_icp.
     """
     if weighting == "paper":
         return icp.scaled(1.0 / icp_scale(icp) ** 2) + rgbd.scaled(rgbd_weight)
     if weighting == "paper-metres":
         return icp + rgbd.scaled(rgbd_weight)
-    if weighting == "original-code":
+    if weighting == "information":
+        return icp.scaled(1.0 / icp_scale(icp) ** 2) + rgbd.scaled(
+            rgbd_weight / rgbd_scale(rgbd) ** 2
+        )
+    if weighting == "degeneracy-aware":
+        centre = np.zeros(3) if camera_position is None else camera_position
+        weight, photometric = 1.0 / icp_scale(icp) ** 2, rgbd.scaled(rgbd_weight)
+        observed = without_degenerate_directions(
+            icp, centre, degeneracy_threshold, weight, photometric
+        )
+        return observed.scaled(weight) + photometric
+    if weighting in ("original-code", "elasticfusion"):
         s = original_code_icp_scale
         return rgbd + icp.scaled(s * s, s)
     raise ConfigError(f"combined.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
@@ -99,16 +209,36 @@ class CombinedProblem:
         rgbd_weight: float = 1.0,
         weighting: str = "paper",
         original_code_icp_scale: float = 10.0,
+        degeneracy_threshold: float = DEGENERACY_THRESHOLD,
     ) -> None:
         if weighting not in WEIGHTINGS:
             raise ConfigError(f"combined.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
         if not rgbd_weight >= 0:
             raise ConfigError(f"combined.rgbd_weight must be >= 0, got {rgbd_weight}")
+        if not 0 <= degeneracy_threshold < 1:
+            raise ConfigError(
+                f"combined.degeneracy_threshold must be in [0, 1), got {degeneracy_threshold}"
+            )
         self.icp = icp
         self.rgbd = rgbd
         self.rgbd_weight = rgbd_weight
         self.weighting = weighting
         self.original_code_icp_scale = original_code_icp_scale
+        self.degeneracy_threshold = degeneracy_threshold
+
+    @classmethod
+    def from_config(
+        cls, icp: IcpProblem, rgbd: RgbdProblem, config: CombinedConfig
+    ) -> CombinedProblem:
+        """The problem with the weighting of `config.combined` (config.CombinedConfig)."""
+        return cls(
+            icp,
+            rgbd,
+            config.rgbd_weight,
+            config.weighting,
+            config.original_code_icp_scale,
+            config.degeneracy_threshold,
+        )
 
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
         return joint_system(
@@ -117,6 +247,8 @@ class CombinedProblem:
             self.rgbd_weight,
             self.weighting,
             self.original_code_icp_scale,
+            pose[:3, 3],
+            self.degeneracy_threshold,
         )
 
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:

@@ -1,0 +1,119 @@
+"""What each term of the ICP+RGB-D cost knows, per scene: the eigenvalues of ICP's per-pair
+information about the camera (odometry/combined.py `information_spectrum`), RGB-D's in the same
+coordinates, and ICP's bias along its weakest direction.
+
+For a few frame pairs of each sequence the TSDF is fused at the ground-truth poses (cpu backend),
+the model raycast from the first pose, and both systems built at level 0 at the second frame's
+true pose. There a perfect term would ask for no step: ICP's Gauss-Newton step restricted to its
+weakest eigen-direction is its bias there (millimetres; rotations as millimetres at the lever arm).
+
+    python benchmarks/information_study.py corridor floor desk dark loop PATH/TO/redkitchen \\
+        --size 320x240 --plot docs/odometry_information.png
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+import kintinuous_fast
+from kintinuous_ref.config import Config, VolumeConfig
+from kintinuous_ref.odometry.combined import about_camera, information_spectrum
+from kintinuous_ref.odometry.icp import IcpProblem
+from kintinuous_ref.odometry.rgbd import RgbdProblem
+from kintinuous_ref.pipeline import open_dataset
+from kintinuous_ref.preprocess import model_pyramid, preprocess_frame
+
+
+def pair_systems(dataset: str, size: tuple[int, int], pairs: list[int], config: Config):
+    """(icp, rgbd, camera position) at level 0 for each pair (k, k + 1), at the true poses."""
+    sequence = open_dataset(dataset)
+    truth = sequence.groundtruth_for_frames().poses
+    camera = sequence.camera.resized(*size)
+    fast = kintinuous_fast.select_backend("cpu")
+    volume = fast.tsdf.make_volume(config.volume, truth[0])
+    frames, models = [], {}
+    for index, frame in enumerate(sequence.frames(0, max(pairs) + 2)):
+        colour, depth = frame.colour, frame.depth
+        if (colour.shape[1], colour.shape[0]) != size:
+            colour = cv2.resize(colour, size, interpolation=cv2.INTER_AREA)
+            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+        frames.append(preprocess_frame(colour, depth, camera, config.preprocess))
+        if index <= max(pairs):
+            fast.tsdf.integrate(volume, frames[-1].depth, truth[index], camera)
+        if index in pairs:
+            model = fast.raycast.raycast(volume, truth[index], camera)
+            models[index] = (model.vertices, model.normals)
+    results = []
+    for k in pairs:
+        icp = IcpProblem(frames[k + 1].levels, model_pyramid(*models[k], 3), truth[k])
+        rgbd = RgbdProblem(frames[k].levels, frames[k + 1].levels, truth[k])
+        target = truth[k + 1]
+        results.append((icp.system(0, target), rgbd.system(0, target), target[:3, 3]))
+    return results
+
+
+def study(icp, rgbd, centre) -> dict[str, np.ndarray | float]:  # noqa: ANN001
+    eigenvalues, eigenvectors, scale = information_spectrum(icp, centre)
+    to_scaled = about_camera(centre) @ scale
+    rgbd_scaled = to_scaled.T @ rgbd.A @ to_scaled / max(rgbd.count, 1)
+    rgbd_along = np.einsum("ij,ik,kj->j", eigenvectors, rgbd_scaled, eigenvectors)
+    icp_scaled_b = (to_scaled.T @ icp.b) / max(icp.count, 1)
+    weakest = eigenvectors[:, 0]
+    bias = -float(weakest @ icp_scaled_b) / eigenvalues[0]  # metres along the weakest direction
+    return {"icp": eigenvalues, "rgbd": rgbd_along, "bias_mm": 1000 * abs(bias), "weakest": weakest}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("datasets", nargs="+")
+    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--pairs", default="30,90,150,210")
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--plot", type=Path)
+    args = parser.parse_args()
+    size = tuple(int(n) for n in args.size.lower().split("x"))
+    pairs = [int(k) for k in args.pairs.split(",")]
+    config = Config(volume=VolumeConfig(resolution=args.resolution, size=3.0, moving=False))
+    rows = {}
+    for dataset in args.datasets:
+        label = Path(dataset).name
+        found = [study(*systems) for systems in pair_systems(dataset, size, pairs, config)]
+        icp = np.median([f["icp"] for f in found], axis=0)
+        rgbd = np.median([f["rgbd"] for f in found], axis=0)
+        bias = float(np.median([f["bias_mm"] for f in found]))
+        rows[label] = (icp, rgbd, bias)
+        print(
+            f"{label:12s} ICP eigenvalues {np.array2string(icp, precision=4)}  RGB-D along "
+            f"them {np.array2string(rgbd, precision=3)}  ICP bias along the weakest "
+            f"{bias:.2f} mm",
+            flush=True,
+        )
+    if args.plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(9, 3.6))
+        x = np.arange(6)
+        width = 0.8 / len(rows)
+        for k, (label, (icp, _, bias)) in enumerate(rows.items()):
+            ax.bar(x + k * width, icp, width, label=f"{label} (bias {bias:.1f} mm)")
+        ax.axhline(0.02, color="k", ls="--", lw=1, label="degeneracy threshold 0.02")
+        ax.set_yscale("log")
+        ax.set_xticks(x + 0.4 - width / 2, [f"#{i + 1}" for i in range(6)])
+        ax.set_xlabel("ICP eigen-direction, weakest first")
+        ax.set_ylabel("share of pairs observing it")
+        ax.set_title(f"ICP's information per direction, {args.size} (median of pairs {args.pairs})")
+        ax.legend(fontsize=7, ncol=2)
+        fig.tight_layout()
+        fig.savefig(args.plot, dpi=110)
+        print(f"wrote {args.plot}")
+
+
+if __name__ == "__main__":
+    main()
