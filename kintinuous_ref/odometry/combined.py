@@ -50,8 +50,10 @@ The other weightings (docs/odometry.md measures each on every scene):
   rotations scaled by the RMS lever arm rho of the pairs, and divided by the pair count: a
   dimensionless 6x6 whose eigenvalues say what share of the pairs constrains each direction
   (the translational ones sum to 1). Eigen-directions below `degeneracy_threshold` are removed
-  from the ICP term (its A and b projected onto the others), so RGB-D alone decides them: the
-  walking direction in a corridor of flat walls, the in-plane motion over a floor.
+  from the ICP term (its A and b projected onto the others) wherever RGB-D holds more
+  information along them than ICP does, so RGB-D alone decides them: the walking direction in
+  a corridor of flat walls, the in-plane motion over a floor. In the dark RGB-D holds none, and
+  ICP keeps them.
 - "elasticfusion": ElasticFusion's combination, which is the authors' Kintinuous code's
   ("original-code") formula with its own ICP weight of 10: the same system.
 
@@ -137,8 +139,7 @@ def without_degenerate_directions(
     """The ICP system with A and b projected off its unobserved eigen-directions
     (`information_spectrum` below `threshold`); unchanged when it observes all six. With
     `other` (the other term, weighted), a direction is given up only where `other` holds more
-    information than ICP would at the threshold (`icp_weight` * threshold * pairs): in the dark,
-    ICP keeps what it has."""
+    information than `icp_weight` * ICP does there: in the dark, ICP keeps what it has."""
     eigenvalues, eigenvectors, scale = information_spectrum(icp, camera_position)
     # In the scaled coordinates eta (xi = M D eta): A_eta = D M^T A M D, b_eta = D M^T b.
     to_scaled = about_camera(camera_position) @ scale
@@ -147,7 +148,7 @@ def without_degenerate_directions(
         other_along = np.einsum(
             "ij,ik,kj->j", eigenvectors, to_scaled.T @ other.A @ to_scaled, eigenvectors
         )
-        weak &= other_along > icp_weight * threshold * icp.count
+        weak &= other_along > icp_weight * eigenvalues * icp.count
     if not weak.any():
         return icp
     kept = eigenvectors[:, ~weak]
