@@ -27,6 +27,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from kintinuous_fast.ops import build_rint
+from kintinuous_ref.odometry.rgbd import BORDER_SLACK
 
 # Slots of the accumulated vector (see the module docstring).
 NV = 30
@@ -284,7 +285,8 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         nan = math.nan
         if not z > 1e-6:
             return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
-        if not (u >= 0 and u <= width - 1 and v >= 0 and v <= height - 1):
+        slack = BORDER_SLACK  # the reference's rounding slack at the border pixel centres
+        if not (u >= -slack and u <= width - 1 + slack and v >= -slack and v <= height - 1 + slack):
             return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
         d = float(previous_depth[int(rint(v)), int(rint(u))])
         if not (d > 0 and abs(z - d) < max_depth_change):

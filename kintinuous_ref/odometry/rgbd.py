@@ -100,6 +100,10 @@ def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
     return top * (1 - b) + bottom * b
 
 
+# Pixels: how far past the image's border pixel centres a warped point may land (rounding).
+BORDER_SLACK = 1e-6
+
+
 @dataclass
 class Correspondences:
     """Algorithm 2's output: the kept pairs (p, p', I_{n+1}(p) - I_n(p')) and what J needs."""
@@ -134,8 +138,12 @@ def correspond(
     u = camera.fx * x / safe_z + camera.cx
     v = camera.fy * y / safe_z + camera.cy
     height, width = previous_depth.shape
-    # Inside the image with room for the bilinear 2x2 neighbourhood.
-    inside = (z > 1e-6) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+    # Inside the image with room for the bilinear 2x2 neighbourhood. A border pixel warped by
+    # (nearly) the identity lands on its own centre only to within rounding, on either side
+    # depending on the order of the floating-point operations: BORDER_SLACK keeps it inside
+    # whichever way it rounds (sample_bilinear clips, so the slack reads the border values).
+    lo, hi_u, hi_v = -BORDER_SLACK, width - 1 + BORDER_SLACK, height - 1 + BORDER_SLACK
+    inside = (z > 1e-6) & (u >= lo) & (u <= hi_u) & (v >= lo) & (v <= hi_v)
     kept = np.flatnonzero(inside)
     u, v, z = u[kept], v[kept], z[kept]
     # The depth test (d_s) at the nearest pixel, as Algorithm 2 reads M_n(p').
