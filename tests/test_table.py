@@ -271,20 +271,37 @@ def test_scheduler_without_dask_is_a_one_line_error(tmp_path, capsys, monkeypatc
     assert not Path(tmp_path / "table.md").exists()
 
 
-def test_runs_on_a_dask_cluster(evaluation, tmp_path):
-    distributed = pytest.importorskip("distributed")
+# --- The same runs on a Dask cluster --------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two single-threaded worker processes on this machine, shared by the tests below. The
+    [test] extra installs dask[distributed], so these tests run rather than skip."""
+    import distributed
+
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+    ) as local_cluster:
+        yield local_cluster
+
+
+def test_runs_on_a_dask_cluster(evaluation, cluster, tmp_path):
     from kintinuous_ref.config import Config, VolumeConfig
     from kintinuous_ref.evaluation import evaluate_methods
 
     config = Config(volume=VolumeConfig(resolution=64))
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True) as cluster:
-        result = evaluate_methods(
-            [str(evaluation["folders"][0])],
-            tmp_path,
-            methods=["icp"],
-            config=config,
-            scheduler=cluster.scheduler_address,
-        )
+    result = evaluate_methods(
+        [str(evaluation["folders"][0])],
+        tmp_path,
+        methods=["icp"],
+        config=config,
+        scheduler=cluster.scheduler_address,
+    )
     local = json.loads((evaluation["out"] / "table.json").read_text())
     # The same deterministic run on another executor: the same trajectory, the same errors.
     errors = result.table["runs"]["icp"]["desk"]["errors"]
