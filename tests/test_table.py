@@ -308,6 +308,31 @@ def test_runs_on_a_dask_cluster(evaluation, cluster, tmp_path):
     assert errors["ate_max"] == pytest.approx(local["runs"]["icp"]["desk"]["errors"]["ate_max"])
 
 
+def test_a_worker_that_cannot_see_the_dataset_says_so_by_name(cluster, tmp_path):
+    from kintinuous_ref.config import Config
+    from kintinuous_ref.evaluation import RunSpec, execute
+
+    # A folder that the client saw and the workers do not: here one that exists nowhere.
+    unseen = tmp_path / "mounted-on-the-client-only"
+    spec = RunSpec("desk", str(unseen), "icp", str(tmp_path / "run"), Config())
+    [outcome] = execute([spec], scheduler=cluster.scheduler_address)
+    # The workers' addresses as the scheduler knows them; the run went to one of them.
+    workers = sorted(cluster.scheduler_info["workers"])
+    assert len(workers) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in workers)
+    expected = [
+        f"worker {worker} cannot see the dataset folder {unseen} "
+        "(every worker needs the datasets at the client's paths)"
+        for worker in workers
+    ]
+    assert (outcome.dataset, outcome.method, outcome.status) == ("desk", "icp", FAILED)
+    assert outcome.reason in expected
+    assert outcome.poses is None and outcome.errors is None
+    # The worker also left the reason in the run's folder, as for any failed run.
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert (report["status"], report["reason"]) == (FAILED, outcome.reason)
+    assert report["path"] == str(unseen)
+
+
 def test_table_reproduces_the_papers_published_rank_scores():
     # The paper's own medians and maxima (Tables I-III, transcribed in evaluation.paper) through
     # build_table give its published eq. 16 scores: an independent check of the ranking and of the

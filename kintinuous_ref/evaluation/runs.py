@@ -1,9 +1,10 @@
 """One evaluation run (one odometry method on one sequence) and the executors that run many.
 
 `run_one` is a plain top-level function of a picklable `RunSpec`, so the same function goes to a
-local process pool (concurrent.futures) or to a Dask cluster. It never raises for a bad run: a
-missing image, a corrupt file or a crashing tracker become a `RunOutcome` with status "failed" and
-a one-line reason, so that one bad run cannot stop a table of many.
+local process pool (concurrent.futures) or to a Dask cluster (through `run_on_worker`, which first
+checks that the worker sees the dataset folder). It never raises for a bad run: a missing image,
+a corrupt file or a crashing tracker become a `RunOutcome` with status "failed" and a one-line
+reason, so that one bad run cannot stop a table of many.
 """
 
 from __future__ import annotations
@@ -273,13 +274,30 @@ def _on_dask(specs: list[RunSpec], scheduler: str) -> Iterator[tuple[int, RunOut
     client = dask_client(scheduler)
     try:
         # pure=False: two identical specs are still two runs (timings differ between them).
-        futures = client.map(run_one, specs, pure=False)
+        futures = client.map(run_on_worker, specs, pure=False)
         index = {future.key: i for i, future in enumerate(futures)}
         for future in dask_completed(futures):
             i = index[future.key]
             yield i, _result_or_failure(future, specs[i])
     finally:
         client.close()
+
+
+def run_on_worker(spec: RunSpec) -> RunOutcome:
+    """run_one on a Dask worker. The client opened the dataset to plan the runs, so a folder that
+    this worker cannot see is a failed run whose reason names the worker and the path: on a
+    cluster that is a file system mounted elsewhere or not at all, not a missing dataset."""
+    if Path(spec.path).is_dir():
+        return run_one(spec)
+    from distributed import get_worker
+
+    reason = (
+        f"worker {get_worker().address} cannot see the dataset folder {spec.path} "
+        "(every worker needs the datasets at the client's paths)"
+    )
+    outcome = RunOutcome(spec.dataset, spec.method, FAILED, reason=reason, out=spec.out)
+    write_failure(spec, outcome)
+    return outcome
 
 
 def _result_or_failure(future: Any, spec: RunSpec) -> RunOutcome:
