@@ -349,6 +349,24 @@ def test_a_worker_that_cannot_see_the_dataset_says_so_by_name(cluster, tmp_path)
     assert report["path"] == str(unseen)
 
 
+def test_relative_paths_on_a_cluster_are_the_clients(evaluation, cluster, tmp_path, monkeypatch):
+    from kintinuous_ref.config import Config, VolumeConfig
+    from kintinuous_ref.evaluation import RunSpec, execute
+
+    # The workers started in the folder pytest runs from; the client now works in another one.
+    shutil.copytree(evaluation["folders"][0], tmp_path / "desk")
+    monkeypatch.chdir(tmp_path)
+    config = Config(volume=VolumeConfig(resolution=64))
+    spec = RunSpec("desk", "desk", "icp", str(Path("runs", "icp")), config)
+    [outcome] = execute([spec], scheduler=cluster.scheduler_address)
+    assert outcome.status == OK, outcome.reason
+    assert outcome.out == str(tmp_path / "runs" / "icp")
+    assert len(read_trajectory(tmp_path / "runs" / "icp" / "trajectory.txt")) == FRAMES
+    # The same run as the module's icp run on the desk: the same errors, to the last bit.
+    table = json.loads((evaluation["out"] / "table.json").read_text())
+    assert outcome.errors == table["runs"]["icp"]["desk"]["errors"]
+
+
 def test_table_reproduces_the_papers_published_rank_scores():
     # The paper's own medians and maxima (Tables I-III, transcribed in evaluation.paper) through
     # build_table give its published eq. 16 scores: an independent check of the ranking and of the

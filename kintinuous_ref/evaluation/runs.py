@@ -14,7 +14,7 @@ import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -222,7 +222,8 @@ def execute(
     jobs == 1 and no scheduler: in this process, one after the other. jobs > 1: a
     ProcessPoolExecutor of `jobs` processes on this machine. scheduler: the address of a running
     dask.distributed scheduler ("tcp://host:8786"), whose workers must see the same dataset paths
-    and output folder. `on_done(outcome, finished, total)` is called as each run finishes.
+    and output folder (relative ones are made absolute here first). `on_done(outcome, finished,
+    total)` is called as each run finishes.
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be at least 1, got {jobs}")
@@ -271,6 +272,11 @@ def dask_client(scheduler: str) -> Any:
 def _on_dask(specs: list[RunSpec], scheduler: str) -> Iterator[tuple[int, RunOutcome]]:
     from dask.distributed import as_completed as dask_completed
 
+    # A worker runs in a folder of its own: a relative path means the client's folder.
+    specs = [
+        replace(spec, path=str(Path(spec.path).absolute()), out=str(Path(spec.out).absolute()))
+        for spec in specs
+    ]
     client = dask_client(scheduler)
     try:
         # pure=False: two identical specs are still two runs (timings differ between them).
