@@ -3,6 +3,7 @@
 One tiny evaluation (2 methods x 2 synthetic sequences of 8 frames at 160x120, plus a sequence
 with a corrupt depth image and a folder that does not exist) is run once for the module, through
 the command line with 2 processes; the tests then check its tables against independent truths.
+The Dask tests share one LocalCluster of two worker processes on 127.0.0.1.
 """
 
 from __future__ import annotations
