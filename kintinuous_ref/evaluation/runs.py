@@ -1,9 +1,10 @@
 """One evaluation run (one odometry method on one sequence) and the executors that run many.
 
 `run_one` is a plain top-level function of a picklable `RunSpec`, so the same function goes to a
-local process pool (concurrent.futures) or to a Dask cluster. It never raises for a bad run: a
-missing image, a corrupt file or a crashing tracker become a `RunOutcome` with status "failed" and
-a one-line reason, so that one bad run cannot stop a table of many.
+local process pool (concurrent.futures) or to a Dask cluster (through `run_on_worker`, which first
+checks that the worker sees the dataset folder). It never raises for a bad run: a missing image,
+a corrupt file or a crashing tracker become a `RunOutcome` with status "failed" and a one-line
+reason, so that one bad run cannot stop a table of many.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -221,7 +222,8 @@ def execute(
     jobs == 1 and no scheduler: in this process, one after the other. jobs > 1: a
     ProcessPoolExecutor of `jobs` processes on this machine. scheduler: the address of a running
     dask.distributed scheduler ("tcp://host:8786"), whose workers must see the same dataset paths
-    and output folder. `on_done(outcome, finished, total)` is called as each run finishes.
+    and output folder (relative ones are made absolute here first). `on_done(outcome, finished,
+    total)` is called as each run finishes.
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be at least 1, got {jobs}")
@@ -270,16 +272,38 @@ def dask_client(scheduler: str) -> Any:
 def _on_dask(specs: list[RunSpec], scheduler: str) -> Iterator[tuple[int, RunOutcome]]:
     from dask.distributed import as_completed as dask_completed
 
+    # A worker runs in a folder of its own: a relative path means the client's folder.
+    specs = [
+        replace(spec, path=str(Path(spec.path).absolute()), out=str(Path(spec.out).absolute()))
+        for spec in specs
+    ]
     client = dask_client(scheduler)
     try:
         # pure=False: two identical specs are still two runs (timings differ between them).
-        futures = client.map(run_one, specs, pure=False)
+        futures = client.map(run_on_worker, specs, pure=False)
         index = {future.key: i for i, future in enumerate(futures)}
         for future in dask_completed(futures):
             i = index[future.key]
             yield i, _result_or_failure(future, specs[i])
     finally:
         client.close()
+
+
+def run_on_worker(spec: RunSpec) -> RunOutcome:
+    """run_one on a Dask worker. The client opened the dataset to plan the runs, so a folder that
+    this worker cannot see is a failed run whose reason names the worker and the path: on a
+    cluster that is a file system mounted elsewhere or not at all, not a missing dataset."""
+    if Path(spec.path).is_dir():
+        return run_one(spec)
+    from distributed import get_worker
+
+    reason = (
+        f"worker {get_worker().address} cannot see the dataset folder {spec.path} "
+        "(every worker needs the datasets at the client's paths)"
+    )
+    outcome = RunOutcome(spec.dataset, spec.method, FAILED, reason=reason, out=spec.out)
+    write_failure(spec, outcome)
+    return outcome
 
 
 def _result_or_failure(future: Any, spec: RunSpec) -> RunOutcome:
