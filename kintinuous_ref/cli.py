@@ -124,7 +124,8 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "dataset",
         nargs="?",
-        help="TUM folder or synthetic scenario name (default: desk, generated and cached)",
+        help="TUM folder, .klg log or synthetic scenario name (default: desk, generated and "
+        "cached)",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument(
@@ -169,7 +170,11 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         help="override one configuration value, e.g. --set combined.rgbd_weight=0.2 "
         "(value parsed as JSON when it can be; repeatable; applied after --config)",
     )
-    parser.add_argument("--intrinsics", help="fx,fy,cx,cy (overrides the dataset's camera)")
+    parser.add_argument(
+        "--intrinsics",
+        help="fx,fy,cx,cy or a JSON file (overrides the dataset's camera; a .klg log needs it)",
+    )
+    _add_input_options(parser)
     parser.add_argument(
         "--no-colour-weighting",
         action="store_true",
@@ -214,7 +219,13 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     if args.fast_odometry:
         config = fast_odometry(config)
     pipeline.check_volume_config(config.volume)  # before generating or reading anything
-    sequence = pipeline.open_dataset(args.dataset, args.intrinsics, progress=True)
+    sequence = pipeline.open_dataset(
+        args.dataset,
+        args.intrinsics,
+        progress=True,
+        size=_parse_size(args.size),
+        groundtruth=args.groundtruth,
+    )
     report = pipeline.reconstruct(
         sequence,
         args.out,
@@ -232,6 +243,78 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
         f"{report['mesh']['vertices']} vertices ({report['shifts']} volume shifts, "
         f"{report['slices']} slices)"
     )
+
+
+def _add_input_options(parser: argparse.ArgumentParser) -> None:
+    """The options that say what a .klg log does not (reconstruct and convert)."""
+    parser.add_argument(
+        "--size",
+        metavar="WxH",
+        help="image size of a .klg log, or of the images --intrinsics fx,fy,cx,cy describes "
+        "(default 640x480)",
+    )
+    parser.add_argument(
+        "--groundtruth",
+        type=Path,
+        metavar="FILE",
+        help="ground-truth trajectory (TUM format) of a .klg log",
+    )
+
+
+def _parse_size(text: str | None) -> tuple[int, int] | None:
+    """--size WIDTHxHEIGHT as (width, height); None when not given."""
+    if not text:
+        return None
+    width, _, height = text.lower().partition("x")
+    if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+        raise KintinuousError(f"--size expects WIDTHxHEIGHT such as 320x240, got {text!r}")
+    return int(width), int(height)
+
+
+def _add_convert(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "convert",
+        help="convert a sequence: to a .klg log (OUT ending in .klg) or to a TUM folder",
+        description="Write any input reconstruct reads (TUM folder, .klg log or scenario) as a "
+        "Kintinuous/ElasticFusion .klg log when OUT ends in .klg "
+        "(zlib millimetre depth, JPEG colour), else as a new TUM folder (PNG images; "
+        "intrinsics.json and groundtruth.txt when known).",
+    )
+    parser.add_argument("source", help="input sequence")
+    parser.add_argument("out", type=Path, help="OUT.klg or a new folder")
+    parser.add_argument("--intrinsics", help="fx,fy,cx,cy or a JSON file (the source's camera)")
+    _add_input_options(parser)
+    parser.set_defaults(handler=_run_convert)
+
+
+def _run_convert(args: argparse.Namespace) -> None:
+    from kintinuous_ref import pipeline
+    from kintinuous_ref.datasets import klg, tum
+
+    sequence = pipeline.open_dataset(
+        args.source,
+        args.intrinsics,
+        progress=True,
+        size=_parse_size(args.size),
+        groundtruth=args.groundtruth,
+        need_camera=False,
+    )
+    frames = sequence.frames()
+    if args.out.suffix == ".klg":
+        if args.out.exists():
+            raise KintinuousError(f"{args.out}: already exists; choose a new output file")
+        count = klg.write_log(args.out, frames)
+        camera = sequence.camera
+        print(f"wrote {count} frames to {args.out}")
+        if camera is not None:
+            print(
+                f"read it with: --intrinsics {camera.fx:g},{camera.fy:g},{camera.cx:g},"
+                f"{camera.cy:g} --size {camera.width}x{camera.height}"
+            )
+    else:
+        truth = sequence.groundtruth
+        count = tum.write_sequence(args.out, frames, sequence.camera, truth)
+        print(f"wrote {count} frames to {args.out}")
 
 
 def _config_overrides(path: Path | None, settings: list[str]) -> dict:
@@ -315,12 +398,7 @@ def _run_table(args: argparse.Namespace) -> None:
     from kintinuous_ref.config import Config, VolumeConfig, with_overrides
     from kintinuous_ref.evaluation import evaluate_methods, method_title
 
-    size = None
-    if args.size:
-        width, _, height = args.size.lower().partition("x")
-        if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
-            raise KintinuousError(f"--size expects WIDTHxHEIGHT such as 320x240, got {args.size!r}")
-        size = (int(width), int(height))
+    size = _parse_size(args.size)
     if args.scheduler:
         from kintinuous_ref.evaluation.runs import dask_client
 
@@ -465,6 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_table,
         _add_info,
         _add_benchmark,
+        _add_convert,
     ):
         add(commands)
     return parser
