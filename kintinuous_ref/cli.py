@@ -124,8 +124,8 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "dataset",
         nargs="?",
-        help="TUM folder, .klg log or synthetic scenario name (default: desk, generated and "
-        "cached)",
+        help="TUM folder, .klg log, ROS bag or synthetic "
+        "scenario name (default: desk, generated and cached); docs/datasets.md",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument(
@@ -225,6 +225,7 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
         progress=True,
         size=_parse_size(args.size),
         groundtruth=args.groundtruth,
+        topics=args.topics,
     )
     report = pipeline.reconstruct(
         sequence,
@@ -246,7 +247,7 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
 
 
 def _add_input_options(parser: argparse.ArgumentParser) -> None:
-    """The options that say what a .klg log does not (reconstruct and convert)."""
+    """The options that say what a .klg log or a bag does not (reconstruct and convert)."""
     parser.add_argument(
         "--size",
         metavar="WxH",
@@ -257,7 +258,15 @@ def _add_input_options(parser: argparse.ArgumentParser) -> None:
         "--groundtruth",
         type=Path,
         metavar="FILE",
-        help="ground-truth trajectory (TUM format) of a .klg log",
+        help="ground-truth trajectory (TUM format) of a .klg log or a bag",
+    )
+    parser.add_argument(
+        "--topics",
+        metavar="RGB,DEPTH,INFO",
+        help="a bag's colour, depth and camera-info topics (default: TUM's "
+        "/camera/rgb/image_color,/camera/depth/image,/camera/rgb/camera_info, else the "
+        "RealSense driver's /camera/color/image_raw,/camera/aligned_depth_to_color/image_raw,"
+        "/camera/color/camera_info)",
     )
 
 
@@ -275,8 +284,8 @@ def _add_convert(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "convert",
         help="convert a sequence: to a .klg log (OUT ending in .klg) or to a TUM folder",
-        description="Write any input reconstruct reads (TUM folder, .klg log or scenario) as a "
-        "Kintinuous/ElasticFusion .klg log when OUT ends in .klg "
+        description="Write any input reconstruct reads (TUM folder, .klg log, bag or scenario) "
+        "as a Kintinuous/ElasticFusion .klg log when OUT ends in .klg "
         "(zlib millimetre depth, JPEG colour), else as a new TUM folder (PNG images; "
         "intrinsics.json and groundtruth.txt when known).",
     )
@@ -297,6 +306,7 @@ def _run_convert(args: argparse.Namespace) -> None:
         progress=True,
         size=_parse_size(args.size),
         groundtruth=args.groundtruth,
+        topics=args.topics,
         need_camera=False,
     )
     frames = sequence.frames()

@@ -285,6 +285,7 @@ def open_dataset(
     *,
     size: tuple[int, int] | None = None,
     groundtruth: Path | None = None,
+    topics: str | None = None,
     need_camera: bool = True,
 ) -> FrameSequence:
     """Any input the system reads (docs/datasets.md), `desk` when `dataset` is None:
@@ -292,13 +293,15 @@ def open_dataset(
     - a `.klg` log (Kintinuous / ElasticFusion): `size` (default 640x480) and `intrinsics`
       (fx,fy,cx,cy or a JSON file) say what the log does not; without a camera (only when
       `need_camera` is False, for conversion) frames can still be read;
+    - a ROS1 `.bag` or ROS2 bag folder: topics `rgb,depth,info` (default TUM's, then
+      RealSense's), camera from its CameraInfo unless `intrinsics` is given;
     - a TUM RGB-D folder;
     - a built-in synthetic scenario by name (rendered into the cache on first use).
 
-    `groundtruth` (a TUM trajectory file) gives a log its ground truth.
+    `groundtruth` (a TUM trajectory file) gives a log or a bag its ground truth.
     """
     from kintinuous_ref.camera import intrinsics_from_option
-    from kintinuous_ref.datasets import klg, synthetic, tum
+    from kintinuous_ref.datasets import bag, klg, synthetic, tum
 
     dataset = dataset or DEFAULT_DATASET
     path = Path(dataset)
@@ -315,16 +318,19 @@ def open_dataset(
         return klg.open_log(path, (width, height), camera, groundtruth)
     if size is not None and intrinsics is None:
         raise ConfigError("--size is the image size of a .klg log, or of --intrinsics fx,fy,cx,cy")
-    for option, value in (("--groundtruth", groundtruth),):
+    if bag.is_bag(path):
+        chosen = bag.parse_topics(topics) if topics else None
+        return bag.open_bag(path, chosen, camera, groundtruth)
+    for option, value in (("--groundtruth", groundtruth), ("--topics", topics)):
         if value is not None:
-            raise ConfigError(f"{option} applies to .klg logs, not to {dataset}")
+            raise ConfigError(f"{option} applies to .klg logs and bags, not to {dataset}")
     if path.is_dir():
         return tum.open_sequence(path, intrinsics)
     scenarios = synthetic.list_scenarios()
     if dataset not in scenarios:
         raise DatasetError(
             f"{dataset}: neither a dataset folder nor a scenario ({', '.join(scenarios)}), "
-            "nor a .klg log"
+            "nor a .klg log or a bag"
         )
     folder = cache_folder() / dataset
     if not (folder / "associations.txt").is_file():  # written last: a complete folder
