@@ -124,7 +124,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "dataset",
         nargs="?",
-        help="TUM folder, .klg log, ROS bag or synthetic "
+        help="TUM folder, .klg log, ROS bag, downloaded sequence (fr1/desk, ...) or synthetic "
         "scenario name (default: desk, generated and cached); docs/datasets.md",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
@@ -284,8 +284,8 @@ def _add_convert(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "convert",
         help="convert a sequence: to a .klg log (OUT ending in .klg) or to a TUM folder",
-        description="Write any input reconstruct reads (TUM folder, .klg log, bag or scenario) "
-        "as a Kintinuous/ElasticFusion .klg log when OUT ends in .klg "
+        description="Write any input reconstruct reads (TUM folder, .klg log, bag, downloaded "
+        "sequence or scenario) as a Kintinuous/ElasticFusion .klg log when OUT ends in .klg "
         "(zlib millimetre depth, JPEG colour), else as a new TUM folder (PNG images; "
         "intrinsics.json and groundtruth.txt when known).",
     )
@@ -325,6 +325,57 @@ def _run_convert(args: argparse.Namespace) -> None:
         truth = sequence.groundtruth
         count = tum.write_sequence(args.out, frames, sequence.camera, truth)
         print(f"wrote {count} frames to {args.out}")
+
+
+# The names of kintinuous_ref.datasets.download.SEQUENCES, spelled out so that --help needs no
+# NumPy import (tests/test_download.py checks that they agree).
+PAPER_SEQUENCES = ("fr1/desk", "fr2/desk", "fr1/room", "fr2/large_no_loop")
+OTHER_SEQUENCES = ("fr1/xyz", "fr1/360", "fr2/xyz", "fr3/long_office_household")
+TUM_BASE_URL = "https://cvg.cit.tum.de/rgbd/dataset/"
+MIRROR_VARIABLE = "KINTINUOUS_MIRROR"
+
+
+def _add_download(commands: argparse._SubParsersAction) -> None:
+    paper, others = ", ".join(PAPER_SEQUENCES), ", ".join(OTHER_SEQUENCES)
+    parser = commands.add_parser(
+        "download",
+        help=f"fetch a TUM RGB-D sequence by name ({paper}, ...) or an archive URL",
+        description=f"Fetch and unpack TUM RGB-D sequences into the cache "
+        f"($KINTINUOUS_CACHE or ~/.cache/kintinuous, under tum/), after which reconstruct and "
+        f"table take the name (kintinuous reconstruct fr1/desk). The paper's Table I "
+        f"sequences: {paper}. Also known: {others}. Their sha256 checksums are not pinned "
+        f"(each download prints the one it got; --sha256 pins it).",
+    )
+    parser.add_argument(
+        "targets", nargs="+", metavar="NAME|URL", help="sequence name(s) or a TUM-layout .tgz URL"
+    )
+    parser.add_argument(
+        "--dest", type=Path, help="folder to unpack into (default: the cache's tum/ folder)"
+    )
+    parser.add_argument("--sha256", metavar="HEX", help="expected sha256 of the archive")
+    parser.add_argument(
+        "--mirror",
+        metavar="URL",
+        help=f"base URL that replaces {TUM_BASE_URL} for named sequences (default: "
+        f"${MIRROR_VARIABLE} when set)",
+    )
+    parser.set_defaults(handler=_run_download)
+
+
+def _run_download(args: argparse.Namespace) -> None:
+    from kintinuous_ref import pipeline
+    from kintinuous_ref.datasets.download import download
+
+    if args.sha256 and len(args.targets) > 1:
+        raise KintinuousError("--sha256 checks one archive: give one NAME or URL with it")
+    root = args.dest or pipeline.cache_folder() / "tum"
+    mirror = args.mirror or os.environ.get(MIRROR_VARIABLE) or None
+    for target in args.targets:
+        folder, digest = download(target, root, args.sha256, mirror)
+        if digest:
+            print(f"{target}: unpacked into {folder} (archive sha256 {digest})")
+        else:
+            print(f"{target}: already in {folder}")
 
 
 def _config_overrides(path: Path | None, settings: list[str]) -> dict:
@@ -554,6 +605,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_info,
         _add_benchmark,
         _add_convert,
+        _add_download,
     ):
         add(commands)
     return parser

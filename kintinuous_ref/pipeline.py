@@ -296,12 +296,13 @@ def open_dataset(
     - a ROS1 `.bag` or ROS2 bag folder: topics `rgb,depth,info` (default TUM's, then
       RealSense's), camera from its CameraInfo unless `intrinsics` is given;
     - a TUM RGB-D folder;
+    - a sequence fetched with `kintinuous download` (fr1/desk, ...), from the cache;
     - a built-in synthetic scenario by name (rendered into the cache on first use).
 
     `groundtruth` (a TUM trajectory file) gives a log or a bag its ground truth.
     """
     from kintinuous_ref.camera import intrinsics_from_option
-    from kintinuous_ref.datasets import bag, klg, synthetic, tum
+    from kintinuous_ref.datasets import bag, download, klg, synthetic, tum
 
     dataset = dataset or DEFAULT_DATASET
     path = Path(dataset)
@@ -326,11 +327,18 @@ def open_dataset(
             raise ConfigError(f"{option} applies to .klg logs and bags, not to {dataset}")
     if path.is_dir():
         return tum.open_sequence(path, intrinsics)
+    downloaded = download.cached(dataset, cache_folder() / "tum")
+    if downloaded is not None:
+        return tum.open_sequence(downloaded, intrinsics)
+    if dataset in download.SEQUENCES:
+        raise DatasetError(
+            f"{dataset}: not downloaded yet: run `kintinuous download {dataset}` first"
+        )
     scenarios = synthetic.list_scenarios()
     if dataset not in scenarios:
         raise DatasetError(
             f"{dataset}: neither a dataset folder nor a scenario ({', '.join(scenarios)}), "
-            "nor a .klg log or a bag"
+            "nor a .klg log, a bag or a downloaded sequence"
         )
     folder = cache_folder() / dataset
     if not (folder / "associations.txt").is_file():  # written last: a complete folder
