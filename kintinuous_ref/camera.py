@@ -147,3 +147,11 @@ def parse_intrinsics(text: str, width: int = 640, height: int = 480) -> Intrinsi
             f"--intrinsics expects fx,fy,cx,cy (four numbers), got {text!r}"
         ) from None
     return Intrinsics(fx, fy, cx, cy, width, height)
+
+
+def intrinsics_from_option(text: str, width: int = 640, height: int = 480) -> Intrinsics:
+    """The command line's --intrinsics: a JSON file (which gives its own size), or fx,fy,cx,cy
+    for images of width x height."""
+    if Path(text).suffix == ".json" or Path(text).is_file():
+        return load_intrinsics_json(Path(text))
+    return parse_intrinsics(text, width=width, height=height)

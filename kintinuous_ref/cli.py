@@ -124,7 +124,8 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "dataset",
         nargs="?",
-        help="TUM folder or synthetic scenario name (default: desk, generated and cached)",
+        help="TUM folder, .klg log, ROS bag, downloaded sequence (fr1/desk, ...) or synthetic "
+        "scenario name (default: desk, generated and cached); docs/datasets.md",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument(
@@ -169,7 +170,11 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         help="override one configuration value, e.g. --set combined.rgbd_weight=0.2 "
         "(value parsed as JSON when it can be; repeatable; applied after --config)",
     )
-    parser.add_argument("--intrinsics", help="fx,fy,cx,cy (overrides the dataset's camera)")
+    parser.add_argument(
+        "--intrinsics",
+        help="fx,fy,cx,cy or a JSON file (overrides the dataset's camera; a .klg log needs it)",
+    )
+    _add_input_options(parser)
     parser.add_argument(
         "--no-colour-weighting",
         action="store_true",
@@ -214,7 +219,14 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     if args.fast_odometry:
         config = fast_odometry(config)
     pipeline.check_volume_config(config.volume)  # before generating or reading anything
-    sequence = pipeline.open_dataset(args.dataset, args.intrinsics, progress=True)
+    sequence = pipeline.open_dataset(
+        args.dataset,
+        args.intrinsics,
+        progress=True,
+        size=_parse_size(args.size),
+        groundtruth=args.groundtruth,
+        topics=args.topics,
+    )
     report = pipeline.reconstruct(
         sequence,
         args.out,
@@ -232,6 +244,138 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
         f"{report['mesh']['vertices']} vertices ({report['shifts']} volume shifts, "
         f"{report['slices']} slices)"
     )
+
+
+def _add_input_options(parser: argparse.ArgumentParser) -> None:
+    """The options that say what a .klg log or a bag does not (reconstruct and convert)."""
+    parser.add_argument(
+        "--size",
+        metavar="WxH",
+        help="image size of a .klg log, or of the images --intrinsics fx,fy,cx,cy describes "
+        "(default 640x480)",
+    )
+    parser.add_argument(
+        "--groundtruth",
+        type=Path,
+        metavar="FILE",
+        help="ground-truth trajectory (TUM format) of a .klg log or a bag",
+    )
+    parser.add_argument(
+        "--topics",
+        metavar="RGB,DEPTH,INFO",
+        help="a bag's colour, depth and camera-info topics (default: TUM's "
+        "/camera/rgb/image_color,/camera/depth/image,/camera/rgb/camera_info, else the "
+        "RealSense driver's /camera/color/image_raw,/camera/aligned_depth_to_color/image_raw,"
+        "/camera/color/camera_info)",
+    )
+
+
+def _parse_size(text: str | None) -> tuple[int, int] | None:
+    """--size WIDTHxHEIGHT as (width, height); None when not given."""
+    if not text:
+        return None
+    width, _, height = text.lower().partition("x")
+    if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+        raise KintinuousError(f"--size expects WIDTHxHEIGHT such as 320x240, got {text!r}")
+    return int(width), int(height)
+
+
+def _add_convert(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "convert",
+        help="convert a sequence: to a .klg log (OUT ending in .klg) or to a TUM folder",
+        description="Write any input reconstruct reads (TUM folder, .klg log, bag, downloaded "
+        "sequence or scenario) as a Kintinuous/ElasticFusion .klg log when OUT ends in .klg "
+        "(zlib millimetre depth, JPEG colour), else as a new TUM folder (PNG images; "
+        "intrinsics.json and groundtruth.txt when known).",
+    )
+    parser.add_argument("source", help="input sequence")
+    parser.add_argument("out", type=Path, help="OUT.klg or a new folder")
+    parser.add_argument("--intrinsics", help="fx,fy,cx,cy or a JSON file (the source's camera)")
+    _add_input_options(parser)
+    parser.set_defaults(handler=_run_convert)
+
+
+def _run_convert(args: argparse.Namespace) -> None:
+    from kintinuous_ref import pipeline
+    from kintinuous_ref.datasets import klg, tum
+
+    sequence = pipeline.open_dataset(
+        args.source,
+        args.intrinsics,
+        progress=True,
+        size=_parse_size(args.size),
+        groundtruth=args.groundtruth,
+        topics=args.topics,
+        need_camera=False,
+    )
+    frames = sequence.frames()
+    if args.out.suffix == ".klg":
+        if args.out.exists():
+            raise KintinuousError(f"{args.out}: already exists; choose a new output file")
+        count = klg.write_log(args.out, frames)
+        camera = sequence.camera
+        print(f"wrote {count} frames to {args.out}")
+        if camera is not None:
+            print(
+                f"read it with: --intrinsics {camera.fx:g},{camera.fy:g},{camera.cx:g},"
+                f"{camera.cy:g} --size {camera.width}x{camera.height}"
+            )
+    else:
+        truth = sequence.groundtruth
+        count = tum.write_sequence(args.out, frames, sequence.camera, truth)
+        print(f"wrote {count} frames to {args.out}")
+
+
+# The names of kintinuous_ref.datasets.download.SEQUENCES, spelled out so that --help needs no
+# NumPy import (tests/test_download.py checks that they agree).
+PAPER_SEQUENCES = ("fr1/desk", "fr2/desk", "fr1/room", "fr2/large_no_loop")
+OTHER_SEQUENCES = ("fr1/xyz", "fr1/360", "fr2/xyz", "fr3/long_office_household")
+TUM_BASE_URL = "https://cvg.cit.tum.de/rgbd/dataset/"
+MIRROR_VARIABLE = "KINTINUOUS_MIRROR"
+
+
+def _add_download(commands: argparse._SubParsersAction) -> None:
+    paper, others = ", ".join(PAPER_SEQUENCES), ", ".join(OTHER_SEQUENCES)
+    parser = commands.add_parser(
+        "download",
+        help=f"fetch a TUM RGB-D sequence by name ({paper}, ...) or an archive URL",
+        description=f"Fetch and unpack TUM RGB-D sequences into the cache "
+        f"($KINTINUOUS_CACHE or ~/.cache/kintinuous, under tum/), after which reconstruct and "
+        f"table take the name (kintinuous reconstruct fr1/desk). The paper's Table I "
+        f"sequences: {paper}. Also known: {others}. Their sha256 checksums are not pinned "
+        f"(each download prints the one it got; --sha256 pins it).",
+    )
+    parser.add_argument(
+        "targets", nargs="+", metavar="NAME|URL", help="sequence name(s) or a TUM-layout .tgz URL"
+    )
+    parser.add_argument(
+        "--dest", type=Path, help="folder to unpack into (default: the cache's tum/ folder)"
+    )
+    parser.add_argument("--sha256", metavar="HEX", help="expected sha256 of the archive")
+    parser.add_argument(
+        "--mirror",
+        metavar="URL",
+        help=f"base URL that replaces {TUM_BASE_URL} for named sequences (default: "
+        f"${MIRROR_VARIABLE} when set)",
+    )
+    parser.set_defaults(handler=_run_download)
+
+
+def _run_download(args: argparse.Namespace) -> None:
+    from kintinuous_ref import pipeline
+    from kintinuous_ref.datasets.download import download
+
+    if args.sha256 and len(args.targets) > 1:
+        raise KintinuousError("--sha256 checks one archive: give one NAME or URL with it")
+    root = args.dest or pipeline.cache_folder() / "tum"
+    mirror = args.mirror or os.environ.get(MIRROR_VARIABLE) or None
+    for target in args.targets:
+        folder, digest = download(target, root, args.sha256, mirror)
+        if digest:
+            print(f"{target}: unpacked into {folder} (archive sha256 {digest})")
+        else:
+            print(f"{target}: already in {folder}")
 
 
 def _config_overrides(path: Path | None, settings: list[str]) -> dict:
@@ -315,12 +459,7 @@ def _run_table(args: argparse.Namespace) -> None:
     from kintinuous_ref.config import Config, VolumeConfig, with_overrides
     from kintinuous_ref.evaluation import evaluate_methods, method_title
 
-    size = None
-    if args.size:
-        width, _, height = args.size.lower().partition("x")
-        if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
-            raise KintinuousError(f"--size expects WIDTHxHEIGHT such as 320x240, got {args.size!r}")
-        size = (int(width), int(height))
+    size = _parse_size(args.size)
     if args.scheduler:
         from kintinuous_ref.evaluation.runs import dask_client
 
@@ -465,6 +604,8 @@ def build_parser() -> argparse.ArgumentParser:
         _add_table,
         _add_info,
         _add_benchmark,
+        _add_convert,
+        _add_download,
     ):
         add(commands)
     return parser

@@ -55,7 +55,7 @@ import kintinuous_ref.raycast
 import kintinuous_ref.tsdf
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
-from kintinuous_ref.datasets.tum import Frame, Trajectory, TumSequence
+from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError
 from kintinuous_ref.moving_volume import MovingVolume, SliceStore
 from kintinuous_ref.raycast import ModelPrediction
@@ -279,20 +279,66 @@ def cache_folder() -> Path:
 
 
 def open_dataset(
-    dataset: str | None, intrinsics: str | None = None, progress: bool = False
-) -> TumSequence:
-    """A TUM folder, or a built-in synthetic scenario by name (rendered into the cache on first
-    use; `desk` when `dataset` is None)."""
-    from kintinuous_ref.datasets import synthetic, tum
+    dataset: str | None,
+    intrinsics: str | None = None,
+    progress: bool = False,
+    *,
+    size: tuple[int, int] | None = None,
+    groundtruth: Path | None = None,
+    topics: str | None = None,
+    need_camera: bool = True,
+) -> FrameSequence:
+    """Any input the system reads (docs/datasets.md), `desk` when `dataset` is None:
+
+    - a `.klg` log (Kintinuous / ElasticFusion): `size` (default 640x480) and `intrinsics`
+      (fx,fy,cx,cy or a JSON file) say what the log does not; without a camera (only when
+      `need_camera` is False, for conversion) frames can still be read;
+    - a ROS1 `.bag` or ROS2 bag folder: topics `rgb,depth,info` (default TUM's, then
+      RealSense's), camera from its CameraInfo unless `intrinsics` is given;
+    - a TUM RGB-D folder;
+    - a sequence fetched with `kintinuous download` (fr1/desk, ...), from the cache;
+    - a built-in synthetic scenario by name (rendered into the cache on first use).
+
+    `groundtruth` (a TUM trajectory file) gives a log or a bag its ground truth.
+    """
+    from kintinuous_ref.camera import intrinsics_from_option
+    from kintinuous_ref.datasets import bag, download, klg, synthetic, tum
 
     dataset = dataset or DEFAULT_DATASET
     path = Path(dataset)
+    width, height = size or klg.DEFAULT_SIZE
+    camera = intrinsics_from_option(intrinsics, width, height) if intrinsics else None
+    if path.suffix == ".klg":
+        if camera is None and need_camera:
+            raise ConfigError(
+                f"{path}: a .klg log holds no camera: pass --intrinsics fx,fy,cx,cy "
+                "(and --size WxH unless 640x480)"
+            )
+        if camera is not None and size is None:  # a JSON camera gives the size
+            width, height = camera.width, camera.height
+        return klg.open_log(path, (width, height), camera, groundtruth)
+    if size is not None and intrinsics is None:
+        raise ConfigError("--size is the image size of a .klg log, or of --intrinsics fx,fy,cx,cy")
+    if bag.is_bag(path):
+        chosen = bag.parse_topics(topics) if topics else None
+        return bag.open_bag(path, chosen, camera, groundtruth)
+    for option, value in (("--groundtruth", groundtruth), ("--topics", topics)):
+        if value is not None:
+            raise ConfigError(f"{option} applies to .klg logs and bags, not to {dataset}")
     if path.is_dir():
         return tum.open_sequence(path, intrinsics)
+    downloaded = download.cached(dataset, cache_folder() / "tum")
+    if downloaded is not None:
+        return tum.open_sequence(downloaded, intrinsics)
+    if dataset in download.SEQUENCES:
+        raise DatasetError(
+            f"{dataset}: not downloaded yet: run `kintinuous download {dataset}` first"
+        )
     scenarios = synthetic.list_scenarios()
     if dataset not in scenarios:
         raise DatasetError(
-            f"{dataset}: neither a dataset folder nor a scenario ({', '.join(scenarios)})"
+            f"{dataset}: neither a dataset folder nor a scenario ({', '.join(scenarios)}), "
+            "nor a .klg log, a bag or a downloaded sequence"
         )
     folder = cache_folder() / dataset
     if not (folder / "associations.txt").is_file():  # written last: a complete folder
@@ -365,7 +411,7 @@ def write_outputs(
 
 
 def reconstruct(
-    sequence: TumSequence,
+    sequence: FrameSequence,
     out: Path,
     config: Config,
     odometry: str = GROUNDTRUTH,
@@ -396,7 +442,8 @@ def reconstruct(
                 raise
     if odometry == GROUNDTRUTH and groundtruth is None:
         raise ConfigError(
-            f"{sequence.path}: no groundtruth.txt, so --odometry groundtruth cannot run"
+            f"{sequence.path}: no ground truth (groundtruth.txt, or --groundtruth for a log or "
+            "bag), so --odometry groundtruth cannot run"
         )
     check_run(config, odometry, groundtruth)
     total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
@@ -405,19 +452,21 @@ def reconstruct(
         from tqdm import tqdm
 
         bar = tqdm(total=total, unit="frame", desc="reconstruct")
-    result = run(
-        sequence.frames(start, total),
-        sequence.camera,
-        config,
-        odometry,
-        groundtruth,
-        progress=(lambda _: bar.update(1)) if bar is not None else None,
-        predict_model=predict_model,
-        slices=Path(out) / "slices",
-        backend=backend,
-    )
-    if bar is not None:
-        bar.close()
+    try:
+        result = run(
+            sequence.frames(start, total),
+            sequence.camera,
+            config,
+            odometry,
+            groundtruth,
+            progress=(lambda _: bar.update(1)) if bar is not None else None,
+            predict_model=predict_model,
+            slices=Path(out) / "slices",
+            backend=backend,
+        )
+    finally:  # an unreadable frame's one-line error then starts on a line of its own
+        if bar is not None:
+            bar.close()
     report = write_outputs(
         result,
         Path(out),

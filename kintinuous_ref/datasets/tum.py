@@ -9,7 +9,9 @@ colour images (PNG or JPEG), 16-bit depth PNGs (raw / 5000 = metres), optionally
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import json
+import shutil
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -168,7 +170,53 @@ class _FramePaths:
     depth: Path
 
 
-class TumSequence:
+class FrameSequence:
+    """What every reader offers: a camera, per-frame timestamps, optional ground truth, and frames
+    read one at a time (lazily) by index. A reader sets the attributes and implements `_read`."""
+
+    path: Path
+    name: str
+    camera: Intrinsics
+    timestamps: np.ndarray  # (N,) seconds, one per frame
+    groundtruth: Trajectory | None
+    groundtruth_path: Path | None  # where the ground truth came from (for messages)
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
+
+    def __getitem__(self, index: int) -> Frame:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"{self.path}: frame {index} out of range (0..{len(self) - 1})")
+        return self._read(index % len(self))
+
+    def _read(self, index: int) -> Frame:
+        raise NotImplementedError
+
+    def frames(self, start: int = 0, count: int | None = None) -> Iterator[Frame]:
+        """Frames start, start+1, ... (count of them, or up to the end), read one at a time."""
+        stop = len(self) if count is None else min(len(self), start + count)
+        for index in range(start, stop):
+            yield self[index]
+
+    def groundtruth_for_frames(self, max_difference: float = MAX_TIME_DIFFERENCE) -> Trajectory:
+        """One ground-truth pose per frame: the one nearest in time (within max_difference)."""
+        if self.groundtruth is None:
+            raise DatasetError(f"{self.path}: sequence has no ground truth")
+        nearest = nearest_indices(self.timestamps, self.groundtruth.timestamps, max_difference)
+        missing = np.flatnonzero(nearest < 0)
+        if len(missing):
+            first = missing[0]
+            raise DatasetError(
+                f"{self.groundtruth_path or self.path}: no pose within {max_difference} s of "
+                f"frame {first} (t = {self.timestamps[first]:.6f}); {len(missing)} frames lack one"
+            )
+        return Trajectory(self.timestamps.copy(), self.groundtruth.poses[nearest])
+
+
+class TumSequence(FrameSequence):
     """A TUM RGB-D folder; frames are read from disk only when asked for (lazily)."""
 
     def __init__(
@@ -184,17 +232,9 @@ class TumSequence:
         self._entries = entries
         self.timestamps = np.array([entry.timestamp for entry in entries], dtype=np.float64)
         self.groundtruth = groundtruth
+        self.groundtruth_path = self.path / "groundtruth.txt"
 
-    def __len__(self) -> int:
-        return len(self._entries)
-
-    def __iter__(self) -> Iterator[Frame]:
-        return self.frames()
-
-    def __getitem__(self, index: int) -> Frame:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"{self.path}: frame {index} out of range (0..{len(self) - 1})")
-        index = index % len(self)
+    def _read(self, index: int) -> Frame:
         entry = self._entries[index]
         colour = _read_colour(entry.colour)
         depth = _read_depth(entry.depth, self.camera.depth_scale)
@@ -209,26 +249,6 @@ class TumSequence:
                 f"{self.camera.width}x{self.camera.height}"
             )
         return Frame(index=index, timestamp=entry.timestamp, colour=colour, depth=depth)
-
-    def frames(self, start: int = 0, count: int | None = None) -> Iterator[Frame]:
-        """Frames start, start+1, ... (count of them, or up to the end), read one at a time."""
-        stop = len(self) if count is None else min(len(self), start + count)
-        for index in range(start, stop):
-            yield self[index]
-
-    def groundtruth_for_frames(self, max_difference: float = MAX_TIME_DIFFERENCE) -> Trajectory:
-        """One ground-truth pose per frame: the one nearest in time (within max_difference)."""
-        if self.groundtruth is None:
-            raise DatasetError(f"{self.path}: sequence has no groundtruth.txt")
-        nearest = nearest_indices(self.timestamps, self.groundtruth.timestamps, max_difference)
-        missing = np.flatnonzero(nearest < 0)
-        if len(missing):
-            first = missing[0]
-            raise DatasetError(
-                f"{self.path / 'groundtruth.txt'}: no pose within {max_difference} s of frame "
-                f"{first} (t = {self.timestamps[first]:.6f}); {len(missing)} frames lack one"
-            )
-        return Trajectory(self.timestamps.copy(), self.groundtruth.poses[nearest])
 
 
 def open_sequence(path: Path, intrinsics: str | None = None) -> TumSequence:
@@ -348,3 +368,56 @@ def _read_depth(path: Path, depth_scale: float) -> np.ndarray:
     if raw.dtype != np.uint16:
         raise DatasetError(f"{path}: depth image is {raw.dtype}, expected 16-bit (uint16)")
     return (raw.astype(np.float32) / np.float32(depth_scale)).astype(np.float32)
+
+
+def write_sequence(
+    folder: Path,
+    frames: Iterable[Frame],
+    camera: Intrinsics | None = None,
+    groundtruth: Trajectory | None = None,
+) -> int:
+    """Write frames as a TUM folder; returns the number of frames written.
+
+    Colour becomes lossless PNG, depth 16-bit PNG in TUM units (1/5000 m; beyond 13.1 m, the
+    largest value 16 bits hold, it becomes 0, no measurement). `camera` is written as
+    intrinsics.json, `groundtruth` as groundtruth.txt. The frames go into a sibling temporary
+    folder that is renamed to `folder` once complete, so an interrupted write leaves no partial
+    sequence; an existing `folder` is refused.
+    """
+    folder = Path(folder)
+    if folder.exists():
+        raise DatasetError(f"{folder}: already exists; choose a new output folder")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    partial = folder.with_name(f".{folder.name}.partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    try:
+        (partial / "rgb").mkdir(parents=True)
+        (partial / "depth").mkdir()
+        rgb_lines = ["# colour images", "# timestamp filename"]
+        depth_lines = ["# depth maps (uint16, 1/5000 m)", "# timestamp filename"]
+        pairs = ["# timestamp rgb_file timestamp depth_file"]
+        for frame in frames:
+            stamp = f"{frame.timestamp:.6f}"
+            units = np.round(frame.depth.astype(np.float64) * TUM_DEPTH_SCALE)
+            units[~np.isfinite(units) | (units > np.iinfo(np.uint16).max) | (units < 0)] = 0
+            colour_name, depth_name = f"rgb/{stamp}.png", f"depth/{stamp}.png"
+            if not cv2.imwrite(str(partial / colour_name), frame.colour[..., ::-1]):
+                raise DatasetError(f"{partial / colour_name}: cannot write image")
+            if not cv2.imwrite(str(partial / depth_name), units.astype(np.uint16)):
+                raise DatasetError(f"{partial / depth_name}: cannot write image")
+            rgb_lines.append(f"{stamp} {colour_name}")
+            depth_lines.append(f"{stamp} {depth_name}")
+            pairs.append(f"{stamp} {colour_name} {stamp} {depth_name}")
+        (partial / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+        (partial / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+        if camera is not None:
+            values = {**camera.to_json(), "depth_scale": TUM_DEPTH_SCALE}
+            (partial / "intrinsics.json").write_text(json.dumps(values, indent=2) + "\n")
+        if groundtruth is not None:
+            write_trajectory(partial / "groundtruth.txt", groundtruth)
+        (partial / "associations.txt").write_text("\n".join(pairs) + "\n")
+        partial.rename(folder)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return len(pairs) - 1

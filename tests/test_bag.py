@@ -1,0 +1,203 @@
+"""ROS1 and ROS2 bags: written here with rosbags' own writers from data/tiny_desk, read back and
+reconstructed; the truth is the TUM folder they were made from."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from kintinuous_ref.camera import load_intrinsics_json
+from kintinuous_ref.cli import main
+from kintinuous_ref.datasets import bag, tum
+
+TINY = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
+TUM_TOPICS = ("/camera/rgb/image_color", "/camera/depth/image", "/camera/rgb/camera_info")
+OTHER_TOPICS = ("/cam/colour", "/cam/depth_mm", "/cam/info")
+DEPTH_DELAY = 0.004  # depth stamped 4 ms after colour, as the Kinect's streams are not in step
+
+
+def tum_frames():
+    """(timestamp, raw uint16 depth in 1/5000 m, RGB colour) of each tiny_desk frame."""
+    frames = []
+    for line in (TINY / "associations.txt").read_text().splitlines():
+        stamp, colour, _, depth = line.split()
+        raw = cv2.imread(str(TINY / depth), cv2.IMREAD_UNCHANGED)
+        rgb = cv2.imread(str(TINY / colour), cv2.IMREAD_COLOR)[..., ::-1]
+        frames.append((float(stamp), raw, np.ascontiguousarray(rgb)))
+    return frames
+
+
+def write_bag(path, ros2=False, topics=TUM_TOPICS, depth_encoding="32FC1", colour="rgb8", pad=0):
+    """A bag of tiny_desk: colour, depth (32FC1 metres with NaN holes, or 16UC1 millimetres with
+    `pad` bytes at the end of each row), camera info and an unrelated topic."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+    types = store.types
+    camera = load_intrinsics_json(TINY / "intrinsics.json")
+    if ros2:
+        from rosbags.rosbag2 import Writer
+
+        writer, serialize = Writer(path, version=9), store.serialize_cdr
+    else:
+        from rosbags.rosbag1 import Writer
+
+        writer, serialize = Writer(path), store.serialize_ros1
+
+    def header(stamp):
+        seconds = int(np.floor(stamp))
+        time = types["builtin_interfaces/msg/Time"](
+            sec=seconds, nanosec=int(round((stamp - seconds) * 1e9))
+        )
+        fields = {"stamp": time, "frame_id": "camera"}
+        return types["std_msgs/msg/Header"](**({} if ros2 else {"seq": 0}), **fields)
+
+    def image(stamp, array, encoding, step=None):
+        height, width = array.shape[:2]
+        data = np.ascontiguousarray(array).view(np.uint8).reshape(height, -1)
+        step = step or data.shape[1]
+        rows = np.zeros((height, step), np.uint8)
+        rows[:, : data.shape[1]] = data
+        return types["sensor_msgs/msg/Image"](
+            header=header(stamp),
+            height=height,
+            width=width,
+            encoding=encoding,
+            is_bigendian=0,
+            step=step,
+            data=rows.reshape(-1),
+        )
+
+    k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
+    names = ("D", "K", "R", "P") if not ros2 else ("d", "k", "r", "p")
+    info = types["sensor_msgs/msg/CameraInfo"](
+        header=header(1.0),
+        height=camera.height,
+        width=camera.width,
+        distortion_model="plumb_bob",
+        **dict(
+            zip(
+                names,
+                (
+                    np.zeros(5),
+                    np.array(k),
+                    np.eye(3).reshape(-1),
+                    np.array([*k[:3], 0.0, *k[3:6], 0.0, *k[6:], 0.0]),
+                ),
+                strict=True,
+            )
+        ),
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
+    with writer:
+        kinds = {
+            "colour": "sensor_msgs/msg/Image",
+            "depth": "sensor_msgs/msg/Image",
+            "info": "sensor_msgs/msg/CameraInfo",
+        }
+        connections = {
+            role: writer.add_connection(topic, kinds[role], typestore=store)
+            for role, topic in zip(("colour", "depth", "info"), topics, strict=True)
+        }
+        other = writer.add_connection("/rosout_note", "std_msgs/msg/String", typestore=store)
+        nanoseconds = lambda stamp: int(round((stamp + 0.001) * 1e9))  # noqa: E731 received 1 ms on
+        for stamp, raw, rgb in tum_frames():
+            pixels = rgb[..., ::-1] if colour == "bgr8" else rgb
+            message = image(stamp, pixels, colour)
+            writer.write(
+                connections["colour"], nanoseconds(stamp), serialize(message, kinds["colour"])
+            )
+            if stamp == 1.0:
+                writer.write(
+                    connections["info"], nanoseconds(stamp), serialize(info, kinds["info"])
+                )
+                note = types["std_msgs/msg/String"](data="hello")
+                writer.write(other, nanoseconds(stamp), serialize(note, "std_msgs/msg/String"))
+            if depth_encoding == "32FC1":
+                metres = raw.astype(np.float32) / np.float32(5000.0)
+                metres[raw == 0] = np.nan  # TUM's bags mark missing depth with NaN
+                message = image(stamp + DEPTH_DELAY, metres, "32FC1")
+            else:
+                millimetres = np.round(raw / 5.0).astype(np.uint16)
+                step = camera.width * 2 + pad
+                message = image(stamp + DEPTH_DELAY, millimetres, "16UC1", step)
+            depth_time = nanoseconds(stamp + DEPTH_DELAY)
+            writer.write(connections["depth"], depth_time, serialize(message, kinds["depth"]))
+    return path
+
+
+@pytest.fixture(scope="module")
+def ros1_bag(tmp_path_factory):
+    return write_bag(tmp_path_factory.mktemp("bags") / "desk.bag")
+
+
+def test_a_tum_layout_ros1_bag_reads_as_its_tum_folder(ros1_bag):
+    sequence = bag.open_bag(ros1_bag)
+    folder = tum.open_sequence(TINY)
+    assert sequence.camera == folder.camera  # from camera_info, equal to intrinsics.json
+    assert len(sequence) == len(folder) == 10
+    np.testing.assert_allclose(sequence.timestamps, folder.timestamps, atol=1e-9)
+    for i in (0, 4, 9):
+        ours, truth = sequence[i], folder[i]
+        np.testing.assert_array_equal(ours.colour, truth.colour)
+        np.testing.assert_array_equal(ours.depth, truth.depth)  # NaN holes read as 0
+
+
+def test_a_ros2_bag_with_millimetre_depth_bgr_and_other_topics(tmp_path, capsys):
+    path = write_bag(
+        tmp_path / "desk_ros2",
+        ros2=True,
+        topics=OTHER_TOPICS,
+        depth_encoding="16UC1",
+        colour="bgr8",
+        pad=6,
+    )
+    folder = tum.open_sequence(TINY)
+    sequence = bag.open_bag(path, OTHER_TOPICS)
+    assert len(sequence) == 10 and sequence.camera == folder.camera
+    for i in (0, 9):
+        ours, truth = sequence[i], folder[i]
+        np.testing.assert_array_equal(ours.colour, truth.colour)  # bgr8 turned back to RGB
+        assert np.abs(ours.depth - truth.depth).max() <= 0.0004 + 1e-6  # whole millimetres
+        assert ((ours.depth == 0) == (truth.depth == 0)).all()
+
+    # Without --topics the bag has none of the known names: one line listing what it has.
+    out = str(tmp_path / "out")
+    assert main(["reconstruct", str(path), "--out", out, "--backend", "ref"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(path) in err and "--topics" in err
+    for topic in (*OTHER_TOPICS, "/rosout_note"):
+        assert topic in err
+    assert "/camera/rgb/image_color" in err  # what it looked for
+
+    # --topics with a name the bag lacks: the same one-line error.
+    topics = ",".join((OTHER_TOPICS[0], "/nope", OTHER_TOPICS[2]))
+    assert main(["reconstruct", str(path), "--out", out, "--topics", topics]) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        err.count("\n") == 0 and "/nope" in err and "/cam/depth_mm (sensor_msgs/msg/Image)" in err
+    )
+
+
+@pytest.mark.slow
+def test_reconstructing_a_bag_tracks_like_its_tum_folder(ros1_bag, tmp_path):
+    """icp+rgbd on the cpu backend over the 10 frames. A 32FC1 bag holds the folder's depth and
+    colour bit for bit, so the trajectories agree to rounding (1e-6 m, 1e-6 rad)."""
+    common = ["--odometry", "icp+rgbd", "--backend", "cpu", "--resolution", "64"]
+    assert main(["reconstruct", str(TINY), "--out", str(tmp_path / "tum"), *common]) == 0
+    truth = ["--groundtruth", str(TINY / "groundtruth.txt")]
+    assert (
+        main(["reconstruct", str(ros1_bag), "--out", str(tmp_path / "bag"), *common, *truth]) == 0
+    )
+    folder = tum.read_trajectory(tmp_path / "tum" / "trajectory.txt")
+    bagged = tum.read_trajectory(tmp_path / "bag" / "trajectory.txt")
+    assert len(bagged) == len(folder) == 10
+    np.testing.assert_allclose(bagged.timestamps, folder.timestamps, atol=1e-6)
+    np.testing.assert_allclose(bagged.poses, folder.poses, atol=1e-6)
+    groundtruth = tum.open_sequence(TINY).groundtruth_for_frames()
+    assert np.linalg.norm(groundtruth.positions[-1] - groundtruth.positions[0]) > 0.1  # it moved
