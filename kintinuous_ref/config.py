@@ -91,16 +91,20 @@ class RgbdConfig:
 
 @dataclass(frozen=True)
 class CombinedConfig:
-    # the paper's w in eq. 11; 1 with the default normalised weighting (odometry/combined.py: the
-    # paper's 0.1 converted between its units, the normalised terms need none)
+    # the paper's w in eq. 11, on terms each divided by its own noise (odometry/combined.py: the
+    # paper's 0.1 converted between its units; the normalised terms need none)
     rgbd_weight: float = 1.0
+    # "degeneracy-aware" (default): "paper", with ICP silenced along the directions it does not
+    # observe (a corridor's length, a floor's plane), where RGB-D decides alone;
     # "paper": A = J_icp^T J_icp / sigma_icp^2 + w J_rgbd^T J_rgbd (eq. 12-13, both terms in units
-    # of their own noise); "paper-metres": the literal sum, ICP in metres;
-    # "original-code": A = A_rgbd + 100 A_icp, b = b_rgbd + 10 b_icp (the public code's scaling)
-    weighting: str = "paper"
+    # of their own noise); "information": RGB-D divided by its own noise too;
+    # "paper-metres": the literal sum, ICP in metres;
+    # "original-code" / "elasticfusion": A = A_rgbd + 100 A_icp, b = b_rgbd + 10 b_icp (the
+    # public codes' scaling). docs/odometry.md measures each on every scene.
+    weighting: str = "degeneracy-aware"
     original_code_icp_scale: float = 10.0  # "original-code": A_rgbd + s^2 A_icp, b_rgbd + s b_icp
     # "degeneracy-aware": ICP eigen-directions observed by less than this share of its pairs are
-    # left to RGB-D (odometry/combined.py)
+    # left to RGB-D where RGB-D knows more about them (odometry/combined.py)
     degeneracy_threshold: float = 0.02
 
 

@@ -15,52 +15,45 @@ systems. Three pyramid levels, 10 / 5 / 4 iterations from finest to coarsest.
 Units and the weight. The paper sets w = 0.1 "to reflect the difference in metrics" without
 saying in which units the two costs are added, so its 0.1 cannot be carried over by itself. The
 RGB-D rows of rgbd.py are robustly weighted by 1 / (sigma' + |r|) and so dimensionless; ICP's
-residuals are metres. The default ("paper", w = 1) makes E_icp dimensionless the same way,
-dividing it by its own mean squared residual sigma_icp^2 (recomputed every iteration, as sigma'
-is):
+residuals are metres. "paper" makes E_icp dimensionless the same way, dividing it by its own
+mean squared residual sigma_icp^2 (recomputed every iteration, as sigma' is):
 
-    E = E_icp / sigma_icp^2 + w E_rgbd,   w = 1   (config.combined.rgbd_weight).
+    E = E_icp / sigma_icp^2 + w E_rgbd,   w = 1   (config.combined.rgbd_weight),
 
-Each term is then measured in units of its own noise, the "difference in metrics" the paper's w
-converted is gone, and w = 1 is the maximum-likelihood balance: every pair counts by how well it
-fits, geometric or photometric, no tuned number left. Measured with the whole pipeline (320x240,
-noise on, moving volume, 300 frames; docs/odometry.md has the tables), ATE RMSE:
+each term in units of its own noise: every pair counts by how well it fits. That balance fails
+where ICP's information is degenerate but biased: along a corridor of flat walls the stray
+normals of the voxelised model give ICP a weak constraint that still outweighs the texture, and
+over one plane ICP observes only three of six directions. The default, "degeneracy-aware"
+(Zhang, Kaess and Singh, ICRA 2016), is "paper" with ICP silenced along the directions it does
+not observe. Its information matrix is taken about the camera (a twist that rotates about the
+camera centre, so that rotations and translations separate), rotations scaled by the RMS lever
+arm rho of the pairs, and divided by the pair count: a dimensionless 6x6 whose eigenvalues say
+what share of the pairs constrains each direction (the translational ones sum to 1).
+Eigen-directions below `degeneracy_threshold` are projected off the ICP term (its A and b)
+wherever RGB-D holds more information along them than ICP does, so RGB-D alone decides them: the
+walking direction in a corridor, the in-plane motion over a floor. In the dark RGB-D holds none,
+and ICP keeps them. ATE RMSE of the whole pipeline, 300 frames at 320x240 (docs/odometry.md has
+every scene at both resolutions and redkitchen):
 
-    weighting                    desk     corridor (ICP alone: 580 mm)   redkitchen (ICP: 27.1 mm)
-    normalised, w = 1 (default)  1.6 mm   52 mm  (11x lower)             26.2 mm
-    normalised, w = 0.1          1.6 mm*  769 mm (follows ICP)            26.9 mm
-    normalised, w = 10           1.4 mm   8.5 mm                          44.1 mm
-    "paper-metres", w = 0.1      7.9 mm*  7.4 mm                          40.3 mm
-    (* engineer O's earlier runs: fixed 3 m volume, which the desk never leaves)
+    weighting            corridor   floor      desk     dark
+    icp alone            293 mm     673 mm     1.9 mm   3.0 mm
+    rgbd alone           7.4 mm     23.4 mm    13.8 mm  353 mm (101 frames lost)
+    "paper"              49.0 mm    501 mm     1.9 mm   2.9 mm
+    "degeneracy-aware"   11.4 mm    3.8 mm     2.1 mm   2.9 mm
+    "original-code"      5.2 mm     12.3 mm    12.5 mm  6.3 mm
 
-w = 0.1 on the normalised terms leaves ICP in charge along the corridor, where flat walls give it
-a weak, biased constraint (stray normals of the voxelised model) that outweighs a tenth of the
-texture; the literal sum with ICP in metres ("paper-metres") lets a photometric pair outweigh a
-geometric one about a thousandfold, i.e. frame-to-frame RGB-D drift on real data. w = 1 is the
-only one of these that meets all of issue 4's targets at once.
-
-The other weightings (docs/odometry.md measures each on every scene):
+The other weightings:
 
 - "information": both terms in units of their own noise, E_icp / sigma_icp^2 + w E_rgbd /
   sigma_rgbd^2, sigma_rgbd^2 the mean squared *weighted* photometric residual (inverse-variance
   weighting of each term as a whole).
-- "degeneracy-aware" (Zhang, Kaess and Singh, ICRA 2016): "paper", except that ICP says nothing
-  along the directions it cannot observe. Its information matrix is taken about the camera
-  (a twist that rotates about the camera centre, so that rotations and translations separate),
-  rotations scaled by the RMS lever arm rho of the pairs, and divided by the pair count: a
-  dimensionless 6x6 whose eigenvalues say what share of the pairs constrains each direction
-  (the translational ones sum to 1). Eigen-directions below `degeneracy_threshold` are removed
-  from the ICP term (its A and b projected onto the others) wherever RGB-D holds more
-  information along them than ICP does, so RGB-D alone decides them: the walking direction in
-  a corridor of flat walls, the in-plane motion over a floor. In the dark RGB-D holds none, and
-  ICP keeps them.
-- "elasticfusion": ElasticFusion's combination, which is the authors' Kintinuous code's
-  ("original-code") formula with its own ICP weight of 10: the same system.
-
-`weighting="original-code"` reproduces the authors' public code instead: A = A_rgbd + s^2 A_icp,
-b = b_rgbd + s b_icp with s = 10 (config.combined.original_code_icp_scale). A and b are scaled
-inconsistently there, so its step is not the minimiser of any weighted sum of the two costs; it is
-offered only for comparison.
+- "paper-metres": the literal sum, E_icp in square metres: one photometric pair then outweighs
+  about a thousand geometric ones, i.e. frame-to-frame RGB-D.
+- "original-code": the authors' public code, A = A_rgbd + s^2 A_icp, b = b_rgbd + s b_icp with
+  s = 10 (config.combined.original_code_icp_scale). A and b are scaled inconsistently, so its
+  step is not the minimiser of any weighted sum of the two costs.
+- "elasticfusion": ElasticFusion's combination, which is the same formula with its own ICP
+  weight of 10: the same system as "original-code".
 """
 
 from __future__ import annotations
