@@ -42,7 +42,15 @@ class VolumeConfig:
             return self.truncation_distance
         return max(0.01, self.size / 100.0, 2.0 * self.voxel_size)
 
+    def __post_init__(self) -> None:
+        # A frozen config cannot change after it is made, so it is checked once, here: every
+        # VolumeConfig that exists is valid, and its users (the CLI, the pipeline, each
+        # backend's make_volume) need not check it again.
+        self.validate()
+
     def validate(self) -> None:
+        """Raise ConfigError (one line) for a field outside its range; runs when the config is
+        made (``__post_init__``)."""
         if self.resolution < 8 or self.resolution > 1024:
             raise ConfigError(f"volume resolution must be in 8..1024, got {self.resolution}")
         if not self.size > 0:
@@ -53,6 +61,10 @@ class VolumeConfig:
             raise ConfigError(f"truncation must be positive, got {self.truncation_distance} m")
         if not self.max_weight >= 1:
             raise ConfigError(f"max weight must be >= 1, got {self.max_weight}")
+        if self.placement not in ("ahead", "centred"):
+            raise ConfigError(
+                f"volume placement must be 'ahead' or 'centred', got {self.placement!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -158,7 +170,8 @@ class Config:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self) -> Config:
-        self.volume.validate()
+        """Return this config: every sub-config checks its fields when it is made
+        (VolumeConfig.__post_init__), so nothing is left to check."""
         return self
 
 
