@@ -95,7 +95,6 @@ class RgbdConfig:
     min_gradient: tuple[float, ...] = (12.0, 5.0, 3.0, 1.0)  # per level, finest to coarsest
     max_depth_change: float = 0.07  # the paper's d_s, metres
     max_depth: float = 6.0
-    max_translation_jump: float = 0.3  # metres; a larger increment is a tracking failure
     # grad I in the Jacobian: "current" = current image at p (paper, Steinbruecker, OpenCV),
     # "warped" = previous image sampled at the warped p' (the cost's exact derivative)
     gradient: str = "current"
@@ -195,11 +194,18 @@ def fast_odometry(config: Config) -> Config:
     )
 
 
+# Keys that older configuration files may name, and the key that replaces each: one translation
+# limit, tracking's, holds for every tracker.
+RENAMED_KEYS = {"rgbd.max_translation_jump": "tracking.max_translation_jump"}
+
+
 def with_overrides(config: Any, overrides: dict[str, Any]) -> Any:
     """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}."""
     grouped: dict[str, dict[str, Any]] = {}
     direct: dict[str, Any] = {}
     for key, value in overrides.items():
+        if key in RENAMED_KEYS:
+            raise ConfigError(f"configuration key {key!r} is now {RENAMED_KEYS[key]!r}")
         head, _, rest = key.partition(".")
         if head not in {f.name for f in fields(config)}:
             raise ConfigError(f"unknown configuration key {key!r}")
