@@ -1,5 +1,5 @@
-"""The pipeline on the cuda backend keeps its state on the device (issue #6), and the cuda colour
-weights equal the reference's.
+"""The pipeline on the cuda backend keeps its state on the device, and the cuda colour weights
+equal the reference's.
 
 Without a GPU the tests run in a child process with numba's CUDA simulator
 (NUMBA_ENABLE_CUDASIM=1 must be set before numba is imported), started by

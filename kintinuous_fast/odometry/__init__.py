@@ -1,7 +1,7 @@
 """Fast dense tracking kernels (ICP, RGB-D, ICP+RGB-D) for the cpu and cuda backends.
 
-Owner: engineer K2. The NumPy specification these kernels match is ``kintinuous_ref.odometry``;
-the modules here have its public names and signatures:
+The NumPy specification these kernels match is ``kintinuous_ref.odometry``; the modules here
+have its public names and signatures:
 
 - ``kintinuous_fast.odometry.cpu``:  numba prange loops with fixed-chunk float64 partial sums
   (deterministic on any thread count; lists in the reference's order),

@@ -3,7 +3,7 @@
     icp            KinectFusion frame-to-model ICP (icp.py)
     rgbd           Steinbruecker et al.'s dense RGB-D odometry, frame-to-frame (rgbd.py)
     icp+rgbd       both in one joint system per iteration (combined.py), the default
-    fovis          sparse FAST-feature visual odometry (fovis.py, engineer F)
+    fovis          sparse FAST-feature visual odometry (fovis.py)
     fovis/X        FOVIS switching (switching.py, paper V-A): X's increment unless FOVIS disagrees
                    about the translation length by more than mu
 
