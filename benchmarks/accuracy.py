@@ -24,10 +24,10 @@ import numpy as np
 
 from kintinuous_ref import metrics, preprocess, raycast, tsdf
 from kintinuous_ref.config import Config, with_overrides
-from kintinuous_ref.datasets import tum
+from kintinuous_ref.datasets import data_folder, tum
 from kintinuous_ref.odometry import METHODS, make_tracker
 
-REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+REAL_DATA = data_folder()  # $KINTINUOUS_DATA, else ../shared/data beside the repository
 SYNTHETIC = ("desk", "corridor", "dark")
 
 

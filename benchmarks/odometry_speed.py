@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -29,11 +28,11 @@ from kintinuous_fast.odometry import cpu as cpu_odometry
 from kintinuous_fast.odometry import fast_odometry, make_tracker
 from kintinuous_ref import metrics
 from kintinuous_ref.config import Config
-from kintinuous_ref.datasets import tum
+from kintinuous_ref.datasets import data_folder, tum
 from kintinuous_ref.odometry import icp as ref_icp
 from kintinuous_ref.odometry import rgbd as ref_rgbd
 
-REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+REAL_DATA = data_folder()  # $KINTINUOUS_DATA, else ../shared/data beside the repository
 
 
 class Model:

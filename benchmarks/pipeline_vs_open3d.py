@@ -41,9 +41,10 @@ from kintinuous_fast import select_backend  # noqa: E402
 from kintinuous_fast.odometry import fast_odometry  # noqa: E402
 from kintinuous_ref import metrics, pipeline  # noqa: E402
 from kintinuous_ref.config import Config  # noqa: E402
+from kintinuous_ref.datasets import data_folder  # noqa: E402
 from kintinuous_ref.datasets.tum import Trajectory, open_sequence  # noqa: E402
 
-REDKITCHEN = ROOT.parent / "shared" / "data" / "redkitchen"
+REDKITCHEN = data_folder() / "redkitchen"  # $KINTINUOUS_DATA, else ../shared/data
 # track_frame_to_model's default schedule, finest level first as in our Config: Open3D lists it
 # coarsest first, (6, 3, 1), and so runs one iteration at full resolution.
 OPEN3D_ITERATIONS = (1, 3, 6)

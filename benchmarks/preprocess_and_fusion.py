@@ -4,7 +4,8 @@ and Open3D's TSDF integration / raycasting where `open3d` is installed (benchmar
     .venv/bin/python benchmarks/preprocess_and_fusion.py [--runs 5] [--resolution 256]
         [--backends ref,cpu] [--frames N] [--json out.json]
 
-Frames: the real redkitchen sequence from ../shared/data when present, else a synthetic scene.
+Frames: the real redkitchen sequence from $KINTINUOUS_DATA (else ../shared/data) when present,
+else a synthetic scene.
 Each stage is run once to warm up (numba compiles, caches fill), then `--runs` times; the median
 is reported. Integration fuses a sequence of frames at their ground-truth poses into a fresh
 volume of `--resolution`^3 over 3 m (the default config) and times every frame after the first.
@@ -29,8 +30,9 @@ from kintinuous_fast import select_backend  # noqa: E402
 from kintinuous_fast._volume import to_reference_volume  # noqa: E402
 from kintinuous_ref.colour import colour_weights  # noqa: E402
 from kintinuous_ref.config import Config, VolumeConfig  # noqa: E402
+from kintinuous_ref.datasets import data_folder  # noqa: E402
 
-REDKITCHEN = ROOT.parent / "shared" / "data" / "redkitchen"
+REDKITCHEN = data_folder() / "redkitchen"  # $KINTINUOUS_DATA, else ../shared/data
 
 
 def load_frames(count: int) -> tuple[list, list, object, str]:

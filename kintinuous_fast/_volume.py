@@ -12,8 +12,13 @@ import numpy as np
 from kintinuous_fast.ops.volume import TSDF_SCALE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.errors import ConfigError, DatasetError
-from kintinuous_ref.tsdf import TsdfVolume, available_memory_bytes, volume_origin
+from kintinuous_ref.errors import DatasetError
+from kintinuous_ref.tsdf import (
+    TsdfVolume,
+    available_memory_bytes,
+    refuse_if_too_big,
+    volume_origin,
+)
 
 BYTES_TSDF = 4  # int16 TSDF + int16 weight
 BYTES_COLOUR = 4  # uint8 R, G, B + uint8 colour weight
@@ -94,20 +99,13 @@ def memory_bytes(config: VolumeConfig) -> int:
 
 
 def check_volume_config(config: VolumeConfig, available: int | None = None) -> None:
-    """The reference's checks with the fast volume's size against `available` bytes (host
-    memory by default; the cuda backend passes the GPU's free memory)."""
-    config.validate()
-    if config.placement not in ("ahead", "centred"):
-        raise ConfigError(
-            f"volume placement must be 'ahead' or 'centred', got {config.placement!r}"
-        )
-    needed = memory_bytes(config)
+    """Refuse, in one line, a fast volume (memory_bytes) that does not fit in `available`
+    bytes: host memory by default, the GPU's free memory where the cuda backend passes it. The
+    config's own fields were checked when it was made (VolumeConfig.__post_init__)."""
     available = available_memory_bytes() if available is None else available
-    if needed + (256 << 20) > available:
-        raise ConfigError(
-            f"a {config.resolution}^3 volume needs {needed / 2**30:.1f} GiB but only "
-            f"{available / 2**30:.1f} GiB of memory is available; lower --resolution"
-        )
+    # Headroom for the rest of the pipeline: the fast loops update voxels in place, where the
+    # reference's NumPy integration makes slab-sized temporaries (its headroom: 1 GiB).
+    refuse_if_too_big(config, memory_bytes(config), available, 256 << 20)
 
 
 def volume_header(

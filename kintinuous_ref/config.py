@@ -42,7 +42,15 @@ class VolumeConfig:
             return self.truncation_distance
         return max(0.01, self.size / 100.0, 2.0 * self.voxel_size)
 
+    def __post_init__(self) -> None:
+        # A frozen config cannot change after it is made, so it is checked once, here: every
+        # VolumeConfig that exists is valid, and its users (the CLI, the pipeline, each
+        # backend's make_volume) need not check it again.
+        self.validate()
+
     def validate(self) -> None:
+        """Raise ConfigError (one line) for a field outside its range; runs when the config is
+        made (``__post_init__``)."""
         if self.resolution < 8 or self.resolution > 1024:
             raise ConfigError(f"volume resolution must be in 8..1024, got {self.resolution}")
         if not self.size > 0:
@@ -53,6 +61,10 @@ class VolumeConfig:
             raise ConfigError(f"truncation must be positive, got {self.truncation_distance} m")
         if not self.max_weight >= 1:
             raise ConfigError(f"max weight must be >= 1, got {self.max_weight}")
+        if self.placement not in ("ahead", "centred"):
+            raise ConfigError(
+                f"volume placement must be 'ahead' or 'centred', got {self.placement!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -83,7 +95,6 @@ class RgbdConfig:
     min_gradient: tuple[float, ...] = (12.0, 5.0, 3.0, 1.0)  # per level, finest to coarsest
     max_depth_change: float = 0.07  # the paper's d_s, metres
     max_depth: float = 6.0
-    max_translation_jump: float = 0.3  # metres; a larger increment is a tracking failure
     # grad I in the Jacobian: "current" = current image at p (paper, Steinbruecker, OpenCV),
     # "warped" = previous image sampled at the warped p' (the cost's exact derivative)
     gradient: str = "current"
@@ -162,7 +173,8 @@ class Config:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self) -> Config:
-        self.volume.validate()
+        """Return this config: every sub-config checks its fields when it is made
+        (VolumeConfig.__post_init__), so nothing is left to check."""
         return self
 
 
@@ -170,7 +182,7 @@ def fast_odometry(config: Config) -> Config:
     """`config` with the finest pyramid level skipped by every dense estimator (0 iterations
     there; the inlier check looks at the next level, and the pipeline raycasts only the quarter
     of the pixels that level reads): the original code's "fast odometry" option, for CPUs
-    (docs/benchmarks.md measures its accuracy cost)."""
+    (docs/benchmarks.md and docs/benchmarks_archive.md measure its accuracy cost)."""
 
     def skip_finest(iterations: tuple[int, ...]) -> tuple[int, ...]:
         return (0, *iterations[1:])
@@ -186,11 +198,18 @@ def fast_odometry(config: Config) -> Config:
     )
 
 
+# Keys that older configuration files may name, and the key that replaces each: one translation
+# limit, tracking's, holds for every tracker.
+RENAMED_KEYS = {"rgbd.max_translation_jump": "tracking.max_translation_jump"}
+
+
 def with_overrides(config: Any, overrides: dict[str, Any]) -> Any:
     """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}."""
     grouped: dict[str, dict[str, Any]] = {}
     direct: dict[str, Any] = {}
     for key, value in overrides.items():
+        if key in RENAMED_KEYS:
+            raise ConfigError(f"configuration key {key!r} is now {RENAMED_KEYS[key]!r}")
         head, _, rest = key.partition(".")
         if head not in {f.name for f in fields(config)}:
             raise ConfigError(f"unknown configuration key {key!r}")

@@ -10,24 +10,24 @@ an axis moves no data: corner and offset grow by s, and the s layers of cells th
 window are extracted and cleared; the same cells then hold the s layers that entered on the other
 side.
 
-When to shift (parameters.md). The followed point is where the volume's centre was, in the first
-camera's frame: the camera centre itself with placement "centred" (Kintinuous), the point size/2
-along the optical axis with "ahead" (so a camera that turns drags the volume to where it looks).
-It starts at the volume centre, the "basis". When it is >= shift_threshold voxels from the basis
-on any axis, the window shifts by the rounded displacement on every axis, each clamped to
+When to shift (docs/parameters.md). The followed point is where the volume's centre was, in the
+first camera's frame: the camera centre itself with placement "centred" (Kintinuous), the point
+size/2 along the optical axis with "ahead" (so a camera that turns drags the volume to where it
+looks). It starts at the volume centre, the "basis". When it is >= shift_threshold voxels from the
+basis on any axis, the window shifts by the rounded displacement on every axis, each clamped to
 shift_threshold voxels; the basis is again the window's centre.
 
 Extraction by marching cubes (the paper triangulates extracted points by greedy projection;
-parameters.md accepts marching cubes on the slice's TSDF). A cube of 2x2x2 voxels is named by its
-lower corner. When layers leave, every cube that holds a leaving voxel and lies in the window is
-triangulated now: the leaving slab PLUS the first staying layer (the cubes straddling the
-boundary). Those cubes can never be generated again (one of their voxels is no longer in the
-window), and every later cube lies wholly in the window, so each cube is triangulated exactly once
-and neighbouring slices share the vertices on their common faces. A vertex lies on a grid edge;
-its KEY is the edge (global index of its lower voxel + axis), so the final mesh merges seam
-vertices exactly by key. A vertex is kept when both voxels of its edge have weight >=
-min_extract_weight (8: parameters.md; fewer while fewer frames have been fused), a triangle when
-its three vertices are kept.
+docs/parameters.md: marching cubes on the slice's TSDF instead). A cube of 2x2x2 voxels is named by
+its lower corner. When layers leave, every cube that holds a leaving voxel and lies in the window is
+triangulated now: the leaving slab PLUS the first staying layer (the cubes straddling the boundary).
+Those cubes can never be generated again (one of their voxels is no longer in the window), and every
+later cube lies wholly in the window, so each cube is triangulated exactly once and neighbouring
+slices share the vertices on their common faces. A vertex lies on a grid edge; its KEY is the edge
+(global index of its lower voxel + axis), so the final mesh merges seam vertices exactly by key. A
+vertex is kept when both voxels of its edge have weight >= min_extract_weight (8:
+docs/parameters.md; fewer while fewer frames have been fused), a triangle when its three vertices
+are kept.
 
 Slices go to disk as they are made (slice_000000.ply, ...: binary PLY with colours and keys,
 written to a temporary name and renamed, so a crash leaves only complete files). At the end the
@@ -116,7 +116,7 @@ def shift_for(
 ) -> np.ndarray:
     """Voxels (3,) int to shift the window by for the camera at `pose`: zero unless the followed
     point is >= threshold voxels from the basis on some axis; then the rounded displacement on
-    every axis, each clamped to +-threshold (parameters.md)."""
+    every axis, each clamped to +-threshold (docs/parameters.md)."""
     point = pose[:3, :3] @ follow + pose[:3, 3]
     displacement = (point - volume_centre(volume)) / volume.voxel_size
     if np.all(np.abs(displacement) < threshold):

@@ -2,7 +2,7 @@
 (KinectFusion's surface prediction; paper III and VI-A). ICP tracks the next frame against this.
 
 For each pixel a ray leaves the camera centre through the pixel centre. It starts where it enters
-the volume and marches in steps of 0.8 x truncation (parameters.md: the TSDF changes by at most
+the volume and marches in steps of 0.8 x truncation (docs/parameters.md: the TSDF changes by at most
 one truncation per truncation of distance, so a step below mu cannot jump over a zero crossing
 from the +1 side) sampling the TSDF trilinearly. The first change of sign from + to - is the
 surface; its position is refined by linear interpolation of the two samples around it,
@@ -30,7 +30,7 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.colour import surface_colour
 from kintinuous_ref.tsdf import TsdfVolume, sample_tsdf, trilinear
 
-STEP_FRACTION = 0.8  # of the truncation distance (parameters.md)
+STEP_FRACTION = 0.8  # of the truncation distance (docs/parameters.md)
 BRICK = 8  # voxels per side of the blocks used to skip empty space
 
 

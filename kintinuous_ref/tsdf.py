@@ -116,20 +116,23 @@ def available_memory_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def check_volume_config(config: VolumeConfig) -> None:
-    """Refuse, in one line and before any work, a volume that is invalid or cannot fit in memory."""
-    config.validate()
-    if config.placement not in ("ahead", "centred"):
-        raise ConfigError(
-            f"volume placement must be 'ahead' or 'centred', got {config.placement!r}"
-        )
-    needed, available = memory_bytes(config), available_memory_bytes()
-    # Integration temporaries and the rest of the pipeline need headroom beside the volume.
-    if needed + (1 << 30) > available:
+def refuse_if_too_big(config: VolumeConfig, needed: int, available: int, headroom: int) -> None:
+    """Refuse, in one line, a volume of `needed` bytes that leaves less than `headroom` of the
+    `available` memory; each backend passes its own volume size and the memory it allocates
+    from (host memory, or the GPU's)."""
+    if needed + headroom > available:
         raise ConfigError(
             f"a {config.resolution}^3 volume needs {needed / 2**30:.1f} GiB but only "
             f"{available / 2**30:.1f} GiB of memory is available; lower --resolution"
         )
+
+
+def check_volume_config(config: VolumeConfig) -> None:
+    """Refuse, in one line and before any work, a reference volume that cannot fit in host
+    memory. The config's own fields were checked when it was made (VolumeConfig.__post_init__);
+    a fast backend checks its volume with its own `check_volume_config`."""
+    # Integration temporaries and the rest of the pipeline need headroom beside the volume.
+    refuse_if_too_big(config, memory_bytes(config), available_memory_bytes(), 1 << 30)
 
 
 def volume_origin(first_pose: np.ndarray, config: VolumeConfig) -> np.ndarray:

@@ -30,7 +30,6 @@
 
 # %%
 import time
-from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -38,6 +37,7 @@ import numpy as np
 from kintinuous_ref import mesh, preprocess, raycast, tsdf
 from kintinuous_ref.colour import colour_weights
 from kintinuous_ref.config import Config, with_overrides
+from kintinuous_ref.datasets import data_folder, real_dataset
 from kintinuous_ref.datasets.synthetic import make_scenario
 
 WIDTH, HEIGHT = 160, 120  # small images: the lesson runs on a laptop in seconds
@@ -372,8 +372,9 @@ for stage, (reference_s, fast_s) in timings.items():
 # ground-truth poses, with the fast backend, and render the mesh.
 
 # %%
-REDKITCHEN = Path("/work/shared/data/redkitchen")
-if REDKITCHEN.exists():
+# The folder named by $KINTINUOUS_DATA, else ../shared/data beside the repository; None if absent.
+REDKITCHEN = real_dataset("redkitchen")
+if REDKITCHEN is not None:
     import cv2
 
     from kintinuous_ref.datasets.tum import open_sequence
@@ -397,4 +398,4 @@ if REDKITCHEN.exists():
     plt.title(f"redkitchen, 10 frames: {len(kitchen_mesh.points)} vertices")
     plt.show()
 else:
-    print(f"{REDKITCHEN} not found: skipping the real-data example")
+    print(f"redkitchen not found in {data_folder()}: skipping the real-data example")

@@ -29,13 +29,13 @@
 
 # %%
 import time
-from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
 
 from kintinuous_ref import preprocess, se3
 from kintinuous_ref.config import Config
+from kintinuous_ref.datasets import data_folder, real_dataset
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.odometry import make_tracker
 from kintinuous_ref.odometry.rgbd import (
@@ -417,8 +417,9 @@ print(
 # the first: the recovered motion against the (KinectFusion-derived) ground truth.
 
 # %%
-REDKITCHEN = Path("/work/shared/data/redkitchen")
-if REDKITCHEN.exists():
+# The folder named by $KINTINUOUS_DATA, else ../shared/data beside the repository; None if absent.
+REDKITCHEN = real_dataset("redkitchen")
+if REDKITCHEN is not None:
     import cv2
 
     from kintinuous_ref.datasets.tum import open_sequence
@@ -442,4 +443,4 @@ if REDKITCHEN.exists():
         f"error {kitchen_error[0]:.1f} mm, {kitchen_error[1]:.2f} deg"
     )
 else:
-    print(f"{REDKITCHEN} not found: skipping the real-data example")
+    print(f"redkitchen not found in {data_folder()}: skipping the real-data example")

@@ -1,4 +1,4 @@
-"""`kintinuous benchmark --json` (issue #6): one JSON object whose per-stage statistics are those
+"""`kintinuous benchmark --json`: one JSON object whose per-stage statistics are those
 of the frames after the warm-up frame, and frames/s = 1000 / median total ms."""
 
 import json

@@ -1,5 +1,5 @@
-"""The pipeline on the cuda backend keeps its state on the device (issue #6), and the cuda colour
-weights equal the reference's.
+"""The pipeline on the cuda backend keeps its state on the device, and the cuda colour weights
+equal the reference's.
 
 Without a GPU the tests run in a child process with numba's CUDA simulator
 (NUMBA_ENABLE_CUDASIM=1 must be set before numba is imported), started by
@@ -22,9 +22,6 @@ their cache is stale (25-280 s measured while they were being edited), beyond th
 """
 
 import copy
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +41,6 @@ from kintinuous_ref.config import (
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.datasets.tum import Frame
 
-TESTS = Path(__file__).parent
 WIDTH, HEIGHT, FRAMES = 40, 30, 2
 SMALL = 16  # values: a counter, the three repeat flags, a pose, intrinsics, a 3x3 kernel
 NV = 30  # values per partial sum of the odometry kernels (odometry/ops.py)
@@ -62,15 +58,8 @@ on_device = pytest.mark.skipif(
 
 
 @pytest.mark.skipif(not cuda_status(), reason="CUDA works here: the tests run in this process")
-def test_equivalence_cuda_pipeline_in_simulator():
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
-    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", __file__]
-    result = subprocess.run(
-        command, env=env, capture_output=True, text=True, timeout=600, cwd=TESTS.parent
-    )
-    tail = (result.stdout + result.stderr)[-4000:]
-    assert result.returncode == 0, tail
-    assert " passed" in tail and "failed" not in tail and "error" not in tail, tail
+def test_equivalence_cuda_pipeline_in_simulator(cuda_simulator):
+    cuda_simulator(Path(__file__), "-k", "not in_simulator")
 
 
 # ----------------------------------------------------------------------------------------------

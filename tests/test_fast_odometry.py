@@ -6,9 +6,6 @@ iterations and at convergence. Cases and tolerances: tests/test_fast_odometry_ca
 The CUDA twin is tests/test_fast_odometry_cuda.py: on a GPU it runs directly; without one, the
 last test here runs it in a child process on numba's CUDA simulator."""
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -172,14 +169,5 @@ def test_fast_odometry_skips_the_finest_level():
     kintinuous_fast.cuda_status() == "",
     reason="CUDA works in this process: tests/test_fast_odometry_cuda.py runs directly",
 )
-def test_equivalence_cuda_odometry_in_simulator():
-    tests = Path(__file__).parent
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
-    result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-         str(tests / "test_fast_odometry_cuda.py")],
-        env=env, capture_output=True, text=True, timeout=600, cwd=tests.parent,
-    )  # fmt: skip
-    tail = (result.stdout + result.stderr)[-4000:]
-    assert result.returncode == 0, tail
-    assert " passed" in tail and "skipped" not in tail.splitlines()[-1], tail
+def test_equivalence_cuda_odometry_in_simulator(cuda_simulator):
+    cuda_simulator(Path(__file__).parent / "test_fast_odometry_cuda.py")

@@ -3,8 +3,8 @@ frames (80x60 and 160x120) with holes, borders, depth edges, junk values and emp
 The cases and their tolerances are in tests/fast_equivalence.py; the CUDA twin of this file is
 tests/test_fast_cuda.py.
 
-Tolerance of the CPU bilateral filter: unchanged, rtol 2.4e-7 (two float32 ulps of the depth),
-although it no longer repeats the reference's float64 arithmetic (issue #6, speed). Its weights
+Tolerance of the CPU bilateral filter: rtol 2.4e-7 (two float32 ulps of the depth), as if it
+repeated the reference's float64 arithmetic, which it does not (for speed). Its weights
 are float32 from a polynomial exp (<= 2.4e-7 relative, test below) and its sums are of
 differences from the centre, D'(p) = D(p) + sum w (D(q) - D(p)) / sum w: a weight error eps moves
 the result by at most eps times the weighted spread of the differences (millimetres), and the

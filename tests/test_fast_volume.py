@@ -106,11 +106,38 @@ def test_fast_volume_is_eight_bytes_per_voxel_and_round_trips():
     np.testing.assert_array_equal(again.colour, back.colour)
 
 
-def test_fast_make_volume_refuses_what_cannot_fit():
+def test_fast_make_volume_refuses_what_cannot_fit(monkeypatch):
     with pytest.raises(ConfigError, match="needs .* GiB but only"):
         _volume.check_volume_config(VolumeConfig(resolution=1024), available=2**30)
-    with pytest.raises(ConfigError, match="placement"):
-        cpu_tsdf.make_volume(VolumeConfig(resolution=16, placement="behind"), np.eye(4))
+    monkeypatch.setattr(_volume, "available_memory_bytes", lambda: 2**30)
+    with pytest.raises(ConfigError, match=r"needs 8\.0 GiB but only 1\.0 GiB"):
+        cpu_tsdf.make_volume(VolumeConfig(resolution=1024), np.eye(4))
+
+
+def test_each_backend_checks_its_own_volume_against_its_own_memory(monkeypatch):
+    """512^3 with colour and 2.5 GiB of host memory free: the fast volume (8 bytes per voxel,
+    1.0 GiB) fits, the reference's (24 bytes, 3.0 GiB) does not; the cuda volume is checked
+    against the GPU's free memory whatever the host has."""
+    from numba import cuda
+
+    from kintinuous_fast.cuda import tsdf as cuda_tsdf
+
+    config = VolumeConfig(resolution=512, size=6.0)
+    monkeypatch.setattr(ref_tsdf, "available_memory_bytes", lambda: 5 << 29)
+    monkeypatch.setattr(_volume, "available_memory_bytes", lambda: 5 << 29)
+    cpu_tsdf.check_volume_config(config)
+    with pytest.raises(ConfigError, match=r"needs 3\.0 GiB but only 2\.5 GiB"):
+        ref_tsdf.check_volume_config(config)
+
+    class Context:  # a GPU with 0.5 GiB free
+        def get_memory_info(self) -> tuple[int, int]:
+            return 1 << 29, 80 << 30
+
+    monkeypatch.setattr(cuda, "current_context", Context)
+    monkeypatch.setattr(_volume, "available_memory_bytes", lambda: 64 << 30)
+    assert cuda_tsdf.available_memory_bytes() == 1 << 29
+    with pytest.raises(ConfigError, match=r"needs 1\.0 GiB but only 0\.5 GiB"):
+        cuda_tsdf.check_volume_config(config)
 
 
 @pytest.mark.parametrize("table", [False, True], ids=["arithmetic", "table"])

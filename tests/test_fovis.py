@@ -1,6 +1,6 @@
 """FOVIS (Huang et al. 2011) against independent truths.
 
-- Whole estimator: two noise-free renders of engineer B's synthetic scenes (desk, corridor) with
+- Whole estimator: two noise-free renders of the synthetic scenes (desk, corridor) with
   a known relative pose, through the real preprocessing, must give back that pose. A second,
   self-contained scene (a textured room ray cast against four planes right here) checks the
   increment convention and the failure cases.
@@ -10,8 +10,6 @@
 - Real data: one second of redkitchen against its ground truth (skipped without the data).
 """
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -19,6 +17,7 @@ import pytest
 from kintinuous_ref import se3
 from kintinuous_ref.camera import TUM_CAMERAS
 from kintinuous_ref.config import FovisConfig, PreprocessConfig
+from kintinuous_ref.datasets import data_folder
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.datasets.tum import open_sequence
 from kintinuous_ref.errors import TrackingError
@@ -381,11 +380,11 @@ def test_initial_rotation_of_a_pure_pan():
 # ---------------------------------------------------------------------------------------------
 # Real data
 
-REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
+REDKITCHEN = data_folder() / "redkitchen"  # $KINTINUOUS_DATA, else ../shared/data
 
 
 @pytest.mark.realdata
-@pytest.mark.skipif(not REDKITCHEN.is_dir(), reason="../shared/data/redkitchen not present")
+@pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"{REDKITCHEN} not present")
 def test_one_second_of_redkitchen_against_its_ground_truth():
     """Frames 0 and 30 (1 s, 5 cm and 2.8 degrees apart) of real Kinect data.
 

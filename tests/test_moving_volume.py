@@ -1,7 +1,7 @@
 """The moving volume (Kintinuous' cyclical buffer, paper III): shifts move no data, a shifted
 volume behaves exactly like a fresh volume placed at the new spot, the world-frame surface does not
 move when the volume does, each marching cube is extracted exactly once with closed seams, the
-shift rule of parameters.md, and slices on disk that survive a crash."""
+shift rule of docs/parameters.md, and slices on disk that survive a crash."""
 
 import json
 

@@ -213,3 +213,32 @@ def test_reconstruct_command_bad_input(desk_folder, tmp_path, capsys, monkeypatc
         status = main(["reconstruct", *extra, "--out", str(tmp_path / "o")])
         err = capsys.readouterr().err.strip()
         assert status == 2 and message in err and len(err.splitlines()) == 1, err
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="cli._run_reconstruct and pipeline.check_run check every run with "
+    "kintinuous_ref.tsdf.check_volume_config (24 bytes per voxel, host memory); each should "
+    "call the selected backend's tsdf.check_volume_config",
+)
+def test_reconstruct_checks_the_memory_of_the_backend_it_runs_on(
+    desk_folder, tmp_path, capsys, monkeypatch
+):
+    """512^3 with colour on the cpu backend with 2.5 GiB free: its volume needs 1.0 GiB (the
+    reference's would need 3.0), so the run goes on to make its volume."""
+    from kintinuous_fast import _volume
+    from kintinuous_fast.cpu import tsdf as cpu_tsdf
+    from kintinuous_ref import tsdf
+
+    monkeypatch.setattr(tsdf, "available_memory_bytes", lambda: 5 << 29)
+    monkeypatch.setattr(_volume, "available_memory_bytes", lambda: 5 << 29)
+
+    def make_volume(config: VolumeConfig, *args: object) -> None:  # stop before 1 GiB is filled
+        cpu_tsdf.check_volume_config(config)
+        raise ConfigError(f"a {config.resolution}^3 volume would be made here")
+
+    monkeypatch.setattr(cpu_tsdf, "make_volume", make_volume)
+    arguments = ["reconstruct", str(desk_folder), "--backend", "cpu", "--resolution", "512"]
+    status = main([*arguments, "--frames", "1", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and "512^3 volume would be made here" in err, err

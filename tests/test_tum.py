@@ -1,7 +1,8 @@
 """TUM RGB-D folders: list parsing, association, lazy frames, cameras, ground truth, bad input.
 
 Small sequences are written into tmp_path with known pixel values, so every number read back has
-an exact expected value. The real-data tests read ../shared/data/redkitchen and skip without it.
+an exact expected value. The real-data tests read redkitchen from $KINTINUOUS_DATA (else
+../shared/data beside the repository) and skip without it.
 """
 
 import json
@@ -13,12 +14,12 @@ import pytest
 
 from kintinuous_ref import se3
 from kintinuous_ref.camera import TUM_CAMERAS
-from kintinuous_ref.datasets import tum
+from kintinuous_ref.datasets import data_folder, real_dataset, tum
 from kintinuous_ref.errors import DatasetError
 
 WIDTH, HEIGHT = 8, 6
 CAMERA_JSON = {"fx": 10.0, "fy": 11.0, "cx": 3.5, "cy": 2.5, "width": WIDTH, "height": HEIGHT}
-REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
+REDKITCHEN = data_folder() / "redkitchen"  # $KINTINUOUS_DATA, else ../shared/data
 
 
 def raw_depth(index: int) -> np.ndarray:
@@ -367,9 +368,17 @@ def test_no_groundtruth(tmp_path):
 
 # --- real data --------------------------------------------------------------------------------
 
-needs_redkitchen = pytest.mark.skipif(
-    not REDKITCHEN.is_dir(), reason="../shared/data/redkitchen not present"
-)
+
+def test_real_datasets_are_looked_for_in_kintinuous_data(tmp_path, monkeypatch):
+    monkeypatch.setenv("KINTINUOUS_DATA", str(tmp_path))
+    assert data_folder() == tmp_path and real_dataset("redkitchen") is None  # absent: skip
+    (tmp_path / "redkitchen").mkdir()
+    assert real_dataset("redkitchen") == tmp_path / "redkitchen"
+    monkeypatch.delenv("KINTINUOUS_DATA")
+    assert data_folder().parts[-2:] == ("shared", "data")  # beside the repository
+
+
+needs_redkitchen = pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"{REDKITCHEN} not present")
 
 
 @pytest.mark.realdata

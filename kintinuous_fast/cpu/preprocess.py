@@ -4,7 +4,7 @@
 Same names, signatures and results as the reference (see tests/test_fast_preprocess.py for the
 stated tolerances); arrays are NumPy arrays.
 
-Speed (issue #6: the whole stage in ~20 ms per 640x480 frame on two cores). Every image loop
+Speed (target: the whole stage in ~20 ms per 640x480 frame on two cores). Every image loop
 here runs over a contiguous slice of a row with a straight-line body, which LLVM turns into SIMD
 code; a per-pixel call into the 2-D ops (`depth[v + dy, u + dx]` with a possibly negative index)
 does not vectorise, as numba must wrap negative indices. So the filters are written as "for each

@@ -118,7 +118,7 @@ def _or_first(planes, following, near):
 @functools.lru_cache(maxsize=2)
 def _work_arrays(fine_bricks: int, bricks: int) -> SimpleNamespace:
     """The skip maps' work arrays for one volume size, kept from frame to frame: at 256^3,
-    fresh ones cost ~2 ms of page faults per frame (session 7, when the maps took ~6.5 ms)."""
+    fresh ones cost ~2 ms of page faults per frame (measured when the maps took ~6.5 ms)."""
     fine_shape, shape = (fine_bricks,) * 3, (bricks,) * 3
     return SimpleNamespace(
         rows=np.empty(fine_shape, dtype=np.uint8),
@@ -181,7 +181,7 @@ def _capped_distance_passes(near, cap, out, result, work):
     (axis 2: rows padded with cap, which never lowers a minimum, so no row reads the next), by
     k rows (axis 1) and by k planes (axis 0). The passes may lower a pad; no entry reads one
     after the first pass. Shifting each row of 128 on its own cost more than the shifts: the
-    fine map took 2.5 ms on one thread, 1.1 now (session 12)."""
+    fine map took 2.5 ms on one thread, 1.1 with whole-plane shifts."""
     m = near.shape[0]
     pad = cap - 1
     row = m + 2 * pad
@@ -464,7 +464,7 @@ def near_starts(
     projected bounds, grown by half a pixel, take where their rays enter it (a slab test in
     float32 against the box grown by ENTRY_MARGIN, less ENTRY_SLACK of the distance: both far
     above float32's rounding of coordinates within ~100 m, far below a sample step).
-    Measured on redkitchen (frame 30, session 10): 1.70 jumps per ray after the start against
+    Measured on redkitchen (frame 30): 1.70 jumps per ray after the start against
     2.92 with the camera's distance to each box, which this replaced."""
     chunks = _chunk_starts(numba.get_num_threads(), camera.height, camera.width)
     view = _view_constants(volume, pose, camera)

@@ -14,6 +14,7 @@ from numba import prange
 from kintinuous_fast._volume import (
     FastTsdfVolume,
     NegativeMasks,
+    available_memory_bytes,
     camera_frame_steps,
     check_depth,
     check_volume_config,
@@ -34,6 +35,7 @@ from kintinuous_ref.tsdf import volume_origin
 
 __all__ = [
     "FastTsdfVolume",
+    "available_memory_bytes",
     "check_volume_config",
     "from_reference_volume",
     "integrate",

@@ -25,7 +25,8 @@ from kintinuous_fast._volume import (
     to_reference_volume,
     volume_header,
 )
-from kintinuous_fast._volume import check_volume_config as _check_host
+from kintinuous_fast._volume import available_memory_bytes as _host_memory_bytes
+from kintinuous_fast._volume import check_volume_config as _check_memory
 from kintinuous_fast._volume import from_reference_volume as _from_reference_host
 from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
 from kintinuous_fast.ops import cuda_device_jit, integration, volume
@@ -35,6 +36,7 @@ from kintinuous_ref.tsdf import TsdfVolume, volume_origin
 
 __all__ = [
     "FastTsdfVolume",
+    "available_memory_bytes",
     "check_volume_config",
     "from_reference_volume",
     "integrate",
@@ -151,14 +153,20 @@ def _zeros(shape: tuple[int, ...], dtype: Any) -> Any:
     return array
 
 
-def check_volume_config(config: VolumeConfig) -> None:
-    """The reference's checks, with the volume's size against the GPU's free memory."""
-    free = None
+def available_memory_bytes() -> int:
+    """The GPU's free memory, where the cuda volume lives; host memory is not what limits it.
+    Under numba's simulator, which has no memory info and keeps device arrays in host memory,
+    the host's available memory."""
     try:
-        free = cuda.current_context().get_memory_info()[0]
-    except Exception:  # the simulator has no memory info: fall back to host memory
-        free = None
-    _check_host(config, free)
+        return int(cuda.current_context().get_memory_info()[0])
+    except Exception:  # the simulator's context has no memory info
+        return _host_memory_bytes()
+
+
+def check_volume_config(config: VolumeConfig) -> None:
+    """Refuse, in one line, a volume (8 bytes per voxel, memory_bytes) that does not fit in the
+    GPU's free memory (available_memory_bytes)."""
+    _check_memory(config, available_memory_bytes())
 
 
 def make_volume(

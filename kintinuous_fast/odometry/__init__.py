@@ -1,7 +1,7 @@
 """Fast dense tracking kernels (ICP, RGB-D, ICP+RGB-D) for the cpu and cuda backends.
 
-Owner: engineer K2. The NumPy specification these kernels match is ``kintinuous_ref.odometry``;
-the modules here have its public names and signatures:
+The NumPy specification these kernels match is ``kintinuous_ref.odometry``; the modules here
+have its public names and signatures:
 
 - ``kintinuous_fast.odometry.cpu``:  numba prange loops with fixed-chunk float64 partial sums
   (deterministic on any thread count; lists in the reference's order),
@@ -20,8 +20,8 @@ itself on the CPU as in the paper) with the fast systems underneath:
     result = tracker.track(previous_frame, current_frame, model_prediction, previous_pose)
 
 ``fast_odometry(config)`` (kintinuous_ref.config's, re-exported) is the original code's "fast
-odometry" option: the dense estimators skip the finest pyramid level (docs/benchmarks.md measures
-what that costs in accuracy).
+odometry" option: the dense estimators skip the finest pyramid level (docs/benchmarks.md and
+docs/benchmarks_archive.md measure what that costs in accuracy).
 """
 
 from __future__ import annotations

@@ -34,7 +34,7 @@ cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
 # functions inlined into their loops were counted up and down on every step of a ray, in
 # branches that numba's pruning pass cannot pair up, each an atomic operation on a count that
 # the other threads update too. Dropping them made the raycast 13-16 % faster, bit-identical
-# (measured, docs/benchmarks.md). A function compiled so that does need it fails to compile.
+# (measured, docs/benchmarks_archive.md). A function compiled so that does need it fails to compile.
 cpu_jit_numpy_errors_called: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", _nrt=False
 )

@@ -3,7 +3,7 @@
     icp            KinectFusion frame-to-model ICP (icp.py)
     rgbd           Steinbruecker et al.'s dense RGB-D odometry, frame-to-frame (rgbd.py)
     icp+rgbd       both in one joint system per iteration (combined.py), the default
-    fovis          sparse FAST-feature visual odometry (fovis.py, engineer F)
+    fovis          sparse FAST-feature visual odometry (fovis.py)
     fovis/X        FOVIS switching (switching.py, paper V-A): X's increment unless FOVIS disagrees
                    about the translation length by more than mu
 
@@ -227,11 +227,10 @@ class DenseTracker:
             return pose, (
                 f"too few inliers ({100 * fraction:.1f}% < {100 * tracking.min_inlier_fraction:g}%)"
             )
-        max_translation = tracking.max_translation_jump
-        if self.method != "icp":
-            max_translation = min(max_translation, self.config.rgbd.max_translation_jump)
         reason = implausible_motion(
-            se3.inverse(previous_pose) @ pose, max_translation, tracking.max_rotation_jump_deg
+            se3.inverse(previous_pose) @ pose,
+            tracking.max_translation_jump,
+            tracking.max_rotation_jump_deg,
         )
         return pose, reason
 
