@@ -11,9 +11,10 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Any, NoReturn
 
 from kintinuous_ref import __version__
-from kintinuous_ref.errors import KintinuousError
+from kintinuous_ref.errors import ConfigError, KintinuousError
 
 # The algorithms multiply many small matrices (6xN systems, 3x3 rotations), for which a threaded
 # BLAS costs more in wake-ups than it gains: measured 25 ms instead of 0.15 ms per product on a
@@ -44,6 +45,24 @@ FAST_ODOMETRY_HELP = (
 )
 
 
+def _finite_float(text: str) -> float:
+    """An option's number: finite (no inf or nan)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, found {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, found {text!r}")
+    return value
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors as one line, like every other error of the command."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"kintinuous: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def _add_synth(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "synth",
@@ -62,7 +81,7 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--mesh-spacing",
-        type=float,
+        type=_finite_float,
         default=0.05,
         help="edge length of the ground-truth mesh scene.ply in metres (default 0.05)",
     )
@@ -136,7 +155,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--frames", type=int, help="number of frames (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
-    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
     parser.add_argument(
         "--shift-threshold",
@@ -195,13 +214,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
 
 def _run_reconstruct(args: argparse.Namespace) -> None:
     from kintinuous_ref import pipeline
-    from kintinuous_ref.config import (
-        ColourConfig,
-        Config,
-        VolumeConfig,
-        fast_odometry,
-        with_overrides,
-    )
+    from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, fast_odometry
 
     config = Config(
         volume=VolumeConfig(
@@ -215,7 +228,7 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
             discontinuity_check=not args.no_colour_weighting,
         ),
     )
-    config = with_overrides(config, _config_overrides(args.config, args.set))
+    config = _configured(config, args.config, args.set)
     if args.fast_odometry:
         config = fast_odometry(config)
     pipeline.check_volume_config(config.volume)  # before generating or reading anything
@@ -378,39 +391,68 @@ def _run_download(args: argparse.Namespace) -> None:
             print(f"{target}: already in {folder}")
 
 
-def _config_overrides(path: Path | None, settings: list[str]) -> dict:
-    """Dotted-key overrides from a JSON file (nested or dotted) and from KEY=VALUE strings."""
+def _configured(config: Any, path: Path | None, settings: list[str]) -> Any:
+    """`config` with the values of a JSON file (nested or dotted keys) and then of KEY=VALUE
+    strings, each checked against its field's type where it is read: a bad value is one
+    ConfigError naming the file or --set, the key, what was expected and what was found."""
+    from kintinuous_ref.config import with_overrides
 
-    def flatten(values: dict, prefix: str = "") -> dict:
-        flat = {}
-        for key, value in values.items():
-            if isinstance(value, dict):
-                flat.update(flatten(value, f"{prefix}{key}."))
-            else:
-                flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
-        return flat
-
-    overrides: dict = {}
     if path is not None:
+        values = _flatten(_read_config_file(Path(path)))
         try:
-            values = json.loads(Path(path).read_text())
-        except FileNotFoundError:
-            raise KintinuousError(f"{path}: configuration file not found") from None
-        except json.JSONDecodeError as err:
-            raise KintinuousError(f"{path}: not valid JSON ({err})") from None
-        if not isinstance(values, dict):
-            raise KintinuousError(f"{path}: a configuration file holds one JSON object")
-        overrides.update(flatten(values))
+            config = with_overrides(config, values)
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from None
     for setting in settings:
         key, equals, text = setting.partition("=")
-        if not equals or not key:
-            raise KintinuousError(f"--set expects KEY=VALUE, got {setting!r}")
+        if not equals or not key.strip():
+            raise ConfigError(f"--set expects KEY=VALUE, got {setting!r}")
         try:
             value = json.loads(text)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             value = text  # a bare word such as original-code
-        overrides[key.strip()] = tuple(value) if isinstance(value, list) else value
-    return overrides
+        try:
+            config = with_overrides(config, {key.strip(): value})
+        except ConfigError as err:
+            raise ConfigError(f"--set: {err}") from None
+    return config.validate()
+
+
+def _read_config_file(path: Path) -> dict:
+    """The JSON object of a --config file, or a one-line ConfigError saying why not."""
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder; --config takes a JSON file")
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: configuration file not found") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the configuration file ({err.strerror})") from None
+    try:
+        values = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file; --config takes a JSON file") from None
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"{path}: not valid JSON ({err})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid JSON (nested too deeply)") from None
+    if not isinstance(values, dict):
+        raise ConfigError(
+            f"{path}: expected one JSON object of configuration values, found "
+            f"{type(values).__name__}"
+        )
+    return values
+
+
+def _flatten(values: dict, prefix: str = "") -> dict:
+    """{"icp": {"iterations": [..]}} as {"icp.iterations": [..]} (values checked later)."""
+    flat: dict = {}
+    for key, value in values.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def _add_table(commands: argparse._SubParsersAction) -> None:
@@ -439,7 +481,7 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, help="frames per run (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--size", help="WIDTHxHEIGHT: resize the images (e.g. 320x240)")
-    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
     parser.add_argument(
         "--backend",
@@ -456,7 +498,7 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_table(args: argparse.Namespace) -> None:
-    from kintinuous_ref.config import Config, VolumeConfig, with_overrides
+    from kintinuous_ref.config import Config, VolumeConfig
     from kintinuous_ref.evaluation import evaluate_methods, method_title
 
     size = _parse_size(args.size)
@@ -465,7 +507,7 @@ def _run_table(args: argparse.Namespace) -> None:
 
         dask_client(args.scheduler).close()  # fail early: dask missing or scheduler unreachable
     config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
-    config = with_overrides(config, _config_overrides(args.config, args.set))
+    config = _configured(config, args.config, args.set)
 
     def done(outcome, finished: int, total: int) -> None:  # noqa: ANN001
         if outcome.status == "ok":
@@ -539,7 +581,7 @@ def _add_benchmark(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, default=30, help="frames (the first is a warm-up)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
-    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
     parser.add_argument(
         "--fast-odometry",
         action="store_true",
@@ -557,10 +599,10 @@ def _run_benchmark(args: argparse.Namespace) -> None:
     import json
 
     from kintinuous_fast.benchmark import benchmark, format_table
-    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry, with_overrides
+    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
 
     config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
-    config = with_overrides(config, _config_overrides(args.config, args.set))
+    config = _configured(config, args.config, args.set)
     if args.fast_odometry:
         config = fast_odometry(config)
     report = benchmark(
@@ -591,7 +633,7 @@ def _run_info(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="kintinuous",
         description="Dense RGB-D mapping with robust visual odometry (Whelan et al., ICRA 2013).",
     )
@@ -613,7 +655,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as done:  # --help, --version or a one-line usage error
+        return done.code if isinstance(done.code, int) else 2
     if not hasattr(args, "handler"):
         parser.print_help()
         return 1
