@@ -1,7 +1,12 @@
-"""The `kintinuous` command: synth, evaluate (and the commands later issues add).
+"""The `kintinuous` command: synth, evaluate, reconstruct, table, benchmark, convert, download.
 
 Heavy modules are imported inside the handlers so that `kintinuous --help` stays instant.
-Errors meant for people (KintinuousError) become one line on stderr and exit status 2.
+Errors meant for people (KintinuousError, and argparse's usage errors) become one line on stderr
+and exit status 2; an OSError (a full disk, a folder that cannot be written) one line and 2;
+SIGINT, SIGTERM and SIGHUP one line and 128 + the signal's number. Any other exception is a bug:
+one line that says so, exit status 70, and the traceback in a crash log (reconstruct's in its
+output folder, with the run's work kept). A command that did not do all that was asked (a
+`table` with a failed run) exits with status 1.
 """
 
 from __future__ import annotations
@@ -14,7 +19,8 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from kintinuous_ref import __version__
-from kintinuous_ref.errors import ConfigError, KintinuousError
+from kintinuous_ref.errors import ConfigError, InternalError, KintinuousError
+from kintinuous_ref.strict_json import dumps as strict_dumps
 
 # The algorithms multiply many small matrices (6xN systems, 3x3 rotations), for which a threaded
 # BLAS costs more in wake-ups than it gains: measured 25 ms instead of 0.15 ms per product on a
@@ -130,7 +136,7 @@ def _run_evaluate(args: argparse.Namespace) -> None:
         tum.read_trajectory(args.estimate), tum.read_trajectory(args.groundtruth)
     )
     if args.json:
-        print(json.dumps(errors.as_dict()))
+        print(strict_dumps(errors.as_dict()))
     else:
         print(errors.summary())
 
@@ -146,12 +152,28 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         help="TUM folder, .klg log, ROS bag, downloaded sequence (fr1/desk, ...) or synthetic "
         "scenario name (default: desk, generated and cached); docs/datasets.md",
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument(
+        "--out",
+        required=True,
+        help="output folder (new, empty, or holding an earlier result with --overwrite)",
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the earlier result in --out (removed before the run starts)",
+    )
+    parser.add_argument(
+        "--skip-bad-frames",
+        action="store_true",
+        help="leave out an unreadable frame (corrupt or wrong size) and count it in the report, "
+        "instead of stopping there (the work before it is kept either way)",
+    )
     parser.add_argument(
         "--odometry",
-        default="groundtruth",
+        default="icp+rgbd",
         choices=ODOMETRY_CHOICES,
-        help="groundtruth (known poses) or a tracker (docs/odometry.md); default groundtruth",
+        help="a tracker (docs/odometry.md) or groundtruth (known poses); default icp+rgbd, the "
+        "paper's",
     )
     parser.add_argument("--frames", type=int, help="number of frames (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
@@ -232,6 +254,7 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     if args.fast_odometry:
         config = fast_odometry(config)
     pipeline.check_volume_config(config.volume)  # before generating or reading anything
+    out = pipeline.check_output(args.out, args.overwrite)
     sequence = pipeline.open_dataset(
         args.dataset,
         args.intrinsics,
@@ -242,18 +265,21 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     )
     report = pipeline.reconstruct(
         sequence,
-        args.out,
+        out,
         config,
         odometry=args.odometry,
         start=args.start,
         count=args.frames,
         backend_name=args.backend,
         predict_model=True if args.raycast else None,
+        overwrite=args.overwrite,
+        skip_bad_frames=args.skip_bad_frames,
     )
     total = report["timing_ms"]["total"]["mean"]
+    skipped = f", skipped {report['skipped_frames']} bad" if report["skipped_frames"] else ""
     print(
-        f"fused {report['fused_frames']} of {report['frames']} frames "
-        f"({total:.0f} ms per frame); wrote {args.out}/mesh.ply with "
+        f"fused {report['fused_frames']} of {report['frames']} frames{skipped} "
+        f"({total:.0f} ms per frame); wrote {out}/mesh.ply with "
         f"{report['mesh']['vertices']} vertices ({report['shifts']} volume shifts, "
         f"{report['slices']} slices)"
     )
@@ -486,8 +512,9 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--backend",
         choices=["ref", "cpu", "cuda", "auto"],
-        default="ref",
-        help="preprocessing, integration and raycast backend (kintinuous info); default ref",
+        default="auto",
+        help="preprocessing, integration and raycast backend (kintinuous info); default auto, "
+        "as for reconstruct",
     )
     parser.add_argument("--mesh", action="store_true", help="also write each run's mesh.ply")
     parser.add_argument("--config", type=Path, help="JSON file of configuration values")
@@ -497,7 +524,7 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=_run_table)
 
 
-def _run_table(args: argparse.Namespace) -> None:
+def _run_table(args: argparse.Namespace) -> int:
     from kintinuous_ref.config import Config, VolumeConfig
     from kintinuous_ref.evaluation import evaluate_methods, method_title
 
@@ -547,6 +574,8 @@ def _run_table(args: argparse.Namespace) -> None:
             "(reasons in table.md)",
             file=sys.stderr,
         )
+        return 1
+    return 0
 
 
 def _table_command(args: argparse.Namespace) -> str:
@@ -596,8 +625,6 @@ def _add_benchmark(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_benchmark(args: argparse.Namespace) -> None:
-    import json
-
     from kintinuous_fast.benchmark import benchmark, format_table
     from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
 
@@ -608,7 +635,7 @@ def _run_benchmark(args: argparse.Namespace) -> None:
     report = benchmark(
         args.dataset, args.backend, args.odometry, args.frames, config, start=args.start
     )
-    print(json.dumps(report) if args.json else format_table(report))
+    print(strict_dumps(report) if args.json else format_table(report))
 
 
 def _add_info(commands: argparse._SubParsersAction) -> None:
@@ -662,15 +689,59 @@ def main(argv: list[str] | None = None) -> int:
     if not hasattr(args, "handler"):
         parser.print_help()
         return 1
+    from kintinuous_ref.pipeline import Interrupted, handle_signals
+
     try:
-        args.handler(args)
+        with handle_signals():
+            status = args.handler(args)
+    except InternalError as err:
+        print(f"kintinuous: {err}", file=sys.stderr)  # it says that it is a bug
+        return 70
     except KintinuousError as err:
         print(f"kintinuous: error: {err}", file=sys.stderr)
         return 2
+    except Interrupted as stop:
+        print(
+            f"kintinuous: {stop.message or f'interrupted by {stop.signal_name}'}", file=sys.stderr
+        )
+        return stop.exit_status
     except KeyboardInterrupt:
         print("kintinuous: interrupted", file=sys.stderr)
         return 130
-    return 0
+    except MemoryError:
+        print(
+            "kintinuous: error: out of memory (ask for fewer or smaller frames, or a smaller "
+            "volume)",
+            file=sys.stderr,
+        )
+        return 2
+    except OSError as err:
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"kintinuous: error: {where}{err.strerror or err}", file=sys.stderr)
+        return 2
+    except Exception as err:
+        log = _crash_log()
+        print(
+            f"kintinuous: internal error (a bug, please report it): {type(err).__name__}: "
+            f"{err}; traceback in {log}",
+            file=sys.stderr,
+        )
+        return 70
+    return status if isinstance(status, int) else 0
+
+
+def _crash_log() -> str:
+    """The current exception's traceback in a new file in the temporary folder; its path."""
+    import tempfile
+    import traceback
+
+    try:
+        handle, path = tempfile.mkstemp(prefix="kintinuous-crash-", suffix=".log")
+        with os.fdopen(handle, "w") as log:
+            log.write(traceback.format_exc())
+        return path
+    except OSError:
+        return "nowhere (the temporary folder cannot be written)"
 
 
 if __name__ == "__main__":
