@@ -66,7 +66,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse with its errors as one line, like every other error of the command."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"kintinuous: error: {self.prog}: {message} (see {self.prog} --help)\n")
+        self.exit(2, f"kintinuous: error: {message} (see {self.prog} --help)\n")
 
 
 def _add_synth(commands: argparse._SubParsersAction) -> None:
@@ -689,7 +689,7 @@ def main(argv: list[str] | None = None) -> int:
     if not hasattr(args, "handler"):
         parser.print_help()
         return 1
-    from kintinuous_ref.pipeline import Interrupted, handle_signals
+    from kintinuous_ref.signals import Interrupted, handle_signals
 
     try:
         with handle_signals():

@@ -43,7 +43,6 @@ import contextlib
 import functools
 import os
 import shutil
-import signal
 import sys
 import time
 import traceback
@@ -66,6 +65,7 @@ from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
 from kintinuous_ref.moving_volume import MovingVolume, SliceStore
 from kintinuous_ref.raycast import ModelPrediction
+from kintinuous_ref.signals import Interrupted
 from kintinuous_ref.strict_json import dumps as strict_dumps
 from kintinuous_ref.tsdf import TsdfVolume, check_volume_config
 
@@ -97,7 +97,7 @@ class PipelineResult:
 
     @property
     def status(self) -> str:
-        """ "completed", "interrupted" (a signal) or "failed" (an error ended the loop)."""
+        """How the run ended: "completed", "interrupted" (a signal) or "failed" (an error)."""
         if self.interrupted:
             return "interrupted"
         return "failed" if self.error is not None else "completed"
@@ -267,45 +267,6 @@ def _error_reason(err: Exception) -> str:
     if isinstance(err, MemoryError):
         return "out of memory"
     return f"internal error (a bug, please report it): {type(err).__name__}: {err}"
-
-
-# ----------------------------------------------------------------------------------------------
-# Signals: SIGTERM and SIGHUP end a run as Ctrl-C does.
-
-
-class Interrupted(KeyboardInterrupt):
-    """A signal that ends the command: SIGINT, SIGTERM or SIGHUP. `message` (when set) says
-    what was kept."""
-
-    def __init__(self, signal_name: str = "SIGINT", message: str = "") -> None:
-        super().__init__(signal_name)
-        self.signal_name = signal_name
-        self.message = message
-
-    @property
-    def exit_status(self) -> int:
-        return 128 + int(getattr(signal, self.signal_name, signal.SIGINT))
-
-
-def _raise_interrupted(number: int, _frame: Any) -> None:
-    raise Interrupted(signal.Signals(number).name)
-
-
-@contextlib.contextmanager
-def handle_signals() -> Iterator[None]:
-    """SIGINT, SIGTERM and SIGHUP raise Interrupted in the main thread while in force."""
-    names = ("SIGINT", "SIGTERM", "SIGHUP")
-    numbers = [getattr(signal, name) for name in names if hasattr(signal, name)]
-    try:
-        previous = {number: signal.signal(number, _raise_interrupted) for number in numbers}
-    except ValueError:  # not the main thread: leave the handlers alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
 
 
 def _as_given(array: Any) -> Any:
