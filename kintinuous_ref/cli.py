@@ -682,10 +682,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as done:  # --help, --version or a one-line usage error
-        return done.code if isinstance(done.code, int) else 2
+    args = parser.parse_args(argv)  # SystemExit: --help, --version or a one-line usage error
     if not hasattr(args, "handler"):
         parser.print_help()
         return 1

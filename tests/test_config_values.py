@@ -19,7 +19,10 @@ TINY = Path(__file__).resolve().parent.parent / "data" / "tiny_desk"
 
 
 def _one_line_error(capsys, argv: list[str]) -> str:
-    status = main(argv)
+    try:
+        status = main(argv)
+    except SystemExit as done:  # argparse's usage errors, one line too
+        status = done.code
     err = capsys.readouterr().err.strip()
     assert status == 2, err
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
