@@ -8,6 +8,7 @@ level l+1 sits on pixel (2u, 2v) of level l), so fx, fy, cx, cy all halve per le
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -38,6 +39,12 @@ class Intrinsics:
             raise ConfigError(f"image size must be positive, got {self.width}x{self.height}")
         if not self.depth_scale > 0:
             raise ConfigError(f"depth_scale must be positive, got {self.depth_scale}")
+        values = (self.fx, self.fy, self.cx, self.cy, self.depth_scale)
+        if not all(math.isfinite(value) for value in values):
+            raise ConfigError(
+                f"intrinsics must be finite numbers, got fx={self.fx}, fy={self.fy}, "
+                f"cx={self.cx}, cy={self.cy}, depth_scale={self.depth_scale}"
+            )
 
     @property
     def matrix(self) -> np.ndarray:
@@ -128,7 +135,21 @@ def load_intrinsics_json(path: Path) -> Intrinsics:
         )
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError, ConfigError) as err:
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not a text file; expected intrinsics JSON") from None
+    except OSError as err:
+        raise DatasetError(f"{path}: cannot read ({err.strerror or err})") from None
+    except RecursionError:
+        raise DatasetError(f"{path}: not a valid intrinsics file (nested too deeply)") from None
+    except (
+        json.JSONDecodeError,
+        KeyError,
+        TypeError,
+        ValueError,
+        OverflowError,
+        AttributeError,
+        ConfigError,
+    ) as err:
         raise DatasetError(f"{path}: not a valid intrinsics file ({err!s})") from None
 
 

@@ -1,7 +1,12 @@
-"""The `kintinuous` command: synth, evaluate (and the commands later issues add).
+"""The `kintinuous` command: synth, evaluate, reconstruct, table, benchmark, convert, download.
 
 Heavy modules are imported inside the handlers so that `kintinuous --help` stays instant.
-Errors meant for people (KintinuousError) become one line on stderr and exit status 2.
+Errors meant for people (KintinuousError, and argparse's usage errors) become one line on stderr
+and exit status 2; an OSError (a full disk, a folder that cannot be written) one line and 2;
+SIGINT, SIGTERM and SIGHUP one line and 128 + the signal's number. Any other exception is a bug:
+one line that says so, exit status 70, and the traceback in a crash log (reconstruct's in its
+output folder, with the run's work kept). A command that did not do all that was asked (a
+`table` with a failed run) exits with status 1.
 """
 
 from __future__ import annotations
@@ -11,9 +16,11 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Any, NoReturn
 
 from kintinuous_ref import __version__
-from kintinuous_ref.errors import KintinuousError
+from kintinuous_ref.errors import ConfigError, InternalError, KintinuousError
+from kintinuous_ref.strict_json import dumps as strict_dumps
 
 # The algorithms multiply many small matrices (6xN systems, 3x3 rotations), for which a threaded
 # BLAS costs more in wake-ups than it gains: measured 25 ms instead of 0.15 ms per product on a
@@ -44,6 +51,24 @@ FAST_ODOMETRY_HELP = (
 )
 
 
+def _finite_float(text: str) -> float:
+    """An option's number: finite (no inf or nan)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, found {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, found {text!r}")
+    return value
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors as one line, like every other error of the command."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"kintinuous: error: {message} (see {self.prog} --help)\n")
+
+
 def _add_synth(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "synth",
@@ -62,7 +87,7 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--mesh-spacing",
-        type=float,
+        type=_finite_float,
         default=0.05,
         help="edge length of the ground-truth mesh scene.ply in metres (default 0.05)",
     )
@@ -111,7 +136,7 @@ def _run_evaluate(args: argparse.Namespace) -> None:
         tum.read_trajectory(args.estimate), tum.read_trajectory(args.groundtruth)
     )
     if args.json:
-        print(json.dumps(errors.as_dict()))
+        print(strict_dumps(errors.as_dict()))
     else:
         print(errors.summary())
 
@@ -127,16 +152,32 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         help="TUM folder, .klg log, ROS bag, downloaded sequence (fr1/desk, ...) or synthetic "
         "scenario name (default: desk, generated and cached); docs/datasets.md",
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument(
+        "--out",
+        required=True,
+        help="output folder (new, empty, or holding an earlier result with --overwrite)",
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the earlier result in --out (removed before the run starts)",
+    )
+    parser.add_argument(
+        "--skip-bad-frames",
+        action="store_true",
+        help="leave out an unreadable frame (corrupt or wrong size) and count it in the report, "
+        "instead of stopping there (the work before it is kept either way)",
+    )
     parser.add_argument(
         "--odometry",
-        default="groundtruth",
+        default="icp+rgbd",
         choices=ODOMETRY_CHOICES,
-        help="groundtruth (known poses) or a tracker (docs/odometry.md); default groundtruth",
+        help="a tracker (docs/odometry.md) or groundtruth (known poses); default icp+rgbd, the "
+        "paper's",
     )
     parser.add_argument("--frames", type=int, help="number of frames (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
-    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
     parser.add_argument(
         "--shift-threshold",
@@ -195,13 +236,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
 
 def _run_reconstruct(args: argparse.Namespace) -> None:
     from kintinuous_ref import pipeline
-    from kintinuous_ref.config import (
-        ColourConfig,
-        Config,
-        VolumeConfig,
-        fast_odometry,
-        with_overrides,
-    )
+    from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, fast_odometry
 
     config = Config(
         volume=VolumeConfig(
@@ -215,10 +250,11 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
             discontinuity_check=not args.no_colour_weighting,
         ),
     )
-    config = with_overrides(config, _config_overrides(args.config, args.set))
+    config = _configured(config, args.config, args.set)
     if args.fast_odometry:
         config = fast_odometry(config)
     pipeline.check_volume_config(config.volume)  # before generating or reading anything
+    out = pipeline.check_output(args.out, args.overwrite)
     sequence = pipeline.open_dataset(
         args.dataset,
         args.intrinsics,
@@ -229,18 +265,21 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     )
     report = pipeline.reconstruct(
         sequence,
-        args.out,
+        out,
         config,
         odometry=args.odometry,
         start=args.start,
         count=args.frames,
         backend_name=args.backend,
         predict_model=True if args.raycast else None,
+        overwrite=args.overwrite,
+        skip_bad_frames=args.skip_bad_frames,
     )
     total = report["timing_ms"]["total"]["mean"]
+    skipped = f", skipped {report['skipped_frames']} bad" if report["skipped_frames"] else ""
     print(
-        f"fused {report['fused_frames']} of {report['frames']} frames "
-        f"({total:.0f} ms per frame); wrote {args.out}/mesh.ply with "
+        f"fused {report['fused_frames']} of {report['frames']} frames{skipped} "
+        f"({total:.0f} ms per frame); wrote {out}/mesh.ply with "
         f"{report['mesh']['vertices']} vertices ({report['shifts']} volume shifts, "
         f"{report['slices']} slices)"
     )
@@ -378,39 +417,68 @@ def _run_download(args: argparse.Namespace) -> None:
             print(f"{target}: already in {folder}")
 
 
-def _config_overrides(path: Path | None, settings: list[str]) -> dict:
-    """Dotted-key overrides from a JSON file (nested or dotted) and from KEY=VALUE strings."""
+def _configured(config: Any, path: Path | None, settings: list[str]) -> Any:
+    """`config` with the values of a JSON file (nested or dotted keys) and then of KEY=VALUE
+    strings, each checked against its field's type where it is read: a bad value is one
+    ConfigError naming the file or --set, the key, what was expected and what was found."""
+    from kintinuous_ref.config import with_overrides
 
-    def flatten(values: dict, prefix: str = "") -> dict:
-        flat = {}
-        for key, value in values.items():
-            if isinstance(value, dict):
-                flat.update(flatten(value, f"{prefix}{key}."))
-            else:
-                flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
-        return flat
-
-    overrides: dict = {}
     if path is not None:
+        values = _flatten(_read_config_file(Path(path)))
         try:
-            values = json.loads(Path(path).read_text())
-        except FileNotFoundError:
-            raise KintinuousError(f"{path}: configuration file not found") from None
-        except json.JSONDecodeError as err:
-            raise KintinuousError(f"{path}: not valid JSON ({err})") from None
-        if not isinstance(values, dict):
-            raise KintinuousError(f"{path}: a configuration file holds one JSON object")
-        overrides.update(flatten(values))
+            config = with_overrides(config, values)
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from None
     for setting in settings:
         key, equals, text = setting.partition("=")
-        if not equals or not key:
-            raise KintinuousError(f"--set expects KEY=VALUE, got {setting!r}")
+        if not equals or not key.strip():
+            raise ConfigError(f"--set expects KEY=VALUE, got {setting!r}")
         try:
             value = json.loads(text)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             value = text  # a bare word such as original-code
-        overrides[key.strip()] = tuple(value) if isinstance(value, list) else value
-    return overrides
+        try:
+            config = with_overrides(config, {key.strip(): value})
+        except ConfigError as err:
+            raise ConfigError(f"--set: {err}") from None
+    return config.validate()
+
+
+def _read_config_file(path: Path) -> dict:
+    """The JSON object of a --config file, or a one-line ConfigError saying why not."""
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder; --config takes a JSON file")
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: configuration file not found") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the configuration file ({err.strerror})") from None
+    try:
+        values = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file; --config takes a JSON file") from None
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"{path}: not valid JSON ({err})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid JSON (nested too deeply)") from None
+    if not isinstance(values, dict):
+        raise ConfigError(
+            f"{path}: expected one JSON object of configuration values, found "
+            f"{type(values).__name__}"
+        )
+    return values
+
+
+def _flatten(values: dict, prefix: str = "") -> dict:
+    """{"icp": {"iterations": [..]}} as {"icp.iterations": [..]} (values checked later)."""
+    flat: dict = {}
+    for key, value in values.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def _add_table(commands: argparse._SubParsersAction) -> None:
@@ -439,13 +507,14 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, help="frames per run (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--size", help="WIDTHxHEIGHT: resize the images (e.g. 320x240)")
-    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
     parser.add_argument(
         "--backend",
         choices=["ref", "cpu", "cuda", "auto"],
-        default="ref",
-        help="preprocessing, integration and raycast backend (kintinuous info); default ref",
+        default="auto",
+        help="preprocessing, integration and raycast backend (kintinuous info); default auto, "
+        "as for reconstruct",
     )
     parser.add_argument("--mesh", action="store_true", help="also write each run's mesh.ply")
     parser.add_argument("--config", type=Path, help="JSON file of configuration values")
@@ -455,8 +524,8 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=_run_table)
 
 
-def _run_table(args: argparse.Namespace) -> None:
-    from kintinuous_ref.config import Config, VolumeConfig, with_overrides
+def _run_table(args: argparse.Namespace) -> int:
+    from kintinuous_ref.config import Config, VolumeConfig
     from kintinuous_ref.evaluation import evaluate_methods, method_title
 
     size = _parse_size(args.size)
@@ -465,7 +534,7 @@ def _run_table(args: argparse.Namespace) -> None:
 
         dask_client(args.scheduler).close()  # fail early: dask missing or scheduler unreachable
     config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
-    config = with_overrides(config, _config_overrides(args.config, args.set))
+    config = _configured(config, args.config, args.set)
 
     def done(outcome, finished: int, total: int) -> None:  # noqa: ANN001
         if outcome.status == "ok":
@@ -505,6 +574,8 @@ def _run_table(args: argparse.Namespace) -> None:
             "(reasons in table.md)",
             file=sys.stderr,
         )
+        return 1
+    return 0
 
 
 def _table_command(args: argparse.Namespace) -> str:
@@ -539,7 +610,7 @@ def _add_benchmark(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, default=30, help="frames (the first is a warm-up)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
-    parser.add_argument("--volume-size", type=float, default=3.0, help="cube side, metres")
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
     parser.add_argument(
         "--fast-odometry",
         action="store_true",
@@ -554,19 +625,17 @@ def _add_benchmark(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_benchmark(args: argparse.Namespace) -> None:
-    import json
-
     from kintinuous_fast.benchmark import benchmark, format_table
-    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry, with_overrides
+    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
 
     config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
-    config = with_overrides(config, _config_overrides(args.config, args.set))
+    config = _configured(config, args.config, args.set)
     if args.fast_odometry:
         config = fast_odometry(config)
     report = benchmark(
         args.dataset, args.backend, args.odometry, args.frames, config, start=args.start
     )
-    print(json.dumps(report) if args.json else format_table(report))
+    print(strict_dumps(report) if args.json else format_table(report))
 
 
 def _add_info(commands: argparse._SubParsersAction) -> None:
@@ -591,7 +660,7 @@ def _run_info(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="kintinuous",
         description="Dense RGB-D mapping with robust visual odometry (Whelan et al., ICRA 2013).",
     )
@@ -613,19 +682,63 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # SystemExit: --help, --version or a one-line usage error
     if not hasattr(args, "handler"):
         parser.print_help()
         return 1
+    from kintinuous_ref.signals import Interrupted, handle_signals
+
     try:
-        args.handler(args)
+        with handle_signals():
+            status = args.handler(args)
+    except InternalError as err:
+        print(f"kintinuous: {err}", file=sys.stderr)  # it says that it is a bug
+        return 70
     except KintinuousError as err:
         print(f"kintinuous: error: {err}", file=sys.stderr)
         return 2
+    except Interrupted as stop:
+        print(
+            f"kintinuous: {stop.message or f'interrupted by {stop.signal_name}'}", file=sys.stderr
+        )
+        return stop.exit_status
     except KeyboardInterrupt:
         print("kintinuous: interrupted", file=sys.stderr)
         return 130
-    return 0
+    except MemoryError:
+        print(
+            "kintinuous: error: out of memory (ask for fewer or smaller frames, or a smaller "
+            "volume)",
+            file=sys.stderr,
+        )
+        return 2
+    except OSError as err:
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"kintinuous: error: {where}{err.strerror or err}", file=sys.stderr)
+        return 2
+    except Exception as err:
+        log = _crash_log()
+        print(
+            f"kintinuous: internal error (a bug, please report it): {type(err).__name__}: "
+            f"{err}; traceback in {log}",
+            file=sys.stderr,
+        )
+        return 70
+    return status if isinstance(status, int) else 0
+
+
+def _crash_log() -> str:
+    """The current exception's traceback in a new file in the temporary folder; its path."""
+    import tempfile
+    import traceback
+
+    try:
+        handle, path = tempfile.mkstemp(prefix="kintinuous-crash-", suffix=".log")
+        with os.fdopen(handle, "w") as log:
+            log.write(traceback.format_exc())
+        return path
+    except OSError:
+        return "nowhere (the temporary folder cannot be written)"
 
 
 if __name__ == "__main__":

@@ -8,6 +8,10 @@ in one place, `VolumeConfig.truncation`.
 
 from __future__ import annotations
 
+import math
+import numbers
+import types
+import typing
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
@@ -173,8 +177,9 @@ class Config:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self) -> Config:
-        """Return this config: every sub-config checks its fields when it is made
-        (VolumeConfig.__post_init__), so nothing is left to check."""
+        """Return this config after checking every field's value (`check_values`); the volume's
+        own ranges are checked when a VolumeConfig is made (VolumeConfig.__post_init__)."""
+        check_values(self)
         return self
 
 
@@ -203,23 +208,128 @@ def fast_odometry(config: Config) -> Config:
 RENAMED_KEYS = {"rgbd.max_translation_jump": "tracking.max_translation_jump"}
 
 
-def with_overrides(config: Any, overrides: dict[str, Any]) -> Any:
-    """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}."""
+def with_overrides(config: Any, overrides: dict[str, Any], _prefix: str = "") -> Any:
+    """A copy of a config tree with dotted keys replaced: {"volume.size": 6.0}. Each value is
+    checked against its field's type (`checked_value`); a bad key or value is a ConfigError that
+    names the key, what was expected and what was found."""
+    names = {f.name: f for f in fields(config)}
     grouped: dict[str, dict[str, Any]] = {}
     direct: dict[str, Any] = {}
     for key, value in overrides.items():
-        if key in RENAMED_KEYS:
-            raise ConfigError(f"configuration key {key!r} is now {RENAMED_KEYS[key]!r}")
+        if not isinstance(key, str) or not key:
+            raise ConfigError(f"configuration keys are dotted names, got {key!r}")
+        if _prefix + key in RENAMED_KEYS:
+            renamed = RENAMED_KEYS[_prefix + key]
+            raise ConfigError(f"configuration key {_prefix + key!r} is now {renamed!r}")
         head, _, rest = key.partition(".")
-        if head not in {f.name for f in fields(config)}:
-            raise ConfigError(f"unknown configuration key {key!r}")
+        if head not in names:
+            raise ConfigError(f"unknown configuration key {_prefix + key!r}")
         if rest:
             grouped.setdefault(head, {})[rest] = value
         else:
             direct[head] = value
+    hints = typing.get_type_hints(type(config))
+    for head, value in list(direct.items()):
+        if is_dataclass(getattr(config, head)) and value == {}:
+            del direct[head]  # an empty section changes nothing
+        elif is_dataclass(getattr(config, head)):
+            keys = ", ".join(f.name for f in fields(getattr(config, head)))
+            raise ConfigError(
+                f"{_prefix + head}: expected a section of keys ({keys}), found {_shown(value)}"
+            )
+        else:
+            direct[head] = checked_value(_prefix + head, hints[head], value)
     for head, sub in grouped.items():
         child = getattr(config, head)
         if not is_dataclass(child):
-            raise ConfigError(f"{head!r} has no sub-keys")
-        direct[head] = with_overrides(child, sub)
+            raise ConfigError(f"{_prefix + head!r} has no sub-keys")
+        direct[head] = with_overrides(child, sub, f"{_prefix}{head}.")
     return replace(config, **direct)
+
+
+# ----------------------------------------------------------------------------------------------
+# Validation: every value is checked against the type its dataclass field declares. Numbers are
+# finite and not negative (no field of the tree has a meaningful negative value); tuples hold at
+# least one such number; the text fields take one of a few words (CHOICES).
+
+
+def _choices() -> dict[str, tuple[str, ...]]:
+    """The words each text field accepts (imported late: the odometry modules import this one)."""
+    from kintinuous_ref.odometry import FALLBACKS
+    from kintinuous_ref.odometry.combined import WEIGHTINGS
+
+    return {
+        "volume.placement": ("ahead", "centred"),
+        "rgbd.gradient": ("current", "warped"),
+        "combined.weighting": tuple(WEIGHTINGS),
+        "tracking.fallback": tuple(FALLBACKS),
+    }
+
+
+def _shown(value: Any) -> str:
+    """A found value for a message: short, one line."""
+    text = repr(value)
+    text = text if len(text) <= 60 else text[:57] + "..."
+    return f"{type(value).__name__} {text}"
+
+
+def _number(key: str, kind: type, value: Any) -> int | float:
+    """An int or float field's value: finite, >= 0; an integral float is accepted for an int."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        what = "an integer" if kind is int else "a number"
+        raise ConfigError(f"{key}: expected {what} >= 0, found {_shown(value)}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{key}: expected a finite number, found {value!r}")
+    if kind is int:
+        if not isinstance(value, numbers.Integral) and value != int(value):
+            raise ConfigError(f"{key}: expected an integer >= 0, found {_shown(value)}")
+        value = int(value)
+    else:
+        value = float(value)
+    if value < 0:
+        raise ConfigError(f"{key}: expected a number >= 0, found {value!r}")
+    return value
+
+
+def checked_value(key: str, annotation: Any, value: Any) -> Any:
+    """`value` as the field `key` of type `annotation` holds it (a list becomes a tuple, an
+    integral number an int), or a ConfigError naming the key, what was expected and what was
+    found."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        options = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if value is None and len(options) < len(typing.get_args(annotation)):
+            return None
+        return checked_value(key, options[0], value)
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, found {_shown(value)}")
+        return value
+    if annotation in (int, float):
+        return _number(key, annotation, value)
+    if annotation is str:
+        choices = _choices().get(key)
+        if not isinstance(value, str) or (choices is not None and value not in choices):
+            expected = f"one of {', '.join(choices)}" if choices else "a word"
+            raise ConfigError(f"{key}: expected {expected}, found {_shown(value)}")
+        return value
+    if typing.get_origin(annotation) is tuple:
+        kind = typing.get_args(annotation)[0]
+        what = "integers" if kind is int else "numbers"
+        if not isinstance(value, list | tuple) or not value:
+            raise ConfigError(
+                f"{key}: expected a list of {what} >= 0 such as [10, 5, 4], found {_shown(value)}"
+            )
+        return tuple(_number(f"{key}[{i}]", kind, item) for i, item in enumerate(value))
+    raise ConfigError(f"{key}: cannot be set")  # pragma: no cover - every field is typed above
+
+
+def check_values(config: Any, _prefix: str = "") -> None:
+    """Every field of a config tree against its declared type (ConfigError naming the first
+    bad key): what the command line's options and a program's own Config(...) put there."""
+    hints = typing.get_type_hints(type(config))
+    for item in fields(config):
+        value = getattr(config, item.name)
+        if is_dataclass(value):
+            check_values(value, f"{_prefix}{item.name}.")
+        else:
+            checked_value(_prefix + item.name, hints[item.name], value)

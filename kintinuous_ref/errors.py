@@ -15,3 +15,8 @@ class ConfigError(KintinuousError):
 
 class TrackingError(KintinuousError):
     """A tracker that cannot produce a trustworthy pose."""
+
+
+class InternalError(KintinuousError):
+    """An unexpected exception (a bug), reported in one line that says so; its traceback goes to
+    a crash log."""

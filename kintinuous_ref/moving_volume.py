@@ -279,11 +279,16 @@ def write_slice(path: Path, mesh: SliceMesh) -> None:
         f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n"
     )
     path = Path(path)
-    with tempfile.NamedTemporaryFile("wb", dir=path.parent, suffix=".part", delete=False) as out:
-        out.write(header.encode("ascii"))
-        out.write(vertex.tobytes())
-        out.write(face.tobytes())
-    os.replace(out.name, path)
+    out = tempfile.NamedTemporaryFile("wb", dir=path.parent, suffix=".part", delete=False)
+    try:
+        with out:
+            out.write(header.encode("ascii"))
+            out.write(vertex.tobytes())
+            out.write(face.tobytes())
+        os.replace(out.name, path)
+    except BaseException:  # a full disk, a signal: no .part file stays behind
+        Path(out.name).unlink(missing_ok=True)
+        raise
 
 
 def _element_count(header: list[str], element: str) -> int:

@@ -25,9 +25,12 @@ Volume placement and the tracker's start need the first pose: with ground-truth 
 the ground truth; with a tracker it is the first ground-truth pose when the dataset has one (so
 trajectories are comparable with it), else the identity.
 
-Ctrl-C (KeyboardInterrupt) ends the loop cleanly: the result holds the poses so far and the
-volume of what was fused, with `interrupted` set. Slices already written to disk stay there even
-if the run crashes.
+Ctrl-C (KeyboardInterrupt), and SIGTERM or SIGHUP once `handle_signals` is in force (the command
+line's), end the loop cleanly: the result holds the poses so far and the volume of what was
+fused, with `interrupted` and `reason` set. With `capture_errors` an exception in the loop (an
+unreadable frame, a full disk, a bug) ends it the same way, kept in `error`. `reconstruct` then
+saves what was done (every file written under a temporary name and renamed into place) and says
+how the run ended in report.json's "status": "completed", "interrupted" or "failed".
 
 The moving volume (config.volume.moving, on by default as in Kintinuous) needs the reference
 volume's cyclical buffer (tsdf.TsdfVolume.offset); with a backend whose volume has none the
@@ -36,11 +39,14 @@ volume stays fixed, and `moving_volume_note` says so.
 
 from __future__ import annotations
 
+import contextlib
 import functools
-import json
 import os
+import shutil
+import sys
 import time
-from collections.abc import Callable, Iterable
+import traceback
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -56,9 +62,11 @@ import kintinuous_ref.tsdf
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
-from kintinuous_ref.errors import ConfigError, DatasetError
+from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
 from kintinuous_ref.moving_volume import MovingVolume, SliceStore
 from kintinuous_ref.raycast import ModelPrediction
+from kintinuous_ref.signals import Interrupted
+from kintinuous_ref.strict_json import dumps as strict_dumps
 from kintinuous_ref.tsdf import TsdfVolume, check_volume_config
 
 GROUNDTRUTH = "groundtruth"
@@ -81,6 +89,18 @@ class PipelineResult:
     # the backend's volume -> a host TsdfVolume (fast backends' to_reference_volume); None: as is
     host_volume: Callable[[Any], TsdfVolume] | None = None
     volume_origins: list[np.ndarray] = field(default_factory=list)  # per frame, after its shift
+    reason: str = ""  # why the run ended early (the signal, the error); "" when it completed
+    error: Exception | None = None  # the exception that ended the loop (capture_errors)
+    error_traceback: str = ""
+    last_frame: int | None = None  # index of the last frame done
+    signal_name: str = ""  # the signal that interrupted the run (SIGINT, SIGTERM, SIGHUP)
+
+    @property
+    def status(self) -> str:
+        """How the run ended: "completed", "interrupted" (a signal) or "failed" (an error)."""
+        if self.interrupted:
+            return "interrupted"
+        return "failed" if self.error is not None else "completed"
 
     @property
     def shifts(self) -> int:
@@ -137,12 +157,14 @@ def run(
     progress: Callable[[PipelineResult], None] | None = None,
     predict_model: bool | None = None,
     slices: Path | None = None,
+    capture_errors: bool = False,
 ) -> PipelineResult:
     """Reconstruct a sequence. `groundtruth` holds one pose per frame INDEX of the sequence
     (TumSequence.groundtruth_for_frames()). `predict_model` None: raycast only when a tracker
     needs the model (ground-truth odometry does not). `progress` is called after every frame.
     `slices`: folder for the moving volume's slices (written as they leave); None keeps them in
-    memory."""
+    memory. `capture_errors`: an exception while reading or processing a frame ends the loop and
+    is kept in the result's `error` (the work before it stays) instead of propagating."""
     check_run(config, odometry, groundtruth)
     if predict_model is None:
         predict_model = odometry != GROUNDTRUTH
@@ -218,12 +240,33 @@ def run(
             result.poses.append(np.asarray(pose, dtype=np.float64))
             result.fused.append(ok)
             result.volume_origins.append(np.array(result.volume.origin, dtype=np.float64))
+            result.last_frame = frame.index
             previous = current
             if progress is not None:
                 progress(result)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
         result.interrupted = True
+        result.signal_name = getattr(stop, "signal_name", "SIGINT")
+        result.reason = f"interrupted by {result.signal_name}"
+    except Exception as err:
+        if not capture_errors:
+            raise
+        result.error, result.error_traceback = err, traceback.format_exc()
+        result.reason = _error_reason(err)
     return result
+
+
+def _error_reason(err: Exception) -> str:
+    """One line for an exception that ended a run: the message of a project error, the file
+    and cause of an OSError, and for anything else that it is a bug."""
+    if isinstance(err, KintinuousError):
+        return str(err)
+    if isinstance(err, OSError):
+        where = f"{err.filename}: " if err.filename else ""
+        return f"cannot write: {where}{err.strerror or err}"
+    if isinstance(err, MemoryError):
+        return "out of memory"
+    return f"internal error (a bug, please report it): {type(err).__name__}: {err}"
 
 
 def _as_given(array: Any) -> Any:
@@ -351,50 +394,172 @@ def open_dataset(
 PREVIEW_TRIANGLES = 200_000
 
 
+# What a run writes into its folder: a folder holding any of these holds an earlier result.
+RESULT_NAMES = (
+    "report.json",
+    "trajectory.txt",
+    "mesh.ply",
+    "slices",
+    "preview.png",
+    "volume_origins.txt",
+    "crash.log",
+)
+
+
+def check_output(out: str | Path, overwrite: bool = False) -> Path:
+    """The output folder `out`, refused (ConfigError) when empty, a file, or holding an earlier
+    result without `overwrite`. Changes nothing on disk."""
+    if not str(out).strip():
+        raise ConfigError("--out is empty: name an output folder")
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{path}: exists and is not a folder; --out names a folder")
+    if path.is_dir() and not overwrite:
+        earlier = [name for name in RESULT_NAMES if (path / name).exists()]
+        if earlier:
+            raise ConfigError(
+                f"{path}: holds an earlier result ({', '.join(earlier)}); pass --overwrite to "
+                "replace it, or choose another --out"
+            )
+    return path
+
+
+def prepare_output(out: str | Path, overwrite: bool = False) -> Path:
+    """`check_output`, then the earlier result removed (with `overwrite`) and the folder made
+    and shown to be writable, before a run starts: a run never mixes with an older one."""
+    path = check_output(out, overwrite)
+    try:
+        if path.is_dir():
+            for name in RESULT_NAMES:
+                old = path / name
+                if old.is_dir() and not old.is_symlink():
+                    shutil.rmtree(old)
+                elif old.exists() or old.is_symlink():
+                    old.unlink()
+        path.mkdir(parents=True, exist_ok=True)
+        with _atomic(path / ".write-test"):
+            pass
+        (path / ".write-test").unlink()
+    except OSError as err:
+        raise ConfigError(
+            f"{path}: cannot write the output folder ({err.strerror or err})"
+        ) from None
+    return path
+
+
+@contextlib.contextmanager
+def _atomic(path: Path) -> Iterator[Path]:
+    """A temporary name beside `path` (same suffix) to write to; renamed to `path` when the
+    block ends, removed when it raises: no reader ever sees half a file."""
+    temporary = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        yield temporary
+        if not temporary.exists():  # the writer wrote nothing (an empty block)
+            temporary.touch()
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+        raise
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """`text` into `path`, written under a temporary name and renamed."""
+    with _atomic(Path(path)) as temporary:
+        temporary.write_text(text)
+
+
 def write_outputs(
-    result: PipelineResult, out: Path, report: dict[str, Any], preview: bool = True
+    result: PipelineResult,
+    out: Path,
+    report: dict[str, Any],
+    preview: bool = True,
+    saved: list[str] | None = None,
 ) -> dict[str, Any]:
-    """mesh.ply, trajectory.txt, preview.png and report.json in `out`; returns the report."""
+    """trajectory.txt, mesh.ply, volume_origins.txt, preview.png and report.json in `out`;
+    returns the report. Each file is written atomically, in that order, and its name appended to
+    `saved` once in place. A file that cannot be written (a full disk, a failed render) is left
+    out and named in the report's "not_saved" with the reason; report.json itself must be
+    written (its OSError propagates)."""
     from kintinuous_ref import mesh as meshing
     from kintinuous_ref.datasets.tum import write_trajectory
 
+    saved = [] if saved is None else saved
+    not_saved: dict[str, str] = {}
     out.mkdir(parents=True, exist_ok=True)
-    write_trajectory(out / "trajectory.txt", result.trajectory)
-    if result.moving is not None:
+
+    def attempt(name: str, write: Callable[[Path], Any]) -> Any:
+        try:
+            with _atomic(out / name) as temporary:
+                value = write(temporary)
+        except Exception as err:  # kept in the report; the next file is still tried
+            not_saved[name] = _error_reason(err)
+            return None
+        saved.append(name)
+        return value
+
+    attempt("trajectory.txt", lambda path: write_trajectory(path, result.trajectory))
+    surface, mesh_size = None, None
+    if result.moving is not None and result.volume is not None:
         # The rest of the window is the last slice; the slices merge into one mesh on disk.
         from kintinuous_ref import moving_volume
 
-        result.moving.finish()
-        mesh_size = moving_volume.assemble(result.moving.store, out / "mesh.ply")
+        try:
+            result.moving.finish()
+        except Exception as err:  # the last slice is missing, so the mesh would be too
+            not_saved["slices"] = not_saved["mesh.ply"] = _error_reason(err)
+        else:
+            mesh_size = attempt(
+                "mesh.ply", lambda path: moving_volume.assemble(result.moving.store, path)
+            )
         # The window at each frame (after its shift): timestamp, voxel (0, 0, 0)'s centre.
         rows = np.column_stack([result.timestamps, np.reshape(result.volume_origins, (-1, 3))])
-        np.savetxt(out / "volume_origins.txt", rows, fmt="%.6f", header="timestamp x y z")
-        if preview:  # the mesh grows with the path; its preview does not
-            surface = moving_volume.preview_mesh(
-                result.moving.store, result.volume.voxel_size, PREVIEW_TRIANGLES, mesh_size[1]
-            )
-    else:
+        attempt(
+            "volume_origins.txt",
+            lambda path: np.savetxt(path, rows, fmt="%.6f", header="timestamp x y z"),
+        )
+        if preview and mesh_size is not None:  # the mesh grows with the path; its preview does not
+            try:
+                surface = moving_volume.preview_mesh(
+                    result.moving.store, result.volume.voxel_size, PREVIEW_TRIANGLES, mesh_size[1]
+                )
+            except Exception as err:
+                not_saved["preview.png"] = _error_reason(err)
+    elif result.volume is not None:
         volume = result.volume
-        if result.host_volume is not None:  # a fast backend's volume, as a host TsdfVolume
-            volume = result.host_volume(volume)
-        surface = meshing.extract_mesh(volume)
-        meshing.write_ply(out / "mesh.ply", surface)
-        mesh_size = (len(surface.points), len(surface.triangles))
-    if preview:
+        try:
+            if result.host_volume is not None:  # a fast backend's volume, as a host TsdfVolume
+                volume = result.host_volume(volume)
+            surface = meshing.extract_mesh(volume)
+        except Exception as err:
+            not_saved["mesh.ply"] = _error_reason(err)
+        if surface is not None:
+            attempt("mesh.ply", lambda path: meshing.write_ply(path, surface))
+            if "mesh.ply" in saved:
+                mesh_size = (len(surface.points), len(surface.triangles))
+    if preview and surface is not None:
         first = result.poses[0] if result.poses else None
-        meshing.render_preview(surface, out / "preview.png", view_pose=first)
+        attempt("preview.png", lambda path: meshing.render_preview(surface, path, view_pose=first))
     report = {
         **report,
+        "status": result.status,
+        "reason": result.reason or None,
+        "last_frame": result.last_frame,
         "frames": result.frames,
         "fused_frames": int(np.sum(result.fused)),
         "tracking_failures": result.tracking_failures,
         "failure_reasons": result.failure_reasons[:50],
         "interrupted": result.interrupted,
         "timing_ms": result.timing_summary(),
-        "mesh": {"vertices": mesh_size[0], "triangles": mesh_size[1]},
+        "mesh": {
+            "vertices": None if mesh_size is None else int(mesh_size[0]),
+            "triangles": None if mesh_size is None else int(mesh_size[1]),
+        },
         "moving_volume": result.moving is not None,
         "shifts": result.shifts,
         "slices": result.slices,
+        "saved": [*saved, "report.json"],
+        "not_saved": not_saved,
     }
     if result.moving_volume_note:
         report["moving_volume_note"] = result.moving_volume_note
@@ -406,8 +571,27 @@ def write_outputs(
             "truncation_m": result.volume.truncation,
             "origin": result.volume.origin.tolist(),
         }
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_text_atomic(out / "report.json", strict_dumps(report, indent=2) + "\n")
+    saved.append("report.json")
     return report
+
+
+def _bad_frames_checked(
+    sequence: FrameSequence, start: int, count: int, skip: bool, skipped: list[str]
+) -> Iterator[Frame]:
+    """The frames start.. of a sequence; an unreadable one (corrupt, wrong size) is a
+    DatasetError naming the frame and its file, or with `skip` left out and listed in
+    `skipped`."""
+    for index in range(start, start + count):
+        try:
+            frame = sequence[index]
+        except DatasetError as err:
+            message = f"frame {index}: {err}"
+            if not skip:
+                raise DatasetError(message) from None
+            skipped.append(message)
+            continue
+        yield frame
 
 
 def reconstruct(
@@ -420,11 +604,17 @@ def reconstruct(
     backend_name: str = "ref",
     show_progress: bool = True,
     predict_model: bool | None = None,
+    overwrite: bool = False,
+    skip_bad_frames: bool = False,
 ) -> dict[str, Any]:
     """Run the pipeline over frames start.. of a sequence and write the outputs into `out`.
 
-    Everything that can be checked is checked before the first frame is read. An interrupted run
-    (Ctrl-C) still writes what it has and then re-raises KeyboardInterrupt.
+    Everything that can be checked is checked before the first frame is read; `out` must not
+    hold an earlier result unless `overwrite` (which removes it first). However the run ends,
+    what was done is saved (write_outputs) with its status; then an interrupted run raises
+    Interrupted, a failed one a one-line KintinuousError (InternalError for a bug, whose
+    traceback goes to crash.log in `out`). An unreadable frame ends the run, or with
+    `skip_bad_frames` is left out and counted in the report's "skipped_frames".
     """
     from kintinuous_fast import select_backend
 
@@ -446,37 +636,77 @@ def reconstruct(
             "bag), so --odometry groundtruth cannot run"
         )
     check_run(config, odometry, groundtruth)
+    out = prepare_output(out, overwrite)
     total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
     bar = None
     if show_progress:
         from tqdm import tqdm
 
         bar = tqdm(total=total, unit="frame", desc="reconstruct")
+    skipped: list[str] = []
     try:
         result = run(
-            sequence.frames(start, total),
+            _bad_frames_checked(sequence, start, total, skip_bad_frames, skipped),
             sequence.camera,
             config,
             odometry,
             groundtruth,
             progress=(lambda _: bar.update(1)) if bar is not None else None,
             predict_model=predict_model,
-            slices=Path(out) / "slices",
+            slices=out / "slices",
             backend=backend,
+            capture_errors=True,
         )
-    finally:  # an unreadable frame's one-line error then starts on a line of its own
+    except BaseException:
         if bar is not None:
             bar.close()
-    report = write_outputs(
-        result,
-        Path(out),
-        {
-            "dataset": str(sequence.path),
-            "odometry": odometry,
-            "backend": backend.name,
-            "start": start,
-        },
-    )
+        raise
+    info = {
+        "dataset": str(sequence.path),
+        "odometry": odometry,
+        "backend": backend.name,
+        "start": start,
+        "skipped_frames": len(skipped),
+        "skipped_reasons": skipped[:50],
+    }
+    saved: list[str] = []
+    try:
+        if bar is not None:
+            bar.close()  # the one-line messages below start on a line of their own
+        print(f"saving {result.frames} frames...", file=sys.stderr, flush=True)
+        if result.error is not None and not isinstance(result.error, KintinuousError | OSError):
+            write_text_atomic(out / "crash.log", result.error_traceback)
+            saved.append("crash.log")
+        report = write_outputs(result, out, info, saved=saved)
+    except KeyboardInterrupt as again:
+        name = getattr(again, "signal_name", "SIGINT")
+        names = ["trajectory.txt", "mesh.ply", "preview.png", "report.json"]
+        if result.moving is not None:
+            names.insert(2, "volume_origins.txt")
+        missing = [n for n in names if n not in saved]
+        raise Interrupted(
+            name,
+            f"{name} during the save: saved {', '.join(saved) or 'nothing'} in {out}; NOT saved: "
+            f"{', '.join(missing)}",
+        ) from None
+    except OSError as err:
+        raise KintinuousError(
+            f"{out}: cannot save the run ({_error_reason(err)}); saved: "
+            f"{', '.join(saved) or 'nothing'}"
+        ) from None
+    kept = f"the {result.frames} frames done are saved in {out}"
+    if report["not_saved"]:
+        problems = "; ".join(f"{k}: {v}" for k, v in report["not_saved"].items())
+        kept = f"saved {', '.join(report['saved'])} in {out} but NOT {problems}"
     if result.interrupted:
-        raise KeyboardInterrupt
+        raise Interrupted(
+            result.signal_name,
+            f"{result.reason} after frame {result.last_frame}: {kept}",
+        )
+    if result.error is not None:
+        if "crash.log" in saved:
+            raise InternalError(f"{result.reason}; traceback in {out / 'crash.log'}; {kept}")
+        raise KintinuousError(f"{result.reason}; {kept}")
+    if report["not_saved"]:
+        raise KintinuousError(kept)
     return report

@@ -132,7 +132,7 @@ def test_bad_logs_get_one_line_naming_the_file_and_frame(frames, log, tmp_path, 
     data = log.read_bytes()
     truth = str(TINY / "groundtruth.txt")
     common = ["--intrinsics", INTRINSICS, "--size", "160x120", "--backend", "ref"]
-    common += ["--groundtruth", truth, "--resolution", "32"]
+    common += ["--groundtruth", truth, "--resolution", "32", "--overwrite"]
 
     def reconstruct(path, *extra):
         return main(["reconstruct", str(path), "--out", str(tmp_path / "out"), *common, *extra])

@@ -291,6 +291,7 @@ def test_reconstruct_command_reports_shifts_and_slices(corridor, tmp_path):
     folder = tmp_path / "corridor"
     synthetic.write_scenario("corridor", folder, frames=30, width=80, height=60, noise=False)
     common = ["reconstruct", str(folder), "--volume-size", "3", "--resolution", "48"]
+    common += ["--odometry", "groundtruth"]
     assert main([*common, "--out", str(tmp_path / "a"), "--shift-threshold", "1"]) == 0
     report = json.loads((tmp_path / "a" / "report.json").read_text())
     assert report["moving_volume"] and report["shifts"] >= 2

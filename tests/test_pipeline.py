@@ -204,7 +204,7 @@ def test_reconstruct_command_bad_input(desk_folder, tmp_path, capsys, monkeypatc
         if item.name != "groundtruth.txt":
             (no_truth / item.name).symlink_to(item)
     cases = [
-        ([str(no_truth)], "groundtruth"),
+        ([str(no_truth), "--odometry", "groundtruth"], "groundtruth"),
         ([str(desk_folder), "--volume-size", "0"], "size must be positive"),
         ([str(desk_folder), "--resolution", "768"], "needs 10.1 GiB but only 4.0 GiB"),
         ([str(tmp_path / "nowhere")], "neither a dataset folder nor a scenario"),

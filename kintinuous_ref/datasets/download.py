@@ -12,7 +12,6 @@ download, and every download prints the sha256 of what it fetched so that it can
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 import tarfile
@@ -23,6 +22,7 @@ from pathlib import Path
 
 from kintinuous_ref.camera import TUM_CAMERAS, Intrinsics
 from kintinuous_ref.errors import DatasetError
+from kintinuous_ref.strict_json import dumps as strict_dumps
 
 TUM_BASE_URL = "https://cvg.cit.tum.de/rgbd/dataset/"
 MIRROR_VARIABLE = "KINTINUOUS_MIRROR"
@@ -132,7 +132,7 @@ def download(
         sequence = _unpack(archive, work / "unpacked", url)
         if known is not None and not (sequence / "intrinsics.json").is_file():
             values = known.camera.to_json()
-            (sequence / "intrinsics.json").write_text(json.dumps(values, indent=2) + "\n")
+            (sequence / "intrinsics.json").write_text(strict_dumps(values, indent=2) + "\n")
         sequence.rename(folder)  # complete: only now does the cache hold it
     finally:
         shutil.rmtree(work, ignore_errors=True)

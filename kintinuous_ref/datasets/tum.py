@@ -9,7 +9,6 @@ colour images (PNG or JPEG), 16-bit depth PNGs (raw / 5000 = metres), optionally
 
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from kintinuous_ref.camera import (
     parse_intrinsics,
 )
 from kintinuous_ref.errors import DatasetError
+from kintinuous_ref.strict_json import dumps as strict_dumps
 
 
 @dataclass
@@ -63,13 +63,23 @@ def write_trajectory(path: Path, trajectory: Trajectory) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def _read_text(path: Path) -> str:
+    """A text file's contents, or a one-line DatasetError (not UTF-8 text, unreadable)."""
+    try:
+        return Path(path).read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not a text file") from None
+    except OSError as err:
+        raise DatasetError(f"{path}: cannot read ({err.strerror or err})") from None
+
+
 def read_trajectory(path: Path) -> Trajectory:
     """Read a TUM trajectory; a malformed line is reported with its file and line number."""
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: trajectory file not found")
     timestamps, poses = [], []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(_read_text(path).splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -78,8 +88,10 @@ def read_trajectory(path: Path) -> Trajectory:
             values = [float(p) for p in parts]
             if len(values) != 8:
                 raise ValueError(f"expected 8 numbers, found {len(values)}")
+            if not np.all(np.isfinite(values)):
+                raise ValueError("not every number is finite")
             pose = se3.from_tum(np.array(values[1:]))
-        except (ValueError, se3.PoseError) as err:
+        except (ValueError, se3.PoseError, FloatingPointError) as err:
             raise DatasetError(f"{path}:{number}: cannot parse pose line ({err})") from None
         timestamps.append(values[0])
         poses.append(pose)
@@ -300,6 +312,8 @@ def _frame_entries(path: Path) -> list[_FramePaths]:
         for number, fields in _read_list(associations, columns=4):
             try:
                 t_first, t_second = float(fields[0]), float(fields[2])
+                if not (np.isfinite(t_first) and np.isfinite(t_second)):
+                    raise ValueError
             except ValueError:
                 raise DatasetError(
                     f"{associations}:{number}: expected 't_rgb rgb_file t_depth depth_file'"
@@ -325,7 +339,7 @@ def _read_list(path: Path, columns: int) -> Iterator[tuple[int, list[str]]]:
     """(line number, first `columns` fields) of each non-comment line of a TUM list file."""
     if not path.is_file():
         raise DatasetError(f"{path}: list file not found")
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(_read_text(path).splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -342,9 +356,12 @@ def _read_timestamped_files(path: Path) -> list[tuple[float, str]]:
     entries = []
     for number, (stamp, name) in _read_list(path, columns=2):
         try:
-            entries.append((float(stamp), name))
+            value = float(stamp)
         except ValueError:
-            raise DatasetError(f"{path}:{number}: timestamp {stamp!r} is not a number") from None
+            value = float("nan")
+        if not np.isfinite(value):
+            raise DatasetError(f"{path}:{number}: timestamp {stamp!r} is not a finite number")
+        entries.append((value, name))
     return entries
 
 
@@ -412,7 +429,7 @@ def write_sequence(
         (partial / "depth.txt").write_text("\n".join(depth_lines) + "\n")
         if camera is not None:
             values = {**camera.to_json(), "depth_scale": TUM_DEPTH_SCALE}
-            (partial / "intrinsics.json").write_text(json.dumps(values, indent=2) + "\n")
+            (partial / "intrinsics.json").write_text(strict_dumps(values, indent=2) + "\n")
         if groundtruth is not None:
             write_trajectory(partial / "groundtruth.txt", groundtruth)
         (partial / "associations.txt").write_text("\n".join(pairs) + "\n")

@@ -16,7 +16,6 @@ ground truth (metrics.evaluate) and writes to `out`:
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from kintinuous_ref.evaluation.runs import (
     write_failure,
 )
 from kintinuous_ref.evaluation.tables import build_table, marks, method_title, render_markdown
+from kintinuous_ref.strict_json import dumps as strict_dumps
 
 __all__ = [
     "FAILED",
@@ -206,15 +206,9 @@ def evaluate_methods(
     markdown = render_markdown(table, header)
     files = [out / "table.md", out / "table.json"]
     files[0].write_text(markdown)
-    files[1].write_text(json.dumps(table, indent=1, default=_json_default) + "\n")
+    files[1].write_text(strict_dumps(table, indent=1) + "\n")
     files.append(ranking_figure(table, "Median", out / "fig4_ranking_median.png"))
     files.append(ranking_figure(table, "Max", out / "fig5_ranking_max.png"))
     groundtruths = {d.label: d.groundtruth for d in opened}
     files.append(trajectory_figure(outcomes, groundtruths, methods, out / "trajectories.png"))
     return Evaluation(table, markdown, outcomes, files)
-
-
-def _json_default(value: Any) -> Any:
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")

@@ -9,7 +9,6 @@ reason, so that one bad run cannot stop a table of many.
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -22,6 +21,7 @@ import numpy as np
 
 from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError, KintinuousError
+from kintinuous_ref.strict_json import dumps as strict_dumps
 
 OK, FAILED = "ok", "failed"
 
@@ -171,7 +171,7 @@ def _write_run(spec: RunSpec, outcome: RunOutcome, result: Any) -> None:
     if spec.mesh:  # the pipeline's own report (mesh, volume) with ours on top
         report = pipeline.write_outputs(result, out, report, preview=False)
     write_trajectory(out / "trajectory.txt", result.trajectory)
-    (out / "report.json").write_text(json.dumps(report, indent=1) + "\n")
+    (out / "report.json").write_text(strict_dumps(report, indent=1) + "\n")
 
 
 def write_failure(spec: RunSpec, outcome: RunOutcome) -> None:
@@ -179,7 +179,7 @@ def write_failure(spec: RunSpec, outcome: RunOutcome) -> None:
     try:
         out = Path(spec.out)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "report.json").write_text(json.dumps(_report(spec, outcome), indent=1) + "\n")
+        (out / "report.json").write_text(strict_dumps(_report(spec, outcome), indent=1) + "\n")
     except OSError:
         pass  # the reason still reaches the table through the outcome
 

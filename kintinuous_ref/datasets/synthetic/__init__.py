@@ -12,7 +12,6 @@ scenarios (the five layouts).
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -27,6 +26,7 @@ from kintinuous_ref.datasets.synthetic.sensor import SensorModel, measure_colour
 from kintinuous_ref.datasets.synthetic.trajectories import FRAME_RATE, START_TIME, hand_held
 from kintinuous_ref.datasets.tum import Trajectory, write_trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError
+from kintinuous_ref.strict_json import dumps as strict_dumps
 
 if TYPE_CHECKING:
     import pyvista
@@ -247,7 +247,7 @@ def write_scenario(
         "sensor": dict(vars(scenario.sensor)),
     }
     # first, so that an interrupted run's folder is recognised (and reused) as ours
-    (out / "scenario.json").write_text(json.dumps(meta, indent=2) + "\n")
+    (out / "scenario.json").write_text(strict_dumps(meta, indent=2) + "\n")
     timestamps = scenario.trajectory.timestamps
     names = [f"{t:.6f}.png" for t in timestamps]
 
@@ -285,6 +285,6 @@ def write_scenario(
     pairs = [f"{t:.6f} rgb/{n} {t:.6f} depth/{n}" for t, n in zip(timestamps, names, strict=True)]
     (out / "associations.txt").write_text("\n".join(pairs) + "\n")
     write_trajectory(out / "groundtruth.txt", scenario.trajectory)
-    (out / "intrinsics.json").write_text(json.dumps(scenario.camera.to_json(), indent=2) + "\n")
+    (out / "intrinsics.json").write_text(strict_dumps(scenario.camera.to_json(), indent=2) + "\n")
     scenario.surface_mesh(mesh_spacing).save(str(out / "scene.ply"), binary=True, texture="rgb")
     return out
