@@ -235,6 +235,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_reconstruct(args: argparse.Namespace) -> None:
+    from kintinuous_fast import select_backend
     from kintinuous_ref import pipeline
     from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, fast_odometry
 
@@ -253,7 +254,8 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     config = _configured(config, args.config, args.set)
     if args.fast_odometry:
         config = fast_odometry(config)
-    pipeline.check_volume_config(config.volume)  # before generating or reading anything
+    # before generating or reading anything: the volume against the memory that will hold it
+    select_backend(args.backend).tsdf.check_volume_config(config.volume)
     out = pipeline.check_output(args.out, args.overwrite)
     sequence = pipeline.open_dataset(
         args.dataset,

@@ -67,7 +67,7 @@ from kintinuous_ref.moving_volume import MovingVolume, SliceStore
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.signals import Interrupted
 from kintinuous_ref.strict_json import dumps as strict_dumps
-from kintinuous_ref.tsdf import TsdfVolume, check_volume_config
+from kintinuous_ref.tsdf import TsdfVolume
 
 GROUNDTRUTH = "groundtruth"
 STAGES = ("preprocess", "odometry", "shift", "integrate", "raycast", "total")
@@ -133,10 +133,16 @@ class PipelineResult:
         return summary
 
 
-def check_run(config: Config, odometry: str, groundtruth: Trajectory | None) -> None:
-    """Refuse, before any work, a run that cannot succeed (one-line KintinuousError)."""
+def check_run(
+    config: Config,
+    odometry: str,
+    groundtruth: Trajectory | None,
+    backend: ModuleType | Any = kintinuous_ref,
+) -> None:
+    """Refuse, before any work, a run that cannot succeed (one-line KintinuousError). The volume
+    is checked against the memory of the backend that will hold it (`backend.tsdf`)."""
     config.validate()
-    check_volume_config(config.volume)
+    backend.tsdf.check_volume_config(config.volume)
     if odometry == GROUNDTRUTH and groundtruth is None:
         raise ConfigError("--odometry groundtruth needs a dataset with ground-truth poses")
     if odometry != GROUNDTRUTH:
@@ -165,7 +171,7 @@ def run(
     `slices`: folder for the moving volume's slices (written as they leave); None keeps them in
     memory. `capture_errors`: an exception while reading or processing a frame ends the loop and
     is kept in the result's `error` (the work before it stays) instead of propagating."""
-    check_run(config, odometry, groundtruth)
+    check_run(config, odometry, groundtruth, backend)
     if predict_model is None:
         predict_model = odometry != GROUNDTRUTH
     tracker = None
@@ -635,7 +641,7 @@ def reconstruct(
             f"{sequence.path}: no ground truth (groundtruth.txt, or --groundtruth for a log or "
             "bag), so --odometry groundtruth cannot run"
         )
-    check_run(config, odometry, groundtruth)
+    check_run(config, odometry, groundtruth, backend)
     out = prepare_output(out, overwrite)
     total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
     bar = None

@@ -195,9 +195,13 @@ def test_reconstruct_command_writes_its_outputs(desk_folder, tmp_path):
 
 
 def test_reconstruct_command_bad_input(desk_folder, tmp_path, capsys, monkeypatch):
+    from kintinuous_fast import _volume
     from kintinuous_ref import tsdf
 
-    monkeypatch.setattr(tsdf, "available_memory_bytes", lambda: 4 << 30)  # any machine: 4 GiB
+    # any machine: 4 GiB (the reference's check, 24 bytes a voxel) and 2 GiB (the fast volume's,
+    # 8 bytes a voxel: the default backend, auto, is cpu or cuda)
+    monkeypatch.setattr(tsdf, "available_memory_bytes", lambda: 4 << 30)
+    monkeypatch.setattr(_volume, "available_memory_bytes", lambda: 2 << 30)
     no_truth = tmp_path / "no_truth"
     no_truth.mkdir()
     for item in desk_folder.iterdir():
@@ -206,7 +210,14 @@ def test_reconstruct_command_bad_input(desk_folder, tmp_path, capsys, monkeypatc
     cases = [
         ([str(no_truth), "--odometry", "groundtruth"], "groundtruth"),
         ([str(desk_folder), "--volume-size", "0"], "size must be positive"),
-        ([str(desk_folder), "--resolution", "768"], "needs 10.1 GiB but only 4.0 GiB"),
+        (
+            [str(desk_folder), "--resolution", "768", "--backend", "cpu"],
+            "needs 3.4 GiB but only 2.0",
+        ),
+        (
+            [str(desk_folder), "--resolution", "768", "--backend", "ref"],
+            "needs 10.1 GiB but only 4.0",
+        ),
         ([str(tmp_path / "nowhere")], "neither a dataset folder nor a scenario"),
     ]
     for extra, message in cases:
@@ -215,12 +226,6 @@ def test_reconstruct_command_bad_input(desk_folder, tmp_path, capsys, monkeypatc
         assert status == 2 and message in err and len(err.splitlines()) == 1, err
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cli._run_reconstruct and pipeline.check_run check every run with "
-    "kintinuous_ref.tsdf.check_volume_config (24 bytes per voxel, host memory); each should "
-    "call the selected backend's tsdf.check_volume_config",
-)
 def test_reconstruct_checks_the_memory_of_the_backend_it_runs_on(
     desk_folder, tmp_path, capsys, monkeypatch
 ):
