@@ -1,31 +1,17 @@
 """ROS1 and ROS2 bags: written here with rosbags' own writers from data/tiny_desk, read back and
 reconstructed; the truth is the TUM folder they were made from."""
 
-from pathlib import Path
-
-import cv2
 import numpy as np
 import pytest
+from tiny_desk import TINY, tum_frames
 
 from kintinuous_ref.camera import load_intrinsics_json
 from kintinuous_ref.cli import main
 from kintinuous_ref.datasets import bag, tum
 
-TINY = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
 TUM_TOPICS = ("/camera/rgb/image_color", "/camera/depth/image", "/camera/rgb/camera_info")
 OTHER_TOPICS = ("/cam/colour", "/cam/depth_mm", "/cam/info")
 DEPTH_DELAY = 0.004  # depth stamped 4 ms after colour, as the Kinect's streams are not in step
-
-
-def tum_frames():
-    """(timestamp, raw uint16 depth in 1/5000 m, RGB colour) of each tiny_desk frame."""
-    frames = []
-    for line in (TINY / "associations.txt").read_text().splitlines():
-        stamp, colour, _, depth = line.split()
-        raw = cv2.imread(str(TINY / depth), cv2.IMREAD_UNCHANGED)
-        rgb = cv2.imread(str(TINY / colour), cv2.IMREAD_COLOR)[..., ::-1]
-        frames.append((float(stamp), raw, np.ascontiguousarray(rgb)))
-    return frames
 
 
 def write_bag(path, ros2=False, topics=TUM_TOPICS, depth_encoding="32FC1", colour="rgb8", pad=0):

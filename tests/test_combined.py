@@ -197,3 +197,21 @@ def test_information_and_elasticfusion_weightings(room):
     ef = joint_system(a, b, weighting="elasticfusion", original_code_icp_scale=10.0)
     np.testing.assert_allclose(ef.A, b.A + 100 * a.A, rtol=1e-12)
     np.testing.assert_allclose(ef.b, b.b + 10 * a.b, rtol=1e-12)
+
+
+def test_the_combined_inlier_check_stands_on_either_term(room):
+    # A model that covers only a strip of the view (the rest beyond the volume): ICP matches
+    # under 10 % of its vertices, RGB-D most of its interest points; the joint estimate stands.
+    previous, current, icp, rgbd = room
+    strip = []
+    for vertices, normals in scene.model(previous):
+        vertices, normals = vertices.copy(), normals.copy()
+        vertices[:, vertices.shape[1] // 16 :] = np.nan
+        normals[:, normals.shape[1] // 16 :] = np.nan
+        strip.append((vertices, normals))
+    narrow = IcpProblem(icp.current_levels, strip, previous)
+    icp_fraction = narrow.inlier_fraction(current)
+    rgbd_fraction = rgbd.inlier_fraction(current)
+    assert icp_fraction < 0.1 < rgbd_fraction
+    combined = CombinedProblem(narrow, rgbd)
+    assert combined.inlier_fraction(current) == rgbd_fraction

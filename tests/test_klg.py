@@ -7,31 +7,19 @@ TUM folder itself: depth rounded to whole millimetres, colour within JPEG's loss
 
 import struct
 import zlib
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from tiny_desk import TINY, tum_frames
 
 from kintinuous_ref.camera import load_intrinsics_json
 from kintinuous_ref.cli import main
 from kintinuous_ref.datasets import klg, tum
 from kintinuous_ref.errors import DatasetError
 
-TINY = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
 WIDTH, HEIGHT = 160, 120
 INTRINSICS = "131.25,131.25,79.5,59.5"  # data/tiny_desk/intrinsics.json
-
-
-def tum_frames():
-    """(timestamp, raw uint16 depth in 1/5000 m, RGB colour) of each tiny_desk frame."""
-    frames = []
-    for line in (TINY / "associations.txt").read_text().splitlines():
-        stamp, colour, _, depth = line.split()
-        raw = cv2.imread(str(TINY / depth), cv2.IMREAD_UNCHANGED)
-        rgb = cv2.imread(str(TINY / colour), cv2.IMREAD_COLOR)[..., ::-1]
-        frames.append((float(stamp), raw, np.ascontiguousarray(rgb)))
-    return frames
 
 
 def write_klg(path, frames, kinds=None):

@@ -246,5 +246,8 @@ class CombinedProblem:
         )
 
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
-        """The ICP fraction: the joint estimate stands on the model's geometry first."""
-        return self.icp.inlier_fraction(pose, level)
+        """The larger of the two terms' fractions: the joint estimate stands when either term
+        matched enough of its own points. ICP's alone fails wherever most of the view lies
+        beyond the volume (its far vertices can never match the model; the `loop` lap at
+        640x480), although RGB-D still tracks there; a frame of another scene fails both."""
+        return max(self.icp.inlier_fraction(pose, level), self.rgbd.inlier_fraction(pose, level))
