@@ -180,3 +180,46 @@ def test_corrupt_archives_are_refused_with_one_line_and_nothing_kept(mirror, cac
     assert main(["reconstruct", "fr1/room", "--out", str(cache.parent / "o")]) == 2
     assert "kintinuous download fr1/room" in error_line(capsys)
     assert not (cache / "fr1" / "room").exists()
+
+
+def test_a_broken_download_resumes_where_it_stopped(cache, capsys):
+    """The first response stops half way; the same command then asks for the rest only."""
+    data = tum_archive("rgbd_dataset_freiburg1_xyz")
+    half, asked = len(data) // 2, []
+
+    class Flaky(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            ranged = self.headers.get("Range")
+            asked.append(ranged)
+            start = int(ranged.removeprefix("bytes=").rstrip("-")) if ranged else 0
+            self.send_response(206 if ranged else 200)
+            if ranged:
+                self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
+            self.send_header("Content-Length", str(len(data) - start))
+            self.end_headers()
+            cut = half if len(asked) == 1 else len(data)  # the first transfer breaks off
+            self.wfile.write(data[start:cut])
+            self.close_connection = True
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Flaky)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/rgbd_dataset_freiburg1_xyz.tgz"
+        digest = hashlib.sha256(data).hexdigest()
+        assert main(["download", url, "--sha256", digest]) == 2
+        assert f"{half} bytes kept, the same command resumes" in error_line(capsys)
+        part = cache / download.PARTIAL / "rgbd_dataset_freiburg1_xyz.tgz"
+        assert part.read_bytes() == data[:half]
+        assert main(["download", url, "--sha256", digest]) == 0
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert asked == [None, f"bytes={half}-"]  # the second transfer sent only the rest
+    folder = cache / "rgbd_dataset_freiburg1_xyz"
+    assert (folder / "associations.txt").read_bytes() == (TINY / "associations.txt").read_bytes()
+    assert leftovers(cache) == sorted(
+        str(p.relative_to(cache)) for p in [folder, *folder.rglob("*")]
+    )  # no .partial left behind

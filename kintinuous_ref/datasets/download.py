@@ -1,8 +1,11 @@
 """TUM RGB-D sequences fetched by name (or any TUM-layout archive by URL) into the user cache.
 
-`pooch` downloads (with a progress bar and a checksum check); the archive is unpacked into a
-temporary folder beside its destination and renamed into place only when complete, so the cache
-never holds a half-unpacked sequence, and the archive is deleted afterwards. A sequence known by
+`pooch` downloads (and checks the checksum) through a resumable fetch: the bytes that arrive are
+kept in `.partial/ARCHIVE` under the cache, and a download that broke off asks only for the rest
+the next time (an HTTP Range request; a server that ignores it sends the whole archive again).
+The archive is unpacked into a temporary folder beside its destination and renamed into place
+only when complete, so the cache never holds a half-unpacked sequence, and the archive is
+deleted afterwards. A sequence known by
 name gets an `intrinsics.json` with its TUM camera, so it opens like any TUM folder.
 
 Checksums: the archives' sha256 values are not pinned here (None), as they could not be
@@ -74,6 +77,60 @@ def _archive_stem(url: str) -> str:
     raise DatasetError(f"{url}: not a tar archive (.tgz, .tar.gz, .tar.bz2, .tar.xz, .tar)")
 
 
+PARTIAL = ".partial"  # under the cache root: archives whose download broke off
+
+
+def resumable_fetch(part: Path, progress: bool = True):  # noqa: ANN201 - pooch's downloader
+    """A pooch downloader that appends what arrives to `part` and, when `part` already holds the
+    start of the archive, asks the server only for the rest."""
+
+    def fetch(url: str, output_file: str, pooch_object: object) -> None:
+        import urllib.error
+        import urllib.request
+
+        from tqdm import tqdm
+
+        have = part.stat().st_size if part.is_file() else 0
+        headers = {"Range": f"bytes={have}-"} if have else {}
+        try:
+            response = urllib.request.urlopen(
+                urllib.request.Request(url, headers=headers), timeout=60
+            )
+        except urllib.error.HTTPError as err:
+            if not (have and err.code == 416):  # 416: nothing left to send, the part is whole
+                raise
+            response = None
+        if response is not None:
+            with response:
+                if response.status != 206:  # the whole archive (again)
+                    have = 0
+                rest = int(response.headers.get("Content-Length") or 0)
+                part.parent.mkdir(parents=True, exist_ok=True)
+                total = have + rest if rest else None
+                bar = tqdm(
+                    total=total, initial=have, unit="B", unit_scale=True, disable=not progress
+                )
+                received = 0
+                with open(part, "ab" if have else "wb") as out, bar:
+                    while chunk := response.read(1 << 20):
+                        out.write(chunk)
+                        received += len(chunk)
+                        bar.update(len(chunk))
+                if rest and received < rest:  # read(n) ends quietly when the server hangs up
+                    raise OSError(f"the connection closed after {received} of {rest} bytes")
+        shutil.copyfile(part, output_file)
+
+    return fetch
+
+
+def _drop_partial(part: Path) -> None:
+    part.unlink(missing_ok=True)
+    try:
+        part.parent.rmdir()  # only when empty
+    except OSError:
+        pass
+
+
 def download(
     target: str,
     root: Path,
@@ -108,26 +165,32 @@ def download(
     folder.parent.mkdir(parents=True, exist_ok=True)
     pooch.get_logger().setLevel("WARNING")  # the sha256 is reported by the caller
     work = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    file_name = url.rsplit("/", 1)[-1].split("?")[0]
+    part = Path(root) / PARTIAL / file_name
     try:
         try:
             archive = Path(
                 pooch.retrieve(
                     url,
                     known_hash=f"sha256:{checksum}" if checksum else None,
-                    fname=url.rsplit("/", 1)[-1].split("?")[0],
+                    fname=file_name,
                     path=work,
-                    progressbar=progress,
+                    downloader=resumable_fetch(part, progress),
                 )
             )
         except ValueError as err:  # pooch: the checksum does not match
+            _drop_partial(part)
             got = re.search(r"but got ([0-9a-f]+)", str(err))
             raise DatasetError(
                 f"{url}: corrupt or truncated download: sha256 {got.group(1) if got else '?'}"
                 f", expected {checksum}; nothing was kept"
             ) from None
-        except Exception as err:  # noqa: BLE001 - requests' errors and OSError alike
+        except Exception as err:  # noqa: BLE001 - urllib's errors and OSError alike
             message = " ".join(str(err).split())
-            raise DatasetError(f"{url}: download failed ({message})") from None
+            kept = part.stat().st_size if part.is_file() else 0
+            resume = f"; {kept} bytes kept, the same command resumes" if kept else ""
+            raise DatasetError(f"{url}: download failed ({message}){resume}") from None
+        _drop_partial(part)  # a whole response: whatever it unpacks to, it is not resumed
         digest = pooch.file_hash(str(archive), alg="sha256")
         sequence = _unpack(archive, work / "unpacked", url)
         if known is not None and not (sequence / "intrinsics.json").is_file():
