@@ -1,4 +1,4 @@
-"""The per-frame loop of the system as one "algorithm box" (paper III-V, design.md).
+"""The per-frame loop of the system as one "algorithm box" (paper III-V, docs/architecture.md).
 
     for each RGB-D frame:
         1. preprocess        metric depth, filters, pyramids, vertex/normal maps (IV-A.1)
