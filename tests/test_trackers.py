@@ -19,6 +19,7 @@ from kintinuous_ref.odometry import (
     is_repeated_frame,
     make_tracker,
     repeated_streams,
+    stale_input,
 )
 
 
@@ -255,20 +256,37 @@ def test_command_line_offers_every_method_and_config_overrides(tmp_path):
 
 
 @pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])
-def test_a_repeated_frame_means_no_motion(room, method):
+def test_a_repeated_frame_is_a_failure_with_its_reason(room, method):
     # The same images twice (7-Scenes redkitchen repeats 12 of its frames 228-298): no new
-    # measurement, so exactly the previous pose, tracked successfully (a frame without motion, not
-    # a failure: the constant-velocity memory becomes the identity).
+    # measurement, so no estimate: a failure that says why, whose pose is the fallback's (here
+    # the previous pose: the tracker has no motion to repeat yet), never a silently frozen pose.
     previous, _, previous_frame, _, model = room
     tracker = make_tracker(method, Config(), scene.CAMERA)
-    start = previous @ se3.exp(np.array([0.0, 0.0, 0.0, 1e-15, 0.0, 0.0]))  # float rounding
-    result = tracker.track(previous_frame, previous_frame, model, start)
-    assert result.ok and result.reason == ""
-    np.testing.assert_array_equal(result.pose, start)
-    np.testing.assert_allclose(tracker.recovery.last_increment, np.eye(4), atol=1e-12)
+    result = tracker.track(previous_frame, previous_frame, model, previous)
+    assert not result.ok
+    assert "repeat the previous frame's: no new measurement" in result.reason
+    np.testing.assert_array_equal(result.pose, previous)
     assert is_repeated_frame(previous_frame, previous_frame)
     assert not is_repeated_frame(previous_frame, room[3])
     assert not is_repeated_frame(None, previous_frame)
+
+
+@pytest.mark.parametrize(
+    ("method", "stream", "fails"),
+    [
+        ("rgbd", "colour", True),
+        ("icp", "depth", True),
+        ("rgbd", "depth", False),
+        ("icp", "colour", False),
+        ("icp+rgbd", "colour", False),
+        ("icp+rgbd", "depth", False),
+    ],
+)
+def test_a_tracker_without_a_fresh_image_says_so(method, stream, fails):
+    reason = stale_input(method, stream == "depth", stream == "colour")
+    assert bool(reason) == fails
+    if fails:
+        assert f"the {stream} image repeats" in reason
 
 
 def stale(current: scene.Frame, previous: scene.Frame, stream: str) -> scene.Frame:

@@ -114,6 +114,19 @@ def repeated_streams(
     )
 
 
+def stale_input(method: str, depth_repeated: bool, colour_repeated: bool) -> str:
+    """'' when `method` has a fresh image to measure the motion with, else why it has none:
+    RGB-D needs a new colour image, ICP a new depth image, ICP+RGB-D either (with one stale
+    stream it tracks on the other alone)."""
+    if depth_repeated and colour_repeated:
+        return "the colour and depth images repeat the previous frame's: no new measurement"
+    if colour_repeated and method == "rgbd":
+        return "the colour image repeats the previous frame's: no new photometric measurement"
+    if depth_repeated and method == "icp":
+        return "the depth image repeats the previous frame's: no new geometric measurement"
+    return ""
+
+
 def is_repeated_frame(previous: PreprocessedFrame | None, current: PreprocessedFrame) -> bool:
     """True when both the depth and the colour image repeat the previous frame's."""
     return all(repeated_streams(previous, current))
@@ -205,9 +218,11 @@ class DenseTracker:
                     f"{name} frame has {len(frame.levels)} pyramid levels, {levels} needed",
                 )
         depth_repeated, colour_repeated = self.repeated_streams(previous, current)
-        if (depth_repeated and colour_repeated) or (colour_repeated and self.method == "rgbd"):
-            # Nothing new to measure the motion with: report none.
-            return previous_pose.copy(), ""
+        stale = stale_input(self.method, depth_repeated, colour_repeated)
+        if stale:
+            # Nothing new to measure the motion with: a failure (the fallback pose, the frame
+            # not fused), never a silently frozen pose.
+            return previous_pose.copy(), stale
         tracking = self.config.tracking
         problem = self._problem(previous, current, model, previous_pose)
         if isinstance(problem, CombinedProblem) and (depth_repeated or colour_repeated):
