@@ -29,6 +29,7 @@
 # 4. renders the mesh, and checks that `kintinuous_fast` computes the same volume faster.
 
 # %%
+# %matplotlib inline
 import time
 
 import matplotlib.pyplot as plt

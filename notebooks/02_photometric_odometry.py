@@ -28,6 +28,7 @@
 # 5. checks that `kintinuous_fast` gives the same systems, and how much faster.
 
 # %%
+# %matplotlib inline
 import time
 
 import matplotlib.pyplot as plt

@@ -26,6 +26,7 @@
 # and on the units the two costs are added in.
 
 # %%
+# %matplotlib inline
 import time
 
 import matplotlib.pyplot as plt

@@ -25,6 +25,7 @@
 # the scene's true colours (the paper's Fig. 3, with numbers).
 
 # %%
+# %matplotlib inline
 import time
 
 import matplotlib.pyplot as plt

@@ -43,7 +43,9 @@ def test_notebook_runs(path: Path):
     # The kernel runs this interpreter's environment. One numba thread: the arrays are small
     # (160x120 images, 128^3 volumes) and on a shared 2-core machine spinning worker threads
     # cost more than they gain.
-    env = dict(os.environ, NUMBA_NUM_THREADS="1", PYVISTA_OFF_SCREEN="true")
+    # MPLBACKEND=Agg stands for any backend a user may have set: the notebooks choose the inline
+    # one themselves, so their pictures must still come out.
+    env = dict(os.environ, NUMBA_NUM_THREADS="1", PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")
     client = nbclient.NotebookClient(
         notebook,
         timeout=TIMEOUT_S,
@@ -51,3 +53,11 @@ def test_notebook_runs(path: Path):
         resources={"metadata": {"path": str(NOTEBOOKS)}},
     )
     client.execute(env=env)
+    pictures = [
+        output
+        for cell in notebook.cells
+        if cell.cell_type == "code"
+        for output in cell.get("outputs", [])
+        if "image/png" in output.get("data", {})
+    ]
+    assert len(pictures) >= 2, f"{path.name} showed {len(pictures)} pictures"
