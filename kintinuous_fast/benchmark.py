@@ -48,7 +48,7 @@ def benchmark(
         raise ConfigError(f"--frames must be at least 2 (the first is a warm-up), got {frames}")
     config = config or Config()
     chosen = select_backend(backend)
-    sequence = pipeline.open_dataset(dataset)
+    sequence = pipeline.open_dataset(dataset, frames_needed=start + frames)
     if not 0 <= start < len(sequence):
         raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
     groundtruth = None

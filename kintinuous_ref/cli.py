@@ -264,6 +264,7 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
         size=_parse_size(args.size),
         groundtruth=args.groundtruth,
         topics=args.topics,
+        frames_needed=args.start + args.frames if args.frames else None,
     )
     report = pipeline.reconstruct(
         sequence,

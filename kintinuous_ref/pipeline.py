@@ -336,6 +336,7 @@ def open_dataset(
     groundtruth: Path | None = None,
     topics: str | None = None,
     need_camera: bool = True,
+    frames_needed: int | None = None,
 ) -> FrameSequence:
     """Any input the system reads (docs/datasets.md), `desk` when `dataset` is None:
 
@@ -346,7 +347,8 @@ def open_dataset(
       RealSense's), camera from its CameraInfo unless `intrinsics` is given;
     - a TUM RGB-D folder;
     - a sequence fetched with `kintinuous download` (fr1/desk, ...), from the cache;
-    - a built-in synthetic scenario by name (rendered into the cache on first use).
+    - a built-in synthetic scenario by name (rendered into the cache on first use, its first
+      `frames_needed` frames only when that is given).
 
     `groundtruth` (a TUM trajectory file) gives a log or a bag its ground truth.
     """
@@ -390,9 +392,24 @@ def open_dataset(
             "nor a .klg log, a bag or a downloaded sequence"
         )
     folder = cache_folder() / dataset
-    if not (folder / "associations.txt").is_file():  # written last: a complete folder
-        synthetic.write_scenario(dataset, folder, frames=SCENARIO_FRAMES, progress=progress)
+    # A scenario is rendered only as far as a run needs it (`frames_needed`, all by default),
+    # and extended when a later run needs more.
+    needed = (
+        SCENARIO_FRAMES if frames_needed is None else min(max(frames_needed, 1), SCENARIO_FRAMES)
+    )
+    if rendered_frames(folder) < needed:
+        synthetic.write_scenario(
+            dataset, folder, frames=SCENARIO_FRAMES, progress=progress, render=needed
+        )
     return tum.open_sequence(folder, intrinsics)
+
+
+def rendered_frames(folder: Path) -> int:
+    """Frames a scenario folder in the cache holds (its associations.txt is written last)."""
+    listing = folder / "associations.txt"
+    if not listing.is_file():
+        return 0
+    return sum(1 for line in listing.read_text().splitlines() if line and line[0] != "#")
 
 
 # Beyond this many triangles the preview shows a coarser mesh (moving_volume.preview_mesh): its

@@ -537,3 +537,35 @@ def test_tiny_desk_fixture_is_what_the_generator_makes():
         # other numpy / OpenCV builds may round a texel differently: 1 level, 0.2 mm (1 unit)
         assert np.abs(frame.colour.astype(int) - colour).max() <= 1
         assert np.abs(frame.depth - depth).max() <= 2.1e-4
+
+
+def test_a_scenario_renders_the_frames_asked_for_and_extends_later(tmp_path):
+    # The first N frames of a longer scenario, the same images as a full render; a second call
+    # asking for more keeps the frames there and adds the rest.
+    size = {"frames": 12, "width": 32, "height": 24}
+    out = synthetic.write_scenario("desk", tmp_path / "part", render=4, **size)
+    assert len((out / "associations.txt").read_text().splitlines()) == 4
+    first = {p.name: p.stat().st_mtime_ns for p in (out / "rgb").iterdir()}
+    assert len(first) == 4
+    synthetic.write_scenario("desk", out, render=7, **size)
+    after = {p.name: p.stat().st_mtime_ns for p in (out / "rgb").iterdir()}
+    assert len(after) == 7 and all(after[name] == stamp for name, stamp in first.items())
+    full = synthetic.write_scenario("desk", tmp_path / "full", **size)
+    assert len((full / "associations.txt").read_text().splitlines()) == 12
+    for kind in ("rgb", "depth"):
+        for path in sorted((out / kind).iterdir()):
+            ours = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            np.testing.assert_array_equal(ours, cv2.imread(str(full / kind / path.name), -1))
+    with pytest.raises(ConfigError, match="1..12 frames"):
+        synthetic.write_scenario("desk", out, render=13, **size)
+
+
+def test_open_dataset_renders_a_scenario_only_as_far_as_needed(tmp_path, monkeypatch):
+    from kintinuous_ref import pipeline
+
+    monkeypatch.setenv("KINTINUOUS_CACHE", str(tmp_path))
+    monkeypatch.setattr(pipeline, "SCENARIO_FRAMES", 10)
+    assert len(pipeline.open_dataset("floor", frames_needed=2)) == 2
+    assert len(pipeline.open_dataset("floor", frames_needed=3)) == 3
+    assert len(pipeline.open_dataset("floor", frames_needed=1)) == 3  # never fewer than it has
+    assert len(pipeline.open_dataset("floor")) == 10

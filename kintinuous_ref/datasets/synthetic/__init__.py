@@ -12,6 +12,7 @@ scenarios (the five layouts).
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -171,21 +172,29 @@ def make_scenario(
     return Scenario(name, scene, camera, Trajectory(timestamps, poses), brightness, sensor, seed)
 
 
-def _prepare_folder(out: Path) -> None:
-    """Create `out`, or reuse it if empty or an earlier synth output (its old frames removed)."""
+def _prepare_folder(out: Path, meta: dict) -> bool:
+    """Create `out`, or reuse it if empty or an earlier synth output. True when it holds frames
+    of the same scenario (`meta` equal), which are kept; an other scenario's frames are removed."""
     if out.exists() and not out.is_dir():
         raise DatasetError(f"{out}: exists and is not a folder")
+    same = False
     if out.is_dir() and any(out.iterdir()):
         if not (out / "scenario.json").is_file():
             raise DatasetError(f"{out}: folder is not empty and not an earlier synth output")
-        for sub in ("rgb", "depth"):
-            shutil.rmtree(out / sub, ignore_errors=True)
+        try:
+            same = json.loads((out / "scenario.json").read_text()) == meta
+        except (OSError, ValueError):
+            same = False
+        if not same:
+            for sub in ("rgb", "depth"):
+                shutil.rmtree(out / sub, ignore_errors=True)
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
+    return same
 
 
 def _write_frames(
-    out: Path, names: list[str], indices: range, build: tuple, scenario: Scenario | None = None
+    out: Path, names: list[str], indices: list[int], build: tuple, scenario: Scenario | None = None
 ) -> int:
     """Render and write frames `indices` (in a worker process: builds its own scenario)."""
     import cv2
@@ -219,8 +228,14 @@ def write_scenario(
     progress: bool = False,
     workers: int = 1,
     mesh_spacing: float = 0.05,
+    render: int | None = None,
 ) -> Path:
     """Render a scenario into a TUM-layout folder; returns the folder.
+
+    `render` N renders only the first N of the scenario's `frames` (the listings name those;
+    groundtruth.txt holds every pose): the same images as a full render, since the scenario
+    (its path, lighting, noise) is built for `frames`. Rendering again into the same folder with
+    a larger N keeps the frames already there and adds the rest.
 
     Writes rgb/*.png (8-bit colour), depth/*.png (uint16, 1/5000 m, 0 = none), rgb.txt, depth.txt,
     associations.txt, groundtruth.txt (camera-to-world, TUM format), intrinsics.json,
@@ -230,9 +245,11 @@ def write_scenario(
     if workers < 1:
         raise ConfigError(f"workers must be at least 1, got {workers}")
     build = (name, frames, width, height, seed, noise)
+    rendered = frames if render is None else render
+    if not 1 <= rendered <= frames:
+        raise ConfigError(f"can render 1..{frames} frames of '{name}', asked for {rendered}")
     scenario = make_scenario(*build)
     out = Path(out)
-    _prepare_folder(out)
     dark = np.flatnonzero(scenario.brightness < 1.0)
     meta = {
         "scenario": name,
@@ -246,18 +263,24 @@ def write_scenario(
         "dark_frames": [int(dark[0]), int(dark[-1])] if len(dark) else None,
         "sensor": dict(vars(scenario.sensor)),
     }
+    meta = json.loads(strict_dumps(meta))  # as it reads back from scenario.json
+    same = _prepare_folder(out, meta)
     # first, so that an interrupted run's folder is recognised (and reused) as ours
     (out / "scenario.json").write_text(strict_dumps(meta, indent=2) + "\n")
     timestamps = scenario.trajectory.timestamps
     names = [f"{t:.6f}.png" for t in timestamps]
 
+    def written(index: int) -> bool:
+        return same and all((out / kind / names[index]).is_file() for kind in ("rgb", "depth"))
+
+    missing = [index for index in range(rendered) if not written(index)]
     chunk = 10
-    chunks = [range(i, min(i + chunk, frames)) for i in range(0, frames, chunk)]
+    chunks = [missing[i : i + chunk] for i in range(0, len(missing), chunk)]
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=frames, desc=f"synth {name}", unit="frame")
+        bar = tqdm(total=len(missing), desc=f"synth {name}", unit="frame")
     if workers > 1 and len(chunks) > 1:
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -277,14 +300,18 @@ def write_scenario(
 
     def listing(kind: str) -> str:
         lines = [f"# {kind} images of synthetic scenario '{name}'", "# timestamp filename"]
-        lines += [f"{t:.6f} {kind}/{n}" for t, n in zip(timestamps, names, strict=True)]
+        lines += [f"{t:.6f} {kind}/{n}" for t, n in zip(timestamps[:rendered], names, strict=False)]
         return "\n".join(lines) + "\n"
 
     (out / "rgb.txt").write_text(listing("rgb").replace("# rgb images", "# color images"))
     (out / "depth.txt").write_text(listing("depth"))
-    pairs = [f"{t:.6f} rgb/{n} {t:.6f} depth/{n}" for t, n in zip(timestamps, names, strict=True)]
+    pairs = [
+        f"{t:.6f} rgb/{n} {t:.6f} depth/{n}"
+        for t, n in zip(timestamps[:rendered], names, strict=False)
+    ]
     (out / "associations.txt").write_text("\n".join(pairs) + "\n")
     write_trajectory(out / "groundtruth.txt", scenario.trajectory)
     (out / "intrinsics.json").write_text(strict_dumps(scenario.camera.to_json(), indent=2) + "\n")
-    scenario.surface_mesh(mesh_spacing).save(str(out / "scene.ply"), binary=True, texture="rgb")
+    if not (same and (out / "scene.ply").is_file()):
+        scenario.surface_mesh(mesh_spacing).save(str(out / "scene.ply"), binary=True, texture="rgb")
     return out
