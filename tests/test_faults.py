@@ -298,3 +298,22 @@ def test_an_output_that_cannot_be_a_folder(tmp_path, kind):
     }[kind]
     assert _last_line(result.stderr).startswith(expected), result.stderr
     assert result.stderr.count("\n") <= 1 or kind == "proc"
+
+
+def test_synth_larger_than_memory_is_one_line(tmp_path):
+    # 60000x45000 images in a process allowed 3 GiB of address space: numpy's MemoryError, told
+    # in one line with what to ask for instead; no frame written.
+    def limit_memory():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
+    out = tmp_path / "big"
+    argv = [sys.executable, "-m", "kintinuous_ref.cli", "synth", "desk", "--out", str(out)]
+    argv += ["--frames", "1", "--width", "60000", "--height", "45000"]
+    result = _run(argv, preexec_fn=limit_memory)
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    errors = [line for line in re.split(r"[\r\n]", result.stderr) if "kintinuous:" in line]
+    assert errors == [
+        "kintinuous: error: out of memory (ask for fewer or smaller frames, or a smaller volume)"
+    ]
+    assert not list(out.glob("rgb/*.png"))

@@ -1,7 +1,8 @@
-"""Property-based tests (hypothesis) of the TUM readers: associations.txt, rgb.txt/depth.txt,
-groundtruth.txt and intrinsics.json given random bytes, or a valid file with random edits (lines
-dropped, duplicated or swapped, fields replaced by random words or numbers), never raise
-anything but the project's one-line errors (KintinuousError subclasses)."""
+"""Property-based tests (hypothesis) of the readers: the TUM files (associations.txt,
+rgb.txt/depth.txt, groundtruth.txt, intrinsics.json), .klg logs and bags given random bytes, or a
+valid file with random edits (lines dropped, duplicated or swapped, fields replaced by random
+words or numbers, bytes overwritten, the file cut), never raise anything but the project's
+one-line errors (KintinuousError subclasses)."""
 
 import shutil
 from pathlib import Path
@@ -156,3 +157,63 @@ def test_a_folder_as_a_trajectory_or_intrinsics(copy):
     for read in (tum.read_trajectory, load_intrinsics_json):
         with pytest.raises(KintinuousError):
             read(copy / "rgb")
+
+
+@pytest.fixture(scope="module")
+def valid_log(tmp_path_factory):
+    """tiny_desk as a .klg log, written by the project's writer (its reader is under test)."""
+    from kintinuous_ref.datasets import klg
+
+    path = tmp_path_factory.mktemp("klg") / "desk.klg"
+    klg.write_log(path, tum.open_sequence(TINY).frames(0, 3))
+    read_every_frame_of_log(path)  # undamaged, it reads
+    return path.read_bytes()
+
+
+def read_every_frame_of_log(path: Path) -> None:
+    from kintinuous_ref.datasets import klg
+
+    sequence = klg.open_log(path, size=(160, 120))
+    for frame in sequence.frames():
+        assert frame.depth.shape == (120, 160) and np.isfinite(frame.depth).all()
+
+
+@SETTINGS
+@given(data=st.binary(max_size=4096))
+def test_random_bytes_as_a_klg_log(tmp_path, data):
+    path = tmp_path / "random.klg"
+    path.write_bytes(data)
+    try:
+        read_every_frame_of_log(path)
+    except KintinuousError:
+        pass
+
+
+@SETTINGS
+@given(data=st.data())
+def test_random_damage_to_a_klg_log(tmp_path, valid_log, data):
+    # bytes overwritten at random places, and the log cut at a random length
+    damaged = bytearray(valid_log)
+    for _ in range(data.draw(st.integers(1, 8))):
+        at = data.draw(st.integers(0, len(damaged) - 1))
+        damaged[at] = data.draw(st.integers(0, 255))
+    cut = data.draw(st.integers(0, len(damaged)))
+    path = tmp_path / "damaged.klg"
+    path.write_bytes(bytes(damaged[:cut]))
+    try:
+        read_every_frame_of_log(path)
+    except KintinuousError:
+        pass
+
+
+@SETTINGS
+@given(data=st.binary(max_size=2048))
+def test_random_bytes_as_a_bag(tmp_path, data):
+    from kintinuous_ref.datasets import bag
+
+    path = tmp_path / "random.bag"
+    path.write_bytes(data)
+    try:
+        bag.open_bag(path)
+    except KintinuousError:
+        pass

@@ -276,27 +276,20 @@ def write_scenario(
     missing = [index for index in range(rendered) if not written(index)]
     chunk = 10
     chunks = [missing[i : i + chunk] for i in range(0, len(missing), chunk)]
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    from tqdm import tqdm
 
-        bar = tqdm(total=len(missing), desc=f"synth {name}", unit="frame")
-    if workers > 1 and len(chunks) > 1:
-        from concurrent.futures import ProcessPoolExecutor, as_completed
+    # closed however rendering ends, so that an error is printed on a line of its own
+    with tqdm(total=len(missing), desc=f"synth {name}", unit="frame", disable=not progress) as bar:
+        if workers > 1 and len(chunks) > 1:
+            from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = [pool.submit(_write_frames, out, names, c, build) for c in chunks]
-            for future in as_completed(futures):
-                done = future.result()
-                if bar is not None:
-                    bar.update(done)
-    else:
-        for c in chunks:
-            done = _write_frames(out, names, c, build, scenario)
-            if bar is not None:
-                bar.update(done)
-    if bar is not None:
-        bar.close()
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                futures = [pool.submit(_write_frames, out, names, c, build) for c in chunks]
+                for future in as_completed(futures):
+                    bar.update(future.result())
+        else:
+            for c in chunks:
+                bar.update(_write_frames(out, names, c, build, scenario))
 
     def listing(kind: str) -> str:
         lines = [f"# {kind} images of synthetic scenario '{name}'", "# timestamp filename"]
