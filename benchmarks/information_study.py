@@ -21,7 +21,12 @@ import numpy as np
 
 import kintinuous_fast
 from kintinuous_ref.config import Config, VolumeConfig
-from kintinuous_ref.odometry.combined import about_camera, information_spectrum, joint_system
+from kintinuous_ref.odometry.combined import (
+    DEGENERACY_THRESHOLD,
+    about_camera,
+    information_spectrum,
+    joint_system,
+)
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import solve
@@ -117,7 +122,8 @@ def main() -> None:
         width = 0.8 / len(rows)
         for k, (label, (icp, _, _)) in enumerate(rows.items()):
             ax.bar(x + k * width, np.maximum(icp, 1e-7), width, label=label)
-        ax.axhline(0.02, color="k", ls="--", lw=1, label="degeneracy threshold 0.02")
+        threshold = DEGENERACY_THRESHOLD
+        ax.axhline(threshold, color="k", ls="--", lw=1, label=f"degeneracy threshold {threshold}")
         ax.set_yscale("log")
         ax.set_xticks(x + 0.4 - width / 2, [f"#{i + 1}" for i in range(6)])
         ax.set_xlabel("ICP eigen-direction, weakest first")

@@ -1,4 +1,4 @@
-"""Fixtures shared by the test modules.
+"""Fixtures shared by the test modules, and where the real datasets are.
 
 `cuda_simulator`: runs a CUDA test module in a child pytest with numba's CUDA simulator. The
 simulator must be switched on (NUMBA_ENABLE_CUDASIM=1) before numba is imported, so without a
@@ -14,6 +14,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+# The real datasets lie beside this checkout (../shared/data), wherever the package is installed
+# (CI installs it into a virtual environment, where the package's own default points elsewhere).
+os.environ.setdefault("KINTINUOUS_DATA", str(ROOT.parent / "shared" / "data"))
 
 
 def run_in_cuda_simulator(test_file: Path, *arguments: str) -> str:

@@ -79,8 +79,8 @@ WEIGHTINGS = (
 # perfect, noise-free alignment from dividing by zero.
 MIN_ICP_SCALE = 1e-4
 # "degeneracy-aware": an eigen-direction of ICP's per-pair information (module docstring) below
-# this share is one that ICP does not observe (config.combined.degeneracy_threshold).
-DEGENERACY_THRESHOLD = 0.02
+# this share is one that ICP does not observe.
+DEGENERACY_THRESHOLD = CombinedConfig.degeneracy_threshold
 
 
 def icp_scale(icp: LinearSystem) -> float:
