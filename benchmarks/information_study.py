@@ -23,7 +23,6 @@ import kintinuous_fast
 from kintinuous_ref.config import Config, VolumeConfig
 from kintinuous_ref.odometry.combined import (
     DEGENERACY_THRESHOLD,
-    about_camera,
     information_spectrum,
     joint_system,
 )
@@ -77,8 +76,7 @@ def truth_step_mm(icp, rgbd, centre, name: str) -> float:  # noqa: ANN001
 def study(icp, rgbd, centre) -> dict[str, np.ndarray]:  # noqa: ANN001
     """ICP's eigenvalues, RGB-D's information along ICP's eigen-directions (same scaling, per
     pair) and each cost's step from the truth."""
-    eigenvalues, eigenvectors, scale = information_spectrum(icp, centre)
-    to_scaled = about_camera(centre) @ scale
+    eigenvalues, eigenvectors, to_scaled = information_spectrum(icp, centre)
     rgbd_scaled = to_scaled.T @ rgbd.A @ to_scaled / max(rgbd.count, 1)
     rgbd_along = np.einsum("ij,ik,kj->j", eigenvectors, rgbd_scaled, eigenvectors)
     steps = np.array([truth_step_mm(icp, rgbd, centre, name) for name in STEPS])

@@ -10,6 +10,7 @@ colour images (PNG or JPEG), 16-bit depth PNGs (raw / 5000 = metres), optionally
 from __future__ import annotations
 
 import shutil
+from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -182,7 +183,7 @@ class _FramePaths:
     depth: Path
 
 
-class FrameSequence:
+class FrameSequence(ABC):
     """What every reader offers: a camera, per-frame timestamps, optional ground truth, and frames
     read one at a time (lazily) by index. A reader sets the attributes and implements `_read`."""
 
@@ -204,8 +205,9 @@ class FrameSequence:
             raise IndexError(f"{self.path}: frame {index} out of range (0..{len(self) - 1})")
         return self._read(index % len(self))
 
+    @abstractmethod
     def _read(self, index: int) -> Frame:
-        raise NotImplementedError
+        """Frame `index` (0 <= index < len(self)), read from the source."""
 
     def frames(self, start: int = 0, count: int | None = None) -> Iterator[Frame]:
         """Frames start, start+1, ... (count of them, or up to the end), read one at a time."""

@@ -110,16 +110,17 @@ def information_spectrum(
     icp: LinearSystem, camera_position: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ICP's dimensionless per-pair information about the camera: (eigenvalues ascending,
-    eigenvectors as columns, D) with eigen-decomposition of D M^T A M D / count, where
-    D = diag(1 / rho x3, 1 x3) and rho^2 = trace of the rotational block / trace of the
-    translational one (the mean squared lever arm of the pairs)."""
+    eigenvectors as columns, M D) with eigen-decomposition of D M^T A M D / count, where M is
+    `about_camera`, D = diag(1 / rho x3, 1 x3) and rho^2 = trace of the rotational block / trace
+    of the translational one (the mean squared lever arm of the pairs). M D maps the scaled
+    coordinates eta to the world twist: xi = M D eta."""
     change = about_camera(camera_position)
     centred = change.T @ icp.A @ change
     translational = max(float(np.trace(centred[3:, 3:])), 1e-300)
     lever = np.sqrt(max(float(np.trace(centred[:3, :3])), 1e-300) / translational)
     scale = np.diag([1 / lever] * 3 + [1.0] * 3)
     eigenvalues, eigenvectors = np.linalg.eigh(scale @ centred @ scale / max(icp.count, 1))
-    return eigenvalues, eigenvectors, scale
+    return eigenvalues, eigenvectors, change @ scale
 
 
 def without_degenerate_directions(
@@ -133,9 +134,8 @@ def without_degenerate_directions(
     (`information_spectrum` below `threshold`); unchanged when it observes all six. With
     `other` (the other term, weighted), a direction is given up only where `other` holds more
     information than `icp_weight` * ICP does there: in the dark, ICP keeps what it has."""
-    eigenvalues, eigenvectors, scale = information_spectrum(icp, camera_position)
     # In the scaled coordinates eta (xi = M D eta): A_eta = D M^T A M D, b_eta = D M^T b.
-    to_scaled = about_camera(camera_position) @ scale
+    eigenvalues, eigenvectors, to_scaled = information_spectrum(icp, camera_position)
     weak = eigenvalues < threshold
     if other is not None:
         other_along = np.einsum(
