@@ -166,6 +166,52 @@ class ColourConfig:
 
 
 @dataclass(frozen=True)
+class LoopClosureConfig:
+    """Loop closure with map deformation (loop_closure/, docs/loop_closure.md)."""
+
+    # keyframes: a new one when the camera has moved this far or turned this much since the last
+    # (Kintinuous samples a pose graph node per volume shift, about 0.2-0.4 m at its settings)
+    keyframe_distance: float = 0.3  # metres
+    keyframe_angle_deg: float = 15.0
+    orb_features: int = 500  # ORB keypoints per keyframe (OpenCV's default)
+    # the latest keyframes are the odometry's business: a loop needs this many between the two
+    recent_window: int = 8
+    candidates: int = 3  # best-matching older keyframes verified per new keyframe
+    match_ratio: float = 0.8  # Lowe's ratio test on ORB Hamming distances
+    min_matches: int = 20  # fewer ratio-test matches: not a candidate
+    # sparse 3D-3D RANSAC on the depth
+    ransac_iterations: int = 300
+    ransac_inlier_distance: float = 0.05  # metres between matched 3D points after alignment
+    min_ransac_inliers: int = 12
+    min_ransac_share: float = 0.25  # inliers per match
+    # dense refinement (point-to-plane ICP of the two frames) and the acceptance test
+    icp_iterations: tuple[int, ...] = (10, 10, 10)  # pyramid levels 1.., finest to coarsest
+    max_icp_rmse: float = 0.015  # metres of point-to-plane residual over the matched pairs
+    min_icp_inlier_share: float = 0.5  # matched pairs per valid vertex of the new keyframe
+    photometric_tolerance: float = 20.0  # intensity levels (0..255) a matched pixel may differ
+    min_photometric_share: float = 0.6  # matched pairs within that tolerance
+    # a loop that moves the new keyframe further than this from where odometry put it (metres
+    # plus a share of the path since the old keyframe) is not drift but a different place
+    max_correction: float = 0.3
+    max_correction_per_metre: float = 0.05
+    # pose graph: standard deviations of the edges (odometry drifts ~1 cm and 0.5 degree per
+    # 0.3 m keyframe step on the synthetic scenes; a verified loop is as good as one step)
+    odometry_sigma_translation: float = 0.01  # metres
+    odometry_sigma_rotation_deg: float = 0.5
+    loop_sigma_translation: float = 0.01
+    loop_sigma_rotation_deg: float = 0.5
+    switch_prior_sigma: float = 1.0  # Suenderhauf and Protzel's switchable-constraint prior
+    # deformation graph (Sumner et al. 2007): nodes this far apart on the mesh, k nodes per vertex
+    node_spacing: float = 0.25  # metres
+    node_neighbours: int = 4  # graph edges per node, and nodes that move each vertex
+    time_scale: float = 0.005  # metres of distance per frame between a vertex and a node
+    rotation_weight: float = 1.0  # Sumner et al.'s E_rot, E_reg, E_con weights
+    regularisation_weight: float = 10.0
+    constraint_weight: float = 100.0
+    constraint_spread: float = 0.5  # metres: the cross of pinned points around each keyframe
+
+
+@dataclass(frozen=True)
 class Config:
     volume: VolumeConfig = field(default_factory=VolumeConfig)
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
@@ -175,6 +221,7 @@ class Config:
     fovis: FovisConfig = field(default_factory=FovisConfig)
     colour: ColourConfig = field(default_factory=ColourConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
 
     def validate(self) -> Config:
         """Return this config after checking every field's value (`check_values`); the volume's

@@ -7,7 +7,7 @@
 
 Modules: solids (closed-form ray intersections), textures (procedural multi-scale textures),
 scene (ray casting and shading), sensor (the Kinect error model), trajectories (hand-held paths),
-scenarios (the five layouts).
+scenarios (the five layouts), revisits (loop closure: a drifting lap, perceptual aliasing).
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ import numpy as np
 
 from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.datasets.synthetic.scenarios import SCENARIOS
+from kintinuous_ref.datasets.synthetic.revisits import REVISITS
+from kintinuous_ref.datasets.synthetic.scenarios import SCENARIOS as _LAYOUTS
 from kintinuous_ref.datasets.synthetic.scene import Scene, rotate
 from kintinuous_ref.datasets.synthetic.sensor import SensorModel, measure_colour, measure_depth
 from kintinuous_ref.datasets.synthetic.trajectories import FRAME_RATE, START_TIME, hand_held
@@ -31,6 +32,9 @@ from kintinuous_ref.strict_json import dumps as strict_dumps
 
 if TYPE_CHECKING:
     import pyvista
+
+# The five layouts of the paper's experiments, and the loop-closure scenarios (revisits.py).
+SCENARIOS = {**_LAYOUTS, **REVISITS}
 
 __all__ = [
     "KINECT_CAMERA",

@@ -1,0 +1,271 @@
+"""Embedded deformation (Sumner, Schmid and Pauly, SIGGRAPH 2007) of the extracted map.
+
+The graph's nodes are points g_j sampled from the mesh vertices, each with an affine map: a 3x3
+matrix R_j (close to a rotation) and a translation t_j. A point v moves to
+
+    v' = sum_j w_j(v) [R_j (v - g_j) + g_j + t_j]
+
+over its k nearest nodes, with weights w_j = (1 - d_j / d_max)^2 normalised to sum to 1 (d_max
+is the distance to the (k+1)-th nearest node), so each point follows the nodes around it and the
+motion blends smoothly between them. The unknowns are found by minimising
+
+    E = w_rot E_rot + w_reg E_reg + w_con E_con,
+
+- E_rot = sum_j Rot(R_j): the columns c1, c2, c3 of R_j orthonormal, (c_a . c_b - delta_ab)^2;
+- E_reg = sum_j sum_{k in N(j)} |R_j (g_k - g_j) + g_j + t_j - (g_k + t_k)|^2: neighbouring
+  nodes agree about where each other goes;
+- E_con = sum_c |v_c' - q_c|^2: chosen points go to their targets (here: points fixed to each
+  keyframe's camera, moved from the pose they were fused with to the pose graph's answer).
+
+Sumner et al. weigh them 1, 10, 100 (config.LoopClosureConfig). E_reg and E_con are linear in
+the unknowns; only E_rot is quadratic, so Gauss-Newton converges in a few iterations. Here it is
+scipy's least_squares with the exact sparse Jacobian.
+
+Space and time. A place visited twice holds two layers of map until the loop is closed: the
+old one (fused when the camera first passed) and the new one (fused with drifted poses), a few
+centimetres apart, which must move differently. As in the IROS 2013 paper, which connects nodes
+in the order the map was made, neighbours here are nearest in space-time: every node and point
+carries the frame it was made at, and distances are measured in (x, y, z, time_scale * frame).
+A point then follows the nodes made around the same time as itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix, csr_matrix, vstack
+from scipy.spatial import cKDTree
+
+from kintinuous_ref import se3
+from kintinuous_ref.errors import ConfigError
+
+
+@dataclass
+class DeformationGraph:
+    positions: np.ndarray  # (M, 3) node positions g_j
+    times: np.ndarray  # (M,) frame each node was made at
+    neighbours: np.ndarray  # (M, k) node indices joined to each node
+    time_scale: float  # metres per frame in space-time distances
+    rotations: np.ndarray  # (M, 3, 3) R_j (identity: no deformation)
+    translations: np.ndarray  # (M, 3) t_j
+
+    @property
+    def size(self) -> int:
+        return len(self.positions)
+
+    def space_time(self, points: np.ndarray, times: np.ndarray) -> np.ndarray:
+        return np.column_stack([points, self.time_scale * np.asarray(times, dtype=np.float64)])
+
+
+def sample_nodes(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Indices of points at most one per cube of side `spacing`: the point of each occupied cube
+    nearest its centre (an even cover, independent of how densely the mesh is triangulated).
+    `points` may have a fourth, time coordinate: two layers of one place then get nodes each."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points / spacing)
+    distance = np.linalg.norm(points / spacing - (cells + 0.5), axis=1)
+    order = np.lexsort((distance, *cells.T[::-1]))
+    sorted_cells = cells[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
+    return np.sort(order[first])
+
+
+def build_graph(
+    points: np.ndarray,
+    times: np.ndarray,
+    spacing: float,
+    neighbours: int = 4,
+    time_scale: float = 0.0,
+) -> DeformationGraph:
+    """Nodes sampled from `points` (with the frames they were made at), each joined to its
+    `neighbours` nearest other nodes in space-time."""
+    points = np.asarray(points, dtype=np.float64)
+    times = np.asarray(times, dtype=np.float64)
+    chosen = sample_nodes(np.column_stack([points, time_scale * times]), spacing)
+    if len(chosen) < 2:
+        raise ConfigError(
+            f"deformation graph: {len(chosen)} node(s) from {len(points)} points at "
+            f"{spacing} m spacing; the map is too small to deform"
+        )
+    positions, node_times = points[chosen], times[chosen]
+    k = min(neighbours, len(chosen) - 1)
+    space_time = np.column_stack([positions, time_scale * node_times])
+    _, nearest = cKDTree(space_time).query(space_time, k=k + 1)
+    return DeformationGraph(
+        positions=positions,
+        times=node_times,
+        neighbours=nearest[:, 1:].reshape(len(chosen), k),
+        time_scale=time_scale,
+        rotations=np.tile(np.eye(3), (len(chosen), 1, 1)),
+        translations=np.zeros((len(chosen), 3)),
+    )
+
+
+def node_weights(
+    graph: DeformationGraph, points: np.ndarray, times: np.ndarray, k: int = 4
+) -> tuple[np.ndarray, np.ndarray]:
+    """(indices (N, k), weights (N, k)) of the nodes that move each point (module docstring)."""
+    k = min(k, graph.size - 1)
+    tree = cKDTree(graph.space_time(graph.positions, graph.times))
+    distance, index = tree.query(graph.space_time(np.asarray(points, np.float64), times), k=k + 1)
+    distance, index = distance.reshape(-1, k + 1), index.reshape(-1, k + 1)
+    d_max = np.maximum(distance[:, -1:], 1e-9)
+    weights = (1.0 - distance[:, :k] / d_max) ** 2
+    total = weights.sum(axis=1, keepdims=True)
+    # A point exactly as far from all k+1 nodes has all weights 0: share them equally.
+    weights = np.where(total > 1e-12, weights / np.maximum(total, 1e-12), 1.0 / k)
+    return index[:, :k], weights
+
+
+def deform_points(
+    graph: DeformationGraph, points: np.ndarray, index: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """v' = sum_j w_j [R_j (v - g_j) + g_j + t_j] for points (N, 3) and their nodes."""
+    points = np.asarray(points, dtype=np.float64)
+    g = graph.positions[index]  # (N, k, 3)
+    local = points[:, None, :] - g
+    moved = np.einsum("nkab,nkb->nka", graph.rotations[index], local) + g
+    moved += graph.translations[index]
+    return np.einsum("nk,nka->na", weights, moved)
+
+
+def deform_poses(
+    graph: DeformationGraph, poses: np.ndarray, times: np.ndarray, k: int = 4
+) -> np.ndarray:
+    """Camera poses (N, 4, 4) moved through the graph: the centre as a point, the orientation
+    turned by the nodes' blended rotation (made orthonormal)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    index, weights = node_weights(graph, poses[:, :3, 3], times, k)
+    moved = poses.copy()
+    moved[:, :3, 3] = deform_points(graph, poses[:, :3, 3], index, weights)
+    blended = np.einsum("nk,nkab->nab", weights, graph.rotations[index])
+    for i in range(len(poses)):
+        moved[i, :3, :3] = se3.orthonormalize(blended[i]) @ poses[i, :3, :3]
+    return moved
+
+
+def _linear_terms(
+    graph: DeformationGraph,
+    sources: np.ndarray,
+    index: np.ndarray,
+    weights: np.ndarray,
+    targets: np.ndarray,
+) -> tuple[csr_matrix, np.ndarray]:
+    """E_reg and E_con as A x - b over x = [vec(R_j) row-major, t_j] (12 per node)."""
+    m, k = graph.size, graph.neighbours.shape[1]
+    rows, cols, values = [], [], []
+    # E_reg: for edge (j, l): R_j (g_l - g_j) + t_j - t_l = g_l - g_j  (3 rows per edge)
+    j = np.repeat(np.arange(m), k)
+    neighbour = graph.neighbours.ravel()
+    d = graph.positions[neighbour] - graph.positions[j]
+    edge_rows = 3 * np.arange(len(j))
+    for a in range(3):
+        for b in range(3):
+            rows.append(edge_rows + a)
+            cols.append(12 * j + 3 * a + b)
+            values.append(d[:, b])
+        rows += [edge_rows + a, edge_rows + a]
+        cols += [12 * j + 9 + a, 12 * neighbour + 9 + a]
+        values += [np.ones(len(j)), -np.ones(len(j))]
+    reg = coo_matrix(
+        (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(3 * len(j), 12 * m),
+    ).tocsr()
+    reg_b = d.ravel()
+    # E_con: sum_j w_j [R_j (v - g_j) + t_j] = q - sum_j w_j g_j  (3 rows per constraint)
+    rows, cols, values = [], [], []
+    c = np.repeat(np.arange(len(sources)), index.shape[1])
+    node = index.ravel()
+    w = weights.ravel()
+    local = sources[c] - graph.positions[node]
+    for a in range(3):
+        for b in range(3):
+            rows.append(3 * c + a)
+            cols.append(12 * node + 3 * a + b)
+            values.append(w * local[:, b])
+        rows.append(3 * c + a)
+        cols.append(12 * node + 9 + a)
+        values.append(w)
+    con = coo_matrix(
+        (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(3 * len(sources), 12 * m),
+    ).tocsr()
+    con_b = (targets - np.einsum("ck,cka->ca", weights, graph.positions[index])).ravel()
+    return reg, reg_b, con, con_b
+
+
+def optimise(
+    graph: DeformationGraph,
+    sources: np.ndarray,
+    source_times: np.ndarray,
+    targets: np.ndarray,
+    rotation_weight: float = 1.0,
+    regularisation_weight: float = 10.0,
+    constraint_weight: float = 100.0,
+    k: int = 4,
+) -> DeformationGraph:
+    """The graph whose deformation takes `sources` (C, 3) made at `source_times` to `targets`,
+    as rigidly and smoothly as possible (module docstring). Returns a new graph."""
+    sources = np.asarray(sources, dtype=np.float64)
+    targets = np.asarray(targets, dtype=np.float64)
+    index, weights = node_weights(graph, sources, source_times, k)
+    reg, reg_b, con, con_b = _linear_terms(graph, sources, index, weights, targets)
+    m = graph.size
+    linear = vstack([np.sqrt(regularisation_weight) * reg, np.sqrt(constraint_weight) * con])
+    linear = linear.tocsr()
+    linear_b = np.concatenate(
+        [np.sqrt(regularisation_weight) * reg_b, np.sqrt(constraint_weight) * con_b]
+    )
+    root_rot = np.sqrt(rotation_weight)
+    pairs = ((0, 1), (0, 2), (1, 2), (0, 0), (1, 1), (2, 2))
+
+    def rotation_terms(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = x.reshape(m, 12)[:, :9].reshape(m, 3, 3)
+        columns = r.transpose(0, 2, 1)  # columns[:, a] is column a of R_j
+        values = np.stack(
+            [np.einsum("ma,ma->m", columns[:, a], columns[:, b]) - (a == b) for a, b in pairs],
+            axis=1,
+        )
+        return values, columns
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        values, _ = rotation_terms(x)
+        return np.concatenate([root_rot * values.ravel(), linear @ x - linear_b])
+
+    # Jacobian of the rotation terms: d(c_a . c_b)/d c_a = c_b; column a of R_j holds the
+    # unknowns 12 j + 3 i + a (row-major vec), i = 0..2.
+    rot_rows = np.repeat(np.arange(6 * m), 6)
+    rot_cols = np.zeros((m, 6, 6), dtype=np.int64)
+    base = 12 * np.arange(m)[:, None]
+    for p, (a, b) in enumerate(pairs):
+        rot_cols[:, p, :3] = base + 3 * np.arange(3) + a
+        rot_cols[:, p, 3:] = base + 3 * np.arange(3) + b
+
+    def jacobian(x: np.ndarray) -> csr_matrix:
+        _, columns = rotation_terms(x)
+        values = np.zeros((m, 6, 6))
+        for p, (a, b) in enumerate(pairs):
+            values[:, p, :3] = columns[:, b]
+            values[:, p, 3:] = columns[:, a]
+        rot = coo_matrix(
+            (root_rot * values.ravel(), (rot_rows, rot_cols.ravel())), shape=(6 * m, 12 * m)
+        ).tocsr()  # duplicates (a == b) add up: d(c.c)/dc = 2c
+        return vstack([rot, linear]).tocsr()
+
+    x0 = np.concatenate([graph.rotations.reshape(m, 9), graph.translations], axis=1).ravel()
+    solved = least_squares(
+        residuals, x0, jac=jacobian, method="trf", tr_solver="lsmr", xtol=1e-10, ftol=1e-10
+    )
+    unknowns = solved.x.reshape(m, 12)
+    return DeformationGraph(
+        positions=graph.positions,
+        times=graph.times,
+        neighbours=graph.neighbours,
+        time_scale=graph.time_scale,
+        rotations=unknowns[:, :9].reshape(m, 3, 3).copy(),
+        translations=unknowns[:, 9:].copy(),
+    )
