@@ -43,7 +43,7 @@ from __future__ import annotations
 import os
 import re
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -359,6 +359,16 @@ class SliceStore:
             for path in self.paths():
                 yield read_slice(path)
 
+    def rewrite(self, change: Callable[[int, SliceMesh], SliceMesh]) -> None:
+        """Replace every slice by `change(number, slice)`, one slice in memory at a time (loop
+        closure moves the vertices of the map it deforms)."""
+        if self.folder is None:
+            self._memory = [change(number, mesh) for number, mesh in enumerate(self._memory)]
+            return
+        for path in self.paths():
+            number = int(_SLICE_FILE.search(path.name).group(1))
+            write_slice(path, change(number, read_slice(path)))
+
 
 # ----------------------------------------------------------------------------------------------
 # The moving volume
@@ -429,6 +439,24 @@ class MovingVolume:
         self.corner[axis] += voxels
         self.volume.offset[axis] = (self.volume.offset[axis] + voxels) % n
         self.volume.origin = self.anchor + self.corner * self.volume.voxel_size
+
+    def recentre(self, pose: np.ndarray) -> None:
+        """Start afresh around the camera at `pose` (after a loop closure moved it): what the
+        window holds becomes a slice (it was fused with the poses before the correction, and the
+        map deformation moves it with them), the window is cleared and placed on the global grid
+        so that the followed point of `pose` is at its centre."""
+        n = self.volume.resolution
+        mesh = extract_box(self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight)
+        if len(mesh.triangles):
+            self.store.add(mesh)
+        clear_box(self.volume, (0, 0, 0), (n, n, n))
+        point = pose[:3, :3] @ self.follow + pose[:3, 3]
+        shift = np.rint((point - volume_centre(self.volume)) / self.volume.voxel_size)
+        shift = shift.astype(np.int64)
+        self.corner += shift
+        self.volume.offset[:] = (np.asarray(self.volume.offset) + shift) % n
+        self.volume.origin = self.anchor + self.corner * self.volume.voxel_size
+        self.shifts += 1
 
     def finish(self) -> None:
         """Extract what is left in the window as the last slice (once)."""

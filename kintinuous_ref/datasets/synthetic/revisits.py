@@ -49,7 +49,7 @@ def revisit(
     b = _Builder(rng)
     room = Box(placed(0.0, 0.0, 1.3), (3.0, 2.5, 1.3), inside=True)
     b.solids.append(room)
-    b.materials.append([faint_material(rng) for _ in range(6)])
+    b.materials.append([random_material(rng, "wall") for _ in range(4)] + [faint_material(rng)] * 2)
     # Objects along every wall give ICP geometry all the way round; only those at the start
     # (the +x wall and the ends of the +-y walls next to it) are textured, the rest are as
     # plain as the walls, so RGB-D helps only at the start.

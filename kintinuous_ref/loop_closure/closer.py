@@ -1,0 +1,282 @@
+"""The loop closer: what the per-frame loop calls, and what it does with an accepted loop.
+
+Per frame (`observe`, after odometry, before the frame is fused): when the camera has moved far
+enough a keyframe is taken and joined to the previous one by an odometry edge (their relative
+pose as tracked); its best-matching older keyframes are verified (place_recognition.py). An
+accepted loop becomes a switchable loop edge and the pose graph is solved (pose_graph.py). If
+the graph keeps the loop switched on, the current camera moves with its keyframe:
+C = K'_k K_k^-1, the correction `observe` returns. The pipeline applies it to the pose it fuses
+and re-centres the moving volume there (MovingVolume.recentre): what the window held, fused
+with the old poses, leaves as a slice, and the map from then on is built in corrected
+coordinates.
+
+Three poses per keyframe: `fused` (the pose the map was built with: the tracked pose, corrected
+when the keyframe itself closed the loop), the graph's current estimate, and, at the end, the
+graph's final one. At the end of the run (`finish`):
+
+- the trajectory: each frame moves with the latest keyframe at or before it,
+  T_f' = K'_k K_fused,k^-1 T_f (frames between keyframes were tracked relative to it);
+- the map: an embedded deformation graph (deformation_graph.py) is sampled from the slices'
+  vertices, each vertex timed by the frame its slice left the volume, and pinned by a cross of
+  points in front of every keyframe's camera (at the depth it saw) moved from its fused to its
+  final pose. Every vertex of every slice then moves through the graph.
+
+The uncorrected trajectory is the one odometry alone would have given: every pose with all the
+corrections before it undone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kintinuous_ref import se3
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import Config
+from kintinuous_ref.loop_closure import deformation_graph, pose_graph
+from kintinuous_ref.loop_closure.keyframes import Keyframe, is_new_keyframe, make_keyframe
+from kintinuous_ref.loop_closure.place_recognition import (
+    REASONS,
+    Verdict,
+    match_descriptors,
+    ranked_candidates,
+    verify,
+)
+from kintinuous_ref.moving_volume import SliceMesh, SliceStore
+from kintinuous_ref.preprocess import PreprocessedFrame, preprocess_frame
+
+SWITCHED_OFF = "switched off by the pose graph"
+SWITCH_ON = 0.5  # a loop whose switch ends below this is treated as rejected
+
+
+@dataclass
+class Closure:
+    frame: int  # frame at which the loop was closed
+    query: int  # keyframe nodes of the loop
+    match: int
+    correction: np.ndarray  # (4, 4) world-frame correction applied to the camera
+    moved: float  # metres the correction moved the camera
+
+
+@dataclass
+class LoopCloser:
+    config: Config
+    camera: Intrinsics
+    keyframes: list[Keyframe] = field(default_factory=list)
+    graph: pose_graph.PoseGraph = field(default_factory=pose_graph.PoseGraph)
+    verdicts: list[Verdict] = field(default_factory=list)
+    closures: list[Closure] = field(default_factory=list)
+    frame_keyframe: list[int] = field(default_factory=list)  # per frame: latest keyframe node
+    frames: list[int] = field(default_factory=list)  # per observed frame: its index
+    poses: list[np.ndarray] = field(default_factory=list)  # per frame: the pose fused
+    slice_frames: list[int] = field(default_factory=list)  # per slice: frame it was made at
+    travelled: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def observe(
+        self,
+        frame: int,
+        pose: np.ndarray,
+        preprocessed: PreprocessedFrame | None = None,
+        colour: np.ndarray | None = None,
+        depth: np.ndarray | None = None,
+        fused: bool = True,
+    ) -> np.ndarray | None:
+        """Take a keyframe if due and look for a loop; the correction (4, 4) to apply to this
+        frame's pose when a loop was closed, else None. `preprocessed` (a host frame) or the raw
+        `colour` and `depth` are read only when a keyframe is taken; a frame whose tracking
+        failed (`fused` False) never becomes one."""
+        pose = np.asarray(pose, dtype=np.float64)
+        if self.poses:
+            self.travelled += float(np.linalg.norm(pose[:3, 3] - self.poses[-1][:3, 3]))
+        correction = None
+        last = self.keyframes[-1].pose if self.keyframes else None
+        if fused and is_new_keyframe(last, pose, self.config.loop_closure):
+            if not isinstance(preprocessed, PreprocessedFrame):
+                preprocessed = preprocess_frame(colour, depth, self.camera, self.config.preprocess)
+            correction = self._add_keyframe(frame, pose, preprocessed)
+        if correction is not None:
+            pose = correction @ pose
+        self.frames.append(frame)
+        self.poses.append(pose)
+        self.frame_keyframe.append(len(self.keyframes) - 1)
+        return correction
+
+    def _add_keyframe(
+        self, frame: int, pose: np.ndarray, preprocessed: PreprocessedFrame
+    ) -> np.ndarray | None:
+        settings = self.config.loop_closure
+        node = self.graph.add_node(pose)
+        keyframe = make_keyframe(node, frame, pose, self.travelled, preprocessed, settings)
+        if self.keyframes:
+            previous = self.keyframes[-1]
+            self.graph.add_edge(
+                previous.node,
+                node,
+                pose_graph.relative_pose(previous.pose, pose),
+                settings.odometry_sigma_translation,
+                np.radians(settings.odometry_sigma_rotation_deg),
+            )
+        self.keyframes.append(keyframe)
+        for candidate, _ in ranked_candidates(keyframe, self.keyframes[:-1], settings):
+            matches = match_descriptors(keyframe.descriptors, candidate.descriptors,
+                                        settings.match_ratio)  # fmt: skip
+            verdict = verify(keyframe, candidate, settings, self.rng, matches)
+            self.verdicts.append(verdict)
+            if verdict.accepted:
+                return self._close(frame, keyframe, candidate, verdict)
+        return None
+
+    def _close(
+        self, frame: int, keyframe: Keyframe, match: Keyframe, verdict: Verdict
+    ) -> np.ndarray | None:
+        settings = self.config.loop_closure
+        self.graph.add_edge(
+            match.node,
+            keyframe.node,
+            verdict.relative,
+            settings.loop_sigma_translation,
+            np.radians(settings.loop_sigma_rotation_deg),
+            loop=True,
+        )
+        solution = pose_graph.optimise(self.graph, settings.switch_prior_sigma)
+        if solution.switches[-1] < SWITCH_ON:
+            verdict.accepted, verdict.reason = False, SWITCHED_OFF
+            return None
+        self.graph.poses = list(solution.poses)
+        corrected = solution.poses[keyframe.node]
+        correction = corrected @ se3.inverse(keyframe.pose)
+        moved = float(np.linalg.norm(corrected[:3, 3] - keyframe.pose[:3, 3]))
+        keyframe.pose = corrected  # the pose this keyframe's frame is fused with
+        self.closures.append(Closure(frame, keyframe.node, match.node, correction, moved))
+        return correction
+
+    def slice_made(self, frame: int, slices: int) -> None:
+        """Record that the store holds `slices` slices after `frame` (their time for the map
+        deformation)."""
+        self.slice_frames.extend([frame] * (slices - len(self.slice_frames)))
+
+    # ------------------------------------------------------------------------------------------
+    # At the end of the run
+
+    def corrected_poses(self) -> np.ndarray:
+        """(frames, 4, 4): every frame moved with the latest keyframe at or before it."""
+        poses = np.array(self.poses).reshape(-1, 4, 4)
+        moved = poses.copy()
+        for i, node in enumerate(self.frame_keyframe):
+            if node >= 0:
+                keyframe = self.keyframes[node]
+                change = self.graph.poses[node] @ se3.inverse(keyframe.pose)
+                moved[i] = change @ poses[i]
+        return moved
+
+    def uncorrected_poses(self) -> np.ndarray:
+        """(frames, 4, 4): the poses odometry alone would have given (every correction made
+        before a frame undone)."""
+        poses = np.array(self.poses).reshape(-1, 4, 4)
+        undo = np.eye(4)
+        closures = {c.frame: c.correction for c in self.closures}
+        out = poses.copy()
+        for i, frame in enumerate(self.frames):
+            if frame in closures:
+                undo = undo @ se3.inverse(closures[frame])
+            out[i] = undo @ poses[i]
+        return out
+
+    def constraints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sources (C, 3), frames (C,), targets (C, 3)): for every keyframe, a cross of 5 points
+        in front of the camera at the median depth of its keypoints, where it was fused and
+        where the pose graph puts it."""
+        spread = self.config.loop_closure.constraint_spread
+        sources, times, targets = [], [], []
+        for keyframe in self.keyframes:
+            depth = np.nanmedian(keyframe.points[:, 2]) if len(keyframe.points) else np.nan
+            depth = float(depth) if np.isfinite(depth) else 1.5
+            cross = np.array([[0, 0, depth], [spread, 0, depth], [-spread, 0, depth],
+                              [0, spread, depth], [0, -spread, depth]])  # fmt: skip
+            sources.append(se3.transform_points(keyframe.pose, cross))
+            targets.append(se3.transform_points(self.graph.poses[keyframe.node], cross))
+            times.append(np.full(len(cross), float(keyframe.frame)))
+        return np.vstack(sources), np.concatenate(times), np.vstack(targets)
+
+    def deform_map(self, store: SliceStore) -> dict:
+        """Move every slice's vertices through a deformation graph built on them (module
+        docstring); nothing to do (and nothing done) without a closure. Returns numbers for the
+        report."""
+        if not self.closures:
+            return {"nodes": 0, "vertices": 0}
+        settings = self.config.loop_closure
+        frames = self._slice_times(store.count)
+        # Nodes from every slice's vertices, each with its slice's time.
+        points, times = [], []
+        for number, mesh in enumerate(store):
+            chosen = deformation_graph.sample_nodes(np.asarray(mesh.points, np.float64),
+                                                    settings.node_spacing)  # fmt: skip
+            points.append(np.asarray(mesh.points, np.float64)[chosen])
+            times.append(np.full(len(chosen), float(frames[number])))
+        graph = deformation_graph.build_graph(
+            np.vstack(points),
+            np.concatenate(times),
+            settings.node_spacing,
+            settings.node_neighbours,
+            settings.time_scale,
+        )
+        sources, source_times, targets = self.constraints()
+        graph = deformation_graph.optimise(
+            graph,
+            sources,
+            source_times,
+            targets,
+            settings.rotation_weight,
+            settings.regularisation_weight,
+            settings.constraint_weight,
+            settings.node_neighbours,
+        )
+        moved = 0
+
+        def change(number: int, mesh: SliceMesh) -> SliceMesh:
+            nonlocal moved
+            if not len(mesh.points):
+                return mesh
+            times = np.full(len(mesh.points), float(frames[number]))
+            index, weights = deformation_graph.node_weights(
+                graph, mesh.points, times, settings.node_neighbours
+            )
+            points = deformation_graph.deform_points(graph, mesh.points, index, weights)
+            mesh.points = points.astype(np.float32)
+            moved += len(points)
+            return mesh
+
+        store.rewrite(change)
+        return {"nodes": graph.size, "vertices": moved}
+
+    def _slice_times(self, count: int) -> list[int]:
+        last = self.frames[-1] if self.frames else 0
+        return [*self.slice_frames, *([last] * (count - len(self.slice_frames)))][:count]
+
+    def report(self) -> dict:
+        """`loop_closures` for report.json."""
+        rejected: dict[str, int] = {reason: 0 for reason in (*REASONS, SWITCHED_OFF)}
+        for verdict in self.verdicts:
+            if not verdict.accepted:
+                rejected[verdict.reason] += 1
+        return {
+            "keyframes": len(self.keyframes),
+            "candidates": len(self.verdicts),
+            "accepted": sum(v.accepted for v in self.verdicts),
+            "rejected": {reason: n for reason, n in rejected.items() if n},
+            "closures": [
+                {
+                    "frame": c.frame,
+                    "keyframes": [c.match, c.query],
+                    "camera_moved_m": c.moved,
+                    "correction_deg": float(np.degrees(se3.rotation_angle(c.correction[:3, :3]))),
+                }
+                for c in self.closures
+            ],
+            "verified": [v.as_dict() for v in self.verdicts if v.reason != "few matches"][:100],
+        }
