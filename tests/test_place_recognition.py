@@ -25,7 +25,9 @@ def scenario(name: str) -> synthetic.Scenario:
     return synthetic.make_scenario(name, frames=480, width=320, height=240)
 
 
-def keyframe(name: str, frame: int, node: int, pose: np.ndarray | None = None) -> keyframes.Keyframe:
+def keyframe(
+    name: str, frame: int, node: int, pose: np.ndarray | None = None
+) -> keyframes.Keyframe:
     """A keyframe of a scenario frame at its true pose (or `pose`)."""
     s = scenario(name)
     colour, depth = s.render(frame)

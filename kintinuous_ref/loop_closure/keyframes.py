@@ -53,9 +53,7 @@ def is_new_keyframe(
     return bool(moved or turned)
 
 
-def orb_features(
-    intensity: np.ndarray, count: int
-) -> tuple[np.ndarray, np.ndarray]:
+def orb_features(intensity: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """(keypoints (N, 2) float32 pixels, descriptors (N, 32) uint8) of an intensity image."""
     image = np.clip(np.rint(intensity), 0, 255).astype(np.uint8)
     # The default 31-pixel patch leaves no room for features on small images; scale it down.

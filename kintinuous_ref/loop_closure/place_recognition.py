@@ -242,9 +242,7 @@ def verify(
     if failure or rmse > config.max_icp_rmse or share < config.min_icp_inlier_share:
         verdict.reason = "dense"
         return verdict
-    verdict.photometric_share = photometric_share(
-        query, match, pose, config.photometric_tolerance
-    )
+    verdict.photometric_share = photometric_share(query, match, pose, config.photometric_tolerance)
     if verdict.photometric_share < config.min_photometric_share:
         verdict.reason = "photometric"
         return verdict
