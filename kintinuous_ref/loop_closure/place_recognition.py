@@ -16,11 +16,11 @@ Four stages, each of which can reject a candidate (the reason is counted, `Verdi
 3. **Geometry and appearance, dense.** From that motion, the tracker's own ICP+RGB-D
    (odometry/combined.py: point-to-plane ICP and photometric error in one system) aligns the new
    keyframe to the old one, coarse to fine over the kept pyramid levels. ICP alone slid a few
-   centimetres along the walls of the `revisit` scenario's start; the texture holds it. Accepted only if the point-to-plane RMSE is small, most of the new
-   keyframe's points found a partner ("dense"), and the intensities of the paired pixels agree
-   ("photometric"). The last check is what separates two places built alike (perceptual
-   aliasing: identical furniture in two rooms aligns perfectly in geometry, but the walls
-   around it differ in texture).
+   centimetres along the walls of the `revisit` scenario's start; the texture holds it.
+   Accepted only if the point-to-plane RMSE is small, most of the new keyframe's points found a
+   partner ("dense"), and the intensities of the paired pixels agree ("photometric"). The last
+   check is what separates two places built alike (perceptual aliasing: identical furniture in
+   two rooms aligns perfectly in geometry, but the walls around it differ in texture).
 4. **Plausibility.** The loop says how far odometry has drifted between the two keyframes; more
    than `max_correction` plus `max_correction_per_metre` of the path between them is not drift
    but another place ("implausible correction").

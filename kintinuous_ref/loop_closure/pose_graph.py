@@ -23,8 +23,10 @@ contradicts it costs less switched off than on. Solving for s as extra bounded u
 scipy's solver crawl towards the bound s = 0 (thousands of evaluations for a 24-node graph); the
 switch that minimises that cost for given poses has a closed form (Agarwal et al., "Dynamic
 Covariance Scaling", ICRA 2013), s = min(1, 2 phi / (phi + chi^2)) with phi = sigma_switch^2 and
-chi^2 the loop's squared residual, recomputed at every step of the solver. Odometry edges have no switch:
-they are the backbone.
+chi^2 the loop's squared residual, recomputed at every step of the solver. Loops are first all
+trusted (each passed verification), then switched: a true loop many sigmas off at the odometry's
+poses would otherwise be switched off before it could pull. Odometry edges have no switch: they
+are the backbone.
 """
 
 from __future__ import annotations
@@ -214,7 +216,8 @@ def _levenberg_marquardt(
     residual, a, tj = _errors(poses, edges)
     weight = weights(residual)
     current = cost(residual, weight)
-    for steps in range(1, iterations + 1):
+    while steps < iterations:
+        steps += 1
         jacobian = _jacobian(count, edges, a, tj, weight)
         gradient = jacobian.T @ (residual * weight[:, None]).ravel()
         normal = (jacobian.T @ jacobian).tocsc()
