@@ -17,9 +17,11 @@ graph's final one. At the end of the run (`finish`):
 - the trajectory: each frame moves with the latest keyframe at or before it,
   T_f' = K'_k K_fused,k^-1 T_f (frames between keyframes were tracked relative to it);
 - the map: an embedded deformation graph (deformation_graph.py) is sampled from the slices'
-  vertices, each vertex timed by the frame its slice left the volume, and pinned by a cross of
-  points in front of every keyframe's camera (at the depth it saw) moved from its fused to its
-  final pose. Every vertex of every slice then moves through the graph.
+  vertices and pinned by a cross of points in front of every keyframe's camera (at the depth it
+  saw) moved from its fused to its final pose. Every vertex of every slice then moves through
+  the graph. Space-time neighbourhoods keep apart what was fused in different coordinates: a
+  vertex's time is the frame of the latest keyframe that saw it (the frames that fused it carry
+  the drift to undo), and each correction starts a new epoch, far from the others in time.
 
 The uncorrected trajectory is the one odometry alone would have given: every pose with all the
 corrections before it undone.
@@ -48,6 +50,10 @@ from kintinuous_ref.preprocess import PreprocessedFrame, preprocess_frame
 
 SWITCHED_OFF = "switched off by the pose graph"
 SWITCH_ON = 0.5  # a loop whose switch ends below this is treated as rejected
+# Frames between correction epochs in space-time: map made before a correction and map made
+# after it are in different coordinates (the same place can be in both, centimetres apart), so
+# they must never share deformation nodes; with time_scale 0.005 m per frame this is 500 m.
+EPOCH_FRAMES = 100_000
 
 
 @dataclass
@@ -71,6 +77,8 @@ class LoopCloser:
     frames: list[int] = field(default_factory=list)  # per observed frame: its index
     poses: list[np.ndarray] = field(default_factory=list)  # per frame: the pose fused
     slice_frames: list[int] = field(default_factory=list)  # per slice: frame it was made at
+    slice_epochs: list[int] = field(default_factory=list)  # per slice: corrections before it
+    keyframe_epochs: list[int] = field(default_factory=list)  # per keyframe: the same
     travelled: float = 0.0
     seed: int = 0
 
@@ -122,6 +130,7 @@ class LoopCloser:
                 np.radians(settings.odometry_sigma_rotation_deg),
             )
         self.keyframes.append(keyframe)
+        self.keyframe_epochs.append(len(self.closures))
         for candidate, _ in ranked_candidates(keyframe, self.keyframes[:-1], settings):
             matches = match_descriptors(keyframe.descriptors, candidate.descriptors,
                                         settings.match_ratio)  # fmt: skip
@@ -153,12 +162,19 @@ class LoopCloser:
         moved = float(np.linalg.norm(corrected[:3, 3] - keyframe.pose[:3, 3]))
         keyframe.pose = corrected  # the pose this keyframe's frame is fused with
         self.closures.append(Closure(frame, keyframe.node, match.node, correction, moved))
+        self.keyframe_epochs[-1] = len(self.closures)
         return correction
 
     def slice_made(self, frame: int, slices: int) -> None:
         """Record that the store holds `slices` slices after `frame` (their time for the map
-        deformation)."""
-        self.slice_frames.extend([frame] * (slices - len(self.slice_frames)))
+        deformation). A slice made on the frame of a closure is the window that recentre()
+        emptied, fused before the correction: it belongs to the epoch before it."""
+        epoch = len(self.closures)
+        if self.closures and self.closures[-1].frame == frame:
+            epoch -= 1
+        new = slices - len(self.slice_frames)
+        self.slice_frames.extend([frame] * new)
+        self.slice_epochs.extend([epoch] * new)
 
     # ------------------------------------------------------------------------------------------
     # At the end of the run
@@ -200,7 +216,8 @@ class LoopCloser:
                               [0, spread, depth], [0, -spread, depth]])  # fmt: skip
             sources.append(se3.transform_points(keyframe.pose, cross))
             targets.append(se3.transform_points(self.graph.poses[keyframe.node], cross))
-            times.append(np.full(len(cross), float(keyframe.frame)))
+            epoch = self.keyframe_epochs[keyframe.node]
+            times.append(np.full(len(cross), self._time(keyframe.frame, epoch)))
         return np.vstack(sources), np.concatenate(times), np.vstack(targets)
 
     def deform_map(self, store: SliceStore) -> dict:
@@ -210,14 +227,14 @@ class LoopCloser:
         if not self.closures:
             return {"nodes": 0, "vertices": 0}
         settings = self.config.loop_closure
-        frames = self._slice_times(store.count)
-        # Nodes from every slice's vertices, each with its slice's time.
+        frames, epochs = self._slice_times(store.count)
+        # Nodes from every slice's vertices, each timed by the keyframe that last saw it.
         points, times = [], []
         for number, mesh in enumerate(store):
-            chosen = deformation_graph.sample_nodes(np.asarray(mesh.points, np.float64),
-                                                    settings.node_spacing)  # fmt: skip
-            points.append(np.asarray(mesh.points, np.float64)[chosen])
-            times.append(np.full(len(chosen), float(frames[number])))
+            vertices = np.asarray(mesh.points, np.float64)
+            chosen = deformation_graph.sample_nodes(vertices, settings.node_spacing)
+            points.append(vertices[chosen])
+            times.append(self.vertex_times(vertices[chosen], frames[number], epochs[number]))
         graph = deformation_graph.build_graph(
             np.vstack(points),
             np.concatenate(times),
@@ -242,7 +259,7 @@ class LoopCloser:
             nonlocal moved
             if not len(mesh.points):
                 return mesh
-            times = np.full(len(mesh.points), float(frames[number]))
+            times = self.vertex_times(mesh.points, frames[number], epochs[number])
             index, weights = deformation_graph.node_weights(
                 graph, mesh.points, times, settings.node_neighbours
             )
@@ -254,9 +271,40 @@ class LoopCloser:
         store.rewrite(change)
         return {"nodes": graph.size, "vertices": moved}
 
-    def _slice_times(self, count: int) -> list[int]:
+    def _slice_times(self, count: int) -> tuple[list[int], list[int]]:
+        """(frame, epoch) per slice; slices made after the last frame observed (the final one)
+        take the last frame and the current epoch."""
         last = self.frames[-1] if self.frames else 0
-        return [*self.slice_frames, *([last] * (count - len(self.slice_frames)))][:count]
+        missing = count - len(self.slice_frames)
+        frames = [*self.slice_frames, *([last] * missing)][:count]
+        epochs = [*self.slice_epochs, *([len(self.closures)] * missing)][:count]
+        return frames, epochs
+
+    @staticmethod
+    def _time(frame: float, epoch: int) -> float:
+        return float(frame) + EPOCH_FRAMES * epoch
+
+    def vertex_times(self, points: np.ndarray, made: int, epoch: int) -> np.ndarray:
+        """Space-time "time" of map points from a slice made at frame `made` in `epoch`: the
+        frame of the latest keyframe of that epoch, not after `made`, that saw the point (it in
+        front of the camera, within the image and 0.3-5 m deep), else `made`. A slice holds
+        surface fused over many frames (the window emptied at a closure may hold a whole room),
+        and the drift to undo is the drift of the frames that fused it."""
+        points = np.asarray(points, dtype=np.float64)
+        times = np.full(len(points), float(made))
+        camera = self.camera
+        for keyframe, kf_epoch in zip(self.keyframes, self.keyframe_epochs, strict=True):
+            if kf_epoch != epoch or keyframe.frame > made:
+                continue
+            local = se3.transform_points(se3.inverse(keyframe.pose), points)
+            z = local[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = camera.fx * local[:, 0] / z + camera.cx
+                v = camera.fy * local[:, 1] / z + camera.cy
+            seen = (z > 0.3) & (z < 5.0) & (u >= 0) & (u < camera.width)
+            seen &= (v >= 0) & (v < camera.height)
+            times[seen] = keyframe.frame  # keyframes come in time order: the latest wins
+        return times + EPOCH_FRAMES * epoch
 
     def report(self) -> dict:
         """`loop_closures` for report.json."""
