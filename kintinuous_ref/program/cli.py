@@ -664,6 +664,12 @@ def _add_warmup(commands: argparse._SubParsersAction) -> None:
         help="measure what a fresh installation pays: compile into an empty temporary cache "
         "in a child process (this installation's cache is left as it is)",
     )
+    parser.add_argument(
+        "--serial",
+        action="store_true",
+        help="compile in this process only (by default a cold cpu cache is filled by two "
+        "processes at once)",
+    )
     parser.add_argument("--kernels", type=int, default=10, help="slowest kernels to list")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.set_defaults(handler=_run_warmup)
@@ -675,7 +681,7 @@ def _run_warmup(args: argparse.Namespace) -> None:
 
     backend = load_backend(args.backend)  # a one-line error before any work
     if args.empty_cache:
-        report = warmup.warm_up_from_empty_cache(backend.name, args.odometry)
+        report = warmup.warm_up_from_empty_cache(backend.name, args.odometry, args.serial)
     else:
         from tqdm import tqdm
 
@@ -684,7 +690,11 @@ def _run_warmup(args: argparse.Namespace) -> None:
         methods = warmup.methods_for(args.odometry)
         with tqdm(total=len(methods), unit="tracker", desc="warmup", disable=args.json) as bar:
             report = warmup.warm_up(
-                backend, Config(), args.odometry, progress=lambda _: bar.update(1)
+                backend,
+                Config(),
+                args.odometry,
+                progress=lambda _: bar.update(1),
+                parallel=not args.serial,
             ).as_dict()
     print(strict_dumps(report) if args.json else warmup.format_report(report, args.kernels))
 
