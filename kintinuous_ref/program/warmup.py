@@ -107,7 +107,8 @@ def warm_up(
     report = WarmupReport(backend.name, methods=methods_for(odometry))
     start = time.perf_counter()
     compiled: dict[str, float] = {}
-    if parallel and (os.cpu_count() or 1) >= 2 and not backend.kernels_cached():
+    raycasts = report.methods != [GROUNDTRUTH]  # mapping with known poses needs no model
+    if parallel and raycasts and (os.cpu_count() or 1) >= 2 and not backend.kernels_cached():
         compiled = compile_in_two_processes(backend.name, config, report.methods)
     with compile_events() as kernels:
         for method in report.methods:
