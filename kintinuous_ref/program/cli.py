@@ -143,6 +143,32 @@ def _run_evaluate(args: argparse.Namespace) -> None:
         print(errors.summary())
 
 
+def _add_run_options(parser: argparse.ArgumentParser) -> None:
+    """The options every command that runs the pipeline shares: volume, backend, configuration."""
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
+    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
+    parser.add_argument(
+        "--backend",
+        choices=["ref", "cpu", "cuda", "auto"],
+        default="auto",
+        help="ref (NumPy), cpu (numba), cuda; auto: cuda where a GPU works, else cpu "
+        "(kintinuous info)",
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help='JSON file of configuration values, nested ({"icp": {...}}) or dotted keys',
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one configuration value, e.g. --set combined.rgbd_weight=0.2 "
+        "(value parsed as JSON when it can be; repeatable; applied after --config)",
+    )
+
+
 def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "reconstruct",
@@ -179,8 +205,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--frames", type=int, help="number of frames (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
-    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
-    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
+    _add_run_options(parser)
     parser.add_argument(
         "--shift-threshold",
         type=int,
@@ -193,25 +218,6 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         "--fixed-volume",
         action="store_true",
         help="keep the volume where it starts (KinectFusion) instead of moving it (Kintinuous)",
-    )
-    parser.add_argument(
-        "--backend",
-        choices=["ref", "cpu", "cuda", "auto"],
-        default="auto",
-        help="ref (NumPy), cpu (numba), cuda; auto: cuda where a GPU works, else cpu",
-    )
-    parser.add_argument(
-        "--config",
-        type=Path,
-        help='JSON file of configuration values, nested ({"icp": {...}}) or dotted keys',
-    )
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override one configuration value, e.g. --set combined.rgbd_weight=0.2 "
-        "(value parsed as JSON when it can be; repeatable; applied after --config)",
     )
     parser.add_argument(
         "--intrinsics",
@@ -512,20 +518,8 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, help="frames per run (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--size", help="WIDTHxHEIGHT: resize the images (e.g. 320x240)")
-    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
-    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
-    parser.add_argument(
-        "--backend",
-        choices=["ref", "cpu", "cuda", "auto"],
-        default="auto",
-        help="preprocessing, integration and raycast backend (kintinuous info); default auto, "
-        "as for reconstruct",
-    )
+    _add_run_options(parser)
     parser.add_argument("--mesh", action="store_true", help="also write each run's mesh.ply")
-    parser.add_argument("--config", type=Path, help="JSON file of configuration values")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="as for reconstruct"
-    )
     parser.set_defaults(handler=_run_table)
 
 
@@ -608,24 +602,16 @@ def _add_benchmark(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "dataset", nargs="?", help="TUM folder or synthetic scenario name (default: desk)"
     )
-    parser.add_argument(
-        "--backend", choices=["ref", "cpu", "cuda", "auto"], default="auto", help="default auto"
-    )
     parser.add_argument("--odometry", default=DEFAULT_ODOMETRY, choices=ODOMETRY_CHOICES)
     parser.add_argument("--frames", type=int, default=30, help="frames (the first is a warm-up)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
-    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
-    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
+    _add_run_options(parser)
     parser.add_argument(
         "--fast-odometry",
         action="store_true",
         help=FAST_ODOMETRY_HELP,
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--config", type=Path, help="JSON file of configuration values")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="as for reconstruct"
-    )
     parser.set_defaults(handler=_run_benchmark)
 
 
