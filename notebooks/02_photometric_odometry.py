@@ -368,9 +368,9 @@ assert np.isfinite(errors[0]) and not np.isfinite(errors[-1])
 # order: 1e-10 of the largest entry), and so does the final estimate.
 
 # %%
-from kintinuous_fast.odometry import kernels
+from kintinuous_fast import select_backend
 
-fast = kernels("cpu")
+fast = select_backend("cpu").odometry
 fast_problem = fast.RgbdProblem(
     previous.levels, current.levels, previous_pose, config.rgbd.min_gradient
 )

@@ -1,0 +1,72 @@
+"""Per-element maths written once and compiled for both targets.
+
+Each module here has a factory `build_ops(jit)` that defines scalar functions (filter one pixel,
+update one voxel, ...) with the decorator it is given and returns them in a namespace. The CPU
+backend calls it with `numba.njit(cache=True)` and loops over pixels with `prange`; the CUDA
+backend calls it with `cuda.jit(device=True)` and launches one thread per pixel. The functions
+may call each other: they are closures over the factory's scope, compiled with the same target.
+
+Arithmetic rule (so that all targets, numba's CUDA simulator included, round alike): values read
+from arrays are converted with float() where the reference computes in float64, and with
+np.float32() where the reference computes in float32, so no result depends on how a target
+promotes mixed float32/float64 expressions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numba
+import numpy as np
+
+# The CPU decorator: compiled on first use and cached on disk (compile time counts in the tests).
+cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
+# The same with NumPy's error model: a float division by zero gives inf/NaN instead of a Python
+# ZeroDivisionError, so numba emits no zero test and exception path per division (2-3x faster
+# per-voxel loops). Only for code whose divisions are guarded (tsdf.voxel, tsdf.ops, raycast.ops:
+# z > 0, b != 0, ...).
+cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
+    cache=True, error_model="numpy", inline="always"
+)
+# The same, called rather than inlined (`jit_called` of tsdf.voxel and raycast.ops), and without
+# numba's reference counting: these functions allocate nothing, but the array arguments of the
+# functions inlined into their loops were counted up and down on every step of a ray, in
+# branches that numba's pruning pass cannot pair up, each an atomic operation on a count that
+# the other threads update too. Dropping them made the raycast 13-16 % faster, bit-identical
+# (measured, docs/benchmarks_archive.md). A function compiled so that does need it fails to compile.
+cpu_jit_numpy_errors_called: Callable[[Any], Any] = numba.njit(
+    cache=True, error_model="numpy", _nrt=False
+)
+
+
+# 1.5 * 2^52 and 1.5 * 2^23: added to a float64 (float32) below 2^51 (2^22) in magnitude, they
+# leave no fraction bits, so the sum is the value rounded half to even in the default rounding
+# mode, and subtracting them again is exact.
+_RINT_SHIFT = 6755399441055744.0
+_RINT_SHIFT32 = np.float32(12582912.0)
+
+
+def build_rint(jit: Callable[[Any], Any]) -> tuple[Callable[[Any], Any], Callable[[Any], Any]]:
+    """(rint, rint32) compiled with `jit`: np.rint of a float64 and of a float32, in that
+    precision, for the ops factories that round to pixels (odometry, volume). No branch, so the
+    CPU's projection loops vectorise (rint32 16 lanes wide); np.rint has no CUDA lowering.
+    Larger values than the bounds above come back within a few units (far outside any image);
+    NaN and inf stay NaN and inf."""
+
+    @jit
+    def rint(x: float) -> float:
+        return (x + _RINT_SHIFT) - _RINT_SHIFT
+
+    @jit
+    def rint32(x: Any) -> Any:
+        return (x + _RINT_SHIFT32) - _RINT_SHIFT32
+
+    return rint, rint32
+
+
+def cuda_device_jit() -> Callable[[Any], Any]:
+    """The CUDA decorator for device functions (imported lazily: numba.cuda is optional)."""
+    from numba import cuda
+
+    return cuda.jit(device=True)
