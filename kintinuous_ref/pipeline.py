@@ -12,6 +12,12 @@
         6. record            pose and per-stage timings; report progress
     at the end: the rest of the volume becomes the last slice; the slices one mesh.
 
+With a loop closer (loop_closure/closer.py), step 2 is followed by 2b: the closer sees every
+pose, takes keyframes and looks for loops; when it closes one, this frame's pose moves by the
+correction and the moving volume is re-centred there, so mapping and tracking carry on in the
+corrected frame. The final trajectory and map are corrected at the end (`trajectory`,
+`LoopCloser.deform_map`).
+
 The backend is a parameter: any kintinuous_ref.backend.Backend (the reference itself, the default,
 or a fast backend found through the `kintinuous.backends` entry points). Its stage modules compute
 each step, its tracker tracks, and state stays where it computes: `upload` puts each frame's two
@@ -51,6 +57,7 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.tum import Frame, Trajectory
 from kintinuous_ref.errors import ConfigError, KintinuousError
+from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.moving_volume import MovingVolume, SliceStore
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.tsdf import TsdfVolume
@@ -79,6 +86,7 @@ class PipelineResult:
     error_traceback: str = ""
     last_frame: int | None = None  # index of the last frame done
     signal_name: str = ""  # the signal that interrupted the run (SIGINT, SIGTERM, SIGHUP)
+    loop_closer: LoopCloser | None = None  # keyframes, loops and corrections, when closing loops
 
     @property
     def status(self) -> str:
@@ -101,6 +109,10 @@ class PipelineResult:
 
     @property
     def trajectory(self) -> Trajectory:
+        """The poses, corrected by every loop closed (all of them, also those of frames before
+        the last closure), when loops were closed."""
+        if self.loop_closer is not None and self.loop_closer.closures:
+            return Trajectory(np.array(self.timestamps), self.loop_closer.corrected_poses())
         return Trajectory(np.array(self.timestamps), np.array(self.poses).reshape(-1, 4, 4))
 
     def timing_summary(self) -> dict[str, dict[str, float | None]]:
@@ -149,6 +161,7 @@ def run(
     predict_model: bool | None = None,
     slices: Path | None = None,
     capture_errors: bool = False,
+    loop_closer: LoopCloser | None = None,
 ) -> PipelineResult:
     """Reconstruct a sequence. `groundtruth` holds one pose per frame INDEX of the sequence
     (TumSequence.groundtruth_for_frames()). `predict_model` None: raycast only when a tracker
@@ -156,7 +169,8 @@ def run(
     `slices`: folder for the moving volume's slices (written as they leave); None keeps them in
     memory. `capture_errors`: an exception while reading or processing a frame ends the loop and
     is kept in the result's `error` (the work before it stays) instead of propagating.
-    `backend` None: the reference."""
+    `backend` None: the reference. `loop_closer`: close loops (step 2b), which needs the moving
+    volume."""
     backend = backend or ReferenceBackend()
     check_run(config, odometry, groundtruth, backend)
     if predict_model is None:
@@ -165,7 +179,11 @@ def run(
     if odometry != GROUNDTRUTH:
         tracker = backend.odometry.make_tracker(odometry, config, camera)
     stride = getattr(tracker, "model_stride", 1)  # only the pixels the tracker reads
-    result = PipelineResult()
+    result = PipelineResult(loop_closer=loop_closer)
+    if loop_closer is not None:
+        if not config.volume.moving:
+            raise ConfigError("loop closure needs the moving volume: drop --fixed-volume")
+        result.timings_ms["loop_closure"] = []
     previous = None
     try:
         for frame in frames:
@@ -194,9 +212,20 @@ def run(
                         backend.volume_view(result.volume), pose, config.volume, SliceStore(slices)
                     )
                 result.host_volume = backend.host_volume
+            # 2b. Loop closure: on a closed loop the camera and the volume move with it.
+            if loop_closer is not None:
+                correction = loop_closer.observe(
+                    frame.index, pose, current, frame.colour, frame.depth, fused=ok
+                )
+                if correction is not None:
+                    pose = correction @ pose
+                    result.moving.recentre(pose)
+                clock.lap("loop_closure")
             # 3. Moving volume (III, Fig. 2): shift, extracting the slices that leave.
             if ok and result.moving is not None:
                 result.moving.update(pose)
+            if loop_closer is not None:
+                loop_closer.slice_made(frame.index, result.moving.slices)
             clock.lap("shift")
             # 4. Integrate depth and colour (III, VI); a frame whose tracking failed is not fused.
             if ok:

@@ -220,6 +220,13 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         help="keep the volume where it starts (KinectFusion) instead of moving it (Kintinuous)",
     )
     parser.add_argument(
+        "--loop-closure",
+        action="store_true",
+        help="recognise revisited places, correct the trajectory through a pose graph and "
+        "deform the map (docs/loop_closure.md); writes trajectory_uncorrected.txt and "
+        "trajectory_loops.png too",
+    )
+    parser.add_argument(
         "--intrinsics",
         help="fx,fy,cx,cy or a JSON file (overrides the dataset's camera; a .klg log needs it)",
     )
@@ -285,6 +292,7 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
         predict_model=True if args.raycast else None,
         overwrite=args.overwrite,
         skip_bad_frames=args.skip_bad_frames,
+        loop_closure=args.loop_closure,
     )
     total = report["timing_ms"]["total"]["mean"]
     skipped = f", skipped {report['skipped_frames']} bad" if report["skipped_frames"] else ""

@@ -21,8 +21,9 @@ import numpy as np
 
 from kintinuous_ref.backend import REFERENCE, Backend, load_backend
 from kintinuous_ref.config import Config
-from kintinuous_ref.datasets.tum import Frame, FrameSequence
+from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
+from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.pipeline import GROUNDTRUTH, PipelineResult, check_run, error_reason, run
 from kintinuous_ref.program.warmup import warm_up
 from kintinuous_ref.signals import Interrupted
@@ -137,6 +138,8 @@ RESULT_NAMES = (
     "preview.png",
     "volume_origins.txt",
     "crash.log",
+    "trajectory_uncorrected.txt",
+    "trajectory_loops.png",
 )
 
 
@@ -209,12 +212,14 @@ def write_outputs(
     report: dict[str, Any],
     preview: bool = True,
     saved: list[str] | None = None,
+    groundtruth: Trajectory | None = None,
 ) -> dict[str, Any]:
-    """trajectory.txt, mesh.ply, volume_origins.txt, preview.png and report.json in `out`;
-    returns the report. Each file is written atomically, in that order, and its name appended to
-    `saved` once in place. A file that cannot be written (a full disk, a failed render) is left
-    out and named in the report's "not_saved" with the reason; report.json itself must be
-    written (its OSError propagates)."""
+    """trajectory.txt, mesh.ply, volume_origins.txt, preview.png and report.json in `out`, and
+    with loop closure trajectory_uncorrected.txt and trajectory_loops.png (drawn with
+    `groundtruth` when given); returns the report. Each file is written atomically, in that
+    order, and its name appended to `saved` once in place. A file that cannot be written (a full
+    disk, a failed render) is left out and named in the report's "not_saved" with the reason;
+    report.json itself must be written (its OSError propagates)."""
     from kintinuous_ref import mesh as meshing
     from kintinuous_ref.datasets.tum import write_trajectory
 
@@ -233,6 +238,9 @@ def write_outputs(
         return value
 
     attempt("trajectory.txt", lambda path: write_trajectory(path, result.trajectory))
+    closer = result.loop_closer
+    if closer is not None:
+        _loop_closure_trajectories(result, groundtruth, attempt)
     surface, mesh_size = None, None
     if result.moving is not None and result.volume is not None:
         # The rest of the window is the last slice; the slices merge into one mesh on disk.
@@ -243,6 +251,8 @@ def write_outputs(
         except Exception as err:  # the last slice is missing, so the mesh would be too
             not_saved["slices"] = not_saved["mesh.ply"] = error_reason(err)
         else:
+            if closer is not None:  # every slice's vertices move with the loops closed
+                report = {**report, "map_deformation": closer.deform_map(result.moving.store)}
             mesh_size = attempt(
                 "mesh.ply", lambda path: moving_volume.assemble(result.moving.store, path)
             )
@@ -295,6 +305,8 @@ def write_outputs(
         "saved": [*saved, "report.json"],
         "not_saved": not_saved,
     }
+    if closer is not None:
+        report["loop_closures"] = closer.report()
     if result.volume is not None:
         report["volume"] = {
             "resolution": result.volume.resolution,
@@ -306,6 +318,34 @@ def write_outputs(
     write_text_atomic(out / "report.json", strict_dumps(report, indent=2) + "\n")
     saved.append("report.json")
     return report
+
+
+def _loop_closure_trajectories(
+    result: PipelineResult, groundtruth: Trajectory | None, attempt: Callable
+) -> None:
+    """trajectory_uncorrected.txt (what odometry alone gave) and trajectory_loops.png (both
+    from above, with the ground truth when known)."""
+    from kintinuous_ref.datasets.tum import write_trajectory
+    from kintinuous_ref.loop_closure.figure import draw_trajectories
+
+    closer = result.loop_closer
+    timestamps = np.array(result.timestamps)
+    uncorrected = Trajectory(timestamps, closer.uncorrected_poses())
+    attempt("trajectory_uncorrected.txt", lambda path: write_trajectory(path, uncorrected))
+    if not len(timestamps):
+        return
+    truth = None
+    if groundtruth is not None:
+        truth = groundtruth.poses[np.array(closer.frames)][:, :3, 3]
+        truth = truth if np.isfinite(truth).all() else None
+    row = {frame: i for i, frame in enumerate(closer.frames)}
+    loops = [(row[c.frame], row[closer.keyframes[c.match].frame]) for c in closer.closures]
+    attempt(
+        "trajectory_loops.png",
+        lambda path: draw_trajectories(
+            path, uncorrected.poses[:, :3, 3], result.trajectory.poses[:, :3, 3], truth, loops
+        ),
+    )
 
 
 def _bad_frames_checked(
@@ -360,6 +400,7 @@ def reconstruct(
     predict_model: bool | None = None,
     overwrite: bool = False,
     skip_bad_frames: bool = False,
+    loop_closure: bool = False,
 ) -> dict[str, Any]:
     """Run the pipeline over frames start.. of a sequence and write the outputs into `out`.
 
@@ -368,7 +409,8 @@ def reconstruct(
     what was done is saved (write_outputs) with its status; then an interrupted run raises
     Interrupted, a failed one a one-line KintinuousError (InternalError for a bug, whose
     traceback goes to crash.log in `out`). An unreadable frame ends the run, or with
-    `skip_bad_frames` is left out and counted in the report's "skipped_frames".
+    `skip_bad_frames` is left out and counted in the report's "skipped_frames". `loop_closure`
+    closes loops and deforms the map (docs/loop_closure.md).
     """
     backend = load_backend(backend_name)  # ConfigError when it cannot run here
     if not 0 <= start < len(sequence):
@@ -388,6 +430,8 @@ def reconstruct(
             "bag), so --odometry groundtruth cannot run"
         )
     check_run(config, odometry, groundtruth, backend)
+    if loop_closure and not config.volume.moving:
+        raise ConfigError("--loop-closure needs the moving volume: drop --fixed-volume")
     out = prepare_output(out, overwrite)
     total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
     bar = None
@@ -410,6 +454,7 @@ def reconstruct(
             slices=out / "slices",
             backend=backend,
             capture_errors=True,
+            loop_closer=LoopCloser(config, sequence.camera) if loop_closure else None,
         )
     except BaseException:
         if bar is not None:
@@ -431,7 +476,7 @@ def reconstruct(
         if result.error is not None and not isinstance(result.error, KintinuousError | OSError):
             write_text_atomic(out / "crash.log", result.error_traceback)
             saved.append("crash.log")
-        report = write_outputs(result, out, info, saved=saved)
+        report = write_outputs(result, out, info, saved=saved, groundtruth=groundtruth)
     except KeyboardInterrupt as again:
         name = getattr(again, "signal_name", "SIGINT")
         names = ["trajectory.txt", "mesh.ply", "preview.png", "report.json"]
