@@ -301,3 +301,33 @@ def test_reconstruct_command_reports_shifts_and_slices(corridor, tmp_path):
     report = json.loads((tmp_path / "b" / "report.json").read_text())
     assert not report["moving_volume"] and report["shifts"] == report["slices"] == 0
     assert main([*common, "--out", str(tmp_path / "c"), "--shift-threshold", "17"]) == 2
+
+
+def test_recentre_keeps_the_surface_as_a_slice_and_moves_the_window():
+    """After a loop closure the window is emptied into a slice and placed around the corrected
+    camera on the same global grid."""
+    from kintinuous_ref.moving_volume import followed_point, volume_centre
+
+    config = VolumeConfig(resolution=32, size=1.0, colour=False)
+    volume = tsdf.make_volume(config, np.eye(4))
+    centres = volume.voxel_to_world(np.indices((32, 32, 32)).reshape(3, -1).T.astype(float))
+    plane_z = volume.origin[2] + 0.5
+    volume.tsdf[:] = np.clip((plane_z - centres[:, 2]) / volume.truncation, -1, 1).reshape(
+        32, 32, 32
+    )
+    volume.weight[:] = 10.0
+    moving = MovingVolume(volume, np.eye(4), config)
+    follow = followed_point(volume, np.eye(4))
+    old_origin = volume.origin.copy()
+    corrected = np.eye(4)
+    corrected[:3, 3] = [0.31, -0.2, 0.05]
+    moving.recentre(corrected)
+    assert moving.slices == 1
+    surface = next(iter(moving.store))
+    np.testing.assert_allclose(surface.points[:, 2], plane_z, atol=1e-3)
+    assert not volume.weight.any() and not volume.tsdf.any()
+    # on the global grid: moved by whole voxels, the followed point at the centre within a voxel
+    voxels = (volume.origin - old_origin) / volume.voxel_size
+    np.testing.assert_allclose(voxels, np.rint(voxels), atol=1e-9)
+    target = corrected[:3, :3] @ follow + corrected[:3, 3]
+    assert np.all(np.abs(volume_centre(volume) - target) <= volume.voxel_size / 2 + 1e-9)
