@@ -321,6 +321,7 @@ class LoopCloser:
                 {
                     "frame": c.frame,
                     "keyframes": [c.match, c.query],
+                    "keyframe_frames": [self.keyframes[c.match].frame, c.frame],
                     "camera_moved_m": c.moved,
                     "correction_deg": float(np.degrees(se3.rotation_angle(c.correction[:3, :3]))),
                 }

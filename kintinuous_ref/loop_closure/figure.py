@@ -1,4 +1,5 @@
-"""The trajectory from above, before and after loop closure (trajectory_loops.png).
+"""The trajectory from above, before and after loop closure (trajectory_loops.png), and with a
+ground truth each one's distance to it, frame by frame.
 
 "Above" is the plane of the path's two largest principal directions: world x-y for the
 synthetic scenes (z up), and whatever plane a real sequence's ground truth frame happens to have
@@ -40,7 +41,9 @@ def draw_trajectories(
     def flat(points: np.ndarray) -> np.ndarray:
         return (points - origin) @ axes
 
-    figure, ax = plt.subplots(figsize=(6, 5), dpi=110)
+    panels = 2 if truth is not None else 1
+    figure, axes_list = plt.subplots(1, panels, figsize=(6 * panels, 5), dpi=110, squeeze=False)
+    ax = axes_list[0, 0]
     if truth is not None:
         ax.plot(*flat(truth).T, color="0.6", linewidth=2.5, label="ground truth")
     ax.plot(*flat(before).T, color="tab:red", linewidth=1.2, label="odometry only")
@@ -52,7 +55,23 @@ def draw_trajectories(
     ax.set_aspect("equal")
     ax.set_xlabel("metres")
     ax.legend(loc="best", fontsize=8)
-    ax.set_title("trajectory from above")
+    ax.set_title("trajectory from above (loops closed: green)")
+    if truth is not None:
+        # Drift out of the drawing plane (height) does not show from above; the distance to
+        # the ground truth does.
+        ax = axes_list[0, 1]
+        for positions, colour, label in (
+            (before, "tab:red", "odometry only"),
+            (after, "tab:blue", "with loop closure"),
+        ):
+            error = 1000.0 * np.linalg.norm(positions - truth, axis=1)
+            ax.plot(error, color=colour, linewidth=1.2, label=label)
+        for first, _ in loops or []:
+            ax.axvline(first, color="tab:green", linewidth=0.8)
+        ax.set_xlabel("frame")
+        ax.set_ylabel("distance to the ground truth (mm)")
+        ax.legend(loc="best", fontsize=8)
+        ax.set_title("position error")
     figure.tight_layout()
     figure.savefig(path)
     plt.close(figure)

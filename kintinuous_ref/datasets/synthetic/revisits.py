@@ -1,10 +1,12 @@
 """Scenarios for loop closure: a loop that drifts, and two places that look the same.
 
-`revisit` is a lap of a 6 x 5 m room that comes back to where it started. Only the start of the
-lap faces richly textured, varied objects; the rest of the room has faint, plain walls and a few
-sparse boxes, where ICP has little geometry and RGB-D little texture, so a frame-to-model tracker
-accumulates centimetres of drift before the camera sees the start again. After one lap the path
-goes on for a quarter of a lap over the same ground: the revisit that loop closure must find.
+`revisit` is a lap of a 6 x 5 m room that comes back to where it started. The walls are
+textured, the objects along them plain (a faint, almost uniform material) except at the start of
+the lap, which faces varied, textured objects; floor and ceiling are plain too. With little
+texture on the geometry that pins the camera's height, a frame-to-model tracker (icp+rgbd at
+160x120) drifts steadily, 22 cm (mostly in height) by the time the camera sees its start
+again. After one lap the path goes on for a quarter of a lap over the same ground: the revisit
+that loop closure must find.
 
 `twins` walks once along a 10 m room looking at one long wall. Two "bays" on that wall, 5 m
 apart, are the same solids with the same textures (same materials, texture offsets and angles),
@@ -128,8 +130,8 @@ def _same_textures(scene: Scene, first: int, second: int, count: int) -> None:
 
 REVISITS = {
     "revisit": ScenarioSpec(
-        "a 6 x 5 m room with plain walls, textured only at the start; one lap and a quarter "
-        "(240 frames per lap): a tracker drifts, then sees its start again",
+        "a 6 x 5 m room, plain objects except at the start; one lap and a quarter (240 frames "
+        "per lap): a tracker drifts, then sees its start again",
         revisit,
     ),
     "twins": ScenarioSpec(
