@@ -203,6 +203,9 @@ class LoopClosureConfig:
     loop_sigma_translation: float = 0.01
     loop_sigma_rotation_deg: float = 0.5
     switch_prior_sigma: float = 1.0  # Suenderhauf and Protzel's switchable-constraint prior
+    # a new loop is kept when, solved with it, no edge disagrees by more than this many sigmas
+    # (a true loop spreads its drift over many edges: under 1 sigma each on `revisit`)
+    loop_consistency_sigmas: float = 5.0
     # deformation graph (Sumner et al. 2007): nodes this far apart on the mesh, k nodes per vertex
     node_spacing: float = 0.25  # metres
     node_neighbours: int = 4  # graph edges per node, and nodes that move each vertex

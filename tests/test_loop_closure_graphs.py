@@ -83,6 +83,28 @@ def test_a_false_loop_is_switched_off_and_does_not_fold_the_map():
     np.testing.assert_allclose(solution.poses[:, :3, 3], truth[:, :3, 3], atol=0.02)
 
 
+@pytest.mark.parametrize("false_first", [False, True])
+def test_a_false_loop_beside_a_true_one_leaves_the_true_one_working(false_first):
+    """Noisy odometry that drifts 9 cm, a true loop closing the circle and a false one claiming
+    opposite sides meet, in either order: the false loop is dropped, the true one corrects."""
+    truth = circle_poses(30)
+    odometry = drifted(truth, np.random.default_rng(2), 0.004)
+    graph = pose_graph.PoseGraph()
+    for pose in odometry:
+        graph.add_node(pose)
+    for i in range(1, len(truth)):
+        graph.add_edge(i - 1, i, pose_graph.relative_pose(odometry[i - 1], odometry[i]), 0.01, 0.01)
+    loops = [(0, 29, pose_graph.relative_pose(truth[0], truth[29])), (5, 20, np.eye(4))]
+    for first, second, measurement in loops[::-1] if false_first else loops:
+        graph.add_edge(first, second, measurement, 0.01, 0.01, loop=True)
+    solution = pose_graph.optimise(graph)
+    true_row = 1 if false_first else 0
+    assert solution.switches[true_row] > 0.9 and solution.switches[1 - true_row] < 0.01
+    before = np.linalg.norm(np.array(odometry)[:, :3, 3] - truth[:, :3, 3], axis=1).max()
+    after = np.linalg.norm(solution.poses[:, :3, 3] - truth[:, :3, 3], axis=1).max()
+    assert after < 0.5 * before
+
+
 def test_a_graph_without_loops_keeps_its_poses():
     truth = circle_poses(5)
     solution = pose_graph.optimise(graph_of(truth, list(truth), []))

@@ -26,13 +26,14 @@ def notebook_paths() -> list[Path]:
     return sorted(NOTEBOOKS.glob("[0-9][0-9]_*.py"))
 
 
-def test_the_four_walkthroughs_exist():
+def test_the_five_walkthroughs_exist():
     names = [path.stem for path in notebook_paths()]
     assert names == [
         "01_tsdf_fusion",
         "02_photometric_odometry",
         "03_combined_cost",
         "04_colour_fusion",
+        "05_loop_closure",
     ]
 
 

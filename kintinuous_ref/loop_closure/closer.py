@@ -152,7 +152,11 @@ class LoopCloser:
             np.radians(settings.loop_sigma_rotation_deg),
             loop=True,
         )
-        solution = pose_graph.optimise(self.graph, settings.switch_prior_sigma)
+        solution = pose_graph.optimise(
+            self.graph,
+            settings.switch_prior_sigma,
+            consistency_sigmas=settings.loop_consistency_sigmas,
+        )
         if solution.switches[-1] < SWITCH_ON:
             verdict.accepted, verdict.reason = False, SWITCHED_OFF
             return None

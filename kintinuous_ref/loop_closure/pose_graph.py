@@ -23,10 +23,12 @@ contradicts it costs less switched off than on. Solving for s as extra bounded u
 scipy's solver crawl towards the bound s = 0 (thousands of evaluations for a 24-node graph); the
 switch that minimises that cost for given poses has a closed form (Agarwal et al., "Dynamic
 Covariance Scaling", ICRA 2013), s = min(1, 2 phi / (phi + chi^2)) with phi = sigma_switch^2 and
-chi^2 the loop's squared residual, recomputed at every step of the solver. Loops are first all
-trusted (each passed verification), then switched: a true loop many sigmas off at the odometry's
-poses would otherwise be switched off before it could pull. Odometry edges have no switch: they
-are the backbone.
+chi^2 the loop's squared residual, recomputed at every step of the solver. Switches computed at
+the odometry's poses turn off a true loop that is many sigmas off there before it can pull, and
+switches computed after trusting every loop turn off the true loops too when a false one has
+folded the graph. So each new loop is first tested for consistency, trusted together with the
+loops kept so far (`optimise`); the kept ones are then trusted and switched. Odometry edges have
+no switch: they are the backbone.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ class Edge:
     sigma_translation: float  # metres
     sigma_rotation: float  # radians
     loop: bool = False  # loop edges are switchable
+    consistent: bool | None = None  # a loop's consistency test (None: not tested yet)
 
 
 @dataclass
@@ -163,11 +166,20 @@ def _moved(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
 
 
 def optimise(
-    graph: PoseGraph, switch_prior_sigma: float = 1.0, iterations: int = 50
+    graph: PoseGraph,
+    switch_prior_sigma: float = 1.0,
+    iterations: int = 50,
+    consistency_sigmas: float = 5.0,
 ) -> PoseGraphSolution:
-    """The poses that best agree with every edge, node 0 fixed, loops switchable: damped
-    Gauss-Newton (Levenberg-Marquardt) on sparse normal equations, relinearised at every step,
-    the switches recomputed from the residuals at every step."""
+    """The poses that best agree with every edge, node 0 fixed, loops switchable (module
+    docstring): Levenberg-Marquardt on sparse normal equations, relinearised at every step.
+
+    Loops not tested before are tested one at a time, in the order they were added: solved
+    trusted together with the loops kept so far, a loop is kept when no edge then disagrees by
+    more than `consistency_sigmas` standard deviations; a loop that does is switched off for
+    good (a false loop bends the whole chain of odometry edges between its ends, each by a
+    share of its length). The kept loops are then trusted and, from the poses that gives,
+    switched by dynamic covariance scaling."""
     count = len(graph.poses)
     if count < 2 or not graph.edges:
         return PoseGraphSolution(np.array(graph.poses).reshape(-1, 4, 4), np.ones(0), 0.0, 0)
@@ -175,21 +187,33 @@ def optimise(
     edges = _edge_arrays(graph)
     loops = edges["loop"]
     phi = switch_prior_sigma**2
-
-    def switched(residual: np.ndarray) -> np.ndarray:
-        # min(1, 2 phi / (phi + chi^2)) per loop edge, 1 for odometry
-        weight = np.ones(len(residual))
-        chi2 = np.sum(residual[loops] ** 2, axis=1)
-        weight[loops] = np.minimum(1.0, 2.0 * phi / (phi + chi2))
-        return weight
+    kept = np.array([e.consistent is not False for e in graph.edges])
 
     def trusted(residual: np.ndarray) -> np.ndarray:
-        return np.ones(len(residual))
+        return (kept | ~loops).astype(np.float64)
 
-    # First every loop is trusted (each was verified): a true loop whose error is many sigmas
-    # at the odometry's poses would otherwise be switched off before it could pull. Then the
-    # switches decide, from the poses that trusting gave.
+    def switched(residual: np.ndarray) -> np.ndarray:
+        # min(1, 2 phi / (phi + chi^2)) per kept loop edge, 1 for odometry, 0 for dropped loops
+        weight = trusted(residual)
+        chi2 = np.sum(residual[loops] ** 2, axis=1)
+        weight[loops] *= np.minimum(1.0, 2.0 * phi / (phi + chi2))
+        return weight
+
     steps = 0
+    for row, edge in enumerate(graph.edges):
+        if not edge.loop or edge.consistent is not None:
+            continue
+        kept[row] = True
+        # untested later loops stay out of this test
+        later = np.array([e.loop and e.consistent is None and r > row
+                          for r, e in enumerate(graph.edges)])  # fmt: skip
+        kept[later] = False
+        trial, weight, _, used = _levenberg_marquardt(poses, edges, trusted, phi, iterations)
+        steps += used
+        residual = _errors(trial, edges)[0] * weight[:, None]
+        edge.consistent = bool(np.linalg.norm(residual, axis=1).max() <= consistency_sigmas)
+        kept[row] = edge.consistent
+        kept[later] = True
     for rule in (trusted, switched):
         poses, weight, cost, used = _levenberg_marquardt(poses, edges, rule, phi, iterations)
         steps += used
