@@ -231,9 +231,8 @@ np.testing.assert_allclose(jacobian, numeric, rtol=1e-5, atol=1e-4)  # rounding 
 # gradient direction):
 desk_jacobian, desk_residuals = photometric_rows(pairs, previous_pose, camera)
 package_step = np.linalg.solve(desk_jacobian @ desk_jacobian.T, -desk_jacobian @ desk_residuals)
-paper_step = np.linalg.solve(
-    (-desk_jacobian) @ (-desk_jacobian).T, -(-desk_jacobian) @ (-desk_residuals)
-)
+paper_jacobian, paper_residuals = -desk_jacobian, -desk_residuals
+paper_step = np.linalg.solve(paper_jacobian @ paper_jacobian.T, -paper_jacobian @ paper_residuals)
 np.testing.assert_allclose(paper_step, package_step, rtol=1e-9, atol=1e-12)
 print("Algorithm 2's sign, I_{n+1}(p) - I_n(p'), gives the same Gauss-Newton step")
 

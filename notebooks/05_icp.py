@@ -137,17 +137,22 @@ def rejection_map(pose: np.ndarray, distance: float, angle_deg: float) -> np.nda
     has_model = inside & np.isfinite(matched).all(axis=1)
     far = np.linalg.norm(world - matched, axis=1) > distance
     turned = (world_normals * matched_normals).sum(axis=1) < np.cos(np.radians(angle_deg))
-    label[valid] = np.select(
-        [~has_model, far, turned], [1, 2, 3], default=4
-    )
+    label[valid] = np.select([~has_model, far, turned], [1, 2, 3], default=4)
     return label.reshape(HEIGHT, WIDTH)
 
 
 labels = rejection_map(previous_pose, 0.10, 20.0)
 kept_count = icp.associate(
-    points, point_normals, previous_pose, model_vertices, model_normals, previous_pose, camera,
-    0.10, 20.0,
-)[0].shape[1]  # fmt: skip
+    points,
+    point_normals,
+    previous_pose,
+    model_vertices,
+    model_normals,
+    previous_pose,
+    camera,
+    0.10,
+    20.0,
+)[0].shape[1]
 assert kept_count == (labels == 4).sum()  # the picture's test is the package's test
 names = ["no depth", "no model", "> 10 cm", "> 20 deg", "kept"]
 fig, ax = plt.subplots(figsize=(6, 3.6))
@@ -195,9 +200,16 @@ print(inspect.getsource(icp.point_to_plane_rows))
 
 # %%
 world, matched, matched_normals = icp.associate(
-    points, point_normals, previous_pose, model_vertices, model_normals, previous_pose, camera,
-    0.10, 20.0,
-)  # fmt: skip
+    points,
+    point_normals,
+    previous_pose,
+    model_vertices,
+    model_normals,
+    previous_pose,
+    camera,
+    0.10,
+    20.0,
+)
 
 
 def rows_inline(p: np.ndarray, vm: np.ndarray, nm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -227,8 +239,10 @@ numeric = np.stack(
         for e in np.eye(6)
     ]
 )
-print(f"{world.shape[1]} pairs: inline rows == package rows; largest |J - finite difference| "
-      f"= {np.abs(numeric - jacobian).max():.1e}")  # fmt: skip
+print(
+    f"{world.shape[1]} pairs: inline rows == package rows; largest |J - finite difference| "
+    f"= {np.abs(numeric - jacobian).max():.1e}"
+)
 np.testing.assert_allclose(jacobian, numeric, atol=1e-7)
 
 # %% [markdown]
@@ -250,8 +264,9 @@ history = []
 
 def logged_system(level: int, pose: np.ndarray):  # noqa: ANN202
     system = problem.system(level, pose)
-    history.append((level, np.sqrt(system.cost / max(system.count, 1)),
-                    *pose_error(pose, current_pose)))  # fmt: skip
+    history.append(
+        (level, np.sqrt(system.cost / max(system.count, 1)), *pose_error(pose, current_pose))
+    )
     return system
 
 
@@ -270,8 +285,17 @@ axes[0].set_ylabel("translation error (mm)")
 axes[0].set_title("error of the estimate before each step")
 axes[0].legend()
 _, start_r = icp.point_to_plane_rows(world, matched, matched_normals)
-end_pairs = icp.associate(points, point_normals, estimate, model_vertices, model_normals,
-                          previous_pose, camera, 0.10, 20.0)  # fmt: skip
+end_pairs = icp.associate(
+    points,
+    point_normals,
+    estimate,
+    model_vertices,
+    model_normals,
+    previous_pose,
+    camera,
+    0.10,
+    20.0,
+)
 _, end_r = icp.point_to_plane_rows(*end_pairs)
 bins = np.linspace(-0.06, 0.06, 61)
 axes[1].hist(start_r, bins, alpha=0.6, label=f"identity: RMS {1000 * np.std(start_r):.1f} mm")
@@ -280,8 +304,10 @@ axes[1].set_xlabel("point-to-plane residual r_k (m)")
 axes[1].set_title("residuals at full resolution")
 axes[1].legend()
 plt.show()
-print(f"ICP recovered the known motion to {translation_mm:.2f} mm and {rotation_deg:.3f} deg; "
-      f"{100 * problem.inlier_fraction(estimate):.0f}% of the valid pixels are paired")  # fmt: skip
+print(
+    f"ICP recovered the known motion to {translation_mm:.2f} mm and {rotation_deg:.3f} deg; "
+    f"{100 * problem.inlier_fraction(estimate):.0f}% of the valid pixels are paired"
+)
 assert translation_mm < 5.0 and rotation_deg < 0.2
 
 # %% [markdown]
@@ -344,9 +370,9 @@ assert condition["corridor"] > 10 * condition["desk"]
 
 # %% [markdown]
 # The corridor's weakest translation is its own axis, measured thousands of times more weakly
-# than the other two: exactly the motion ICP cannot see. The other estimators of the paper exist for this case:
-# RGB-D odometry sees the wall texture move (notebooks 2 and 3), FOVIS tracks features on it
-# (notebook 7).
+# than the other two: exactly the motion ICP cannot see. The other estimators of the paper exist
+# for this case: RGB-D odometry sees the wall texture move (notebooks 2 and 3), FOVIS tracks
+# features on it (notebook 7).
 #
 # ## Summary
 #
@@ -394,13 +420,18 @@ def exercise_3(distance: float = 0.02, angle_deg: float = 5.0) -> tuple[float, f
     errors = []
     for d, a in ((0.10, 20.0), (distance, angle_deg)):
         strict = icp.IcpProblem(
-            current.levels, preprocess.model_pyramid(model.vertices, model.normals, levels),
-            model.pose, d, a,
-        )  # fmt: skip
+            current.levels,
+            preprocess.model_pyramid(model.vertices, model.normals, levels),
+            model.pose,
+            d,
+            a,
+        )
         pose, _ = refine(previous_pose.copy(), strict.system, config.icp.iterations)
         errors.append(pose_error(pose, current_pose)[0])
-    print(f"exercise 3: default thresholds {errors[0]:.2f} mm, "
-          f"{100 * distance:.0f} cm / {angle_deg:.0f} deg: {errors[1]:.2f} mm")  # fmt: skip
+    print(
+        f"exercise 3: default thresholds {errors[0]:.2f} mm, "
+        f"{100 * distance:.0f} cm / {angle_deg:.0f} deg: {errors[1]:.2f} mm"
+    )
     return errors[0], errors[1]
 
 

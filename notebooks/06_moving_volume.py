@@ -70,15 +70,19 @@ for ax, shift in zip(axes, (0, 3, 3), strict=True):
     for cell in range(N):
         logical = (cell - offset) % N
         fresh = shift and logical >= N - shift
-        ax.add_patch(Rectangle((cell, 0), 1, 1, fc="tab:orange" if fresh else "tab:blue",
-                               ec="white", alpha=0.8))  # fmt: skip
+        ax.add_patch(
+            Rectangle(
+                (cell, 0), 1, 1, fc="tab:orange" if fresh else "tab:blue", ec="white", alpha=0.8
+            )
+        )
         ax.text(cell + 0.5, 0.5, f"g={corner + logical}", ha="center", va="center", color="w")
     ax.set_xlim(0, N)
     ax.set_ylim(0, 1)
     ax.set_yticks([])
     ax.set_xticks(np.arange(N) + 0.5, [f"cell {i}" for i in range(N)] if ax is axes[-1] else [])
-    ax.set_title(f"corner c = {corner}, offset o = {offset} (orange: cleared, now new voxels)",
-                 fontsize=9)  # fmt: skip
+    ax.set_title(
+        f"corner c = {corner}, offset o = {offset} (orange: cleared, now new voxels)", fontsize=9
+    )
 plt.tight_layout()
 plt.show()
 
@@ -123,18 +127,20 @@ print(inspect.getsource(moving_volume.MovingVolume.shift_axis))
 # %%
 config = with_overrides(Config(), {"volume.resolution": 96, "volume.size": 2.0})
 scene = make_scenario("corridor", frames=FRAMES, width=WIDTH, height=HEIGHT, seed=0, noise=True)
-frames = [
-    Frame(i, float(scene.trajectory.timestamps[i]), *scene.render(i)) for i in range(FRAMES)
-]
+frames = [Frame(i, float(scene.trajectory.timestamps[i]), *scene.render(i)) for i in range(FRAMES)]
 moving_run = pipeline.run(frames, scene.camera, config, groundtruth=scene.trajectory)
 moving = moving_run.moving
 origins = np.array(moving_run.volume_origins)
-print(f"{moving.shifts} shifts over {FRAMES} frames, {moving.store.count} slices so far; "
-      f"volume memory {moving_run.volume.tsdf.nbytes / 2**20:.1f} MiB of TSDF, unchanged")  # fmt: skip
+print(
+    f"{moving.shifts} shifts over {FRAMES} frames, {moving.store.count} slices so far; "
+    f"volume memory {moving_run.volume.tsdf.nbytes / 2**20:.1f} MiB of TSDF, unchanged"
+)
 moving.finish()  # the rest of the window becomes the last slice
 slices = list(moving.store)
-print(f"{len(slices)} slices with the final one; triangles per slice:",
-      [len(s.triangles) for s in slices])  # fmt: skip
+print(
+    f"{len(slices)} slices with the final one; triangles per slice:",
+    [len(s.triangles) for s in slices],
+)
 # One slice per axis that moved (a shift can move several); a slab with no surface, none.
 assert moving.shifts >= 3 and len(slices) >= moving.shifts
 
@@ -149,8 +155,14 @@ assert moving.shifts >= 3 and len(slices) >= moving.shifts
 fig, ax = plt.subplots(figsize=(10, 4.5))
 colours = plt.get_cmap("tab10")
 for number, piece in enumerate(slices):
-    ax.plot(piece.points[::3, 0], piece.points[::3, 2], ".", ms=1, color=colours(number),
-            label=f"slice {number}")  # fmt: skip
+    ax.plot(
+        piece.points[::3, 0],
+        piece.points[::3, 2],
+        ".",
+        ms=1,
+        color=colours(number),
+        label=f"slice {number}",
+    )
 size = config.volume.size
 for index in np.flatnonzero(np.r_[True, np.any(np.diff(origins, axis=0) != 0, axis=1)]):
     lo = origins[index] - config.volume.voxel_size / 2
@@ -178,8 +190,10 @@ with tempfile.TemporaryDirectory() as folder:
     vertex_count, triangle_count = moving_volume.assemble(moving.store, path)
     merged = moving_volume.read_mesh(path)
 slice_vertices = sum(len(s.points) for s in slices)
-print(f"merged mesh: {vertex_count} vertices ({slice_vertices - vertex_count} seam vertices "
-      f"shared by two slices), {triangle_count} triangles")  # fmt: skip
+print(
+    f"merged mesh: {vertex_count} vertices ({slice_vertices - vertex_count} seam vertices "
+    f"shared by two slices), {triangle_count} triangles"
+)
 
 fixed_config = with_overrides(config, {"volume.moving": False})
 fixed_run = pipeline.run(frames, scene.camera, fixed_config, groundtruth=scene.trajectory)
@@ -190,14 +204,17 @@ truth = scene.surface_mesh(spacing=0.05)
 for name, surface in (("moving", merged), ("fixed", fixed)):
     distance = mesh.closest_on(truth, surface.points.astype(np.float64))[0]
     extent = surface.points[:, 0].min(), surface.points[:, 0].max()
-    print(f"{name:6s}: {len(surface.points):6d} vertices, x from {extent[0]:.2f} to "
-          f"{extent[1]:.2f} m, mean distance to the true surface {1000 * distance.mean():.1f} mm")  # fmt: skip
+    print(
+        f"{name:6s}: {len(surface.points):6d} vertices, x from {extent[0]:.2f} to "
+        f"{extent[1]:.2f} m, mean distance to the true surface {1000 * distance.mean():.1f} mm"
+    )
 assert merged.points[:, 0].max() > fixed.points[:, 0].max() + 0.3
 assert len(merged.points) > len(fixed.points)
 
 fig, axes = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
-for ax, (name, surface) in zip(axes, (("moving volume", merged), ("fixed volume", fixed)),
-                               strict=True):  # fmt: skip
+for ax, (name, surface) in zip(
+    axes, (("moving volume", merged), ("fixed volume", fixed)), strict=True
+):
     ax.scatter(surface.points[:, 0], surface.points[:, 2], c=surface.colours / 255, s=1)
     ax.plot(positions[:, 0], positions[:, 2], "k-", lw=2)
     ax.set_aspect("equal")

@@ -103,13 +103,17 @@ increment = fovis.absolute_orientation(
     matched_current.points[clique], matched_previous.points[clique]
 )
 result = fovis.estimate_motion(previous, current, camera, config.fovis)
-print(f"{len(found_previous)} / {len(found_current)} corners, {len(previous_index)} mutual "
-      f"matches, {len(clique)} in the clique")  # fmt: skip
-print(f"true step {1000 * np.linalg.norm(true_increment[:3, 3]):.1f} mm; absolute orientation "
-      f"on the clique: error {translation_error_mm(increment, true_increment):.1f} mm; full "
-      f"FOVIS (sub-pixel, reprojection refinement): "
-      f"{translation_error_mm(result.increment, true_increment):.1f} mm, "
-      f"{result.inliers} inliers")  # fmt: skip
+print(
+    f"{len(found_previous)} / {len(found_current)} corners, {len(previous_index)} mutual "
+    f"matches, {len(clique)} in the clique"
+)
+print(
+    f"true step {1000 * np.linalg.norm(true_increment[:3, 3]):.1f} mm; absolute orientation "
+    f"on the clique: error {translation_error_mm(increment, true_increment):.1f} mm; full "
+    f"FOVIS (sub-pixel, reprojection refinement): "
+    f"{translation_error_mm(result.increment, true_increment):.1f} mm, "
+    f"{result.inliers} inliers"
+)
 # At 160x120 a pixel is 4 times coarser than the paper's 640x480: FOVIS's few millimetres of
 # error here fall to about 0.5-1.5 mm at 320x240 on this corridor.
 assert result.ok and translation_error_mm(result.increment, true_increment) < 10
@@ -193,15 +197,18 @@ for i in range(1, PAIRS + 1):
     else:  # ICP reported a failure: FOVIS's increment is all there is
         which = switching.FOVIS if sparse.ok else switching.OTHER
     assert (which == switching.FOVIS) == (switched.used == "fovis")  # the tracker = the rule
-    rows.append((
-        translation_error_mm(icp_increment, truth) if dense.ok else np.nan,
-        translation_error_mm(sparse.increment, truth) if sparse.ok else np.nan,
-        translation_error_mm(se3.inverse(poses[i - 1]) @ switched.pose, truth),
-        1000 * abs(np.linalg.norm(sparse.increment[:3, 3]) - np.linalg.norm(icp_increment[:3, 3])),
-        which == switching.FOVIS,
-        dense.ok,
-        1000 * np.linalg.norm(truth[:3, 3]),
-    ))  # fmt: skip
+    rows.append(
+        (
+            translation_error_mm(icp_increment, truth) if dense.ok else np.nan,
+            translation_error_mm(sparse.increment, truth) if sparse.ok else np.nan,
+            translation_error_mm(se3.inverse(poses[i - 1]) @ switched.pose, truth),
+            1000
+            * abs(np.linalg.norm(sparse.increment[:3, 3]) - np.linalg.norm(icp_increment[:3, 3])),
+            which == switching.FOVIS,
+            dense.ok,
+            1000 * np.linalg.norm(truth[:3, 3]),
+        )
+    )
     if not dense.ok:
         print(f"pair {i}: ICP failed ({dense.reason}) -> FOVIS")
 icp_error, fovis_error, switched_error, disagreement, chose_fovis, icp_ok, step = np.array(rows).T
@@ -216,8 +223,12 @@ axes[0].semilogy(pairs, switched_error, "k.", ms=10, label="switched (fovis/icp)
 axes[0].axhline(np.median(step), color="grey", ls=":", label="true step length")
 axes[0].set_ylabel("translation error (mm)")
 axes[0].legend(fontsize=8, ncols=4)
-axes[0].plot(pairs[~icp_ok], np.full((~icp_ok).sum(), np.nanmax(icp_error)), "rx",
-             label="ICP reported failure")  # fmt: skip
+axes[0].plot(
+    pairs[~icp_ok],
+    np.full((~icp_ok).sum(), np.nanmax(icp_error)),
+    "rx",
+    label="ICP reported failure",
+)
 axes[1].plot(pairs[icp_ok], disagreement[icp_ok], "o", color="tab:purple", label="ICP ok")
 axes[1].axhline(1000 * config.fovis.switch_threshold, color="r", ls="--", label="mu = 3 cm")
 axes[1].plot(pairs[caught], disagreement[caught], "r*", ms=10, label="ICP ok, FOVIS chosen")
@@ -231,11 +242,13 @@ print(f"true step: median {np.median(step):.1f} mm per frame")
 for name, errors in (("ICP", icp_error), ("FOVIS", fovis_error), ("switched", switched_error)):
     print(f"{name:9s}: median {np.nanmedian(errors):6.1f} mm, max {np.nanmax(errors):6.1f} mm")
 kept_wrong = ~chose_fovis & icp_ok & (icp_error > 2 * np.nanmedian(fovis_error))
-print(f"ICP failed (and said so) on {(~icp_ok).sum()} of {PAIRS} pairs; of the others, the rule "
-      f"chose FOVIS on {caught.sum()} (ICP's error there: median "
-      f"{np.nanmedian(icp_error[caught]) if caught.any() else np.nan:.1f} mm) and kept ICP on "
-      f"{(icp_ok & ~chose_fovis).sum()}, {kept_wrong.sum()} of them with an ICP error above twice "
-      f"FOVIS's median")  # fmt: skip
+print(
+    f"ICP failed (and said so) on {(~icp_ok).sum()} of {PAIRS} pairs; of the others, the rule "
+    f"chose FOVIS on {caught.sum()} (ICP's error there: median "
+    f"{np.nanmedian(icp_error[caught]) if caught.any() else np.nan:.1f} mm) and kept ICP on "
+    f"{(icp_ok & ~chose_fovis).sum()}, {kept_wrong.sum()} of them with an ICP error above twice "
+    f"FOVIS's median"
+)
 assert np.nanmax(switched_error) < np.nanmax(icp_error)
 
 # %% [markdown]
@@ -290,7 +303,8 @@ def check_exercise_1(mu: float, median_mm: float) -> None:
     print(f"exercise 1 correct for mu = {mu} m: median {expected:.1f} mm")
 
 
-np.testing.assert_allclose(switched_median(config.fovis.switch_threshold),
-                           np.median(switched_error), atol=0.05)  # fmt: skip
+np.testing.assert_allclose(
+    switched_median(config.fovis.switch_threshold), np.median(switched_error), atol=0.05
+)
 for mu in (0.005, 0.01, 0.03, 0.1):
     print(f"mu = {1000 * mu:5.0f} mm: median switched error {switched_median(mu):5.1f} mm")

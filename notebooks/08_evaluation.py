@@ -78,8 +78,10 @@ slipped = Trajectory(truth.timestamps, slipped_poses)
 moved_ate = metrics.absolute_trajectory_errors(moved, truth)
 slipped_ate = metrics.absolute_trajectory_errors(slipped, truth)
 print(f"moved as a whole : ATE max {1000 * moved_ate.max():.2e} mm")
-print(f"one 2 cm slip    : ATE median {1000 * np.median(slipped_ate):.1f} mm, "
-      f"max {1000 * slipped_ate.max():.1f} mm")  # fmt: skip
+print(
+    f"one 2 cm slip    : ATE median {1000 * np.median(slipped_ate):.1f} mm, "
+    f"max {1000 * slipped_ate.max():.1f} mm"
+)
 assert moved_ate.max() < 1e-9
 np.testing.assert_allclose(slipped_ate, 0.01, atol=2e-3)  # half the slip, everywhere
 
@@ -159,12 +161,16 @@ shares = {
 }
 for dataset, share in shares.items():
     print(f"{dataset:18s} {table['icp+rgbd'][dataset]:.3f} m, share {share:.4f}")
-print(f"mean of the shares: {np.mean(list(shares.values())):.4f} "
-      f"(paper: {paper.RANK_SCORES['ate_median']['icp+rgbd']:.4f})")  # fmt: skip
+print(
+    f"mean of the shares: {np.mean(list(shares.values())):.4f} "
+    f"(paper: {paper.RANK_SCORES['ate_median']['icp+rgbd']:.4f})"
+)
 
 fig, axes = plt.subplots(1, 2, figsize=(12, 3.4), sharey=True)
 for ax, column, title in zip(
-    axes, ("ate_median", "ate_max"), ("median ATE (as Fig. 4)", "maximum ATE (as Fig. 5)"),
+    axes,
+    ("ate_median", "ate_max"),
+    ("median ATE (as Fig. 4)", "maximum ATE (as Fig. 5)"),
     strict=True,
 ):
     scores = metrics.ranking_scores(paper.ERRORS[column])
@@ -201,13 +207,16 @@ for scene_name, scene in scenes.items():
         Frame(i, float(scene.trajectory.timestamps[i]), *scene.render(i)) for i in range(FRAMES)
     ]
     for tracker in trackers:
-        run = pipeline.run(frames, scene.camera, config, odometry=tracker,
-                           groundtruth=scene.trajectory)  # fmt: skip
+        run = pipeline.run(
+            frames, scene.camera, config, odometry=tracker, groundtruth=scene.trajectory
+        )
         runs[tracker, scene_name] = run
         results[tracker, scene_name] = metrics.evaluate(run.trajectory, scene.trajectory)
 
-print(f"{'tracker':9s} {'scene':9s} {'ATE med':>8s} {'ATE max':>8s} {'f2f med':>8s} "
-      f"{'f2f max':>8s} {'rot max':>8s} {'drift':>8s}   (mm, deg, mm/s)")  # fmt: skip
+print(
+    f"{'tracker':9s} {'scene':9s} {'ATE med':>8s} {'ATE max':>8s} {'f2f med':>8s} "
+    f"{'f2f max':>8s} {'rot max':>8s} {'drift':>8s}   (mm, deg, mm/s)"
+)
 for (tracker, scene_name), e in results.items():
     print(
         f"{tracker:9s} {scene_name:9s} {1000 * e.ate_median:8.1f} {1000 * e.ate_max:8.1f} "
@@ -256,8 +265,9 @@ assert results["icp", "corridor"].ate_max > 2 * results["icp+rgbd", "corridor"].
 # (several centimetres in a second, up to 8 cm in one frame) while RGB-D and ICP+RGB-D hold. The
 # combined tracker ranks first on the median ATE, as in the paper, but on the maximum RGB-D
 # alone edges ahead: the combined tracker slipped once in the corridor (about 2 cm in one frame,
-# the ICP half of its cost pulling along the blind direction; notebook 3 weighs the two halves). Two scenes of one second are far too few to rank trackers seriously: the
-# point is the procedure, which `kintinuous table` runs on the TUM sequences of the paper.
+# the ICP half of its cost pulling along the blind direction; notebook 3 weighs the two halves).
+# Two scenes of about a second are far too few to rank trackers seriously: the point is the
+# procedure, which the package's evaluation runs on the TUM sequences of the paper.
 #
 # ## Summary
 #
