@@ -17,9 +17,9 @@ from dataclasses import replace
 from pathlib import Path
 
 from kintinuous_ref.config import Config, VolumeConfig, with_overrides
-from kintinuous_ref.evaluation.runs import RunSpec, run_one
 from kintinuous_ref.odometry.combined import WEIGHTINGS
-from kintinuous_ref.pipeline import open_dataset
+from kintinuous_ref.program.evaluation.runs import RunSpec, run_one
+from kintinuous_ref.program.reconstruct import open_dataset
 
 
 def runs(args: argparse.Namespace) -> list[tuple[str, str]]:

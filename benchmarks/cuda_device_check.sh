@@ -11,19 +11,19 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 date -u
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', numpy.__version__)"
-python3 -m kintinuous_ref.cli info
+python3 -m kintinuous_ref.program.cli info
 timeout 200 python3 -m pytest -q -p no:cacheprovider --continue-on-collection-errors -k cuda \
     tests/test_fast_cuda.py tests/test_fast_cuda_pipeline.py tests/test_fast_odometry_cuda.py \
     tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \
     2>&1 | tee "$out/cuda_tests.log" | tail -40
 for resolution in 256 512; do
     start=$(date +%s)
-    timeout 100 python3 -m kintinuous_ref.cli benchmark "$data" --backend cuda "${@:3}" \
+    timeout 100 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend cuda "${@:3}" \
         --resolution "$resolution" --frames 100 --json >"$out/bench_cuda_$resolution.json"
     echo "benchmark $resolution^3: exit $?, $(($(date +%s) - start)) s wall, compilation included"
     python3 -m json.tool "$out/bench_cuda_$resolution.json" | head -60
 done
 # the NumPy reference on the same machine, for the ratio (a few frames: seconds each)
-timeout 120 python3 -m kintinuous_ref.cli benchmark "$data" --backend ref "${@:3}" --frames 4 \
+timeout 120 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend ref "${@:3}" --frames 4 \
     --json >"$out/bench_ref_256.json"
 python3 -m json.tool "$out/bench_ref_256.json" | grep -A3 '"total"'

@@ -29,8 +29,8 @@ from kintinuous_ref.odometry.combined import (
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import solve
-from kintinuous_ref.pipeline import open_dataset
 from kintinuous_ref.preprocess import model_pyramid, preprocess_frame
+from kintinuous_ref.program.reconstruct import open_dataset
 
 
 def pair_systems(dataset: str, size: tuple[int, int], pairs: list[int], config: Config):

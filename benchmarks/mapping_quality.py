@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from kintinuous_ref import colour, mesh, preprocess, tsdf
 from kintinuous_ref.config import ColourConfig, Config, VolumeConfig
-from kintinuous_ref.pipeline import open_dataset
+from kintinuous_ref.program.reconstruct import open_dataset
 
 
 def main() -> None:

@@ -6,7 +6,7 @@ odometry" setting (skip the finest pyramid level) costs in accuracy.
 
 1. Speed: per-call milliseconds of `tracker.track` (icp, rgbd, icp+rgbd) and of one ICP / RGB-D
    system at the finest level, median over frames 2..N after a warm-up frame, on identical
-   preprocessed frames (kintinuous_fast.cpu.preprocess) for both backends.
+   preprocessed frames (kintinuous_fast.preprocess.cpu) for both backends.
 2. Accuracy: ATE RMSE over --frames frames of icp+rgbd with the cpu backend, default iterations
    (10/5/4) vs fast_odometry (0/5/4), first pose from the ground truth.
 
@@ -23,11 +23,11 @@ import time
 
 import numpy as np
 
-from kintinuous_fast.cpu import preprocess as cpu_preprocess
+from kintinuous_fast import select_backend
 from kintinuous_fast.odometry import cpu as cpu_odometry
-from kintinuous_fast.odometry import fast_odometry, make_tracker
+from kintinuous_fast.preprocess import cpu as cpu_preprocess
 from kintinuous_ref import metrics
-from kintinuous_ref.config import Config
+from kintinuous_ref.config import Config, fast_odometry
 from kintinuous_ref.datasets import data_folder, tum
 from kintinuous_ref.odometry import icp as ref_icp
 from kintinuous_ref.odometry import rgbd as ref_rgbd
@@ -77,8 +77,8 @@ def speed(scene: str, count: int, config: Config) -> dict[str, tuple[float, floa
     timings: dict[str, list[tuple[float, float]]] = {}
     trackers = {
         method: (
-            make_tracker(method, config, camera, "ref"),
-            make_tracker(method, config, camera, "cpu"),
+            select_backend("ref").odometry.make_tracker(method, config, camera),
+            select_backend("cpu").odometry.make_tracker(method, config, camera),
         )
         for method in ("icp", "rgbd", "icp+rgbd")
     }
@@ -127,7 +127,9 @@ def accuracy(scene: str, count: int, config: Config) -> dict[str, tuple[float, f
     """setting -> (ATE RMSE m, ms per track call, failures) of icp+rgbd on the cpu backend."""
     camera, truth, images = frames_of(scene, count)
     settings = {"default (10/5/4)": config, "fast odometry (0/5/4)": fast_odometry(config)}
-    trackers = {name: make_tracker("icp+rgbd", c, camera, "cpu") for name, c in settings.items()}
+    trackers = {
+        name: cpu_odometry.make_tracker("icp+rgbd", c, camera) for name, c in settings.items()
+    }
     poses = {name: [truth.poses[0].copy()] for name in settings}
     seconds = dict.fromkeys(settings, 0.0)
     failures = dict.fromkeys(settings, 0)

@@ -38,9 +38,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from kintinuous_fast import select_backend  # noqa: E402
-from kintinuous_fast.odometry import fast_odometry  # noqa: E402
 from kintinuous_ref import metrics, pipeline  # noqa: E402
-from kintinuous_ref.config import Config  # noqa: E402
+from kintinuous_ref.config import Config, fast_odometry  # noqa: E402
 from kintinuous_ref.datasets import data_folder  # noqa: E402
 from kintinuous_ref.datasets.tum import Trajectory, open_sequence  # noqa: E402
 

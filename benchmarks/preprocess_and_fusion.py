@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from kintinuous_fast import select_backend  # noqa: E402
-from kintinuous_fast._volume import to_reference_volume  # noqa: E402
+from kintinuous_fast.tsdf.volume import to_reference_volume  # noqa: E402
 from kintinuous_ref.colour import colour_weights  # noqa: E402
 from kintinuous_ref.config import Config, VolumeConfig  # noqa: E402
 from kintinuous_ref.datasets import data_folder  # noqa: E402

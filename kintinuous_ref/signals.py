@@ -1,6 +1,6 @@
 """Signals that end a command: SIGINT, SIGTERM and SIGHUP all raise `Interrupted` (a
 KeyboardInterrupt) in the main thread while `handle_signals` is in force, so that a run ends
-the way Ctrl-C ends it and keeps its work (pipeline.reconstruct). Standard library only: the
+the way Ctrl-C ends it and keeps its work (program/reconstruct.py). Standard library only: the
 command line imports it before anything heavy."""
 
 from __future__ import annotations

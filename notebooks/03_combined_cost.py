@@ -39,7 +39,7 @@ import numba
 import numpy as np
 
 import kintinuous_fast
-from kintinuous_fast.odometry import make_tracker as fast_tracker
+from kintinuous_fast.odometry import cpu as cpu_odometry
 from kintinuous_ref import se3
 from kintinuous_ref.config import Config, with_overrides
 from kintinuous_ref.datasets.synthetic import make_scenario
@@ -348,7 +348,7 @@ weights = [0.1, 1.0, 10.0, 100.0]
 along, across = [], []
 for w in weights:
     weighted = with_overrides(normalised, {"combined.rgbd_weight": w})
-    estimated = track_pairs(fast_tracker("icp+rgbd", weighted, camera, backend="cpu"))
+    estimated = track_pairs(cpu_odometry.make_tracker("icp+rgbd", weighted, camera))
     poses = np.array([truth[i] @ estimated[i] for i in range(PAIRS)])
     error = poses[:, :3, 3] - truth[1 : PAIRS + 1, :3, 3]
     along.append(1000 * np.sqrt(np.mean(error[:, 0] ** 2)))
@@ -386,15 +386,12 @@ assert across[-1] <= across[0], "on this corridor RGB-D costs nothing across it 
 # the machine and numba's thread count.
 
 # %%
-from kintinuous_fast.odometry import kernels
-
-cpu = kernels("cpu")
-fast_icp = cpu.IcpProblem(
+fast_icp = cpu_odometry.IcpProblem(
     frames[pair + 1].levels,
     model_pyramid(models[pair].vertices, models[pair].normals, 3),
     truth[pair],
 )
-fast_rgbd = cpu.RgbdProblem(frames[pair].levels, frames[pair + 1].levels, truth[pair])
+fast_rgbd = cpu_odometry.RgbdProblem(frames[pair].levels, frames[pair + 1].levels, truth[pair])
 for level in range(3):
     reference_joint = joint_system(icp.system(level, truth[pair]), rgbd.system(level, truth[pair]))
     fast_joint = joint_system(
@@ -408,7 +405,7 @@ for level in range(3):
     )
 
 reference_tracker = make_tracker("icp+rgbd", config, camera)
-cpu_tracker = fast_tracker("icp+rgbd", config, camera, backend="cpu")
+cpu_tracker = cpu_odometry.make_tracker("icp+rgbd", config, camera)
 a = reference_tracker.track(frames[pair], frames[pair + 1], models[pair], truth[pair])
 b = cpu_tracker.track(frames[pair], frames[pair + 1], models[pair], truth[pair])
 np.testing.assert_allclose(b.pose, a.pose, atol=1e-8)

@@ -314,7 +314,7 @@ def fused_volumes(
 
 
 def check_integrate(tsdf_impl: ModuleType, height: int, width: int, resolution: int) -> None:
-    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_fast.tsdf.volume import to_reference_volume
 
     frames = 3
     fast, reference = fused_volumes(tsdf_impl, height, width, resolution, frames, weighted=False)
@@ -335,7 +335,7 @@ def check_integrate_weighted_colour(
     # least 1): the first observation is exact (C = rgb for any weight), later ones mix with
     # ratios w / (W' + w) instead of w / (W + w), |W' - W| <= 1. With this scene's colour
     # differences between frames (a few levels) that moves the colour by a few levels at most.
-    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_fast.tsdf.volume import to_reference_volume
 
     fast, reference = fused_volumes(tsdf_impl, height, width, resolution, 1, weighted=True)
     back = to_reference_volume(fast)
@@ -354,7 +354,7 @@ def check_integrate_weighted_colour(
 
 def check_integrate_degenerate(tsdf_impl: ModuleType, height: int, width: int) -> None:
     """No depth, a camera looking away from the volume, a wrong-sized image."""
-    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_fast.tsdf.volume import to_reference_volume
     from kintinuous_ref.config import VolumeConfig
     from kintinuous_ref.errors import DatasetError
 
@@ -384,7 +384,7 @@ SAMPLE_TSDF_ATOL = 2e-15
 
 
 def check_sample_tsdf(tsdf_impl: ModuleType, height: int, width: int, resolution: int) -> None:
-    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_fast.tsdf.volume import to_reference_volume
     from kintinuous_ref import tsdf as ref_tsdf
 
     fast, _ = fused_volumes(tsdf_impl, height, width, resolution, 1, weighted=False)
@@ -411,7 +411,7 @@ def check_raycast(
     float32 samples, test_equivalence_cpu_gradient_normal). A ray that grazes a zero crossing
     could flip between hit and miss: at most 0.2% of the pixels may.
     """
-    from kintinuous_fast._volume import to_reference_volume
+    from kintinuous_fast.tsdf.volume import to_reference_volume
     from kintinuous_ref import raycast as ref_raycast
 
     fast, _ = fused_volumes(tsdf_impl, height, width, resolution, 2, weighted=False)

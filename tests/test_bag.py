@@ -6,8 +6,8 @@ import pytest
 from tiny_desk import TINY, tum_frames
 
 from kintinuous_ref.camera import load_intrinsics_json
-from kintinuous_ref.cli import main
 from kintinuous_ref.datasets import bag, tum
+from kintinuous_ref.program.cli import main
 
 TUM_TOPICS = ("/camera/rgb/image_color", "/camera/depth/image", "/camera/rgb/camera_info")
 OTHER_TOPICS = ("/cam/colour", "/cam/depth_mm", "/cam/info")

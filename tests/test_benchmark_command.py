@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kintinuous_ref.cli import main
+from kintinuous_ref.program.cli import main
 
 TINY_DESK = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
 

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from kintinuous_ref.cli import main
 from kintinuous_ref.config import Config, RgbdConfig, VolumeConfig, with_overrides
 from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.program.cli import main
 
 TINY_DESK = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
 

@@ -10,10 +10,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kintinuous_ref import cli
-from kintinuous_ref.cli import main
 from kintinuous_ref.config import Config, check_values, with_overrides
 from kintinuous_ref.errors import ConfigError, KintinuousError
+from kintinuous_ref.program import cli
+from kintinuous_ref.program.cli import main
 
 TINY = Path(__file__).resolve().parent.parent / "data" / "tiny_desk"
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kintinuous_ref import cli
 from kintinuous_ref.camera import TUM_CAMERAS
-from kintinuous_ref.cli import main
 from kintinuous_ref.datasets import download, tum
+from kintinuous_ref.program import cli
+from kintinuous_ref.program.cli import main
 
 TINY = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
 DESK = "freiburg1/rgbd_dataset_freiburg1_desk.tgz"
@@ -133,22 +133,22 @@ def test_download_by_name_from_a_mirror_then_reconstruct_by_name(mirror, cache, 
 def test_a_named_sequence_gets_its_tum_camera_and_the_mirror_variable_is_read(
     mirror, cache, monkeypatch
 ):
-    from kintinuous_ref import pipeline
+    from kintinuous_ref.program import reconstruct
 
     base, _, digests = mirror
     monkeypatch.setenv("KINTINUOUS_MIRROR", base)
     assert main(["download", "fr2/xyz", "--sha256", digests[XYZ]]) == 0
-    sequence = pipeline.open_dataset("fr2/xyz")
+    sequence = reconstruct.open_dataset("fr2/xyz")
     assert sequence.camera == TUM_CAMERAS["freiburg2"]  # 520.9, 521.0, 325.1, 249.7
     assert len(sequence) == 10
 
 
 def test_a_url_with_its_sha256_unpacks_under_the_archive_name(mirror, cache):
-    from kintinuous_ref import pipeline
+    from kintinuous_ref.program import reconstruct
 
     base, _, digests = mirror
     assert main(["download", base + DESK, "--sha256", digests[DESK]]) == 0
-    sequence = pipeline.open_dataset("rgbd_dataset_freiburg1_desk")
+    sequence = reconstruct.open_dataset("rgbd_dataset_freiburg1_desk")
     assert sequence.path == cache / "rgbd_dataset_freiburg1_desk"
     np.testing.assert_array_equal(sequence[3].depth, tum.open_sequence(TINY)[3].depth)
 

@@ -37,7 +37,7 @@ def gpu_rounding(monkeypatch):
 
 @pytest.fixture(scope="module")
 def gpu():
-    from kintinuous_fast.cuda import preprocess
+    from kintinuous_fast.preprocess import cuda as preprocess
 
     return preprocess
 
@@ -79,7 +79,7 @@ def test_equivalence_cuda_preprocess_frame_on_device(gpu):
     # Device images in: every array of the frame is a device array, equal to the reference.
     from numba import cuda
 
-    from kintinuous_fast.cuda import is_device
+    from kintinuous_fast.targets.cuda import is_device
 
     height, width = SIZES[-1]
     config = SIM_CONFIG if SIMULATED else PreprocessConfig()
@@ -108,7 +108,8 @@ VOLUME_SIZES = [(24, 32, 16)] if SIMULATED else [(60, 80, 32), (120, 160, 48)]
 
 @pytest.fixture(scope="module")
 def gpu_volume():
-    from kintinuous_fast.cuda import raycast, tsdf
+    from kintinuous_fast.raycast import cuda as raycast
+    from kintinuous_fast.tsdf import cuda as tsdf
 
     return tsdf, raycast
 
@@ -143,7 +144,7 @@ def test_equivalence_cuda_volume_empty_space(gpu_volume):
     with the cyclical buffer at rest and wrapped, and for an empty volume (2 B everywhere)."""
     from numba import cuda
 
-    from kintinuous_fast._volume import FastTsdfVolume, to_reference_volume
+    from kintinuous_fast.tsdf.volume import FastTsdfVolume, to_reference_volume
     from kintinuous_ref import raycast as ref_raycast
 
     tsdf, raycast = gpu_volume
@@ -173,7 +174,7 @@ def test_equivalence_cuda_volume_empty_space(gpu_volume):
 
 
 def test_equivalence_cuda_volume_stays_on_device(gpu_volume):
-    from kintinuous_fast.cuda import is_device
+    from kintinuous_fast.targets.cuda import is_device
 
     tsdf, raycast = gpu_volume
     height, width, resolution = VOLUME_SIZES[0]

@@ -106,7 +106,8 @@ def uploaded(frame):  # noqa: ANN001, ANN201
 @pytest.mark.parametrize("angle", [True, False], ids=["angle", "no-angle"])
 @pytest.mark.parametrize("check", [True, False], ids=["edges", "no-edges"])
 def test_equivalence_cuda_colour_weights(host_frames, angle, check):
-    from kintinuous_fast.cuda import colour, is_device
+    from kintinuous_fast.colour import cuda as colour
+    from kintinuous_fast.targets.cuda import is_device
 
     frame = host_frames[1][0]
     assert np.isnan(frame.levels[0].normals).any() and (frame.depth == 0).any()
@@ -264,7 +265,7 @@ def image_like(shape: tuple[int, ...]) -> bool:
 
 @on_device
 def test_cuda_pipeline_keeps_state_on_device(monkeypatch):
-    from kintinuous_fast.cuda import is_device
+    from kintinuous_fast.targets.cuda import is_device
 
     desk, frames = desk_frames()
     want = pipeline.run(

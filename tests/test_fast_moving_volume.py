@@ -1,22 +1,23 @@
 """The fast backends' cyclical buffer (moving volume, paper III) against kintinuous_ref: the same
 offset gives the same integration, sampling and raycast, and kintinuous_ref.moving_volume's
-shifts, slice extraction and clearing on a fast volume (through kintinuous_fast._volume.SlabView)
-give the reference's slices and volume. Tolerances are those of tests/fast_equivalence.py (int16
-TSDF: 0.5 / 32767 per frame; uint8 colour: 0.5 level per frame)."""
+shifts, slice extraction and clearing on a fast volume (through
+kintinuous_fast.tsdf.volume.SlabView) give the reference's slices and volume. Tolerances are
+those of tests/fast_equivalence.py (int16 TSDF: 0.5 / 32767 per frame; uint8 colour: 0.5 level
+per frame)."""
 
 import fast_equivalence as fe
 import numpy as np
 import pytest
 
-from kintinuous_fast._volume import (
+from kintinuous_fast.raycast import cpu as cpu_raycast
+from kintinuous_fast.tsdf import cpu as cpu_tsdf
+from kintinuous_fast.tsdf.volume import (
     FastTsdfVolume,
     from_reference_volume,
     slab_view,
     to_reference_volume,
 )
-from kintinuous_fast.cpu import raycast as cpu_raycast
-from kintinuous_fast.cpu import tsdf as cpu_tsdf
-from kintinuous_fast.ops.volume import FINE
+from kintinuous_fast.tsdf.voxel import FINE
 from kintinuous_ref import raycast as ref_raycast
 from kintinuous_ref import tsdf as ref_tsdf
 from kintinuous_ref.config import VolumeConfig

@@ -13,8 +13,9 @@ import pytest
 import test_fast_odometry_cases as cases
 
 import kintinuous_fast
-from kintinuous_fast.odometry import cpu, fast_odometry, kernels, make_tracker
-from kintinuous_ref.config import Config
+from kintinuous_fast import select_backend
+from kintinuous_fast.odometry import cpu
+from kintinuous_ref.config import Config, fast_odometry
 from kintinuous_ref.errors import ConfigError, DatasetError
 
 SIZES = [(80, 60), (160, 120)]
@@ -68,9 +69,7 @@ FIXED = (1e-6, 1e-5)
 @pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])
 @pytest.mark.parametrize("iterations", [(1, 1, 1), (3, 3, 3), None], ids=["1", "3", "converged"])
 def test_equivalence_cpu_tracker(method, iterations):
-    reference, truth = cases.check_tracker(
-        lambda *a: make_tracker(*a, backend="cpu"), method, 160, 120, iterations, FIXED
-    )
+    reference, truth = cases.check_tracker(cpu.make_tracker, method, 160, 120, iterations, FIXED)
     if iterations is None:  # and the reference itself recovers the known motion
         metres, radians = cases.pose_difference(reference, truth)
         assert metres < 2e-3 and radians < np.radians(0.2), (metres, radians)
@@ -98,9 +97,7 @@ def test_cpu_inlier_fraction_counts_the_reference_pairs():
 def test_equivalence_cpu_tracker_fovis_switching():
     # FOVIS itself is the reference's (CPU, as in the paper); the dense half is the fast one, so
     # the switched result equals the reference tracker's.
-    cases.check_tracker(
-        lambda *a: make_tracker(*a, backend="cpu"), "fovis/icp+rgbd", 160, 120, None, FIXED
-    )
+    cases.check_tracker(cpu.make_tracker, "fovis/icp+rgbd", 160, 120, None, FIXED)
 
 
 def test_equivalence_cpu_tracker_failure():
@@ -119,7 +116,7 @@ def test_equivalence_cpu_tracker_failure():
     vertices, normals = scene.model(previous, camera, 1)[0]
     model = cases.Model(previous, vertices, normals)
     for method in ("icp", "rgbd", "icp+rgbd"):
-        fast = make_tracker(method, Config(), camera, backend="cpu")
+        fast = cpu.make_tracker(method, Config(), camera)
         result = fast.track(previous_frame, empty, model, previous)
         assert not result.ok and "too few correspondences" in result.reason
         np.testing.assert_array_equal(result.pose, previous)
@@ -127,18 +124,18 @@ def test_equivalence_cpu_tracker_failure():
 
 def test_make_tracker_backends_and_errors():
     camera = cases.room(80, 60)[0]
-    assert kernels("cpu") is cpu
-    assert kernels("ref").__name__ == "kintinuous_ref.odometry"
+    assert select_backend("cpu").odometry is cpu
+    assert select_backend("ref").odometry.__name__ == "kintinuous_ref.odometry"
     with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
-        make_tracker("kinfu", Config(), camera, backend="cpu")
+        cpu.make_tracker("kinfu", Config(), camera)
     with pytest.raises(ConfigError, match="unknown backend 'gpu'"):
-        make_tracker("icp", Config(), camera, backend="gpu")
+        select_backend("gpu")
     # The backend module has the reference's make_tracker / DenseTracker signatures too.
     assert cpu.make_tracker("icp+rgbd", Config(), camera).kernels is cpu
     assert cpu.DenseTracker("rgbd", Config(), camera).kernels is cpu
     with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
         cpu.make_tracker("kinfu", Config(), camera)
-    fovis = make_tracker("fovis/icp+rgbd", Config(), camera, backend="cpu")
+    fovis = cpu.make_tracker("fovis/icp+rgbd", Config(), camera)
     assert fovis.dense.kernels is cpu  # the dense half is the fast one, FOVIS the reference's
     level = cases.room(80, 60)[4].levels[0]
     with pytest.raises(
@@ -158,7 +155,7 @@ def test_fast_odometry_skips_the_finest_level():
     import odometry_scene as scene
 
     vertices, normals = scene.model(previous, camera, 1)[0]
-    result = make_tracker("icp+rgbd", config, camera, backend="cpu").track(
+    result = cpu.make_tracker("icp+rgbd", config, camera).track(
         previous_frame, frame, cases.Model(previous, vertices, normals), previous
     )
     metres, radians = cases.pose_difference(result.pose, current)

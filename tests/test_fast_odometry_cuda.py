@@ -63,10 +63,7 @@ def test_equivalence_cuda_accumulate(gpu, count):
 
 @pytest.mark.parametrize("method", ["icp+rgbd"] if SIMULATED else ["icp", "rgbd", "icp+rgbd"])
 def test_equivalence_cuda_tracker(method):
-    from kintinuous_fast.odometry import make_tracker
-
-    def tracker(*args):
-        return make_tracker(*args, backend="cuda")
+    from kintinuous_fast.odometry.cuda import make_tracker as tracker
 
     if SIMULATED:
         cases.check_tracker(tracker, method, *SIZES[0], (1, 1), FIXED)
@@ -79,7 +76,7 @@ def test_equivalence_cuda_device_arrays_stay_on_device(gpu):
     # Device inputs: the interest points and the correspondences stay device arrays.
     from numba import cuda
 
-    from kintinuous_fast.cuda import is_device
+    from kintinuous_fast.targets.cuda import is_device
     from kintinuous_ref.odometry import rgbd
 
     width, height = SIZES[0]

@@ -18,7 +18,7 @@ import numba
 import numpy as np
 import pytest
 
-from kintinuous_fast.cpu import preprocess as cpu
+from kintinuous_fast.preprocess import cpu
 from kintinuous_ref import preprocess as ref
 from kintinuous_ref.config import PreprocessConfig
 from kintinuous_ref.errors import DatasetError

@@ -7,11 +7,11 @@ import fast_equivalence as fe
 import numpy as np
 import pytest
 
-from kintinuous_fast import _volume
-from kintinuous_fast.cpu import raycast as cpu_raycast
-from kintinuous_fast.cpu import tsdf as cpu_tsdf
-from kintinuous_fast.ops import cpu_jit
-from kintinuous_fast.ops import volume as volume_ops
+from kintinuous_fast.raycast import cpu as cpu_raycast
+from kintinuous_fast.targets import cpu_jit
+from kintinuous_fast.tsdf import cpu as cpu_tsdf
+from kintinuous_fast.tsdf import volume as _volume
+from kintinuous_fast.tsdf import voxel as volume_ops
 from kintinuous_ref import tsdf as ref_tsdf
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.errors import ConfigError
@@ -120,7 +120,7 @@ def test_each_backend_checks_its_own_volume_against_its_own_memory(monkeypatch):
     against the GPU's free memory whatever the host has."""
     from numba import cuda
 
-    from kintinuous_fast.cuda import tsdf as cuda_tsdf
+    from kintinuous_fast.tsdf import cuda as cuda_tsdf
 
     config = VolumeConfig(resolution=512, size=6.0)
     monkeypatch.setattr(ref_tsdf, "available_memory_bytes", lambda: 5 << 29)
@@ -175,7 +175,7 @@ def test_rint32_is_np_rint_over_the_image_range():
 def test_equivalence_cpu_colour_weights(angle, check):
     """The cpu loop's colour weights are the reference's bit for bit (0, 1 or |n_z| products)
     on a frame with holes, NaN normals and depth edges."""
-    from kintinuous_fast.cpu import colour as cpu_colour
+    from kintinuous_fast.colour import cpu as cpu_colour
     from kintinuous_ref import preprocess
     from kintinuous_ref.colour import colour_weights
     from kintinuous_ref.config import ColourConfig, PreprocessConfig
@@ -199,7 +199,7 @@ def test_cpu_integration_visits_every_voxel_the_reference_updates(pose_index):
     hold an update, from a max pyramid of lambda D) hold every voxel that the reference's
     integration of the frame updates, and leave out a real share of the frustum's voxels
     (those far behind the wall)."""
-    from kintinuous_fast._volume import camera_frame_steps, frustum_box
+    from kintinuous_fast.tsdf.volume import camera_frame_steps, frustum_box
 
     height, width, n = 120, 160, 64
     camera = fe.camera_for(height, width)

@@ -28,7 +28,7 @@ PROGRESS = re.compile(r"\| *(\d+)/(\d+) \[")
 
 
 def _command(out: Path, *extra: str, dataset: Path = TINY) -> list[str]:
-    return [sys.executable, "-m", "kintinuous_ref.cli", "reconstruct", str(dataset)] + [
+    return [sys.executable, "-m", "kintinuous_ref.program.cli", "reconstruct", str(dataset)] + [
         "--out",
         str(out),
         *extra,
@@ -119,7 +119,8 @@ def test_a_second_signal_during_the_save_says_what_was_and_was_not_saved(tmp_pat
     script = textwrap.dedent(
         """
         import sys, time
-        from kintinuous_ref import cli, mesh
+        from kintinuous_ref import mesh
+        from kintinuous_ref.program import cli
         def render_preview(*args, **kw):
             sys.stderr.write("rendering\\n")  # one write: a signal cannot split it
             time.sleep(60)
@@ -232,7 +233,7 @@ def test_an_unexpected_exception_is_one_line_a_crash_log_and_the_work_kept(tmp_p
         """
         import sys
         import kintinuous_ref.tsdf as tsdf
-        from kintinuous_ref import cli
+        from kintinuous_ref.program import cli
         real, calls = tsdf.integrate, []
         def integrate(*args, **kw):
             calls.append(1)
@@ -307,7 +308,7 @@ def test_synth_larger_than_memory_is_one_line(tmp_path):
         resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
 
     out = tmp_path / "big"
-    argv = [sys.executable, "-m", "kintinuous_ref.cli", "synth", "desk", "--out", str(out)]
+    argv = [sys.executable, "-m", "kintinuous_ref.program.cli", "synth", "desk", "--out", str(out)]
     argv += ["--frames", "1", "--width", "60000", "--height", "45000"]
     result = _run(argv, preexec_fn=limit_memory)
     assert result.returncode == 2, result.stderr

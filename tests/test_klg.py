@@ -14,9 +14,9 @@ import pytest
 from tiny_desk import TINY, tum_frames
 
 from kintinuous_ref.camera import load_intrinsics_json
-from kintinuous_ref.cli import main
 from kintinuous_ref.datasets import klg, tum
 from kintinuous_ref.errors import DatasetError
+from kintinuous_ref.program.cli import main
 
 WIDTH, HEIGHT = 160, 120
 INTRINSICS = "131.25,131.25,79.5,59.5"  # data/tiny_desk/intrinsics.json

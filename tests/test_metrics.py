@@ -22,8 +22,8 @@ from evo.core.units import Unit
 from evo.tools import file_interface
 
 from kintinuous_ref import metrics, se3
-from kintinuous_ref.cli import main
 from kintinuous_ref.datasets.tum import Trajectory, write_trajectory
+from kintinuous_ref.program.cli import main
 
 KEYS = {
     "ate_rmse",

@@ -10,11 +10,12 @@ import pytest
 from mapping_scene import CAMERA, BoxScene, pose, rotation
 
 from kintinuous_ref import mesh, moving_volume, pipeline, raycast, tsdf
-from kintinuous_ref.cli import main
 from kintinuous_ref.config import Config, VolumeConfig
 from kintinuous_ref.datasets import synthetic
 from kintinuous_ref.datasets.tum import Frame
 from kintinuous_ref.moving_volume import MovingVolume, SliceStore
+from kintinuous_ref.program.cli import main
+from kintinuous_ref.program.reconstruct import write_outputs
 
 N = 64
 CONFIG = VolumeConfig(resolution=N, size=1.0, min_extract_weight=1.0)  # z from 0 to 1 m
@@ -249,7 +250,7 @@ def test_pipeline_moves_the_volume_and_the_mesh_lies_on_the_true_surface(corrido
     np.testing.assert_array_equal(result.trajectory.poses, scenario.trajectory.poses[::8])
     origins = np.array(result.volume_origins)
     assert np.linalg.norm(origins[-1] - origins[0]) > 0.1
-    report = pipeline.write_outputs(result, tmp_path, {}, preview=False)
+    report = write_outputs(result, tmp_path, {}, preview=False)
     assert report["shifts"] == result.shifts and report["slices"] == result.slices
     merged = moving_volume.read_mesh(tmp_path / "mesh.ply")
     score = mesh.surface_accuracy(merged, scenario.surface_mesh(), np.zeros((0, 3)))

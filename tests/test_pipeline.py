@@ -6,16 +6,16 @@ import json
 import numpy as np
 import pytest
 
-import kintinuous_ref
-from kintinuous_fast import resolve_backend_name
+from kintinuous_fast import select_backend
 from kintinuous_ref import mesh, pipeline, se3
 from kintinuous_ref import raycast as raycast_module
-from kintinuous_ref.cli import main
+from kintinuous_ref.backend import ReferenceBackend
 from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
 from kintinuous_ref.datasets import synthetic, tum
 from kintinuous_ref.datasets.tum import Frame
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.odometry import make_tracker
+from kintinuous_ref.program.cli import main
 
 FRAMES = 8
 CONFIG = Config(volume=VolumeConfig(resolution=96, size=3.0))
@@ -114,11 +114,8 @@ def test_fast_odometry_raycasts_only_the_pixels_it_reads(desk):
     assert make_tracker("fovis/icp", config, scenario.camera).model_stride == 2
     assert make_tracker("rgbd", config, scenario.camera).model_stride == 1
 
-    class EveryPixel:  # the reference backend, raycasting every pixel whatever it is asked
-        preprocess, tsdf, raycast = kintinuous_ref.preprocess, kintinuous_ref.tsdf, raycast_module
-
-        @staticmethod
-        def predict_surface(volume, pose, camera, stride):  # noqa: ANN001, ANN205
+    class EveryPixel(ReferenceBackend):  # raycasts every pixel whatever it is asked
+        def predict_surface(self, volume, pose, camera, stride=1):  # noqa: ANN001, ANN201
             return raycast_module.raycast(volume, pose, camera, colour=False)
 
     def track(backend):  # noqa: ANN001, ANN202
@@ -126,7 +123,7 @@ def test_fast_odometry_raycasts_only_the_pixels_it_reads(desk):
             frames[:4], scenario.camera, config, "icp+rgbd", scenario.trajectory, backend=backend
         )
 
-    strided, full = track(kintinuous_ref), track(EveryPixel)
+    strided, full = track(ReferenceBackend()), track(EveryPixel())
     assert strided.tracking_failures == full.tracking_failures == 0
     np.testing.assert_array_equal(np.array(strided.poses), np.array(full.poses))
     cast = np.zeros((scenario.camera.height, scenario.camera.width), dtype=bool)
@@ -178,7 +175,7 @@ def test_reconstruct_command_writes_its_outputs(desk_folder, tmp_path):
     assert status == 0
     report = json.loads((out / "report.json").read_text())
     assert report["frames"] == 4 and report["odometry"] == "groundtruth"
-    assert report["backend"] == resolve_backend_name("auto")  # the default: what ran
+    assert report["backend"] == select_backend("auto").name  # the default: what ran
     for stage in ("preprocess", "odometry", "integrate", "raycast", "total"):
         assert set(report["timing_ms"][stage]) == {"mean", "median", "max"}
     estimate = tum.read_trajectory(out / "trajectory.txt")
@@ -195,7 +192,7 @@ def test_reconstruct_command_writes_its_outputs(desk_folder, tmp_path):
 
 
 def test_reconstruct_command_bad_input(desk_folder, tmp_path, capsys, monkeypatch):
-    from kintinuous_fast import _volume
+    from kintinuous_fast.tsdf import volume as _volume
     from kintinuous_ref import tsdf
 
     # any machine: 4 GiB (the reference's check, 24 bytes a voxel) and 2 GiB (the fast volume's,
@@ -231,9 +228,10 @@ def test_reconstruct_checks_the_memory_of_the_backend_it_runs_on(
 ):
     """512^3 with colour on the cpu backend with 2.5 GiB free: its volume needs 1.0 GiB (the
     reference's would need 3.0), so the run goes on to make its volume."""
-    from kintinuous_fast import _volume
-    from kintinuous_fast.cpu import tsdf as cpu_tsdf
+    from kintinuous_fast.tsdf import cpu as cpu_tsdf
+    from kintinuous_fast.tsdf import volume as _volume
     from kintinuous_ref import tsdf
+    from kintinuous_ref.program import reconstruct
 
     monkeypatch.setattr(tsdf, "available_memory_bytes", lambda: 5 << 29)
     monkeypatch.setattr(_volume, "available_memory_bytes", lambda: 5 << 29)
@@ -243,6 +241,7 @@ def test_reconstruct_checks_the_memory_of_the_backend_it_runs_on(
         raise ConfigError(f"a {config.resolution}^3 volume would be made here")
 
     monkeypatch.setattr(cpu_tsdf, "make_volume", make_volume)
+    monkeypatch.setattr(reconstruct, "prepare_kernels", lambda *args: None)  # its own volume
     arguments = ["reconstruct", str(desk_folder), "--backend", "cpu", "--resolution", "512"]
     status = main([*arguments, "--frames", "1", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()

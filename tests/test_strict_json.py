@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from kintinuous_ref.cli import main
+from kintinuous_ref.program.cli import main
 from kintinuous_ref.strict_json import dumps
 
 

@@ -13,7 +13,6 @@ import pytest
 
 from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics, load_intrinsics_json
-from kintinuous_ref.cli import main
 from kintinuous_ref.datasets import synthetic, tum
 from kintinuous_ref.datasets.synthetic import SensorModel
 from kintinuous_ref.datasets.synthetic.scene import Scene
@@ -21,6 +20,7 @@ from kintinuous_ref.datasets.synthetic.sensor import axial_sigma
 from kintinuous_ref.datasets.synthetic.solids import Box, Cylinder, Rectangle, Sphere
 from kintinuous_ref.datasets.synthetic.textures import random_material
 from kintinuous_ref.errors import ConfigError, DatasetError, KintinuousError
+from kintinuous_ref.program.cli import main
 
 CAMERA = Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
 NAMES = ("desk", "corridor", "dark", "floor", "loop")
@@ -561,11 +561,11 @@ def test_a_scenario_renders_the_frames_asked_for_and_extends_later(tmp_path):
 
 
 def test_open_dataset_renders_a_scenario_only_as_far_as_needed(tmp_path, monkeypatch):
-    from kintinuous_ref import pipeline
+    from kintinuous_ref.program import reconstruct
 
     monkeypatch.setenv("KINTINUOUS_CACHE", str(tmp_path))
-    monkeypatch.setattr(pipeline, "SCENARIO_FRAMES", 10)
-    assert len(pipeline.open_dataset("floor", frames_needed=2)) == 2
-    assert len(pipeline.open_dataset("floor", frames_needed=3)) == 3
-    assert len(pipeline.open_dataset("floor", frames_needed=1)) == 3  # never fewer than it has
-    assert len(pipeline.open_dataset("floor")) == 10
+    monkeypatch.setattr(reconstruct, "SCENARIO_FRAMES", 10)
+    assert len(reconstruct.open_dataset("floor", frames_needed=2)) == 2
+    assert len(reconstruct.open_dataset("floor", frames_needed=3)) == 3
+    assert len(reconstruct.open_dataset("floor", frames_needed=1)) == 3  # never fewer than it has
+    assert len(reconstruct.open_dataset("floor")) == 10

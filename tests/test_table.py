@@ -1,4 +1,4 @@
-"""`kintinuous table` (kintinuous_ref.evaluation): the paper's Tables I-VI from real runs.
+"""`kintinuous table` (kintinuous_ref.program.evaluation): the paper's Tables I-VI from real runs.
 
 One tiny evaluation (2 methods x 2 synthetic sequences of 8 frames at 160x120, plus a sequence
 with a corrupt depth image and a folder that does not exist) is run once for the module, through
@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from kintinuous_ref import metrics
-from kintinuous_ref.cli import main
 from kintinuous_ref.datasets import synthetic
 from kintinuous_ref.datasets.tum import read_trajectory
-from kintinuous_ref.evaluation import (
+from kintinuous_ref.program.cli import main
+from kintinuous_ref.program.evaluation import (
     FAILED,
     OK,
     RunOutcome,
@@ -29,7 +29,7 @@ from kintinuous_ref.evaluation import (
     render_markdown,
     timing_statistics,
 )
-from kintinuous_ref.evaluation.figures import top_view_basis
+from kintinuous_ref.program.evaluation.figures import top_view_basis
 
 METHODS = ["icp", "fovis/rgbd"]  # a dense tracker and the switching one (with its own FOVIS)
 FRAMES = 8
@@ -301,7 +301,7 @@ def cluster():
 @pytest.mark.parametrize("backend", ["ref", "cpu"])
 def test_cluster_runs_equal_local_runs_bit_for_bit(evaluation, cluster, tmp_path, backend):
     from kintinuous_ref.config import Config, VolumeConfig
-    from kintinuous_ref.evaluation import evaluate_methods
+    from kintinuous_ref.program.evaluation import evaluate_methods
 
     # The module's evaluation at --resolution 64: the same volume, methods and frames.
     config = Config(volume=VolumeConfig(resolution=64))
@@ -329,7 +329,7 @@ def test_cluster_runs_equal_local_runs_bit_for_bit(evaluation, cluster, tmp_path
 
 def test_a_worker_that_cannot_see_the_dataset_says_so_by_name(cluster, tmp_path):
     from kintinuous_ref.config import Config
-    from kintinuous_ref.evaluation import RunSpec, execute
+    from kintinuous_ref.program.evaluation import RunSpec, execute
 
     # A folder that the client saw and the workers do not: here one that exists nowhere.
     unseen = tmp_path / "mounted-on-the-client-only"
@@ -354,7 +354,7 @@ def test_a_worker_that_cannot_see_the_dataset_says_so_by_name(cluster, tmp_path)
 
 def test_relative_paths_on_a_cluster_are_the_clients(evaluation, cluster, tmp_path, monkeypatch):
     from kintinuous_ref.config import Config, VolumeConfig
-    from kintinuous_ref.evaluation import RunSpec, execute
+    from kintinuous_ref.program.evaluation import RunSpec, execute
 
     # The workers started in the folder pytest runs from; the client now works in another one.
     shutil.copytree(evaluation["folders"][0], tmp_path / "desk")
@@ -374,7 +374,7 @@ def test_table_reproduces_the_papers_published_rank_scores():
     # The paper's own medians and maxima (Tables I-III, transcribed in evaluation.paper) through
     # build_table give its published eq. 16 scores: an independent check of the ranking and of the
     # transcription. Inputs are printed to 3-4 digits, scores to 4 decimals: 1e-4 allows for both.
-    from kintinuous_ref.evaluation import paper
+    from kintinuous_ref.program.evaluation import paper
 
     table = paper.as_table()
     for key, published in paper.RANK_SCORES.items():

@@ -236,7 +236,7 @@ def test_constant_velocity_recovery(room):
 
 
 def test_command_line_offers_every_method_and_config_overrides(tmp_path):
-    from kintinuous_ref import cli
+    from kintinuous_ref.program import cli
 
     assert cli.ODOMETRY_CHOICES == ("groundtruth", *METHODS)
     args = cli.build_parser().parse_args(

@@ -17,7 +17,8 @@ import numba
 import numpy as np
 from numba import prange
 
-from kintinuous_fast.cpu import run_parallel_above
+from kintinuous_fast.odometry import host
+from kintinuous_fast.targets.cpu import run_parallel_above
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
@@ -26,7 +27,6 @@ from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
 from kintinuous_ref.preprocess import model_pyramid
 
-from . import _host
 from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, build_ops
 
 __all__ = [
@@ -484,7 +484,7 @@ def _run(loop, count: int, *args) -> None:
 
 
 def _partials(count: int) -> np.ndarray:
-    return np.zeros((_host.chunks_for(count, CHUNKS), NV))
+    return np.zeros((host.chunks_for(count, CHUNKS), NV))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -511,14 +511,14 @@ def _run_on_points(
     distance_threshold, angle_threshold_deg, model_inverse,
 ) -> None:  # fmt: skip
     """Run an ICP loop over the valid current points into `out` (its per-chunk rows)."""
-    _host.check_map("model vertex map", model_vertices, camera)
-    _host.check_map("model normal map", model_normals, camera)
-    pose, to_model, dist2, cos_min = _host.icp_constants(
+    host.check_map("model vertex map", model_vertices, camera)
+    host.check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = host.icp_constants(
         pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
     )
     _run(
         loop, points.shape[1], points, pose, to_model, model_vertices, model_normals,
-        _host.camera_constants(camera), dist2, cos_min, out,
+        host.camera_constants(camera), dist2, cos_min, out,
     )  # fmt: skip
 
 
@@ -527,13 +527,13 @@ def icp_points_system(
     angle_threshold_deg, model_inverse=None,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
     """icp_system of the valid current points (`valid_points`) and their number (for the inlier
-    fraction); `model_inverse` as in _host.icp_constants."""
+    fraction); `model_inverse` as in host.icp_constants."""
     out = _partials(points.shape[1])
     _run_on_points(
         _icp_loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
         distance_threshold, angle_threshold_deg, model_inverse,
     )  # fmt: skip
-    return _host.sum_partials(out)
+    return host.sum_partials(out)
 
 
 def icp_points_pairs(
@@ -541,7 +541,7 @@ def icp_points_pairs(
     angle_threshold_deg, model_inverse=None,
 ) -> tuple[int, int]:  # fmt: skip
     """icp_pairs of the valid current points (`valid_points`)."""
-    out = np.zeros((_host.chunks_for(points.shape[1], CHUNKS), 2))
+    out = np.zeros((host.chunks_for(points.shape[1], CHUNKS), 2))
     _run_on_points(
         _icp_pairs_loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
         distance_threshold, angle_threshold_deg, model_inverse,
@@ -555,8 +555,8 @@ def icp_system_and_valid(
     distance_threshold, angle_threshold_deg,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
     """icp_system and the number of valid current points (for the inlier fraction)."""
-    _host.check_map("current vertex map", vertices, camera)
-    _host.check_map("current normal map", normals, camera)
+    host.check_map("current vertex map", vertices, camera)
+    host.check_map("current normal map", normals, camera)
     return icp_points_system(
         valid_points(vertices, normals), model_vertices, model_normals, pose, model_pose, camera,
         distance_threshold, angle_threshold_deg,
@@ -596,9 +596,9 @@ def associate(
     """Projective data association: (world point, model vertex, model normal) as (3, M) columns,
     in the reference's order. Model maps as (3, h*w) columns (ref map_columns)."""
     shape = (camera.height, camera.width, 3)
-    _host.check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
-    _host.check_image("model normal columns", model_normals, (3, camera.height * camera.width))
-    pose, to_model, dist2, cos_min = _host.icp_constants(
+    host.check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
+    host.check_image("model normal columns", model_normals, (3, camera.height * camera.width))
+    pose, to_model, dist2, cos_min = host.icp_constants(
         pose, model_pose, distance_threshold, angle_threshold_deg
     )
     points = np.ascontiguousarray(points, dtype=np.float64)
@@ -611,7 +611,7 @@ def associate(
         points, point_normals, pose, to_model,
         np.ascontiguousarray(np.asarray(model_vertices).T.reshape(shape)),
         np.ascontiguousarray(np.asarray(model_normals).T.reshape(shape)),
-        *_host.camera_constants(camera), dist2, cos_min, keep, out,
+        *host.camera_constants(camera), dist2, cos_min, keep, out,
     )  # fmt: skip
     kept = np.compress(keep, out, axis=1)
     return kept[0:3], kept[3:6], kept[6:9]
@@ -656,7 +656,7 @@ def accumulate(
         weighted,
         out,
     )
-    return _host.sum_partials(out)[0]
+    return host.sum_partials(out)[0]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -680,7 +680,7 @@ def interest_points(
 ) -> np.ndarray:
     """Algorithm 1: flat indices (ascending) of the pixels with dx^2 + dy^2 >= g^2."""
     dx, dy = stage(intensity_dx), stage(intensity_dy)
-    _host.check_image("intensity_dy", dy, dx.shape)
+    host.check_image("intensity_dy", dy, dx.shape)
     return np.flatnonzero(_interest_mask(dx, dy, None, min_gradient, 0.0))
 
 
@@ -698,14 +698,14 @@ def prepare_level(
     dx, dy = stage(intensity_dx), stage(intensity_dy)
     shape = (camera.height, camera.width)
     for name, image in (("depth", depth), ("intensity", intensity), ("dx", dx), ("dy", dy)):
-        _host.check_image(f"current {name} image", image, shape)
+        host.check_image(f"current {name} image", image, shape)
     indices = np.flatnonzero(_interest_mask(dx, dy, depth, min_gradient, max_depth))
     n = len(indices)
     points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
     _run(
         _interest_data_loop,
         n,
-        indices, depth, intensity, dx, dy, *_host.camera_constants(camera), points, values,
+        indices, depth, intensity, dx, dy, *host.camera_constants(camera), points, values,
         gradient,
     )  # fmt: skip
     return InterestPoints(indices, points, values, gradient)
@@ -718,24 +718,24 @@ def _correspond_all(
     """Per interest point: ((9, n) pairs as _correspond_loop writes them, (sum r^2, count))."""
     previous_depth, previous_intensity = stage(previous_depth), stage(previous_intensity)
     shape = (camera.height, camera.width)
-    _host.check_image("previous depth image", previous_depth, shape)
-    _host.check_image("previous intensity image", previous_intensity, shape)
+    host.check_image("previous depth image", previous_depth, shape)
+    host.check_image("previous intensity image", previous_intensity, shape)
     warped = previous_dx is not None and previous_dy is not None
     prev_dx = stage(previous_dx) if warped else previous_intensity
     prev_dy = stage(previous_dy) if warped else previous_intensity
     n = points.points.shape[1]
     pairs = np.empty((9, n))
-    sums = np.zeros((_host.chunks_for(n, CHUNKS), 2))
+    sums = np.zeros((host.chunks_for(n, CHUNKS), 2))
     _run(
         _correspond_loop,
         n,
         np.ascontiguousarray(points.points, dtype=np.float64),
         np.ascontiguousarray(points.intensity, dtype=np.float64),
         np.ascontiguousarray(points.gradient, dtype=np.float64),
-        _host.relative_pose(pose, previous_pose),
+        host.relative_pose(pose, previous_pose),
         np.ascontiguousarray(pose, dtype=np.float64),
         previous_depth, previous_intensity, prev_dx, prev_dy, warped,
-        *_host.camera_constants(camera), float(max_depth_change),
+        *host.camera_constants(camera), float(max_depth_change),
         pairs, sums,
     )  # fmt: skip
     return pairs, sums.sum(axis=0)
@@ -817,14 +817,14 @@ def rgbd_system(
         np.ascontiguousarray(previous_pose, dtype=np.float64),
         float(camera.fx), float(camera.fy), sigma, out,
     )  # fmt: skip
-    return _host.sum_partials(out)[0]
+    return host.sum_partials(out)[0]
 
 
 # ----------------------------------------------------------------------------------------------
 # Per-frame problems
 
 
-class IcpProblem(_host.IcpProblemBase):
+class IcpProblem(host.IcpProblemBase):
     """kintinuous_ref.odometry.icp.IcpProblem with the CPU loops underneath; each level's valid
     current points are compacted once, on first use, for all of its iterations."""
 
@@ -842,8 +842,8 @@ class IcpProblem(_host.IcpProblemBase):
         vertices, normals, model_vertices, model_normals = self.maps(level)
         camera = self.current_levels[level].camera
         if level not in self._points:
-            _host.check_map("current vertex map", vertices, camera)
-            _host.check_map("current normal map", normals, camera)
+            host.check_map("current vertex map", vertices, camera)
+            host.check_map("current normal map", normals, camera)
             self._points[level] = valid_points(vertices, normals)
         return function(
             self._points[level], model_vertices, model_normals, pose, self.model_pose, camera,
@@ -851,14 +851,14 @@ class IcpProblem(_host.IcpProblemBase):
         )  # fmt: skip
 
 
-class RgbdProblem(_host.RgbdProblemBase):
+class RgbdProblem(host.RgbdProblemBase):
     """kintinuous_ref.odometry.rgbd.RgbdProblem with the CPU loops underneath."""
 
 
 IcpProblem.kernels = RgbdProblem.kernels = sys.modules[__name__]
 
 
-class DenseTracker(_host.FastDenseTracker):
+class DenseTracker(host.FastDenseTracker):
     """kintinuous_ref.odometry.DenseTracker with the CPU loops underneath."""
 
     def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
@@ -867,4 +867,4 @@ class DenseTracker(_host.FastDenseTracker):
 
 def make_tracker(method: str, config: Config, camera: Intrinsics) -> Tracker:
     """kintinuous_ref.odometry.make_tracker (every method) with the CPU loops underneath."""
-    return _host.make_tracker_with(sys.modules[__name__], method, config, camera)
+    return host.make_tracker_with(sys.modules[__name__], method, config, camera)

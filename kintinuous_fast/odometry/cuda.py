@@ -15,8 +15,9 @@ paper's GPU design (section IV-A.2/3, V-B):
 
 Same names, signatures and results as the reference (tests/test_fast_odometry*.py state the
 tolerances), except that lists come out in atomic order: compare interest points and
-correspondences as sets. Arrays stay where they are given (kintinuous_fast.cuda): device arrays
-in, device arrays out; NumPy in, NumPy out. Runs on numba's CUDA simulator too (slowly).
+correspondences as sets. Arrays stay where they are given (kintinuous_fast.targets.cuda):
+device arrays in, device arrays out; NumPy in, NumPy out. Runs on numba's CUDA simulator too
+(slowly).
 """
 
 from __future__ import annotations
@@ -27,9 +28,10 @@ import sys
 import numpy as np
 from numba import cuda, float64, int32, int64
 
-from kintinuous_fast.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, is_device, to_device
-from kintinuous_fast.cuda.preprocess import model_pyramid
-from kintinuous_fast.ops import cuda_device_jit
+from kintinuous_fast.odometry import host
+from kintinuous_fast.preprocess.cuda import model_pyramid
+from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, is_device, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
@@ -38,7 +40,6 @@ from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_s
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
 
-from . import _host
 from .ops import NV, build_ops
 
 __all__ = [
@@ -371,21 +372,21 @@ def icp_system_and_valid(
     distance_threshold, angle_threshold_deg,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
     """icp_system and the number of valid current points (for the inlier fraction)."""
-    _host.check_map("current vertex map", vertices, camera)
-    _host.check_map("current normal map", normals, camera)
-    _host.check_map("model vertex map", model_vertices, camera)
-    _host.check_map("model normal map", model_normals, camera)
-    pose, to_model, dist2, cos_min = _host.icp_constants(
+    host.check_map("current vertex map", vertices, camera)
+    host.check_map("current normal map", normals, camera)
+    host.check_map("model vertex map", model_vertices, camera)
+    host.check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = host.icp_constants(
         pose, model_pose, distance_threshold, angle_threshold_deg
     )
     blocks = _reduction_blocks(camera.height * camera.width)
     out = cuda.device_array((blocks, NV), dtype=np.float64)
     _icp_kernel[blocks, BLOCK](
         stage(vertices), stage(normals), cuda.to_device(pose), cuda.to_device(to_model),
-        stage(model_vertices), stage(model_normals), *_host.camera_constants(camera), dist2,
+        stage(model_vertices), stage(model_normals), *host.camera_constants(camera), dist2,
         cos_min, out,
     )  # fmt: skip
-    return _host.sum_partials(out.copy_to_host())
+    return host.sum_partials(out.copy_to_host())
 
 
 def icp_system(
@@ -408,9 +409,9 @@ def associate(
     """Projective data association: (world point, model vertex, model normal) as (3, M) columns
     in atomic order. Model maps as (3, h*w) columns (ref map_columns)."""
     shape = (camera.height, camera.width, 3)
-    _host.check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
-    _host.check_image("model normal columns", model_normals, (3, camera.height * camera.width))
-    pose, to_model, dist2, cos_min = _host.icp_constants(
+    host.check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
+    host.check_image("model normal columns", model_normals, (3, camera.height * camera.width))
+    pose, to_model, dist2, cos_min = host.icp_constants(
         pose, model_pose, distance_threshold, angle_threshold_deg
     )
     n = points.shape[1]
@@ -423,7 +424,7 @@ def associate(
     model_n = to_device(np.asarray(model_normals).T.reshape(shape))
     _associate_kernel[grid_1d(n, BLOCK), BLOCK](
         _f64(points), _f64(point_normals), cuda.to_device(pose), cuda.to_device(to_model),
-        model_v, model_n, *_host.camera_constants(camera), dist2, cos_min, count, out,
+        model_v, model_n, *host.camera_constants(camera), dist2, cos_min, count, out,
     )  # fmt: skip
     kept = int(count.copy_to_host()[0])
     pairs = _back(out[:, :kept], points)
@@ -459,7 +460,7 @@ def accumulate(jacobian, residuals, weights=None) -> LinearSystem:
     _accumulate_kernel[blocks, BLOCK](
         d_jacobian, d_residuals, _f64(weights) if weighted else d_residuals, weighted, out
     )
-    system = _host.sum_partials(out.copy_to_host())[0]
+    system = host.sum_partials(out.copy_to_host())[0]
     if n == 0:  # the placeholder row above must not count
         return LinearSystem.empty()
     return system
@@ -486,7 +487,7 @@ def _interest_list(dx, dy, depth, min_gradient: float, max_depth: float):
 
 def interest_points(intensity_dx, intensity_dy, min_gradient: float):
     """Algorithm 1: flat indices of the pixels with dx^2 + dy^2 >= g^2 (atomic order)."""
-    _host.check_image("intensity_dy", intensity_dy, intensity_dx.shape)
+    host.check_image("intensity_dy", intensity_dy, intensity_dx.shape)
     indices, _ = _interest_list(stage(intensity_dx), stage(intensity_dy), None, min_gradient, 0)
     return _back(indices, intensity_dx)
 
@@ -501,7 +502,7 @@ def prepare_level(
     for name, image in (
         ("depth", depth), ("intensity", intensity), ("dx", intensity_dx), ("dy", intensity_dy)
     ):  # fmt: skip
-        _host.check_image(f"current {name} image", image, shape)
+        host.check_image(f"current {name} image", image, shape)
     d_depth, d_dx, d_dy = stage(depth), stage(intensity_dx), stage(intensity_dy)
     indices, n = _interest_list(d_dx, d_dy, d_depth, min_gradient, max_depth)
     size = max(n, 1)
@@ -510,7 +511,7 @@ def prepare_level(
     gradient = cuda.device_array((2, size), dtype=np.float64)
     if n:
         _interest_data_kernel[grid_1d(n, BLOCK), BLOCK](
-            indices, d_depth, stage(intensity), d_dx, d_dy, *_host.camera_constants(camera),
+            indices, d_depth, stage(intensity), d_dx, d_dy, *host.camera_constants(camera),
             points, values, gradient,
         )  # fmt: skip
     result = (indices, points[:, :n], values[:n], gradient[:, :n])
@@ -525,22 +526,22 @@ def _pair_arguments(
 ) -> tuple:  # fmt: skip
     """The arguments warp_point needs, on the device, in the kernels' order."""
     shape = (camera.height, camera.width)
-    _host.check_image("previous depth image", previous_depth, shape)
-    _host.check_image("previous intensity image", previous_intensity, shape)
+    host.check_image("previous depth image", previous_depth, shape)
+    host.check_image("previous intensity image", previous_intensity, shape)
     prev_i = stage(previous_intensity)
     warped = previous_dx is not None and previous_dy is not None
     return (
         _f64(points.points),
         _f64(points.intensity),
         _f64(points.gradient),
-        cuda.to_device(_host.relative_pose(pose, previous_pose)),
+        cuda.to_device(host.relative_pose(pose, previous_pose)),
         cuda.to_device(np.ascontiguousarray(pose, dtype=np.float64)),
         stage(previous_depth),
         prev_i,
         stage(previous_dx) if warped else prev_i,
         stage(previous_dy) if warped else prev_i,
         warped,
-        *_host.camera_constants(camera),
+        *host.camera_constants(camera),
         float(max_depth_change),
     )
 
@@ -627,7 +628,7 @@ def rgbd_system(
     out = cuda.device_array((blocks, NV), dtype=np.float64)
     previous = cuda.to_device(np.ascontiguousarray(previous_pose, dtype=np.float64))
     _rgbd_rows_kernel[blocks, BLOCK](pairs, kept, *arguments, previous, sigma, out)
-    return _host.sum_partials(out.copy_to_host())[0]
+    return host.sum_partials(out.copy_to_host())[0]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -656,12 +657,12 @@ def repeated_streams(previous, current) -> tuple[bool, bool]:
 # Per-frame problems
 
 
-class IcpProblem(_host.IcpProblemBase):
+class IcpProblem(host.IcpProblemBase):
     """kintinuous_ref.odometry.icp.IcpProblem with the CUDA kernels underneath (maps uploaded
     once per frame and level)."""
 
 
-class RgbdProblem(_host.RgbdProblemBase):
+class RgbdProblem(host.RgbdProblemBase):
     """kintinuous_ref.odometry.rgbd.RgbdProblem with the CUDA kernels underneath (interest points
     stay on the device for all iterations)."""
 
@@ -669,7 +670,7 @@ class RgbdProblem(_host.RgbdProblemBase):
 IcpProblem.kernels = RgbdProblem.kernels = sys.modules[__name__]
 
 
-class DenseTracker(_host.FastDenseTracker):
+class DenseTracker(host.FastDenseTracker):
     """kintinuous_ref.odometry.DenseTracker with the CUDA kernels underneath."""
 
     def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
@@ -678,4 +679,4 @@ class DenseTracker(_host.FastDenseTracker):
 
 def make_tracker(method: str, config: Config, camera: Intrinsics) -> Tracker:
     """kintinuous_ref.odometry.make_tracker (every method) with the CUDA kernels underneath."""
-    return _host.make_tracker_with(sys.modules[__name__], method, config, camera)
+    return host.make_tracker_with(sys.modules[__name__], method, config, camera)

@@ -1,6 +1,6 @@
 """Per-correspondence maths of kintinuous_ref.odometry, written once for the CPU and CUDA targets.
 
-`build_ops(jit)` (the pattern of kintinuous_fast.ops) defines scalar functions - transform a
+`build_ops(jit)` (the pattern of kintinuous_fast.targets) defines scalar functions - transform a
 point, round a projection, associate one ICP point, warp one RGB-D interest point, build one
 Jacobian row, add one row to the normal equations - compiled with the decorator it is given:
 `numba.njit(cache=True)` for the prange loops of odometry/cpu.py, `cuda.jit(device=True)` for the
@@ -16,7 +16,7 @@ reference): relative differences ~1e-15 of the largest terms.
 The normal equations travel as a vector of NV float64 values per thread / chunk / block:
 21 upper-triangle entries of A (row-major, i <= j), 6 entries of b, the cost r^T W r, the count
 of rows and one spare slot (the ICP kernels count the valid current points there, which the
-inlier fraction needs). The host sums the partials in float64 and unpacks them (odometry/_host.py).
+inlier fraction needs). The host sums the partials in float64 and unpacks them (odometry/host.py).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
 
-from kintinuous_fast.ops import build_rint
+from kintinuous_fast.targets import build_rint
 from kintinuous_ref.odometry.rgbd import BORDER_SLACK
 
 # Slots of the accumulated vector (see the module docstring).
@@ -38,7 +38,7 @@ SLOT_EXTRA = 29
 
 
 def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
-    """The scalar functions of dense odometry compiled with `jit` (see kintinuous_fast.ops)."""
+    """The scalar functions of dense odometry compiled with `jit` (see kintinuous_fast.targets)."""
 
     rint = build_rint(jit)[0]
 

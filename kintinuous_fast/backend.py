@@ -1,0 +1,111 @@
+"""The cpu and cuda backends: kintinuous_ref.backend.Backend over this package's stage modules.
+
+Every stage has one package here with the same layout (docs/architecture.md): `ops.py` holds its
+per-element maths once, `cpu.py` the numba prange loops around it and `cuda.py` the numba.cuda
+kernels, so a backend's stage module is `kintinuous_fast.<stage>.<backend>`. The two factories
+below are the entry points pyproject.toml registers in the `kintinuous.backends` group.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from kintinuous_ref.backend import Backend, BackendUnavailable
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.raycast import ModelPrediction
+from kintinuous_ref.tsdf import TsdfVolume
+
+STAGES = ("preprocess", "tsdf", "raycast", "colour", "odometry")
+
+
+class FastBackend:
+    """The stages of one target ("cpu" or "cuda"), imported on first use."""
+
+    def __init__(self, name: str, note: str = "") -> None:
+        self.name = name
+        self.note = note
+        self._modules: dict[str, ModuleType] = {}
+
+    def __getattr__(self, stage: str) -> ModuleType:
+        if stage.startswith("_") or stage not in STAGES:
+            raise AttributeError(stage)
+        if stage not in self._modules:
+            self._modules[stage] = importlib.import_module(f"kintinuous_fast.{stage}.{self.name}")
+        return self._modules[stage]
+
+    def upload(self, array: np.ndarray) -> Any:
+        if self.name != "cuda":
+            return array
+        from kintinuous_fast.targets.cuda import to_device
+
+        return to_device(array)
+
+    def predict_surface(
+        self, volume: Any, pose: np.ndarray, camera: Intrinsics, stride: int = 1
+    ) -> ModelPrediction:
+        if self.name == "cuda":  # the maps stay in device memory, where the next ICP reads them
+            return self.raycast.raycast(
+                volume, pose, camera, colour=False, stride=stride, download=False
+            )
+        return self.raycast.raycast(volume, pose, camera, colour=False, stride=stride)
+
+    def volume_view(self, volume: Any) -> TsdfVolume:
+        return self.tsdf.slab_view(volume)
+
+    def host_volume(self, volume: Any) -> TsdfVolume:
+        return self.tsdf.to_reference_volume(volume)
+
+    def __repr__(self) -> str:
+        return f"FastBackend({self.name!r})"
+
+
+def numba_status() -> str:
+    """'' when numba imports here, else why not."""
+    try:
+        import numba  # noqa: F401
+    except ImportError as err:
+        return f"numba cannot be imported ({err})"
+    return ""
+
+
+def cuda_status() -> str:
+    """'' when numba's CUDA target works here (a GPU, or the simulator), else why not."""
+    try:
+        from numba import cuda
+    except ImportError as err:  # numba builds without the CUDA target
+        return f"numba.cuda cannot be imported ({err})"
+    try:
+        if cuda.is_available():
+            return ""
+        return "no CUDA GPU or driver found"
+    except Exception as err:  # a broken driver install: report, never crash the caller
+        return f"CUDA driver error: {err}"
+
+
+def cuda_is_simulated() -> bool:
+    """True when numba's CUDA simulator stands in for a GPU (NUMBA_ENABLE_CUDASIM=1)."""
+    return os.environ.get("NUMBA_ENABLE_CUDASIM", "0") == "1"
+
+
+def cpu_backend() -> Backend:
+    """The cpu backend (entry point "cpu"): numba parallel loops, cached on disk."""
+    reason = numba_status()
+    if reason:
+        raise BackendUnavailable(f"backend 'cpu' does not work on this machine: {reason}")
+    return FastBackend("cpu")
+
+
+def cuda_backend() -> Backend:
+    """The cuda backend (entry point "cuda"): numba.cuda kernels, arrays kept on the device."""
+    reason = numba_status() or cuda_status()
+    if reason:
+        raise BackendUnavailable(f"backend 'cuda' does not work on this machine: {reason}")
+    note = (
+        "numba's CUDA simulator (NUMBA_ENABLE_CUDASIM=1), very slow" if cuda_is_simulated() else ""
+    )
+    return FastBackend("cuda", note)

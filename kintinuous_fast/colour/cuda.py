@@ -1,0 +1,43 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels: argument types come from the call)
+"""kintinuous_ref.colour's colour_weights as one CUDA kernel around
+kintinuous_fast.tsdf.ops.colour_weight, so that a frame on the device gets its colour weights
+there (paper VI-B); bit-identical weights. Arrays stay where they are given
+(kintinuous_fast.targets.cuda).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import cuda
+
+from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, like_input, to_device
+from kintinuous_fast.tsdf import ops as integration
+from kintinuous_ref.config import ColourConfig
+from kintinuous_ref.preprocess import PreprocessedFrame
+
+__all__ = ["colour_weights"]
+
+colour_weight = integration.build_ops(cuda_device_jit()).colour_weight
+
+
+@cuda.jit
+def _weights_kernel(depth, mask, normals, use_mask, use_angle, out):
+    u, v = cuda.grid(2)
+    if v < out.shape[0] and u < out.shape[1]:
+        out[v, u] = colour_weight(depth[v, u], mask[v, u], normals[v, u, 2], use_mask, use_angle)
+
+
+def colour_weights(frame: PreprocessedFrame, config: ColourConfig):
+    """Weight (H, W) float32 of each pixel's colour update; 0 = do not update (paper VI-B)."""
+    depth = to_device(frame.depth, np.float32)
+    out = cuda.device_array(depth.shape, dtype=np.float32)
+    _weights_kernel[grid_2d(*depth.shape), BLOCK_2D](
+        depth,
+        to_device(frame.colour_mask, np.bool_),
+        to_device(frame.levels[0].normals, np.float32),
+        bool(config.discontinuity_check),
+        bool(config.angle_weighting),
+        out,
+    )
+    return like_input(out, frame.depth)

@@ -1,0 +1,207 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
+"""kintinuous_ref.raycast as a CUDA kernel: one thread per pixel marching its ray through the
+device volume around kintinuous_fast.raycast.ops, jumping over empty bricks with the reference's
+brick distance map, which three small kernels compute on the device every frame. Only the pose
+goes in; the maps are device arrays (downloaded when `download` is True, the default, for a
+ModelPrediction of NumPy arrays like the reference's)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import cuda
+
+from kintinuous_fast.raycast import ops as march
+from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
+from kintinuous_fast.tsdf import voxel as volume
+from kintinuous_fast.tsdf.volume import FastTsdfVolume
+from kintinuous_fast.tsdf.voxel import BRICK
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
+
+__all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
+
+_voxels = volume.build_ops(cuda_device_jit())
+raycast_pixels = march.build_ops(cuda_device_jit(), voxels=_voxels).raycast_pixels
+count_negative = _voxels.count_negative
+
+
+_NOTHING_SKIPPED: list = []
+# Larger than any chessboard distance between bricks: "no negative brick along this axis yet".
+_FAR = 1 << 30
+
+
+def _map_that_skips_nothing() -> Any:
+    """A (1, 1, 1) distance map of 0 on the device (kept for the run): as march_ray's fine map,
+    the brick map decides every step (a jump from distance FINE_LEVEL_BELOW on, else a
+    sample); as both maps, every sample is taken (the plain march, whose answer the exact
+    skipping returns too)."""
+    if not _NOTHING_SKIPPED:
+        _NOTHING_SKIPPED.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.uint8)))
+    return _NOTHING_SKIPPED[0]
+
+
+def empty_space(volume: FastTsdfVolume) -> Any:
+    """kintinuous_ref.raycast._empty_space of the device volume, on the device (int64 brick
+    distances): one thread per brick marks those holding an observed negative voxel, then the
+    chessboard distance to them, one axis at a time (the max-norm distance is separable), less
+    the one brick by which the reference grows them."""
+    bricks = -(-volume.resolution // BRICK)
+    distance = cuda.device_array((bricks,) * 3, dtype=np.int64)
+    scratch = cuda.device_array((bricks,) * 3, dtype=np.int64)
+    blocks = grid_1d(bricks**3)
+    _negative_brick_kernel[blocks, BLOCK_1D](volume.tsdf_weight, *volume.offsets(), distance)
+    for axis in range(3):
+        source, target = (distance, scratch) if axis % 2 == 0 else (scratch, distance)
+        _axis_distance_kernel[blocks, BLOCK_1D](source, target, axis)
+    _grown_distance_kernel[blocks, BLOCK_1D](scratch, distance)  # three passes ended in scratch
+    return distance
+
+
+@cuda.jit
+def _negative_brick_kernel(tsdf_weight, o0, o1, o2, distance):
+    """distance[b] = 0 where logical brick b holds an observed negative voxel, else _FAR."""
+    bricks = distance.shape[0]
+    index = cuda.grid(1)
+    if index >= bricks**3:
+        return
+    b0, rest = index // (bricks * bricks), index % (bricks * bricks)
+    b1, b2 = rest // bricks, rest % bricks
+    found = count_negative(tsdf_weight, o0, o1, o2, b0, b1, b2, BRICK) > 0
+    distance[b0, b1, b2] = 0 if found else _FAR
+
+
+@cuda.jit
+def _axis_distance_kernel(source, target, axis):
+    """target[x] = min over y on x's line along `axis` of max(|x - y|, source[y]): one pass of
+    the separable chessboard distance."""
+    bricks = source.shape[0]
+    index = cuda.grid(1)
+    if index >= bricks**3:
+        return
+    x = (index // (bricks * bricks), (index // bricks) % bricks, index % bricks)
+    best = _FAR
+    for y in range(bricks):
+        offset = abs(y - x[axis])
+        if axis == 0:
+            value = source[y, x[1], x[2]]
+        elif axis == 1:
+            value = source[x[0], y, x[2]]
+        else:
+            value = source[x[0], x[1], y]
+        best = min(best, max(offset, value))
+    target[x[0], x[1], x[2]] = best
+
+
+@cuda.jit
+def _grown_distance_kernel(distance, out):
+    """The distance to the negative bricks grown by one brick: one less (not below 0); 2 B
+    everywhere when there are none (kintinuous_ref.raycast._empty_space's convention)."""
+    bricks = distance.shape[0]
+    index = cuda.grid(1)
+    if index >= bricks**3:
+        return
+    b0, b1, b2 = index // (bricks * bricks), (index // bricks) % bricks, index % bricks
+    d = distance[b0, b1, b2]
+    out[b0, b1, b2] = 2 * bricks if d >= _FAR else max(d - 1, 0)
+
+
+@cuda.jit
+def _clear_kernel(vertices, normals, colours):
+    u, v = cuda.grid(2)
+    if v < vertices.shape[0] and u < vertices.shape[1]:
+        for c in range(3):
+            vertices[v, u, c] = np.nan
+            normals[v, u, c] = np.nan
+            colours[v, u, c] = 0
+
+
+@cuda.jit
+def _raycast_kernel(
+    tsdf_weight,
+    colour_volume,
+    has_colour,
+    o0,
+    o1,
+    o2,
+    empty,
+    fine_distance,
+    camera,
+    rotation,
+    origin,
+    volume_origin,
+    voxel_size,
+    step,
+    vertices,
+    normals,
+    colours,
+    stride,
+):
+    # one thread per pixel cast: (u, v) multiples of the stride
+    cast_u, cast_v = cuda.grid(2)
+    u, v = cast_u * stride, cast_v * stride
+    if v < vertices.shape[0] and u < vertices.shape[1]:
+        raycast_pixels(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
+            camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
+            colours, 0.0, 0, 0.0,
+        )  # fmt: skip
+
+
+def raycast(
+    volume: FastTsdfVolume,
+    pose: np.ndarray,
+    camera: Intrinsics,
+    skip_empty: bool = True,
+    colour: bool = True,
+    download: bool = True,
+    stride: int = 1,
+) -> ModelPrediction:
+    """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
+    `skip_empty` jumps over bricks far from any surface with the reference's exact brick
+    distance map (empty_space, computed on the device); `colour` False leaves the colour map
+    black; `stride` > 1 casts only the pixels whose u and v are multiples of it
+    (kintinuous_ref.raycast.raycast)."""
+    check_stride(stride)
+    shape = (camera.height, camera.width)
+    vertices = cuda.device_array((*shape, 3), dtype=np.float32)
+    normals = cuda.device_array((*shape, 3), dtype=np.float32)
+    colours = cuda.device_array((*shape, 3), dtype=np.uint8)
+    if stride > 1:  # the pixels cast are all written; only those left out need clearing
+        _clear_kernel[grid_2d(*shape), BLOCK_2D](vertices, normals, colours)
+    has_colour = colour and volume.colour is not None
+    colour_volume = (
+        volume.colour if has_colour else cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
+    )
+    pose = np.asarray(pose, dtype=np.float64)
+    cast_grid = grid_2d(-(-shape[0] // stride), -(-shape[1] // stride))
+    _raycast_kernel[cast_grid, BLOCK_2D](
+        volume.tsdf_weight,
+        colour_volume,
+        has_colour,
+        *volume.offsets(),
+        empty_space(volume) if skip_empty else _map_that_skips_nothing(),
+        _map_that_skips_nothing(),  # no finer level
+        cuda.to_device(np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)),
+        cuda.to_device(np.ascontiguousarray(pose[:3, :3])),
+        cuda.to_device(np.ascontiguousarray(pose[:3, 3])),
+        cuda.to_device(np.asarray(volume.origin, dtype=np.float64)),
+        float(volume.voxel_size),
+        STEP_FRACTION * volume.truncation,
+        vertices,
+        normals,
+        colours,
+        int(stride),
+    )
+    if not download:
+        return ModelPrediction(
+            pose=pose.copy(), vertices=vertices, normals=normals, colours=colours
+        )
+    return ModelPrediction(
+        pose=pose.copy(),
+        vertices=vertices.copy_to_host(),
+        normals=normals.copy_to_host(),
+        colours=colours.copy_to_host(),
+    )

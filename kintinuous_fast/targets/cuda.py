@@ -1,0 +1,53 @@
+"""The CUDA backend: kintinuous_ref's public functions as numba.cuda kernels around the scalar
+functions of each stage's ops.py.
+
+Arrays stay where they are given: a function called with device arrays returns device arrays
+(so a pipeline keeps pyramids, maps and volumes in GPU memory for the whole run), one called with
+NumPy arrays uploads them, computes on the GPU and returns NumPy arrays (what the equivalence
+tests use). Runs on numba's CUDA simulator too (NUMBA_ENABLE_CUDASIM=1), very slowly.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import cuda
+
+# Threads per block of the per-pixel kernels: 16 x 16, x along image rows (coalesced reads).
+BLOCK_2D = (16, 16)
+# Threads per block of 1-D kernels (voxel columns, lists).
+BLOCK_1D = 128
+
+
+def is_device(array: Any) -> bool:
+    """True for a numba device array (real or simulated), False for NumPy arrays."""
+    return not isinstance(array, np.ndarray) and hasattr(array, "copy_to_host")
+
+
+def to_device(array: Any, dtype: Any = None) -> Any:
+    """A device array holding `array` (no copy if it already is one of the right dtype)."""
+    if is_device(array):
+        if dtype is not None and array.dtype != np.dtype(dtype):
+            raise TypeError(f"device array is {array.dtype}, expected {np.dtype(dtype)}")
+        return array
+    host = np.ascontiguousarray(array, dtype=dtype)
+    return cuda.to_device(host)
+
+
+def to_host(array: Any) -> np.ndarray:
+    return array.copy_to_host() if is_device(array) else np.asarray(array)
+
+
+def like_input(result: Any, given: Any) -> Any:
+    """`result` (a device array) back on the host when the caller gave a host array."""
+    return result if is_device(given) else result.copy_to_host()
+
+
+def grid_2d(height: int, width: int, block: tuple[int, int] = BLOCK_2D) -> tuple[int, int]:
+    """Blocks covering a height x width image with threads (x = column, y = row)."""
+    return (width + block[0] - 1) // block[0], (height + block[1] - 1) // block[1]
+
+
+def grid_1d(count: int, block: int = BLOCK_1D) -> int:
+    return max(1, (count + block - 1) // block)

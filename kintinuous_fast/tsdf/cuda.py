@@ -1,0 +1,273 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
+"""kintinuous_ref.tsdf as CUDA kernels: integration with one thread per voxel column (threads
+over (k, j), x marched inside the thread, as KinectFusion's GPU design) around
+kintinuous_fast.tsdf.ops, into a FastTsdfVolume in device memory (8 bytes per voxel).
+
+Per frame only the pose, four intrinsics and the frustum box cross from the host; depth, colour
+and colour weights may be device arrays (a host array is uploaded for the call).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import cuda
+
+from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
+from kintinuous_fast.tsdf import ops as integration
+from kintinuous_fast.tsdf import voxel as volume
+from kintinuous_fast.tsdf.volume import (
+    FastTsdfVolume,
+    camera_frame_steps,
+    check_depth,
+    frustum_box,
+    memory_bytes,
+    projection_constants,
+    slab_view,
+    to_reference_volume,
+    volume_header,
+)
+from kintinuous_fast.tsdf.volume import available_memory_bytes as _host_memory_bytes
+from kintinuous_fast.tsdf.volume import check_volume_config as _check_memory
+from kintinuous_fast.tsdf.volume import from_reference_volume as _from_reference_host
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import VolumeConfig
+from kintinuous_ref.tsdf import TsdfVolume, volume_origin
+
+__all__ = [
+    "FastTsdfVolume",
+    "available_memory_bytes",
+    "check_volume_config",
+    "from_reference_volume",
+    "integrate",
+    "make_volume",
+    "memory_bytes",
+    "sample_tsdf",
+    "to_reference_volume",
+    "volume_origin",
+]
+
+_voxels = volume.build_ops(cuda_device_jit())
+_ops = integration.build_ops(cuda_device_jit(), _voxels)
+integrate_voxel = _ops.integrate_voxel
+ray_distance_pixel = _ops.ray_distance_pixel
+sample_tsdf_at = _voxels.sample_tsdf_at
+
+
+@cuda.jit
+def _fill_kernel(flat, value):
+    # Grid-stride loop: each thread writes every (total threads)-th element.
+    start, stride = cuda.grid(1), cuda.gridsize(1)
+    for index in range(start, flat.shape[0], stride):
+        flat[index] = value
+
+
+@cuda.jit
+def _max_depth_kernel(depth, result):
+    # Largest valid depth: one atomic per thread with depth (a reduction small enough here).
+    u, v = cuda.grid(2)
+    if v < depth.shape[0] and u < depth.shape[1] and depth[v, u] > 0:
+        cuda.atomic.max(result, 0, depth[v, u])
+
+
+@cuda.jit
+def _ray_distance_kernel(depth, fx, fy, cx, cy, out):
+    # flat, with -inf in the "no pixel" slot one past the image (ops.integration.project_voxel)
+    u, v = cuda.grid(2)
+    height, width = depth.shape
+    if v < height and u < width:
+        out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+    if u == 0 and v == 0:
+        out[height * width] = -np.inf
+
+
+@cuda.jit
+def _integrate_kernel(
+    tsdf_weight,
+    colour_volume,
+    o0,
+    o1,
+    o2,
+    lo0,
+    hi0,
+    lo1,
+    lo2,
+    hi1,
+    hi2,
+    base,
+    steps,
+    intrinsics,
+    width,
+    height,
+    ray_distance,
+    truncation,
+    max_weight,
+    colour,
+    colour_weights,
+    fuse_colour,
+    colour_max_weight,
+):
+    dk, dj = cuda.grid(2)
+    k, j = lo2 + dk, lo1 + dj
+    if k < hi2 and j < hi1:
+        for i in range(lo0, hi0):
+            integrate_voxel(
+                tsdf_weight,
+                colour_volume,
+                i,
+                j,
+                k,
+                o0,
+                o1,
+                o2,
+                base,
+                steps,
+                intrinsics,
+                width,
+                height,
+                ray_distance,
+                truncation,
+                max_weight,
+                colour,
+                colour_weights,
+                fuse_colour,
+                colour_max_weight,
+            )
+
+
+@cuda.jit
+def _sample_kernel(tsdf_weight, o0, o1, o2, coordinates, out):
+    m = cuda.grid(1)
+    if m < out.shape[0]:
+        out[m] = sample_tsdf_at(
+            tsdf_weight, o0, o1, o2, coordinates[m, 0], coordinates[m, 1], coordinates[m, 2]
+        )
+
+
+def _zeros(shape: tuple[int, ...], dtype: Any) -> Any:
+    """A device array of zeros made on the device (no host buffer of the volume's size)."""
+    array = cuda.device_array(shape, dtype=dtype)
+    flat = array.reshape(-1)
+    blocks = min(grid_1d(flat.shape[0] // 64 + 1), 4096)  # >= 64 elements per thread
+    _fill_kernel[blocks, BLOCK_1D](flat, 0)
+    return array
+
+
+def available_memory_bytes() -> int:
+    """The GPU's free memory, where the cuda volume lives; host memory is not what limits it.
+    Under numba's simulator, which has no memory info and keeps device arrays in host memory,
+    the host's available memory."""
+    try:
+        return int(cuda.current_context().get_memory_info()[0])
+    except Exception:  # the simulator's context has no memory info
+        return _host_memory_bytes()
+
+
+def check_volume_config(config: VolumeConfig) -> None:
+    """Refuse, in one line, a volume (8 bytes per voxel, memory_bytes) that does not fit in the
+    GPU's free memory (available_memory_bytes)."""
+    _check_memory(config, available_memory_bytes())
+
+
+def make_volume(
+    config: VolumeConfig, first_pose: np.ndarray, colour_max_weight: float = 255.0
+) -> FastTsdfVolume:
+    """An empty volume in device memory placed for the first camera pose (all weights 0)."""
+    check_volume_config(config)
+    n = config.resolution
+    return FastTsdfVolume(
+        tsdf_weight=_zeros((n, n, n, 2), np.int16),
+        colour=_zeros((n, n, n, 4), np.uint8) if config.colour else None,
+        **volume_header(config, first_pose, colour_max_weight),
+    )
+
+
+def from_reference_volume(volume: TsdfVolume) -> FastTsdfVolume:
+    """A device fast volume holding a reference volume's values rounded to the stored types."""
+    host = _from_reference_host(volume)
+    host.tsdf_weight = cuda.to_device(host.tsdf_weight)
+    if host.colour is not None:
+        host.colour = cuda.to_device(host.colour)
+    return host
+
+
+def integrate(
+    volume: FastTsdfVolume,
+    depth: Any,
+    pose: np.ndarray,
+    camera: Intrinsics,
+    colour: Any = None,
+    colour_weights: Any = None,
+) -> None:
+    """Fuse one depth map (and optionally its colour) into the device volume, in place; the
+    update rule is kintinuous_ref.tsdf.integrate's, rounded to the stored types."""
+    check_depth(depth, camera)
+    d_depth = to_device(depth, np.float32)
+    grid = grid_2d(camera.height, camera.width)
+    largest = cuda.to_device(np.zeros(1, dtype=np.float32))
+    _max_depth_kernel[grid, BLOCK_2D](d_depth, largest)
+    box = frustum_box(volume, float(largest.copy_to_host()[0]), pose, camera)
+    if box is None:
+        return
+    ray_distance = cuda.device_array(camera.height * camera.width + 1, dtype=np.float32)
+    _ray_distance_kernel[grid, BLOCK_2D](
+        d_depth, camera.fx, camera.fy, camera.cx, camera.cy, ray_distance
+    )
+    fuse_colour = colour is not None and volume.colour is not None
+    if fuse_colour:
+        colour = to_device(colour, np.uint8).reshape(-1, 3)
+        if colour_weights is None:
+            colour_weights = (
+                (np.asarray(depth) > 0).astype(np.float32)
+                if not hasattr(depth, "copy_to_host")
+                else (depth.copy_to_host() > 0).astype(np.float32)
+            )
+        colour_weights = to_device(colour_weights, np.float32).reshape(-1)
+    else:
+        colour = cuda.to_device(np.zeros((1, 3), np.uint8))
+        colour_weights = cuda.to_device(np.zeros(1, np.float32))
+    colour_volume = volume.colour
+    if colour_volume is None:
+        colour_volume = cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
+    base, steps = camera_frame_steps(volume, pose)
+    (lo0, lo1, lo2), (hi0, hi1, hi2) = (int(x) for x in box[0]), (int(x) for x in box[1])
+    threads = grid_2d(hi1 - lo1, hi2 - lo2)  # x: k (contiguous in memory), y: j
+    _integrate_kernel[threads, BLOCK_2D](
+        volume.tsdf_weight,
+        colour_volume,
+        *volume.offsets(),
+        lo0,
+        hi0,
+        lo1,
+        lo2,
+        hi1,
+        hi2,
+        cuda.to_device(base),
+        cuda.to_device(steps),
+        cuda.to_device(projection_constants(camera)),
+        camera.width,
+        camera.height,
+        ray_distance,
+        np.float32(volume.truncation),
+        np.float32(volume.max_weight),
+        colour,
+        colour_weights,
+        fuse_colour,
+        np.float32(volume.colour_max_weight),
+    )
+
+
+def sample_tsdf(volume: FastTsdfVolume, coordinates: Any) -> Any:
+    """Trilinear TSDF over observed voxels at continuous voxel coordinates (M, 3); NaN where
+    none of the 8 is observed or outside the grid (kintinuous_ref.tsdf.sample_tsdf)."""
+    d_coordinates = to_device(coordinates, np.float64)
+    out = cuda.device_array(d_coordinates.shape[0], dtype=np.float64)
+    _sample_kernel[grid_1d(out.shape[0]), BLOCK_1D](
+        volume.tsdf_weight, *volume.offsets(), d_coordinates, out
+    )
+    return like_input(out, coordinates)
+
+
+__all__ += ["slab_view", "to_reference_volume"]

@@ -1,0 +1,341 @@
+"""The fast backends' TSDF + colour volume (8 bytes per voxel) and the host-side per-frame set-up
+shared by the cpu and cuda integration and raycasting (their per-voxel and per-ray maths:
+kintinuous_fast.tsdf.voxel, .integration and .march)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from kintinuous_fast.tsdf.voxel import TSDF_SCALE
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import VolumeConfig
+from kintinuous_ref.errors import DatasetError
+from kintinuous_ref.tsdf import (
+    TsdfVolume,
+    available_memory_bytes,
+    refuse_if_too_big,
+    volume_origin,
+)
+
+BYTES_TSDF = 4  # int16 TSDF + int16 weight
+BYTES_COLOUR = 4  # uint8 R, G, B + uint8 colour weight
+
+
+@dataclass
+class NegativeMasks:
+    """Per logical fine brick (FINE^3 voxels) a bit mask of its observed voxels with negative
+    TSDF (ops.volume.fine_voxel_bit), for the cpu raycast's empty-space maps. Integration keeps
+    them up to date; they describe the logical bricks of the buffer offset they were taken at,
+    so a shift (or clearing cells) makes them stale and they are taken again from the volume
+    when next needed."""
+
+    masks: np.ndarray  # (M, M, M) uint8, M = ceil(N / FINE)
+    offset: tuple[int, int, int]
+
+
+@dataclass
+class FastTsdfVolume:
+    """kintinuous_ref.tsdf.TsdfVolume in 8 bytes per voxel, on the host (cpu) or device (cuda).
+
+    tsdf_weight[..., 0] = round(F * 32767), tsdf_weight[..., 1] = W; colour[..., :3] = RGB,
+    colour[..., 3] = the colour weight rounded to an integer (>= 1 once coloured). Indexed
+    [x, y, z] like the reference; voxel (i, j, k) is centred at origin + voxel_size (i, j, k).
+    """
+
+    tsdf_weight: Any  # (N, N, N, 2) int16
+    colour: Any | None  # (N, N, N, 4) uint8, or None without a colour volume
+    origin: np.ndarray
+    voxel_size: float
+    truncation: float
+    max_weight: float
+    colour_max_weight: float = 255.0
+    # (3,) int in [0, N): array cell of logical voxel (0, 0, 0), the cyclical buffer of the
+    # moving volume (kintinuous_ref.tsdf.TsdfVolume.offset); zero until the volume shifts
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
+    # cpu backend only: the negative-voxel masks (NegativeMasks) or None when not known;
+    # whatever writes tsdf_weight other than integration must call forget_negative_masks()
+    negative_masks: NegativeMasks | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def resolution(self) -> int:
+        return self.tsdf_weight.shape[0]
+
+    @property
+    def shifted(self) -> bool:
+        return bool(np.any(self.offset))
+
+    def offsets(self) -> tuple[int, int, int]:
+        """The offset as three Python ints (o0, o1, o2), as the kernels take it."""
+        o = np.asarray(self.offset, dtype=np.int64) % self.resolution
+        return int(o[0]), int(o[1]), int(o[2])
+
+    def current_negative_masks(self) -> np.ndarray | None:
+        """The negative-voxel masks if they hold for the current offset, else None."""
+        known = self.negative_masks
+        if known is None or known.offset != self.offsets():
+            return None
+        return known.masks
+
+    def forget_negative_masks(self) -> None:
+        self.negative_masks = None
+
+    @property
+    def size(self) -> float:
+        return self.resolution * self.voxel_size
+
+    def world_to_voxel(self, points: np.ndarray) -> np.ndarray:
+        return (points - self.origin) / self.voxel_size
+
+    def voxel_to_world(self, coordinates: np.ndarray) -> np.ndarray:
+        return self.origin + coordinates * self.voxel_size
+
+
+def memory_bytes(config: VolumeConfig) -> int:
+    """Memory of a fast volume: 4 bytes per voxel, 8 with colour (1 GiB at 512^3)."""
+    return (BYTES_TSDF + (BYTES_COLOUR if config.colour else 0)) * config.resolution**3
+
+
+def check_volume_config(config: VolumeConfig, available: int | None = None) -> None:
+    """Refuse, in one line, a fast volume (memory_bytes) that does not fit in `available`
+    bytes: host memory by default, the GPU's free memory where the cuda backend passes it. The
+    config's own fields were checked when it was made (VolumeConfig.__post_init__)."""
+    available = available_memory_bytes() if available is None else available
+    # Headroom for the rest of the pipeline: the fast loops update voxels in place, where the
+    # reference's NumPy integration makes slab-sized temporaries (its headroom: 1 GiB).
+    refuse_if_too_big(config, memory_bytes(config), available, 256 << 20)
+
+
+def volume_header(
+    config: VolumeConfig, first_pose: np.ndarray, colour_max_weight: float
+) -> dict[str, Any]:
+    """The scalar fields of a new volume placed for the first pose (as make_volume does)."""
+    return {
+        "origin": volume_origin(np.asarray(first_pose, dtype=np.float64), config),
+        "voxel_size": config.voxel_size,
+        "truncation": config.truncation,
+        "max_weight": config.max_weight,
+        "colour_max_weight": colour_max_weight,
+    }
+
+
+def to_reference_volume(volume: FastTsdfVolume) -> TsdfVolume:
+    """A float32 kintinuous_ref TsdfVolume with the fast volume's (dequantised) values, on the
+    host: for meshing, and for comparing a fast volume with the reference."""
+    packed = volume.tsdf_weight
+    packed = packed.copy_to_host() if hasattr(packed, "copy_to_host") else np.asarray(packed)
+    colour = volume.colour
+    if colour is not None and hasattr(colour, "copy_to_host"):
+        colour = colour.copy_to_host()
+    return TsdfVolume(
+        tsdf=packed[..., 0].astype(np.float32) / np.float32(TSDF_SCALE),
+        weight=packed[..., 1].astype(np.float32),
+        colour=None if colour is None else colour[..., :3].astype(np.float32),
+        colour_weight=None if colour is None else colour[..., 3].astype(np.float32),
+        origin=np.array(volume.origin, dtype=np.float64),
+        voxel_size=volume.voxel_size,
+        truncation=volume.truncation,
+        max_weight=volume.max_weight,
+        colour_max_weight=volume.colour_max_weight,
+        offset=np.array(volume.offset, dtype=np.int64),
+    )
+
+
+def from_reference_volume(volume: TsdfVolume) -> FastTsdfVolume:
+    """A host fast volume holding a reference volume's values rounded to the stored types."""
+    packed = np.empty((*volume.tsdf.shape, 2), dtype=np.int16)
+    packed[..., 0] = np.clip(np.rint(volume.tsdf * TSDF_SCALE), -32767, 32767)
+    packed[..., 1] = np.rint(volume.weight)
+    colour = None
+    if volume.colour is not None:
+        colour = np.empty((*volume.tsdf.shape, 4), dtype=np.uint8)
+        colour[..., :3] = np.clip(np.rint(volume.colour), 0, 255)
+        weight = np.clip(np.rint(volume.colour_weight), 0, 255)
+        colour[..., 3] = np.where(volume.colour_weight > 0, np.maximum(weight, 1), 0)
+    return FastTsdfVolume(
+        tsdf_weight=packed,
+        colour=colour,
+        origin=np.array(volume.origin, dtype=np.float64),
+        voxel_size=volume.voxel_size,
+        truncation=volume.truncation,
+        max_weight=volume.max_weight,
+        colour_max_weight=volume.colour_max_weight,
+        offset=np.array(getattr(volume, "offset", np.zeros(3)), dtype=np.int64),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Per-frame set-up of integration
+
+
+def check_depth(depth: Any, camera: Intrinsics) -> None:
+    if tuple(depth.shape) != (camera.height, camera.width):
+        raise DatasetError(
+            f"depth image is {tuple(depth.shape)}, camera expects {(camera.height, camera.width)}"
+        )
+
+
+def camera_frame_steps(volume: FastTsdfVolume, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(base, steps) float32 with p_c(i, j, k) = base + i steps[0] + j steps[1] + k steps[2]:
+    the camera-frame position of voxel (i, j, k), computed as the reference does."""
+    rotation_t = pose[:3, :3].T
+    base = (rotation_t @ (volume.origin - pose[:3, 3])).astype(np.float32)
+    steps = np.ascontiguousarray((volume.voxel_size * rotation_t).T.astype(np.float32))
+    return base, steps
+
+
+def projection_constants(camera: Intrinsics) -> np.ndarray:
+    """fx, fy, cx, cy as float32: NumPy 2 evaluates the reference's fx * x / z + cx in float32."""
+    return np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float32)
+
+
+def frustum_box(
+    volume: FastTsdfVolume, max_depth: float, pose: np.ndarray, camera: Intrinsics
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Voxel index box [lo, hi) holding every voxel this frame can update, or None.
+
+    A voxel is updated only if it projects into the image and lies no farther than the largest
+    depth + truncation along z, i.e. inside the pyramid of the camera centre and the image's
+    corners at that depth; the box bounds the pyramid (with a voxel of margin for rounding).
+    """
+    if not max_depth > 0:
+        return None
+    far = float(max_depth) + volume.truncation
+    w, h = camera.width - 0.5, camera.height - 0.5
+    corners = np.array([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h]])
+    rays = np.column_stack(
+        [
+            (corners[:, 0] - camera.cx) / camera.fx,
+            (corners[:, 1] - camera.cy) / camera.fy,
+            np.ones(4),
+        ]
+    )
+    points = np.vstack([np.zeros(3), far * rays])
+    coords = volume.world_to_voxel(points @ pose[:3, :3].T + pose[:3, 3])
+    n = volume.resolution
+    lo = np.clip(np.floor(coords.min(axis=0)).astype(np.int64) - 1, 0, n)
+    hi = np.clip(np.ceil(coords.max(axis=0)).astype(np.int64) + 2, 0, n)
+    if np.any(hi <= lo):
+        return None
+    return lo, hi
+
+
+# ----------------------------------------------------------------------------------------------
+# The moving volume's view of a fast volume
+
+
+def _pieces(index: np.ndarray) -> list[tuple[int, int, int]]:
+    """A wrapped range of cells (np.arange(a, b) + o) % n as (start in the output, first cell,
+    length) runs of consecutive cells (at most two)."""
+    breaks = np.flatnonzero(np.diff(index) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [len(index)]])
+    return [(int(s), int(index[s]), int(e - s)) for s, e in zip(starts, stops, strict=True)]
+
+
+def _blocks(cells: tuple) -> list[tuple[tuple, tuple]]:
+    """(output slices, array slices) of the contiguous blocks that make up TsdfVolume.cells'
+    index (plain slices: one block; np.ix_ arrays of wrapped ranges: up to 8)."""
+    if all(isinstance(c, slice) for c in cells):
+        return [(tuple(slice(0, c.stop - c.start) for c in cells), cells)]
+    per_axis = [_pieces(np.asarray(c).reshape(-1)) for c in cells]
+    blocks = []
+    for a in per_axis[0]:
+        for b in per_axis[1]:
+            for c in per_axis[2]:
+                out = tuple(slice(p[0], p[0] + p[2]) for p in (a, b, c))
+                src = tuple(slice(p[1], p[1] + p[2]) for p in (a, b, c))
+                blocks.append((out, src))
+    return blocks
+
+
+def _shape(cells: tuple) -> tuple[int, int, int]:
+    return tuple(c.stop - c.start if isinstance(c, slice) else np.asarray(c).size for c in cells)
+
+
+class _Field:
+    """One dequantised field of a fast volume as kintinuous_ref.moving_volume reads and clears
+    it: `field[cells]` gives a float32 host copy of the cells (downloading only those blocks
+    from a GPU), `field[cells] = 0` clears them."""
+
+    def __init__(self, volume: FastTsdfVolume, name: str) -> None:
+        self.volume, self.name = volume, name
+
+    def _source(self) -> tuple[Any, Any]:
+        if self.name in ("tsdf", "weight"):
+            return self.volume.tsdf_weight, 0 if self.name == "tsdf" else 1
+        return self.volume.colour, slice(0, 3) if self.name == "colour" else 3
+
+    def __getitem__(self, cells: tuple) -> np.ndarray:
+        array, channel = self._source()
+        shape = _shape(cells)
+        extra = (3,) if self.name == "colour" else ()
+        out = np.empty((*shape, *extra), dtype=np.float32)
+        for out_index, src in _blocks(cells):
+            block = array[src]
+            block = block.copy_to_host() if hasattr(block, "copy_to_host") else block
+            out[out_index] = block[..., channel]
+        if self.name == "tsdf":
+            out /= np.float32(TSDF_SCALE)
+        return out
+
+    def __setitem__(self, cells: tuple, value: float) -> None:
+        if value != 0:
+            raise ValueError("a fast volume's cells can only be cleared (set to 0)")
+        array, _ = self._source()  # clearing: every channel of the voxel
+        self.volume.forget_negative_masks()
+        for _, src in _blocks(cells):
+            if hasattr(array, "copy_to_device"):
+                block = array[src]
+                block.copy_to_device(np.zeros(block.shape, dtype=block.dtype))
+            else:
+                array[src] = 0
+
+
+class SlabView:
+    """A FastTsdfVolume seen through kintinuous_ref.tsdf.TsdfVolume's interface as far as the
+    moving volume (kintinuous_ref.moving_volume) uses it: resolution, voxel_size, origin and
+    offset (shared with the volume: shifting the view shifts the volume), cells(), and the four
+    fields, read and cleared per box of cells (only the leaving slab crosses from a GPU)."""
+
+    def __init__(self, volume: FastTsdfVolume) -> None:
+        self.fast = volume
+        self.tsdf = _Field(volume, "tsdf")
+        self.weight = _Field(volume, "weight")
+        has_colour = volume.colour is not None
+        self.colour = _Field(volume, "colour") if has_colour else None
+        self.colour_weight = _Field(volume, "colour_weight") if has_colour else None
+
+    resolution = property(lambda self: self.fast.resolution)
+    voxel_size = property(lambda self: self.fast.voxel_size)
+    truncation = property(lambda self: self.fast.truncation)
+    size = property(lambda self: self.fast.size)
+    shifted = property(lambda self: self.fast.shifted)
+
+    @property
+    def offset(self) -> np.ndarray:
+        return self.fast.offset
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.fast.origin
+
+    @origin.setter
+    def origin(self, value: np.ndarray) -> None:
+        self.fast.origin = np.asarray(value, dtype=np.float64)
+
+    def cells(self, start: tuple[int, int, int], stop: tuple[int, int, int]) -> tuple:
+        return TsdfVolume.cells(self, start, stop)  # type: ignore[arg-type]
+
+    def world_to_voxel(self, points: np.ndarray) -> np.ndarray:
+        return self.fast.world_to_voxel(points)
+
+    def voxel_to_world(self, coordinates: np.ndarray) -> np.ndarray:
+        return self.fast.voxel_to_world(coordinates)
+
+
+def slab_view(volume: FastTsdfVolume) -> SlabView:
+    """The moving volume's view of a fast volume (SlabView)."""
+    return SlabView(volume)

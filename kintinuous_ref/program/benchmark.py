@@ -1,0 +1,105 @@
+"""`kintinuous benchmark`: per-stage milliseconds and frames per second of the whole pipeline on
+one backend (the paper's Tables V and VI report the same per-stage times at 640x480).
+
+A warm-up run over the first two frames comes first (numba compiles, or loads its cache, for
+every stage, the tracker included), then the timed run. Its first frame is left out of the
+statistics (it has no model to track against); every later frame runs every stage, the raycast
+included.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from kintinuous_ref.config import Config
+from kintinuous_ref.errors import ConfigError
+
+DEFAULT_FRAMES = 30
+
+
+def timing_stats(values: list[float]) -> dict[str, float | None]:
+    """{mean, median, max} of milliseconds (None where nothing was timed)."""
+    if not values:
+        return {"mean": None, "median": None, "max": None}
+    return {
+        "mean": float(np.mean(values)),
+        "median": float(np.median(values)),
+        "max": float(np.max(values)),
+    }
+
+
+def benchmark(
+    dataset: str | None,
+    backend: str = "auto",
+    odometry: str = "icp+rgbd",
+    frames: int = DEFAULT_FRAMES,
+    config: Config | None = None,
+    start: int = 0,
+) -> dict[str, Any]:
+    """Run the pipeline over `frames` frames of `dataset` (a TUM folder or scenario name) on
+    `backend` and return {backend, dataset, odometry, frames, resolution, timing_ms: {stage:
+    {mean, median, max}}, fps (1000 / median total ms)} over frames 2..N."""
+    from kintinuous_ref import pipeline
+    from kintinuous_ref.backend import load_backend
+    from kintinuous_ref.program.reconstruct import open_dataset
+
+    if frames < 2:
+        raise ConfigError(f"--frames must be at least 2 (the first is a warm-up), got {frames}")
+    config = config or Config()
+    chosen = load_backend(backend)
+    sequence = open_dataset(dataset, frames_needed=start + frames)
+    if not 0 <= start < len(sequence):
+        raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
+    groundtruth = None
+    if sequence.groundtruth is not None:
+        groundtruth = sequence.groundtruth_for_frames()
+    count = min(frames, len(sequence) - start)
+    for length in (min(2, count), count):  # the warm-up, then the timed run
+        result = pipeline.run(
+            sequence.frames(start, length),
+            sequence.camera,
+            config,
+            odometry,
+            groundtruth,
+            backend=chosen,
+            predict_model=True,
+        )
+    timing = {stage: timing_stats(values[1:]) for stage, values in result.timings_ms.items()}
+    total = timing.get("total", {}).get("median")
+    return {
+        "backend": chosen.name,
+        "dataset": str(sequence.path),
+        "odometry": odometry,
+        "frames": result.frames,
+        "timed_frames": max(result.frames - 1, 0),
+        "resolution": config.volume.resolution,
+        "image": [sequence.camera.width, sequence.camera.height],
+        "tracking_failures": result.tracking_failures,
+        # finest to coarsest; (0, ...) with --fast-odometry
+        "icp_iterations": list(config.icp.iterations),
+        "timing_ms": timing,
+        "fps": (1000.0 / total) if total else None,
+    }
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """The report as a small text table (stage, mean, median, max ms; frames/s)."""
+    width, height = report["image"]
+    lines = [
+        f"{report['backend']} backend, {report['odometry']}, {width}x{height}, "
+        f"{report['resolution']}^3, {report['timed_frames']} timed frames, ICP iterations "
+        f"{'/'.join(str(n) for n in report['icp_iterations'])} (finest to coarsest)",
+        f"{'stage':12s} {'mean ms':>9s} {'median ms':>10s} {'max ms':>9s}",
+    ]
+    for stage, stats in report["timing_ms"].items():
+        if stats["median"] is None:
+            lines.append(f"{stage:12s} {'-':>9s} {'-':>10s} {'-':>9s}")
+        else:
+            lines.append(
+                f"{stage:12s} {stats['mean']:9.1f} {stats['median']:10.1f} {stats['max']:9.1f}"
+            )
+    fps = report["fps"]
+    lines.append(f"frames/s (median): {fps:.2f}" if fps else "frames/s: -")
+    return "\n".join(lines)

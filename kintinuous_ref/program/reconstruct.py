@@ -1,0 +1,466 @@
+"""`kintinuous reconstruct`: a dataset in, a folder of results out.
+
+The program around the algorithm box (kintinuous_ref.pipeline.run): it opens the dataset (a TUM
+folder, a log, a bag, a downloaded sequence or a built-in scenario rendered into the cache),
+checks everything it can before the first frame, shows progress, and however the run ends saves
+what was done (every file written under a temporary name and renamed into place) and says how it
+ended in report.json's "status": "completed", "interrupted" or "failed".
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kintinuous_ref.backend import REFERENCE, Backend, load_backend
+from kintinuous_ref.config import Config
+from kintinuous_ref.datasets.tum import Frame, FrameSequence
+from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
+from kintinuous_ref.pipeline import GROUNDTRUTH, PipelineResult, check_run, error_reason, run
+from kintinuous_ref.program.warmup import warm_up
+from kintinuous_ref.signals import Interrupted
+from kintinuous_ref.strict_json import dumps as strict_dumps
+
+DEFAULT_DATASET = "desk"
+SCENARIO_FRAMES = 300  # length of a built-in scenario generated into the cache
+
+
+def cache_folder() -> Path:
+    """Where generated scenarios are kept: $KINTINUOUS_CACHE, else ~/.cache/kintinuous."""
+    root = os.environ.get("KINTINUOUS_CACHE")
+    return Path(root) if root else Path.home() / ".cache" / "kintinuous"
+
+
+def open_dataset(
+    dataset: str | None,
+    intrinsics: str | None = None,
+    progress: bool = False,
+    *,
+    size: tuple[int, int] | None = None,
+    groundtruth: Path | None = None,
+    topics: str | None = None,
+    need_camera: bool = True,
+    frames_needed: int | None = None,
+) -> FrameSequence:
+    """Any input the system reads (docs/datasets.md), `desk` when `dataset` is None:
+
+    - a `.klg` log (Kintinuous / ElasticFusion): `size` (default 640x480) and `intrinsics`
+      (fx,fy,cx,cy or a JSON file) say what the log does not; without a camera (only when
+      `need_camera` is False, for conversion) frames can still be read;
+    - a ROS1 `.bag` or ROS2 bag folder: topics `rgb,depth,info` (default TUM's, then
+      RealSense's), camera from its CameraInfo unless `intrinsics` is given;
+    - a TUM RGB-D folder;
+    - a sequence fetched with `kintinuous download` (fr1/desk, ...), from the cache;
+    - a built-in synthetic scenario by name (rendered into the cache on first use, its first
+      `frames_needed` frames only when that is given).
+
+    `groundtruth` (a TUM trajectory file) gives a log or a bag its ground truth.
+    """
+    from kintinuous_ref.camera import intrinsics_from_option
+    from kintinuous_ref.datasets import bag, download, klg, synthetic, tum
+
+    dataset = dataset or DEFAULT_DATASET
+    path = Path(dataset)
+    width, height = size or klg.DEFAULT_SIZE
+    camera = intrinsics_from_option(intrinsics, width, height) if intrinsics else None
+    if path.suffix == ".klg":
+        if camera is None and need_camera:
+            raise ConfigError(
+                f"{path}: a .klg log holds no camera: pass --intrinsics fx,fy,cx,cy "
+                "(and --size WxH unless 640x480)"
+            )
+        if camera is not None and size is None:  # a JSON camera gives the size
+            width, height = camera.width, camera.height
+        return klg.open_log(path, (width, height), camera, groundtruth)
+    if size is not None and intrinsics is None:
+        raise ConfigError("--size is the image size of a .klg log, or of --intrinsics fx,fy,cx,cy")
+    if bag.is_bag(path):
+        chosen = bag.parse_topics(topics) if topics else None
+        return bag.open_bag(path, chosen, camera, groundtruth)
+    for option, value in (("--groundtruth", groundtruth), ("--topics", topics)):
+        if value is not None:
+            raise ConfigError(f"{option} applies to .klg logs and bags, not to {dataset}")
+    if path.is_dir():
+        return tum.open_sequence(path, intrinsics)
+    downloaded = download.cached(dataset, cache_folder() / "tum")
+    if downloaded is not None:
+        return tum.open_sequence(downloaded, intrinsics)
+    if dataset in download.SEQUENCES:
+        raise DatasetError(
+            f"{dataset}: not downloaded yet: run `kintinuous download {dataset}` first"
+        )
+    scenarios = synthetic.list_scenarios()
+    if dataset not in scenarios:
+        raise DatasetError(
+            f"{dataset}: neither a dataset folder nor a scenario ({', '.join(scenarios)}), "
+            "nor a .klg log, a bag or a downloaded sequence"
+        )
+    folder = cache_folder() / dataset
+    # A scenario is rendered only as far as a run needs it (`frames_needed`, all by default),
+    # and extended when a later run needs more.
+    needed = (
+        SCENARIO_FRAMES if frames_needed is None else min(max(frames_needed, 1), SCENARIO_FRAMES)
+    )
+    if rendered_frames(folder) < needed:
+        synthetic.write_scenario(
+            dataset, folder, frames=SCENARIO_FRAMES, progress=progress, render=needed
+        )
+    return tum.open_sequence(folder, intrinsics)
+
+
+def rendered_frames(folder: Path) -> int:
+    """Frames a scenario folder in the cache holds (its associations.txt is written last)."""
+    listing = folder / "associations.txt"
+    if not listing.is_file():
+        return 0
+    return sum(1 for line in listing.read_text().splitlines() if line and line[0] != "#")
+
+
+# Beyond this many triangles the preview shows a coarser mesh (moving_volume.preview_mesh): its
+# render then costs the same memory however long the run.
+PREVIEW_TRIANGLES = 200_000
+
+
+# What a run writes into its folder: a folder holding any of these holds an earlier result.
+RESULT_NAMES = (
+    "report.json",
+    "trajectory.txt",
+    "mesh.ply",
+    "slices",
+    "preview.png",
+    "volume_origins.txt",
+    "crash.log",
+)
+
+
+def check_output(out: str | Path, overwrite: bool = False) -> Path:
+    """The output folder `out`, refused (ConfigError) when empty, a file, or holding an earlier
+    result without `overwrite`. Changes nothing on disk."""
+    if not str(out).strip():
+        raise ConfigError("--out is empty: name an output folder")
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{path}: exists and is not a folder; --out names a folder")
+    if path.is_dir() and not overwrite:
+        earlier = [name for name in RESULT_NAMES if (path / name).exists()]
+        if earlier:
+            raise ConfigError(
+                f"{path}: holds an earlier result ({', '.join(earlier)}); pass --overwrite to "
+                "replace it, or choose another --out"
+            )
+    return path
+
+
+def prepare_output(out: str | Path, overwrite: bool = False) -> Path:
+    """`check_output`, then the earlier result removed (with `overwrite`) and the folder made
+    and shown to be writable, before a run starts: a run never mixes with an older one."""
+    path = check_output(out, overwrite)
+    try:
+        if path.is_dir():
+            for name in RESULT_NAMES:
+                old = path / name
+                if old.is_dir() and not old.is_symlink():
+                    shutil.rmtree(old)
+                elif old.exists() or old.is_symlink():
+                    old.unlink()
+        path.mkdir(parents=True, exist_ok=True)
+        with _atomic(path / ".write-test"):
+            pass
+        (path / ".write-test").unlink()
+    except OSError as err:
+        raise ConfigError(
+            f"{path}: cannot write the output folder ({err.strerror or err})"
+        ) from None
+    return path
+
+
+@contextlib.contextmanager
+def _atomic(path: Path) -> Iterator[Path]:
+    """A temporary name beside `path` (same suffix) to write to; renamed to `path` when the
+    block ends, removed when it raises: no reader ever sees half a file."""
+    temporary = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        yield temporary
+        if not temporary.exists():  # the writer wrote nothing (an empty block)
+            temporary.touch()
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+        raise
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """`text` into `path`, written under a temporary name and renamed."""
+    with _atomic(Path(path)) as temporary:
+        temporary.write_text(text)
+
+
+def write_outputs(
+    result: PipelineResult,
+    out: Path,
+    report: dict[str, Any],
+    preview: bool = True,
+    saved: list[str] | None = None,
+) -> dict[str, Any]:
+    """trajectory.txt, mesh.ply, volume_origins.txt, preview.png and report.json in `out`;
+    returns the report. Each file is written atomically, in that order, and its name appended to
+    `saved` once in place. A file that cannot be written (a full disk, a failed render) is left
+    out and named in the report's "not_saved" with the reason; report.json itself must be
+    written (its OSError propagates)."""
+    from kintinuous_ref import mesh as meshing
+    from kintinuous_ref.datasets.tum import write_trajectory
+
+    saved = [] if saved is None else saved
+    not_saved: dict[str, str] = {}
+    out.mkdir(parents=True, exist_ok=True)
+
+    def attempt(name: str, write: Callable[[Path], Any]) -> Any:
+        try:
+            with _atomic(out / name) as temporary:
+                value = write(temporary)
+        except Exception as err:  # kept in the report; the next file is still tried
+            not_saved[name] = error_reason(err)
+            return None
+        saved.append(name)
+        return value
+
+    attempt("trajectory.txt", lambda path: write_trajectory(path, result.trajectory))
+    surface, mesh_size = None, None
+    if result.moving is not None and result.volume is not None:
+        # The rest of the window is the last slice; the slices merge into one mesh on disk.
+        from kintinuous_ref import moving_volume
+
+        try:
+            result.moving.finish()
+        except Exception as err:  # the last slice is missing, so the mesh would be too
+            not_saved["slices"] = not_saved["mesh.ply"] = error_reason(err)
+        else:
+            mesh_size = attempt(
+                "mesh.ply", lambda path: moving_volume.assemble(result.moving.store, path)
+            )
+        # The window at each frame (after its shift): timestamp, voxel (0, 0, 0)'s centre.
+        rows = np.column_stack([result.timestamps, np.reshape(result.volume_origins, (-1, 3))])
+        attempt(
+            "volume_origins.txt",
+            lambda path: np.savetxt(path, rows, fmt="%.6f", header="timestamp x y z"),
+        )
+        if preview and mesh_size is not None:  # the mesh grows with the path; its preview does not
+            try:
+                surface = moving_volume.preview_mesh(
+                    result.moving.store, result.volume.voxel_size, PREVIEW_TRIANGLES, mesh_size[1]
+                )
+            except Exception as err:
+                not_saved["preview.png"] = error_reason(err)
+    elif result.volume is not None:
+        volume = result.volume
+        try:
+            if result.host_volume is not None:  # a fast backend's volume, as a host TsdfVolume
+                volume = result.host_volume(volume)
+            surface = meshing.extract_mesh(volume)
+        except Exception as err:
+            not_saved["mesh.ply"] = error_reason(err)
+        if surface is not None:
+            attempt("mesh.ply", lambda path: meshing.write_ply(path, surface))
+            if "mesh.ply" in saved:
+                mesh_size = (len(surface.points), len(surface.triangles))
+    if preview and surface is not None:
+        first = result.poses[0] if result.poses else None
+        attempt("preview.png", lambda path: meshing.render_preview(surface, path, view_pose=first))
+    report = {
+        **report,
+        "status": result.status,
+        "reason": result.reason or None,
+        "last_frame": result.last_frame,
+        "frames": result.frames,
+        "fused_frames": int(np.sum(result.fused)),
+        "tracking_failures": result.tracking_failures,
+        "failure_reasons": result.failure_reasons[:50],
+        "interrupted": result.interrupted,
+        "timing_ms": result.timing_summary(),
+        "mesh": {
+            "vertices": None if mesh_size is None else int(mesh_size[0]),
+            "triangles": None if mesh_size is None else int(mesh_size[1]),
+        },
+        "moving_volume": result.moving is not None,
+        "shifts": result.shifts,
+        "slices": result.slices,
+        "saved": [*saved, "report.json"],
+        "not_saved": not_saved,
+    }
+    if result.volume is not None:
+        report["volume"] = {
+            "resolution": result.volume.resolution,
+            "size_m": result.volume.size,
+            "voxel_m": result.volume.voxel_size,
+            "truncation_m": result.volume.truncation,
+            "origin": result.volume.origin.tolist(),
+        }
+    write_text_atomic(out / "report.json", strict_dumps(report, indent=2) + "\n")
+    saved.append("report.json")
+    return report
+
+
+def _bad_frames_checked(
+    sequence: FrameSequence, start: int, count: int, skip: bool, skipped: list[str]
+) -> Iterator[Frame]:
+    """The frames start.. of a sequence; an unreadable one (corrupt, wrong size) is a
+    DatasetError naming the frame and its file, or with `skip` left out and listed in
+    `skipped`."""
+    for index in range(start, start + count):
+        try:
+            frame = sequence[index]
+        except DatasetError as err:
+            message = f"frame {index}: {err}"
+            if not skip:
+                raise DatasetError(message) from None
+            skipped.append(message)
+            continue
+        yield frame
+
+
+# (backend, odometry) pairs whose kernels this process has compiled or loaded already
+_PREPARED: set[tuple[str, str]] = set()
+
+
+def prepare_kernels(backend: Backend, config: Config, odometry: str) -> None:
+    """Compile (or load from numba's cache) the kernels the run will call, before its progress
+    bar starts, so that the bar's rate and time left count frames only; say how long it took."""
+    if backend.name == REFERENCE or (backend.name, odometry) in _PREPARED:
+        return
+    print(
+        f"preparing the {backend.name} kernels (the first run after installing compiles them, "
+        "a few minutes; later runs load them in seconds)...",
+        file=sys.stderr,
+        flush=True,
+    )
+    report = warm_up(backend, config, odometry)
+    _PREPARED.add((backend.name, odometry))
+    compiled = report.kernel_seconds
+    how = f"compiled {len(compiled)} kernels" if compiled else "loaded from numba's cache"
+    print(f"kernels ready in {report.seconds:.0f} s ({how})", file=sys.stderr, flush=True)
+
+
+def reconstruct(
+    sequence: FrameSequence,
+    out: Path,
+    config: Config,
+    odometry: str = GROUNDTRUTH,
+    start: int = 0,
+    count: int | None = None,
+    backend_name: str = "ref",
+    show_progress: bool = True,
+    predict_model: bool | None = None,
+    overwrite: bool = False,
+    skip_bad_frames: bool = False,
+) -> dict[str, Any]:
+    """Run the pipeline over frames start.. of a sequence and write the outputs into `out`.
+
+    Everything that can be checked is checked before the first frame is read; `out` must not
+    hold an earlier result unless `overwrite` (which removes it first). However the run ends,
+    what was done is saved (write_outputs) with its status; then an interrupted run raises
+    Interrupted, a failed one a one-line KintinuousError (InternalError for a bug, whose
+    traceback goes to crash.log in `out`). An unreadable frame ends the run, or with
+    `skip_bad_frames` is left out and counted in the report's "skipped_frames".
+    """
+    backend = load_backend(backend_name)  # ConfigError when it cannot run here
+    if not 0 <= start < len(sequence):
+        raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
+    if count is not None and count <= 0:
+        raise ConfigError(f"--frames must be positive, got {count}")
+    groundtruth = None
+    if sequence.groundtruth is not None:
+        try:
+            groundtruth = sequence.groundtruth_for_frames()
+        except DatasetError:
+            if odometry == GROUNDTRUTH:
+                raise
+    if odometry == GROUNDTRUTH and groundtruth is None:
+        raise ConfigError(
+            f"{sequence.path}: no ground truth (groundtruth.txt, or --groundtruth for a log or "
+            "bag), so --odometry groundtruth cannot run"
+        )
+    check_run(config, odometry, groundtruth, backend)
+    out = prepare_output(out, overwrite)
+    total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
+    bar = None
+    if show_progress:
+        from tqdm import tqdm
+
+        prepare_kernels(backend, config, odometry)
+
+        bar = tqdm(total=total, unit="frame", desc="reconstruct")
+    skipped: list[str] = []
+    try:
+        result = run(
+            _bad_frames_checked(sequence, start, total, skip_bad_frames, skipped),
+            sequence.camera,
+            config,
+            odometry,
+            groundtruth,
+            progress=(lambda _: bar.update(1)) if bar is not None else None,
+            predict_model=predict_model,
+            slices=out / "slices",
+            backend=backend,
+            capture_errors=True,
+        )
+    except BaseException:
+        if bar is not None:
+            bar.close()
+        raise
+    info = {
+        "dataset": str(sequence.path),
+        "odometry": odometry,
+        "backend": backend.name,
+        "start": start,
+        "skipped_frames": len(skipped),
+        "skipped_reasons": skipped[:50],
+    }
+    saved: list[str] = []
+    try:
+        if bar is not None:
+            bar.close()  # the one-line messages below start on a line of their own
+        print(f"saving {result.frames} frames...", file=sys.stderr, flush=True)
+        if result.error is not None and not isinstance(result.error, KintinuousError | OSError):
+            write_text_atomic(out / "crash.log", result.error_traceback)
+            saved.append("crash.log")
+        report = write_outputs(result, out, info, saved=saved)
+    except KeyboardInterrupt as again:
+        name = getattr(again, "signal_name", "SIGINT")
+        names = ["trajectory.txt", "mesh.ply", "preview.png", "report.json"]
+        if result.moving is not None:
+            names.insert(2, "volume_origins.txt")
+        missing = [n for n in names if n not in saved]
+        raise Interrupted(
+            name,
+            f"{name} during the save: saved {', '.join(saved) or 'nothing'} in {out}; NOT saved: "
+            f"{', '.join(missing)}",
+        ) from None
+    except OSError as err:
+        raise KintinuousError(
+            f"{out}: cannot save the run ({error_reason(err)}); saved: "
+            f"{', '.join(saved) or 'nothing'}"
+        ) from None
+    kept = f"the {result.frames} frames done are saved in {out}"
+    if report["not_saved"]:
+        problems = "; ".join(f"{k}: {v}" for k, v in report["not_saved"].items())
+        kept = f"saved {', '.join(report['saved'])} in {out} but NOT {problems}"
+    if result.interrupted:
+        raise Interrupted(
+            result.signal_name,
+            f"{result.reason} after frame {result.last_frame}: {kept}",
+        )
+    if result.error is not None:
+        if "crash.log" in saved:
+            raise InternalError(f"{result.reason}; traceback in {out / 'crash.log'}; {kept}")
+        raise KintinuousError(f"{result.reason}; {kept}")
+    if report["not_saved"]:
+        raise KintinuousError(kept)
+    return report

@@ -1,0 +1,175 @@
+"""`kintinuous warmup`: compile a backend's kernels before a run needs them, and say how long
+each one took.
+
+numba compiles a kernel the first time it is called with new argument types and keeps the
+machine code in its on-disk cache, so only the first run after an installation pays for it.
+Types, not sizes, decide what is compiled, so a few tiny synthetic frames (160x120, a 64^3
+volume) through the real pipeline compile everything a full-size run of the same configuration
+and odometry will call. Timing each stage of those frames says how long each stage took to
+compile; numba's "numba:compile" events (fired only when a kernel is really compiled, not when
+it is loaded from the cache) say which kernels the time went into.
+
+`reconstruct` warms up before its progress bar starts, so the bar's rate and time left count
+frames only, and it says how long the wait was.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from kintinuous_ref.backend import Backend
+from kintinuous_ref.config import Config
+from kintinuous_ref.datasets.tum import Frame
+from kintinuous_ref.errors import KintinuousError
+from kintinuous_ref.odometry import DENSE_METHODS, METHODS
+from kintinuous_ref.pipeline import GROUNDTRUTH, STAGES, run
+
+FRAMES = 3  # the first fuses, the second tracks, the third tracks against a raycast model
+WIDTH, HEIGHT = 160, 120
+RESOLUTION = 64
+
+
+@dataclass
+class WarmupReport:
+    backend: str
+    seconds: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=dict)  # slowest frame per stage
+    kernel_seconds: dict[str, float] = field(default_factory=dict)  # compiled here, outermost
+    methods: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "backend": self.backend,
+            "seconds": self.seconds,
+            "methods": self.methods,
+            "stage_seconds": self.stage_seconds,
+            "kernel_seconds": self.kernel_seconds,
+        }
+
+
+def warmup_frames() -> tuple[list[Frame], Any, Any]:
+    """Three small frames of the built-in desk scene, its camera and its ground truth."""
+    from kintinuous_ref.datasets.synthetic import make_scenario
+
+    scenario = make_scenario("desk", frames=FRAMES, width=WIDTH, height=HEIGHT)
+    stamps = scenario.trajectory.timestamps
+    frames = [Frame(i, float(stamps[i]), *scenario.render(i)) for i in range(FRAMES)]
+    return frames, scenario.camera, scenario.trajectory
+
+
+def small_config(config: Config) -> Config:
+    """`config` with a 64^3 volume: the same kernels as the full-size run, seconds less work."""
+    shift = min(config.volume.shift_threshold, RESOLUTION // 4)
+    volume = replace(config.volume, resolution=RESOLUTION, shift_threshold=shift)
+    return replace(config, volume=volume)
+
+
+def methods_for(odometry: str) -> list[str]:
+    """The odometry methods to warm up: "all" means every dense tracker and FOVIS switching over
+    the joint one (the others reuse their kernels)."""
+    if odometry == "all":
+        return [*DENSE_METHODS, "fovis/icp+rgbd"]
+    if odometry != GROUNDTRUTH and odometry not in METHODS:
+        raise KintinuousError(f"unknown odometry {odometry!r}")
+    return [odometry]
+
+
+def warm_up(
+    backend: Backend,
+    config: Config,
+    odometry: str = "all",
+    progress: Callable[[str], None] | None = None,
+) -> WarmupReport:
+    """Run each method of `methods_for(odometry)` over the warm-up frames on `backend` and
+    return how long each stage and each compiled kernel took. `progress(method)` is called after
+    each method."""
+    frames, camera, trajectory = warmup_frames()
+    small = small_config(config)
+    report = WarmupReport(backend.name, methods=methods_for(odometry))
+    start = time.perf_counter()
+    with compile_events() as kernels:
+        for method in report.methods:
+            result = run(frames, camera, small, method, trajectory, backend)
+            if result.error is not None:
+                raise result.error
+            for stage in STAGES:
+                if stage != "total" and result.timings_ms[stage]:
+                    slowest = max(result.timings_ms[stage]) / 1000.0
+                    report.stage_seconds[stage] = report.stage_seconds.get(stage, 0.0) + slowest
+            if progress is not None:
+                progress(method)
+    report.seconds = time.perf_counter() - start
+    report.kernel_seconds = dict(sorted(kernels.items(), key=lambda item: -item[1]))
+    return report
+
+
+@contextmanager
+def compile_events() -> Iterator[dict[str, float]]:
+    """Seconds per kernel that numba compiles inside the block (outermost compilations only: a
+    kernel's time includes the device functions it compiles on the way). Empty without numba."""
+    seconds: dict[str, float] = {}
+    try:
+        from numba.core import event
+    except ImportError:
+        yield seconds
+        return
+
+    open_events: list[tuple[str, float]] = []
+
+    class Listener(event.Listener):
+        def on_start(self, item: Any) -> None:
+            dispatcher = item.data["dispatcher"]
+            name = f"{dispatcher.py_func.__module__}.{dispatcher.py_func.__qualname__}"
+            open_events.append((name, time.perf_counter()))
+
+        def on_end(self, item: Any) -> None:
+            name, began = open_events.pop()
+            if not open_events:  # an outermost compilation
+                seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - began
+
+    with event.install_listener("numba:compile", Listener()):
+        yield seconds
+
+
+def warm_up_from_empty_cache(backend: str, odometry: str, timeout: float = 1800.0) -> dict:
+    """The warm-up in a child process whose numba cache is an empty temporary folder: what a
+    fresh installation pays, measured without touching this installation's cache."""
+    with tempfile.TemporaryDirectory(prefix="kintinuous-numba-cache-") as cache:
+        environment = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        cli = [sys.executable, "-m", "kintinuous_ref.program.cli", "warmup", "--json"]
+        command = [*cli, "--backend", backend, "--odometry", odometry]
+        done = subprocess.run(
+            command, capture_output=True, text=True, env=environment, timeout=timeout
+        )
+    if done.returncode != 0:
+        lines = done.stderr.strip().splitlines() or ["no output"]
+        raise KintinuousError(f"the warm-up from an empty cache failed: {lines[-1]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def format_report(report: dict[str, Any], kernels: int = 10) -> str:
+    """Per-stage seconds, then the `kernels` slowest compilations."""
+    lines = [
+        f"{report['backend']} backend ready in {report['seconds']:.1f} s "
+        f"(odometry: {', '.join(report['methods'])})",
+        f"{'stage':12s} {'seconds':>8s}",
+    ]
+    lines += [f"{stage:12s} {value:8.1f}" for stage, value in report["stage_seconds"].items()]
+    compiled = report["kernel_seconds"]
+    if compiled:
+        total = sum(compiled.values())
+        lines.append(f"compiled {len(compiled)} kernels in {total:.1f} s; the slowest:")
+        slowest = list(compiled.items())[:kernels]
+        lines += [f"  {seconds:6.1f} s  {name}" for name, seconds in slowest]
+    else:
+        lines.append("nothing compiled: every kernel came from numba's cache")
+    return "\n".join(lines)

@@ -1,0 +1,69 @@
+"""`kintinuous warmup` and the wait before a run's progress bar: what numba compiles is seen
+through its compile events, and a warmed-up backend compiles nothing more."""
+
+import json
+from pathlib import Path
+
+import numba
+import pytest
+
+from kintinuous_ref.backend import load_backend
+from kintinuous_ref.config import Config
+from kintinuous_ref.program import warmup
+from kintinuous_ref.program.cli import main
+
+TINY = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
+
+
+def test_compile_events_time_each_compilation_once():
+    @numba.njit
+    def triple(x):
+        return 3 * x
+
+    with warmup.compile_events() as compiled:
+        assert triple(2) == 6
+        assert triple(5) == 15  # same types: no second compilation
+    (name,) = compiled
+    assert name.endswith("triple") and compiled[name] > 0
+    with warmup.compile_events() as again:
+        triple(7)
+    assert again == {}
+
+
+def test_after_a_warm_up_a_run_compiles_nothing():
+    backend = load_backend("cpu")
+    first = warmup.warm_up(backend, Config(), "icp")
+    assert first.methods == ["icp"]
+    assert set(first.stage_seconds) >= {"preprocess", "odometry", "integrate", "raycast"}
+    second = warmup.warm_up(backend, Config(), "icp")
+    assert second.kernel_seconds == {}
+    assert second.seconds < 30
+
+
+def test_warmup_command_reports_stages_and_kernels(capsys):
+    assert main(["warmup", "--backend", "cpu", "--odometry", "groundtruth", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["backend"] == "cpu" and report["methods"] == ["groundtruth"]
+    assert "odometry" in report["stage_seconds"] and report["seconds"] > 0
+
+
+def test_the_empty_cache_measurement_runs_in_its_own_process():
+    """On the reference (nothing to compile) the child's report comes back whole."""
+    report = warmup.warm_up_from_empty_cache("ref", "groundtruth", timeout=300)
+    assert report["backend"] == "ref" and report["kernel_seconds"] == {}
+    assert report["methods"] == ["groundtruth"]
+
+
+def test_unknown_odometry_is_one_line():
+    with pytest.raises(SystemExit):
+        main(["warmup", "--odometry", "kinfu"])
+
+
+def test_reconstruct_prepares_the_kernels_before_its_progress_bar(tmp_path, capsys):
+    out = tmp_path / "run"
+    options = ["--backend", "cpu", "--odometry", "icp", "--frames", "2", "--resolution", "32"]
+    assert main(["reconstruct", str(TINY), *options, "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    preparing = err.index("preparing the cpu kernels")
+    ready = err.index("kernels ready in")
+    assert preparing < ready < err.index("reconstruct:")  # the bar starts after the wait
