@@ -486,7 +486,7 @@ def check_exercise_1(w: float) -> None:
     candidates = sorted({*weights, 3.0, 30.0, w})
     for candidate in candidates:
         weighted = with_overrides(normalised, {"combined.rgbd_weight": candidate})
-        estimated = track_pairs(fast_tracker("icp+rgbd", weighted, camera, backend="cpu"))
+        estimated = track_pairs(cpu_odometry.make_tracker("icp+rgbd", weighted, camera))
         poses = np.array([truth[i] @ estimated[i] for i in range(PAIRS)])
         error = poses[:, :3, 3] - truth[1 : PAIRS + 1, :3, 3]
         if 1000 * np.sqrt(np.mean(error[:, 0] ** 2)) < 2.0:

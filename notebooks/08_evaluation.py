@@ -36,7 +36,7 @@ from kintinuous_ref import metrics, pipeline, se3
 from kintinuous_ref.config import Config, with_overrides
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.datasets.tum import Frame, Trajectory
-from kintinuous_ref.evaluation import paper
+from kintinuous_ref.program.evaluation import paper
 
 WIDTH, HEIGHT, FRAMES = 160, 120, 36  # 36 frames: 1.2 s, so that drift over 1 s exists
 config = with_overrides(Config(), {"volume.resolution": 96, "volume.size": 3.0})
@@ -132,9 +132,9 @@ print(inspect.getsource(metrics.ranking_scores))
 # %% [markdown]
 # ### Reproducing Table I's rank scores
 #
-# `kintinuous_ref.evaluation.paper` holds the errors the paper publishes (transcribed from its
-# tables). Eq. 16 applied to Table I's median and maximum ATE columns, against the rank-score
-# columns the paper prints beside them:
+# `kintinuous_ref.program.evaluation.paper` holds the errors the paper publishes (transcribed
+# from its tables). Eq. 16 applied to Table I's median and maximum ATE columns, against the
+# rank-score columns the paper prints beside them:
 
 # %%
 rows = []
