@@ -26,6 +26,9 @@
 # 3. recovers a known 3.7 cm / 1.5 degree motion coarse-to-fine (error printed in mm and deg),
 # 4. shows where the method fails: in the dark,
 # 5. checks that `kintinuous_fast` gives the same systems, and how much faster.
+#
+# Along the way: the cost that Gauss-Newton lowers is not the error, which can rise while the cost
+# falls. Prerequisites: notebook 1 (the camera model and poses). About 10 s warm.
 
 # %%
 # %matplotlib inline

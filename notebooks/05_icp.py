@@ -25,7 +25,7 @@
 # 3. recovering a known motion coarse to fine, against a model raycast from a fused volume,
 # 4. where ICP is blind: the normal equations of a corridor have a (nearly) empty direction.
 #
-# Prerequisites: notebook 1 (the volume and its raycast). About 15 s warm.
+# Prerequisites: notebook 1 (the volume and its raycast). About 5 s warm.
 
 # %%
 # %matplotlib inline

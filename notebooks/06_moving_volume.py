@@ -226,7 +226,8 @@ plt.show()
 
 # %% [markdown]
 # The fixed volume keeps only what lies inside the first window; the moving volume keeps the
-# whole walk, with the same memory. Both surfaces sit within a few millimetres of the truth.
+# whole walk, with the same memory. Both surfaces sit within a millimetre of the truth (on
+# average over their vertices): extraction by slices costs no accuracy.
 #
 # ## Summary
 #

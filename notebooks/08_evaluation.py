@@ -23,7 +23,7 @@
 # 3. reproduces the rank-score columns of the paper's Table I from its published errors,
 # 4. scores runs of three trackers on two synthetic scenes, and ranks them with eq. 16.
 #
-# Prerequisites: notebooks 2, 3 and 5 (the trackers). About 30 s warm.
+# Prerequisites: notebooks 2, 3 and 5 (the trackers). About 40 s warm (six tracked runs).
 
 # %%
 # %matplotlib inline
