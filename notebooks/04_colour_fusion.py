@@ -30,6 +30,7 @@
 
 # %%
 # %matplotlib inline
+import inspect
 import os
 import platform
 import subprocess
@@ -94,6 +95,10 @@ frames = {index: frame_at(index) for index in fused_indices}
 #
 # and $w_c = |\cos\theta|$: colours seen straight on outweigh colours seen at a grazing angle
 # (stretched texture, more edge pixels).
+
+# %%
+print(inspect.getsource(colour.angle_weight))
+print(inspect.getsource(colour.colour_weights))
 
 # %%
 first = frames[fused_indices[0]]
