@@ -516,8 +516,9 @@ for angle, errors in sweep.items():
 # %% [markdown]
 # The sweep shows where eq. 15 earns its place. The steeper the grazing views, the blurrier their
 # colours and the more the weighting has to correct (60 to 75 degrees), until at 80 degrees the
-# sensor itself returns no depth for much of the grazing frames, so they drop out on their own
-# and plain fusion comes closer. On a scene like the desk, where every surface is seen from
+# grazing frames drop out on their own: the patch covers fewer of their pixels, and the sensor
+# returns no depth for about a third of those (its dropouts at grazing incidence), so plain
+# fusion comes closer. On a scene like the desk, where every surface is seen from
 # similar angles, the weighting has nothing to correct. So both findings hold: no measurable
 # effect on the desk, a clear one in the situation of the paper's Fig. 3.
 #
