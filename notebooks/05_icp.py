@@ -175,18 +175,24 @@ for code, name in enumerate(names):
 # $$ E_{icp} = \sum_k \left( \left(\exp(\hat\xi)\, \mathbf{p}_k - \mathbf{v}_m^k\right)
 # \cdot \mathbf{n}_m^k \right)^2. \qquad (6) $$
 #
+# (The paper writes the difference the other way round, $\mathbf{v}_m^k - \exp(\hat\xi)
+# T\mathbf{v}_n^k$; squared, it is the same cost. Its $T\mathbf{v}_n^k$ is our
+# $\mathbf{p}_k$.)
+#
 # Point-to-plane rather than point-to-point: a flat wall sampled at different pixels in the two
 # frames has no true point pairs, but every sample lies on the same plane, so sliding along the
 # plane costs nothing and the optimiser is not pulled back to wrong pairs. For a small motion,
 # $\exp(\hat\xi)\,\mathbf{p} \approx \mathbf{p} + \omega \times \mathbf{p} + \mathbf{u}$
-# (eq. 7-8), and since $(\omega \times \mathbf{p}) \cdot \mathbf{n} = \omega \cdot
-# (\mathbf{p} \times \mathbf{n})$, each pair becomes one linear row
+# (the linearisation of eq. 7-9), and since
+# $(\omega \times \mathbf{p}) \cdot \mathbf{n} = \omega \cdot (\mathbf{p} \times \mathbf{n})$,
+# each pair becomes one linear row
 #
 # $$ r_k = (\mathbf{p}_k - \mathbf{v}_m^k) \cdot \mathbf{n}_m^k, \qquad
 # J_k = \left[ (\mathbf{p}_k \times \mathbf{n}_m^k)^\top \;\; {\mathbf{n}_m^k}^\top \right],
-# \qquad E_{icp} \approx \lVert J_{icp}\, \xi + r_{icp} \rVert^2, \qquad (9) $$
+# \qquad E_{icp} \approx \lVert J_{icp}\, \xi + r_{icp} \rVert^2, \qquad (9\text{-}10) $$
 #
-# whose minimiser solves the 6x6 normal equations $J^\top J\, \xi = -J^\top r$ (eq. 10; the GPU
+# whose minimiser solves the 6x6 normal equations $J^\top J\, \xi = -J^\top r$ (the ICP half
+# of eq. 12-13, which stack and add it to the RGB-D system; the GPU
 # sums the 27 distinct numbers of $[J\,|\,r]^\top [J\,|\,r]$ by a tree reduction, the CPU solves
 # by Cholesky). The package's rows:
 
@@ -248,7 +254,7 @@ np.testing.assert_allclose(jacobian, numeric, atol=1e-7)
 # %% [markdown]
 # ## Coarse to fine, against the known motion
 #
-# `IcpProblem` builds the system of eq. 10 at any pyramid level for any pose estimate;
+# `IcpProblem` builds the normal equations of eq. 10 at any pyramid level for any pose estimate;
 # `refine` runs Gauss-Newton, coarsest level first, with 10 / 5 / 4 iterations from finest to
 # coarsest (KinectFusion's schedule). The model is downsampled the way the current frame is
 # (`preprocess.model_pyramid`). The error of the estimate after each step, and the residuals of
@@ -381,7 +387,7 @@ assert condition["corridor"] > 10 * condition["desk"]
 # - The point-to-plane cost (eq. 6) linearised with $\exp(\hat\xi) \approx I + \hat\xi$ gives one
 #   row per pair, $r_k = (\mathbf{p}_k - \mathbf{v}_m^k)\cdot\mathbf{n}_m^k$,
 #   $J_k = [(\mathbf{p}_k\times\mathbf{n}_m^k)^\top\; {\mathbf{n}_m^k}^\top]$ (eq. 9); the 6x6
-#   normal equations (eq. 10) are summed on the GPU and solved on the CPU.
+#   normal equations of eq. 10's least squares are summed on the GPU and solved on the CPU.
 # - Coarse to fine, it recovers a 3.7 cm / 1.5 degree motion to a few millimetres against a
 #   model raycast from a noisy fused volume.
 # - The eigenvalues of $J^\top J$ say what the geometry can determine; in a corridor the
