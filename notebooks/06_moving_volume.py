@@ -96,12 +96,15 @@ print("logical voxel -> array cell:", dict(enumerate(cells_of_logical.tolist()))
 # %% [markdown]
 # ## When to shift, and how far
 #
-# The paper shifts when the camera has moved more than a threshold number of voxels from the
-# volume's centre. The package follows a point fixed in the first camera's frame (with the
-# default placement "ahead", the point half a volume in front of the camera, so a camera that
-# turns drags the volume to where it looks); when that point is at least `shift_threshold`
-# voxels (default 14, the paper allows up to 16) from the centre on any axis, the window shifts
-# by the rounded displacement on every axis, each clamped to the threshold:
+# The paper's Fig. 2 has four steps: (i) the camera's motion exceeds a movement threshold,
+# (ii) the slice of the volume that leaves is raycast for its surface points and reset,
+# (iii) the points are triangulated, (iv) the new region enters the volume. The paper gives no
+# value for the threshold. The package follows a point fixed in the first camera's frame (with
+# the default placement "ahead", the point half a volume in front of the camera, so a camera
+# that turns drags the volume to where it looks); when that point is at least
+# `shift_threshold` voxels (default 14; 1 to 16 allowed, docs/parameters.md) from the centre on
+# any axis, the window shifts by the rounded displacement on every axis, each clamped to the
+# threshold:
 
 # %%
 print(inspect.getsource(moving_volume.shift_for))
