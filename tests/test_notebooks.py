@@ -7,7 +7,7 @@ np.testing.assert_allclose of kintinuous_fast against kintinuous_ref), so execut
 test; on top, each must show at least two pictures (under MPLBACKEND=Agg, which would drop them
 if a notebook relied on the user's backend) and end with a summary and exercises.
 Budget: each lesson runs warm in well under 90 s on the 2-core machine (notebooks/README.md
-lists the measured times, about 3.5 minutes for all nine).
+lists the measured times: 157 s for all nine on a shared, loaded machine).
 """
 
 from __future__ import annotations
