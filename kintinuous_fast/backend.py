@@ -60,6 +60,20 @@ class FastBackend:
     def host_volume(self, volume: Any) -> TsdfVolume:
         return self.tsdf.to_reference_volume(volume)
 
+    def kernels_cached(self) -> bool:
+        """For cpu: whether numba's on-disk cache holds the raycast loop, the slowest kernel to
+        compile (a cache written by an earlier run or warm-up). The cuda kernels are compiled
+        at their first launch in the process that launches them, so there is nothing to
+        compile ahead elsewhere: True."""
+        if self.name != "cpu":
+            return True
+        from kintinuous_fast.raycast.cpu import _raycast_loop
+
+        try:
+            return os.path.exists(_raycast_loop._cache._cache_file._index_path)
+        except AttributeError:  # another numba's cache layout: assume a compile is due
+            return False
+
     def __repr__(self) -> str:
         return f"FastBackend({self.name!r})"
 

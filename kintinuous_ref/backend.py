@@ -80,6 +80,11 @@ class Backend(Protocol):
         """`volume` as a host TsdfVolume for meshing and output."""
         ...
 
+    def kernels_cached(self) -> bool:
+        """False when a run would first compile kernels that another process could compile
+        into an on-disk cache for it (kintinuous_ref.program.warmup); True otherwise."""
+        ...
+
 
 class ReferenceBackend:
     """The reference implements the protocol with its own modules (NumPy on the host)."""
@@ -113,6 +118,9 @@ class ReferenceBackend:
 
     def host_volume(self, volume: TsdfVolume) -> TsdfVolume:
         return volume
+
+    def kernels_cached(self) -> bool:
+        return True  # NumPy: nothing to compile
 
     def __repr__(self) -> str:
         return "ReferenceBackend()"

@@ -26,8 +26,9 @@ trajectories are comparable with it), else the identity.
 Ctrl-C (KeyboardInterrupt), and SIGTERM or SIGHUP once `handle_signals` is in force (the command
 line's), end the loop cleanly: the result holds the poses so far and the volume of what was
 fused, with `interrupted` and `reason` set. With `capture_errors` an exception in the loop (an
-unreadable frame, a full disk, a bug) ends it the same way, kept in `error`. The program
-(kintinuous_ref.program.reconstruct) then saves what was done and says how the run ended.
+unreadable frame, a full disk, a bug) ends it the same way, kept in `error`, so the caller can
+save what was done and say how the run ended (the `kintinuous` command does:
+docs/reliability.md).
 
 The moving volume (config.volume.moving, on by default as in Kintinuous) works on the backend's
 volume seen as a reference TsdfVolume (`backend.volume_view`), whose cyclical buffer

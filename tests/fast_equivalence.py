@@ -378,7 +378,7 @@ def check_integrate_degenerate(tsdf_impl: ModuleType, height: int, width: int) -
 
 
 # sample_tsdf: the same float64 products of the same (dequantised) values, summed as trees where
-# the reference sums in a chain (ops.volume.sample_tsdf_at). Eight terms of |w F| <= 1 over a
+# the reference sums in a chain (tsdf.voxel.sample_tsdf_at). Eight terms of |w F| <= 1 over a
 # coverage near 1 differ by a few ulps of 1 at most.
 SAMPLE_TSDF_ATOL = 2e-15
 

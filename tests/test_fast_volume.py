@@ -45,7 +45,7 @@ def test_equivalence_cpu_raycast(size):
 
 @pytest.mark.parametrize("offset", [(0, 0, 0), (5, 0, 17)], ids=["fixed", "shifted"])
 def test_equivalence_cpu_gradient_normal(offset):
-    """ops.volume.gradient_normal against kintinuous_ref.raycast._gradient_normals on a fused
+    """tsdf.voxel.gradient_normal against kintinuous_ref.raycast._gradient_normals on a fused
     volume, plain and as a shifted cyclical buffer, at points inside (one blend of stored
     differences) and on and next to the one-voxel border (six clipped samples).
 
@@ -142,7 +142,7 @@ def test_each_backend_checks_its_own_volume_against_its_own_memory(monkeypatch):
 
 @pytest.mark.parametrize("table", [False, True], ids=["arithmetic", "table"])
 def test_dequantise_is_the_float32_division_for_every_int16(table):
-    """ops.volume.dequantise multiplies in float64 instead of dividing in float32 (cuda), or
+    """tsdf.voxel.dequantise multiplies in float64 instead of dividing in float32 (cuda), or
     reads a table made so (cpu); the result must be the correctly rounded q / 32767
     (to_reference_volume's) for every stored value."""
     dequantise = volume_ops.build_ops(cpu_jit, dequantise_table=table).dequantise

@@ -49,7 +49,7 @@ def test_warmup_command_reports_stages_and_kernels(capsys):
 
 def test_the_empty_cache_measurement_runs_in_its_own_process():
     """On the reference (nothing to compile) the child's report comes back whole."""
-    report = warmup.warm_up_from_empty_cache("ref", "groundtruth", timeout=300)
+    report = warmup.warm_up_from_empty_cache("ref", "groundtruth", serial=True, timeout=300)
     assert report["backend"] == "ref" and report["kernel_seconds"] == {}
     assert report["methods"] == ["groundtruth"]
 
@@ -67,3 +67,16 @@ def test_reconstruct_prepares_the_kernels_before_its_progress_bar(tmp_path, caps
     preparing = err.index("preparing the cpu kernels")
     ready = err.index("kernels ready in")
     assert preparing < ready < err.index("reconstruct:")  # the bar starts after the wait
+
+
+def test_two_processes_compile_the_raycast_and_the_other_stages_apart():
+    """The plumbing on the reference (nothing to compile, seconds): the raycast part and the
+    stages part, whose trackers get the reference's raycast, both run to the end."""
+    assert warmup.compile_in_two_processes("ref", Config(), ["icp+rgbd"]) == {}
+
+
+def test_a_warm_cache_is_never_compiled_again_in_other_processes():
+    backend = load_backend("cpu")
+    warmup.warm_up(backend, Config(), "icp")
+    assert backend.kernels_cached()  # the index of the raycast loop is on disk now
+    assert load_backend("ref").kernels_cached()

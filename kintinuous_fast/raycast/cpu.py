@@ -4,7 +4,7 @@ kintinuous_fast.raycast.ops, with the reference's exact brick empty-space skippi
 second level inside the bricks next to a surface. Each ray starts where it first enters a fine
 brick that may hold a negative sample (near_starts: slab tests against those bricks' boxes over
 their projections), and rays go on from there two at a time, in lockstep
-(ops.march.march_two_rays). Every skip is exact: the maps are the plain march's.
+(march_two_rays below). Every skip is exact: the maps are the plain march's.
 
 Both levels come from the per-fine-brick bit masks of observed negative voxels that
 integration keeps up to date (kintinuous_fast.tsdf.cpu.negative_masks), so no frame scans the
@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import math
 from types import SimpleNamespace
+from typing import Any
 
 import numba
 import numpy as np
@@ -35,13 +36,13 @@ from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
-_ops = march.build_ops(
-    cpu_jit_numpy_errors,
-    cpu_jit_numpy_errors_called,
-    volume.build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, dequantise_table=True),
-)
-raycast_pixels = _ops.raycast_pixels
-ray_direction = _ops.ray_direction
+_voxels = volume.build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, dequantise_table=True)
+_ops = march.build_ops(cpu_jit_numpy_errors, cpu_jit_numpy_errors_called, _voxels)
+# The shared per-ray functions this file builds on, as globals numba can call.
+march_start, march_step, surface_at = _ops.march_start, _ops.march_step, _ops.surface_at
+raycast_pixel, ray_direction, shade_pixel = _ops.raycast_pixel, _ops.ray_direction, _ops.shade_pixel
+voxel_coordinates, store_hit = _ops.voxel_coordinates, _ops.store_hit
+gradient_normals = _voxels.gradient_normals
 BAND = 8  # pixel rows handed to a thread at a time
 # near_starts' slab tests in float32: the boxes grow by ENTRY_MARGIN metres on every side and a
 # ray's entry shrinks by ENTRY_SLACK of itself, so that rounding never makes a start late.
@@ -50,7 +51,7 @@ ENTRY_SLACK = 1e-6
 NEAR_BLOCK = 16  # near_starts looks for the next run of near bricks this many at a time
 
 
-# Bits of a fine brick's mask (ops.volume.fine_voxel_bit: 4 a + 2 b + c for voxel (a, b, c)
+# Bits of a fine brick's mask (tsdf.voxel.fine_voxel_bit: 4 a + 2 b + c for voxel (a, b, c)
 # of the brick) at c = 0, and at b = c = 0.
 _AT_C0, _AT_B0_C0 = np.uint8(0b01010101), np.uint8(0b00010001)
 
@@ -247,7 +248,7 @@ def _min_max(target, source, k):
 
 def skip_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, np.ndarray]:
     """(empty, fine_distance): the brick distance map of _brick_maps and the capped distance
-    map over its fine bricks (ops.march.march_ray's). The fine map is a work array: the next
+    map over its fine bricks (raycast.ops.march_ray's). The fine map is a work array: the next
     call for a volume of the same resolution overwrites it."""
     return _skip_maps_and_near(volume)[:2]
 
@@ -430,7 +431,7 @@ def _view_constants(volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _inverse_directions(camera, rotation, out):
-    """out[:, v, u] = 1 / the unit direction of pixel (u, v)'s ray (ops.march.ray_direction),
+    """out[:, v, u] = 1 / the unit direction of pixel (u, v)'s ray (raycast.ops.ray_direction),
     1e30 for a component within 1e-30 of zero (its slab then bounds nothing, or everything, as
     it should; float32 holds it)."""
     for v in prange(out.shape[1]):
@@ -482,6 +483,152 @@ def near_starts(
     return starts
 
 
+# ----------------------------------------------------------------------------------------------
+# Two rays at a time: a CPU core overlaps one ray's chain of dependent loads with the other's.
+
+
+@cpu_jit_numpy_errors_called
+def march_two_rays(
+    tsdf_weight: Any,
+    o0: int,
+    o1: int,
+    o2: int,
+    empty: Any,
+    fine_distance: Any,
+    origin: Any,
+    a: tuple,
+    b: tuple,
+    volume_origin: Any,
+    voxel_size: float,
+    step: float,
+    safe_a: float,
+    safe_b: float,
+) -> tuple:
+    """march_ray of two rays (unit directions a and b, from safe_a and safe_b) in
+    lockstep: each step of one is a chain of dependent loads and roundings, so the core
+    works on the other's meanwhile. The same answers as marching them one after the
+    other."""
+    n = tsdf_weight.shape[0]
+    ray_a = march_start(origin, a[0], a[1], a[2], volume_origin, voxel_size, n, step, safe_a)
+    ray_b = march_start(origin, b[0], b[1], b[2], volume_origin, voxel_size, n, step, safe_b)
+    m_a, previous_a, known_a, crossing_a, value_a = ray_a[0], np.nan, ray_a[0] == 0, np.nan, 0.0
+    m_b, previous_b, known_b, crossing_b, value_b = ray_b[0], np.nan, ray_b[0] == 0, np.nan, 0.0
+    while m_a >= 0 or m_b >= 0:
+        if m_a >= 0:
+            m_a, previous_a, known_a, crossing_a, value_a = march_step(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
+                volume_origin, voxel_size, step, ray_a, m_a, previous_a, known_a,
+            )  # fmt: skip
+        if m_b >= 0:
+            m_b, previous_b, known_b, crossing_b, value_b = march_step(
+                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, b[0], b[1], b[2],
+                volume_origin, voxel_size, step, ray_b, m_b, previous_b, known_b,
+            )  # fmt: skip
+    # Both refinements after both marches: two independent chains of loads and divisions
+    # that the core overlaps (refining inside the step left one ray's chain alone at the
+    # end: ~4 % of the cpu raycast, measured).
+    hit_a = surface_at(
+        tsdf_weight, o0, o1, o2, origin, a[0], a[1], a[2], crossing_a, step, previous_a,
+        value_a, volume_origin, voxel_size,
+    )  # fmt: skip
+    hit_b = surface_at(
+        tsdf_weight, o0, o1, o2, origin, b[0], b[1], b[2], crossing_b, step, previous_b,
+        value_b, volume_origin, voxel_size,
+    )  # fmt: skip
+    return hit_a, hit_b
+
+
+@cpu_jit_numpy_errors
+def shade_two_pixels(
+    tsdf_weight: Any,
+    colour_volume: Any,
+    has_colour: bool,
+    o0: int,
+    o1: int,
+    o2: int,
+    u_a: int,
+    u_b: int,
+    v: int,
+    t_a: float,
+    t_b: float,
+    origin: Any,
+    a: tuple,
+    b: tuple,
+    volume_origin: Any,
+    voxel_size: float,
+    vertices: Any,
+    normals: Any,
+    colours: Any,
+) -> None:
+    """shade_pixel of pixels (u_a, v) and (u_b, v), whose rays (directions a and b) met the
+    surface at t_a and t_b (both finite), their normals taken together (gradient_normals)."""
+    ax, ay, az = voxel_coordinates(origin, a[0], a[1], a[2], t_a, volume_origin, voxel_size)
+    bx, by, bz = voxel_coordinates(origin, b[0], b[1], b[2], t_b, volume_origin, voxel_size)
+    n = gradient_normals(tsdf_weight, o0, o1, o2, ax, ay, az, bx, by, bz)
+    store_hit(
+        colour_volume, has_colour, o0, o1, o2, u_a, v, t_a, origin, a[0], a[1], a[2], ax, ay,
+        az, n[0], n[1], n[2], vertices, normals, colours,
+    )  # fmt: skip
+    store_hit(
+        colour_volume, has_colour, o0, o1, o2, u_b, v, t_b, origin, b[0], b[1], b[2], bx, by,
+        bz, n[3], n[4], n[5], vertices, normals, colours,
+    )  # fmt: skip
+
+
+@cpu_jit_numpy_errors
+def raycast_pixel_pair(
+    tsdf_weight: Any,
+    colour_volume: Any,
+    has_colour: bool,
+    o0: int,
+    o1: int,
+    o2: int,
+    empty: Any,
+    fine_distance: Any,
+    u: int,
+    v: int,
+    camera: Any,
+    rotation: Any,
+    origin: Any,
+    volume_origin: Any,
+    voxel_size: float,
+    step: float,
+    vertices: Any,
+    normals: Any,
+    colours: Any,
+    safe_until: float,
+    partner: int,
+    partner_safe_until: float,
+) -> None:
+    """ops.raycast_pixel of pixel (u, v) from `safe_until` on (its near_starts), and with
+    `partner` > 0 of pixel (u + partner, v) too, from partner_safe_until: the two rays marched
+    in lockstep (march_two_rays), then shaded together where both hit."""
+    if partner == 0:
+        raycast_pixel(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
+            camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
+            colours, safe_until,
+        )  # fmt: skip
+        return
+    a = ray_direction(u, v, camera, rotation)
+    b = ray_direction(u + partner, v, camera, rotation)
+    t_a, t_b = march_two_rays(
+        tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
+        voxel_size, step, safe_until, partner_safe_until,
+    )  # fmt: skip
+    if math.isfinite(t_a) and math.isfinite(t_b):
+        shade_two_pixels(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, u + partner, v, t_a,
+            t_b, origin, a, b, volume_origin, voxel_size, vertices, normals, colours,
+        )  # fmt: skip
+        return
+    for pixel, t, d in ((u, t_a, a), (u + partner, t_b, b)):
+        shade_pixel(
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, pixel, v, t, origin, d[0],
+            d[1], d[2], volume_origin, voxel_size, vertices, normals, colours,
+        )  # fmt: skip
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _raycast_loop(
     tsdf_weight,
@@ -520,7 +667,7 @@ def _raycast_loop(
         for v in range(band * span, min((band + 1) * span, height), stride):
             for u in range(0, width, 2 * stride):  # pixels two at a time
                 partner = stride if u + stride < width else 0
-                raycast_pixels(
+                raycast_pixel_pair(
                     tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
                     u, v, camera, rotation, origin, volume_origin, voxel_size, step,
                     vertices, normals, colours, starts[v, u], partner,

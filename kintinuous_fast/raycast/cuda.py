@@ -24,7 +24,7 @@ from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 __all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
 
 _voxels = volume.build_ops(cuda_device_jit())
-raycast_pixels = march.build_ops(cuda_device_jit(), voxels=_voxels).raycast_pixels
+raycast_pixel = march.build_ops(cuda_device_jit(), voxels=_voxels).raycast_pixel
 count_negative = _voxels.count_negative
 
 
@@ -143,10 +143,10 @@ def _raycast_kernel(
     cast_u, cast_v = cuda.grid(2)
     u, v = cast_u * stride, cast_v * stride
     if v < vertices.shape[0] and u < vertices.shape[1]:
-        raycast_pixels(
+        raycast_pixel(
             tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
             camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
-            colours, 0.0, 0, 0.0,
+            colours, 0.0,
         )  # fmt: skip
 
 

@@ -39,12 +39,11 @@ def build_ops(
     voxels: SimpleNamespace | None = None,
 ) -> SimpleNamespace:
     """The march functions compiled with `jit`; the large per-ray ones (a whole march) with
-    `jit_called` (default `jit`, see ops.volume.build_ops), on `voxels`
-    (ops.volume.build_ops(jit, jit_called) unless given)."""
+    `jit_called` (default `jit`, see tsdf.voxel.build_ops), on `voxels`
+    (tsdf.voxel.build_ops(jit, jit_called) unless given)."""
     jit_called = jit_called or jit
     voxels = voxels or voxel_ops.build_ops(jit, jit_called)
     sample_tsdf_at, gradient_normal = voxels.sample_tsdf_at, voxels.gradient_normal
-    gradient_normals = voxels.gradient_normals
     surface_colour_at = voxels.surface_colour_at
 
     @jit
@@ -227,56 +226,6 @@ def build_ops(
             tsdf_weight, o0, o1, o2, origin, d0, d1, d2, crossing, step, previous, value,
             volume_origin, voxel_size,
         )  # fmt: skip
-
-    @jit_called
-    def march_two_rays(
-        tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
-        empty: Any,
-        fine_distance: Any,
-        origin: Any,
-        a: tuple,
-        b: tuple,
-        volume_origin: Any,
-        voxel_size: float,
-        step: float,
-        safe_a: float,
-        safe_b: float,
-    ) -> tuple:
-        """march_ray of two rays (unit directions a and b, from safe_a and safe_b) in
-        lockstep: each step of one is a chain of dependent loads and roundings, so the core
-        works on the other's meanwhile. The same answers as marching them one after the
-        other."""
-        n = tsdf_weight.shape[0]
-        ray_a = march_start(origin, a[0], a[1], a[2], volume_origin, voxel_size, n, step, safe_a)
-        ray_b = march_start(origin, b[0], b[1], b[2], volume_origin, voxel_size, n, step, safe_b)
-        m_a, previous_a, known_a, crossing_a, value_a = ray_a[0], np.nan, ray_a[0] == 0, np.nan, 0.0
-        m_b, previous_b, known_b, crossing_b, value_b = ray_b[0], np.nan, ray_b[0] == 0, np.nan, 0.0
-        while m_a >= 0 or m_b >= 0:
-            if m_a >= 0:
-                m_a, previous_a, known_a, crossing_a, value_a = march_step(
-                    tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
-                    volume_origin, voxel_size, step, ray_a, m_a, previous_a, known_a,
-                )  # fmt: skip
-            if m_b >= 0:
-                m_b, previous_b, known_b, crossing_b, value_b = march_step(
-                    tsdf_weight, o0, o1, o2, empty, fine_distance, origin, b[0], b[1], b[2],
-                    volume_origin, voxel_size, step, ray_b, m_b, previous_b, known_b,
-                )  # fmt: skip
-        # Both refinements after both marches: two independent chains of loads and divisions
-        # that the core overlaps (refining inside the step left one ray's chain alone at the
-        # end: ~4 % of the cpu raycast, measured).
-        hit_a = surface_at(
-            tsdf_weight, o0, o1, o2, origin, a[0], a[1], a[2], crossing_a, step, previous_a,
-            value_a, volume_origin, voxel_size,
-        )  # fmt: skip
-        hit_b = surface_at(
-            tsdf_weight, o0, o1, o2, origin, b[0], b[1], b[2], crossing_b, step, previous_b,
-            value_b, volume_origin, voxel_size,
-        )  # fmt: skip
-        return hit_a, hit_b
 
     @jit
     def surface_at(
@@ -487,7 +436,7 @@ def build_ops(
         return d0 * scale, d1 * scale, d2 * scale
 
     @jit
-    def raycast_pixels(
+    def raycast_pixel(
         tsdf_weight: Any,
         colour_volume: Any,
         has_colour: bool,
@@ -508,39 +457,19 @@ def build_ops(
         normals: Any,
         colours: Any,
         safe_until: float,
-        partner: int,
-        partner_safe_until: float,
     ) -> None:
         """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
-        march_ray from `safe_until` on (its near_starts, or 0), and with `partner` > 0 of
-        pixel (u + partner, v) too, from partner_safe_until, the two rays marched in lockstep
-        (march_two_rays). `camera` is float64 (fx, fy, cx, cy). Every pixel cast is written,
-        hit or miss, so the caller clears only the pixels a stride leaves out."""
-        a = ray_direction(u, v, camera, rotation)
-        if partner > 0:
-            b = ray_direction(u + partner, v, camera, rotation)
-            t_a, t_b = march_two_rays(
-                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
-                voxel_size, step, safe_until, partner_safe_until,
-            )  # fmt: skip
-            if math.isfinite(t_a) and math.isfinite(t_b):
-                shade_two_pixels(
-                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, u + partner, v, t_a,
-                    t_b, origin, a, b, volume_origin, voxel_size, vertices, normals, colours,
-                )  # fmt: skip
-                return
-            shade_pixel(
-                tsdf_weight, colour_volume, has_colour, o0, o1, o2, u + partner, v, t_b, origin,
-                b[0], b[1], b[2], volume_origin, voxel_size, vertices, normals, colours,
-            )  # fmt: skip
-        else:
-            t_a = march_ray(
-                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
-                volume_origin, voxel_size, step, safe_until,
-            )  # fmt: skip
+        march_ray from `safe_until` on (0: from where the ray enters the volume). `camera` is
+        float64 (fx, fy, cx, cy). Every pixel cast is written, hit or miss, so the caller
+        clears only the pixels a stride leaves out."""
+        d = ray_direction(u, v, camera, rotation)
+        t = march_ray(
+            tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d[0], d[1], d[2],
+            volume_origin, voxel_size, step, safe_until,
+        )  # fmt: skip
         shade_pixel(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t_a, origin, a[0], a[1],
-            a[2], volume_origin, voxel_size, vertices, normals, colours,
+            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d[0], d[1],
+            d[2], volume_origin, voxel_size, vertices, normals, colours,
         )  # fmt: skip
 
     @jit
@@ -573,42 +502,6 @@ def build_ops(
         store_hit(
             colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2, cx, cy, cz, nx,
             ny, nz, vertices, normals, colours,
-        )  # fmt: skip
-
-    @jit
-    def shade_two_pixels(
-        tsdf_weight: Any,
-        colour_volume: Any,
-        has_colour: bool,
-        o0: int,
-        o1: int,
-        o2: int,
-        u_a: int,
-        u_b: int,
-        v: int,
-        t_a: float,
-        t_b: float,
-        origin: Any,
-        a: tuple,
-        b: tuple,
-        volume_origin: Any,
-        voxel_size: float,
-        vertices: Any,
-        normals: Any,
-        colours: Any,
-    ) -> None:
-        """shade_pixel of pixels (u_a, v) and (u_b, v), whose rays (directions a and b) met the
-        surface at t_a and t_b (both finite), their normals taken together (gradient_normals)."""
-        ax, ay, az = voxel_coordinates(origin, a[0], a[1], a[2], t_a, volume_origin, voxel_size)
-        bx, by, bz = voxel_coordinates(origin, b[0], b[1], b[2], t_b, volume_origin, voxel_size)
-        n = gradient_normals(tsdf_weight, o0, o1, o2, ax, ay, az, bx, by, bz)
-        store_hit(
-            colour_volume, has_colour, o0, o1, o2, u_a, v, t_a, origin, a[0], a[1], a[2], ax, ay,
-            az, n[0], n[1], n[2], vertices, normals, colours,
-        )  # fmt: skip
-        store_hit(
-            colour_volume, has_colour, o0, o1, o2, u_b, v, t_b, origin, b[0], b[1], b[2], bx, by,
-            bz, n[3], n[4], n[5], vertices, normals, colours,
         )  # fmt: skip
 
     @jit
@@ -667,16 +560,15 @@ def build_ops(
         march_ray=march_ray,
         march_start=march_start,
         march_step=march_step,
-        march_two_rays=march_two_rays,
         ray_direction=ray_direction,
         ray_span=ray_span,
-        raycast_pixels=raycast_pixels,
+        raycast_pixel=raycast_pixel,
         refine_crossing=refine_crossing,
         sample_along=sample_along,
         samples_to_leave=samples_to_leave,
         shade_pixel=shade_pixel,
-        shade_two_pixels=shade_two_pixels,
         store_hit=store_hit,
+        surface_at=surface_at,
         store_miss=store_miss,
         voxel_coordinates=voxel_coordinates,
         whole_fine=whole_fine,

@@ -24,12 +24,12 @@ import numpy as np
 cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
 # The same with NumPy's error model: a float division by zero gives inf/NaN instead of a Python
 # ZeroDivisionError, so numba emits no zero test and exception path per division (2-3x faster
-# per-voxel loops). Only for code whose divisions are guarded (ops.volume, .integration, .march:
+# per-voxel loops). Only for code whose divisions are guarded (tsdf.voxel, tsdf.ops, raycast.ops:
 # z > 0, b != 0, ...).
 cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", inline="always"
 )
-# The same, called rather than inlined (`jit_called` of ops.volume and ops.march), and without
+# The same, called rather than inlined (`jit_called` of tsdf.voxel and raycast.ops), and without
 # numba's reference counting: these functions allocate nothing, but the array arguments of the
 # functions inlined into their loops were counted up and down on every step of a ray, in
 # branches that numba's pruning pass cannot pair up, each an atomic operation on a count that

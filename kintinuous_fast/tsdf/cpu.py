@@ -381,7 +381,7 @@ def _mask_loop(tsdf_weight, o0, o1, o2, masks):
 
 def negative_masks(volume: FastTsdfVolume) -> np.ndarray:
     """Per logical fine brick of FINE^3 voxels, the bit mask of its observed negative voxels
-    (ops.volume.fine_voxel_bit), (M, M, M) uint8: those integration kept up to date, or taken
+    (tsdf.voxel.fine_voxel_bit), (M, M, M) uint8: those integration kept up to date, or taken
     from the volume now (after a shift, or clearing) and kept for the following frames."""
     masks = volume.current_negative_masks()
     if masks is None:

@@ -74,7 +74,7 @@ def _max_depth_kernel(depth, result):
 
 @cuda.jit
 def _ray_distance_kernel(depth, fx, fy, cx, cy, out):
-    # flat, with -inf in the "no pixel" slot one past the image (ops.integration.project_voxel)
+    # flat, with -inf in the "no pixel" slot one past the image (tsdf.ops.project_voxel)
     u, v = cuda.grid(2)
     height, width = depth.shape
     if v < height and u < width:

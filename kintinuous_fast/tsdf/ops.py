@@ -19,7 +19,7 @@ from kintinuous_fast.tsdf.voxel import TSDF_MAX
 
 
 def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) -> SimpleNamespace:
-    """The integration functions compiled with `jit`, on `voxels` (ops.volume.build_ops(jit)
+    """The integration functions compiled with `jit`, on `voxels` (tsdf.voxel.build_ops(jit)
     unless given: a caller that also samples the volume shares its functions)."""
     voxels = voxels or voxel_ops.build_ops(jit)
     cell, dequantise, quantise = voxels.cell, voxels.dequantise, voxels.quantise

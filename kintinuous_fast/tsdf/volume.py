@@ -27,7 +27,7 @@ BYTES_COLOUR = 4  # uint8 R, G, B + uint8 colour weight
 @dataclass
 class NegativeMasks:
     """Per logical fine brick (FINE^3 voxels) a bit mask of its observed voxels with negative
-    TSDF (ops.volume.fine_voxel_bit), for the cpu raycast's empty-space maps. Integration keeps
+    TSDF (tsdf.voxel.fine_voxel_bit), for the cpu raycast's empty-space maps. Integration keeps
     them up to date; they describe the logical bricks of the buffer offset they were taken at,
     so a shift (or clearing cells) makes them stale and they are taken again from the volume
     when next needed."""

@@ -1,6 +1,6 @@
 """The stored voxels, written once for the CPU and the CUDA target: quantisation, the cyclical
 buffer's cells, and sampling (trilinear TSDF, its gradient, surface colour) that the raycast and
-the moving volume share. Integration (ops.integration) and the march (ops.march) build on them.
+the moving volume share. Integration (tsdf.ops) and the march (raycast.ops) build on them.
 
 The fast volume stores what the GPU design of Kintinuous stores, 8 bytes per voxel (1 GiB at
 512^3): `tsdf_weight` (N, N, N, 2) int16 holds round(F * 32767) and the integer weight W (the

@@ -143,6 +143,32 @@ def _run_evaluate(args: argparse.Namespace) -> None:
         print(errors.summary())
 
 
+def _add_run_options(parser: argparse.ArgumentParser) -> None:
+    """The options every command that runs the pipeline shares: volume, backend, configuration."""
+    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
+    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
+    parser.add_argument(
+        "--backend",
+        choices=["ref", "cpu", "cuda", "auto"],
+        default="auto",
+        help="ref (NumPy), cpu (numba), cuda; auto: cuda where a GPU works, else cpu "
+        "(kintinuous info)",
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help='JSON file of configuration values, nested ({"icp": {...}}) or dotted keys',
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one configuration value, e.g. --set combined.rgbd_weight=0.2 "
+        "(value parsed as JSON when it can be; repeatable; applied after --config)",
+    )
+
+
 def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "reconstruct",
@@ -179,8 +205,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--frames", type=int, help="number of frames (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
-    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
-    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
+    _add_run_options(parser)
     parser.add_argument(
         "--shift-threshold",
         type=int,
@@ -193,25 +218,6 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
         "--fixed-volume",
         action="store_true",
         help="keep the volume where it starts (KinectFusion) instead of moving it (Kintinuous)",
-    )
-    parser.add_argument(
-        "--backend",
-        choices=["ref", "cpu", "cuda", "auto"],
-        default="auto",
-        help="ref (NumPy), cpu (numba), cuda; auto: cuda where a GPU works, else cpu",
-    )
-    parser.add_argument(
-        "--config",
-        type=Path,
-        help='JSON file of configuration values, nested ({"icp": {...}}) or dotted keys',
-    )
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override one configuration value, e.g. --set combined.rgbd_weight=0.2 "
-        "(value parsed as JSON when it can be; repeatable; applied after --config)",
     )
     parser.add_argument(
         "--intrinsics",
@@ -512,20 +518,8 @@ def _add_table(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, help="frames per run (default: all)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
     parser.add_argument("--size", help="WIDTHxHEIGHT: resize the images (e.g. 320x240)")
-    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
-    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
-    parser.add_argument(
-        "--backend",
-        choices=["ref", "cpu", "cuda", "auto"],
-        default="auto",
-        help="preprocessing, integration and raycast backend (kintinuous info); default auto, "
-        "as for reconstruct",
-    )
+    _add_run_options(parser)
     parser.add_argument("--mesh", action="store_true", help="also write each run's mesh.ply")
-    parser.add_argument("--config", type=Path, help="JSON file of configuration values")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="as for reconstruct"
-    )
     parser.set_defaults(handler=_run_table)
 
 
@@ -608,24 +602,16 @@ def _add_benchmark(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "dataset", nargs="?", help="TUM folder or synthetic scenario name (default: desk)"
     )
-    parser.add_argument(
-        "--backend", choices=["ref", "cpu", "cuda", "auto"], default="auto", help="default auto"
-    )
     parser.add_argument("--odometry", default=DEFAULT_ODOMETRY, choices=ODOMETRY_CHOICES)
     parser.add_argument("--frames", type=int, default=30, help="frames (the first is a warm-up)")
     parser.add_argument("--start", type=int, default=0, help="first frame")
-    parser.add_argument("--resolution", type=int, default=256, help="voxels per side")
-    parser.add_argument("--volume-size", type=_finite_float, default=3.0, help="cube side, metres")
+    _add_run_options(parser)
     parser.add_argument(
         "--fast-odometry",
         action="store_true",
         help=FAST_ODOMETRY_HELP,
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--config", type=Path, help="JSON file of configuration values")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="as for reconstruct"
-    )
     parser.set_defaults(handler=_run_benchmark)
 
 
@@ -664,6 +650,12 @@ def _add_warmup(commands: argparse._SubParsersAction) -> None:
         help="measure what a fresh installation pays: compile into an empty temporary cache "
         "in a child process (this installation's cache is left as it is)",
     )
+    parser.add_argument(
+        "--serial",
+        action="store_true",
+        help="compile in this process only (by default a cold cpu cache is filled by two "
+        "processes at once)",
+    )
     parser.add_argument("--kernels", type=int, default=10, help="slowest kernels to list")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.set_defaults(handler=_run_warmup)
@@ -675,7 +667,7 @@ def _run_warmup(args: argparse.Namespace) -> None:
 
     backend = load_backend(args.backend)  # a one-line error before any work
     if args.empty_cache:
-        report = warmup.warm_up_from_empty_cache(backend.name, args.odometry)
+        report = warmup.warm_up_from_empty_cache(backend.name, args.odometry, args.serial)
     else:
         from tqdm import tqdm
 
@@ -684,7 +676,11 @@ def _run_warmup(args: argparse.Namespace) -> None:
         methods = warmup.methods_for(args.odometry)
         with tqdm(total=len(methods), unit="tracker", desc="warmup", disable=args.json) as bar:
             report = warmup.warm_up(
-                backend, Config(), args.odometry, progress=lambda _: bar.update(1)
+                backend,
+                Config(),
+                args.odometry,
+                progress=lambda _: bar.update(1),
+                parallel=not args.serial,
             ).as_dict()
     print(strict_dumps(report) if args.json else warmup.format_report(report, args.kernels))
 

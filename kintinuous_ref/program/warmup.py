@@ -11,27 +11,36 @@ it is loaded from the cache) say which kernels the time went into.
 
 `reconstruct` warms up before its progress bar starts, so the bar's rate and time left count
 frames only, and it says how long the wait was.
+
+Compilation is single-threaded, and the raycast's loop alone is about half of it, so on a
+machine with two or more cores the first warm-up compiles in two child processes at once: one
+the raycast, one every other stage (their trackers fed a model that the reference raycasts).
+Both write numba's on-disk cache, from which this process then loads everything in seconds.
 """
 
 from __future__ import annotations
 
+import functools
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from kintinuous_ref.backend import Backend
+from kintinuous_ref.backend import Backend, ReferenceBackend, load_backend
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.tum import Frame
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.odometry import DENSE_METHODS, METHODS
 from kintinuous_ref.pipeline import GROUNDTRUTH, STAGES, run
+from kintinuous_ref.raycast import ModelPrediction
 
 FRAMES = 3  # the first fuses, the second tracks, the third tracks against a raycast model
 WIDTH, HEIGHT = 160, 120
@@ -56,6 +65,7 @@ class WarmupReport:
         }
 
 
+@functools.lru_cache(maxsize=1)
 def warmup_frames() -> tuple[list[Frame], Any, Any]:
     """Three small frames of the built-in desk scene, its camera and its ground truth."""
     from kintinuous_ref.datasets.synthetic import make_scenario
@@ -88,19 +98,21 @@ def warm_up(
     config: Config,
     odometry: str = "all",
     progress: Callable[[str], None] | None = None,
+    parallel: bool = True,
 ) -> WarmupReport:
     """Run each method of `methods_for(odometry)` over the warm-up frames on `backend` and
     return how long each stage and each compiled kernel took. `progress(method)` is called after
-    each method."""
-    frames, camera, trajectory = warmup_frames()
-    small = small_config(config)
+    each method. With `parallel` and a cpu backend on two or more cores, two child processes
+    compile first (see the module docstring); their kernels' times are in the report."""
     report = WarmupReport(backend.name, methods=methods_for(odometry))
     start = time.perf_counter()
+    compiled: dict[str, float] = {}
+    raycasts = report.methods != [GROUNDTRUTH]  # mapping with known poses needs no model
+    if parallel and raycasts and (os.cpu_count() or 1) >= 2 and not backend.kernels_cached():
+        compiled = compile_in_two_processes(backend.name, config, report.methods)
     with compile_events() as kernels:
         for method in report.methods:
-            result = run(frames, camera, small, method, trajectory, backend)
-            if result.error is not None:
-                raise result.error
+            result = _run_warmup(backend, config, method)
             for stage in STAGES:
                 if stage != "total" and result.timings_ms[stage]:
                     slowest = max(result.timings_ms[stage]) / 1000.0
@@ -108,8 +120,66 @@ def warm_up(
             if progress is not None:
                 progress(method)
     report.seconds = time.perf_counter() - start
-    report.kernel_seconds = dict(sorted(kernels.items(), key=lambda item: -item[1]))
+    compiled.update(kernels)
+    report.kernel_seconds = dict(sorted(compiled.items(), key=lambda item: -item[1]))
     return report
+
+
+def _run_warmup(backend: Backend, config: Config, method: str) -> Any:
+    frames, camera, trajectory = warmup_frames()
+    result = run(frames, camera, small_config(config), method, trajectory, backend)
+    if result.error is not None:
+        raise result.error
+    return result
+
+
+class _ReferenceRaycast:
+    """`backend` with the reference's raycast for the model: the stages but the raycast compile,
+    and the trackers still get a model of the right types (float32 maps)."""
+
+    def __init__(self, backend: Backend) -> None:
+        self._backend = backend
+        self._reference = ReferenceBackend()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._backend, name)
+
+    def predict_surface(self, volume: Any, pose: Any, camera: Any, stride: int = 1) -> Any:
+        host = self._backend.host_volume(volume)
+        return self._reference.predict_surface(host, pose, camera, stride)
+
+
+def _compile_part(backend_name: str, config: Config, methods: list[str], part: str) -> dict:
+    """In a child process: compile the raycast ("raycast") or every other stage ("stages")."""
+    backend = load_backend(backend_name)
+    with compile_events() as kernels:
+        if part == "raycast":
+            frames, camera, trajectory = warmup_frames()
+            small = small_config(config)
+            pose = trajectory.poses[0]
+            volume = backend.tsdf.make_volume(small.volume, pose, small.colour.max_weight)
+            prediction: ModelPrediction = backend.predict_surface(volume, pose, camera)
+            assert prediction.vertices.shape[:2] == (camera.height, camera.width)
+        else:
+            for method in methods:
+                _run_warmup(_ReferenceRaycast(backend), config, method)
+    return kernels
+
+
+def compile_in_two_processes(backend_name: str, config: Config, methods: list[str]) -> dict:
+    """Compile the raycast and the other stages in two child processes at once (spawned: a
+    fresh interpreter each, nothing inherited from this one's numba state); seconds per
+    kernel compiled there."""
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=2, mp_context=context) as pool:
+        parts = [
+            pool.submit(_compile_part, backend_name, config, methods, part)
+            for part in ("raycast", "stages")
+        ]
+        compiled: dict[str, float] = {}
+        for future in parts:
+            compiled.update(future.result())
+    return compiled
 
 
 @contextmanager
@@ -140,13 +210,16 @@ def compile_events() -> Iterator[dict[str, float]]:
         yield seconds
 
 
-def warm_up_from_empty_cache(backend: str, odometry: str, timeout: float = 1800.0) -> dict:
+def warm_up_from_empty_cache(
+    backend: str, odometry: str, serial: bool = False, timeout: float = 1800.0
+) -> dict:
     """The warm-up in a child process whose numba cache is an empty temporary folder: what a
     fresh installation pays, measured without touching this installation's cache."""
     with tempfile.TemporaryDirectory(prefix="kintinuous-numba-cache-") as cache:
         environment = {**os.environ, "NUMBA_CACHE_DIR": cache}
         cli = [sys.executable, "-m", "kintinuous_ref.program.cli", "warmup", "--json"]
         command = [*cli, "--backend", backend, "--odometry", odometry]
+        command += ["--serial"] if serial else []
         done = subprocess.run(
             command, capture_output=True, text=True, env=environment, timeout=timeout
         )
@@ -167,7 +240,7 @@ def format_report(report: dict[str, Any], kernels: int = 10) -> str:
     compiled = report["kernel_seconds"]
     if compiled:
         total = sum(compiled.values())
-        lines.append(f"compiled {len(compiled)} kernels in {total:.1f} s; the slowest:")
+        lines.append(f"compiled {len(compiled)} kernels ({total:.1f} s of compiling); the slowest:")
         slowest = list(compiled.items())[:kernels]
         lines += [f"  {seconds:6.1f} s  {name}" for name, seconds in slowest]
     else:
