@@ -20,15 +20,15 @@ Robust loops: one false loop must not fold the map. Every loop edge gets a switc
 (Suenderhauf and Protzel, IROS 2012) that scales its residual, s r_ij, with a prior
 (1 - s)^2 / sigma_switch^2. A loop that agrees with the rest of the graph keeps s near 1; one that
 contradicts it costs less switched off than on. Solving for s as extra bounded unknowns made
-scipy's solver crawl towards the bound s = 0 (thousands of evaluations for a 24-node graph); the
-switch that minimises that cost for given poses has a closed form (Agarwal et al., "Dynamic
-Covariance Scaling", ICRA 2013), s = min(1, 2 phi / (phi + chi^2)) with phi = sigma_switch^2 and
-chi^2 the loop's squared residual, recomputed at every step of the solver. Switches computed at
-the odometry's poses turn off a true loop that is many sigmas off there before it can pull, and
-switches computed after trusting every loop turn off the true loops too when a false one has
-folded the graph. So each new loop is first tested for consistency, trusted together with the
-loops kept so far (`optimise`); the kept ones are then trusted and switched. Odometry edges have
-no switch: they are the backbone.
+scipy's solver crawl towards the bound s = 0 (thousands of evaluations for a 24-node graph);
+Agarwal et al. ("Dynamic Covariance Scaling", ICRA 2013) derive the switch in closed form from
+the loop's current squared residual chi^2, s = min(1, 2 phi / (phi + chi^2)) with
+phi = 1 / sigma_switch^2, so it is recomputed at every step of the solver instead. Switches
+computed at the odometry's poses turn off a true loop that is many sigmas off there before it
+can pull, and switches computed after trusting every loop turn off the true loops too when a
+false one has folded the graph. So each new loop is first tested for consistency, trusted
+together with the loops kept so far (`optimise`); the kept ones are then trusted and switched.
+Odometry edges have no switch: they are the backbone.
 """
 
 from __future__ import annotations
@@ -186,7 +186,7 @@ def optimise(
     poses = np.array(graph.poses, dtype=np.float64)
     edges = _edge_arrays(graph)
     loops = edges["loop"]
-    phi = switch_prior_sigma**2
+    phi = 1.0 / switch_prior_sigma**2
     kept = np.array([e.consistent is not False for e in graph.edges])
 
     def trusted(residual: np.ndarray) -> np.ndarray:
@@ -232,7 +232,7 @@ def _levenberg_marquardt(
     count, loops = len(poses), edges["loop"]
 
     def cost(residual: np.ndarray, weight: np.ndarray) -> float:
-        prior = np.sum(((1.0 - weight[loops]) ** 2) / phi)
+        prior = phi * np.sum((1.0 - weight[loops]) ** 2)
         return 0.5 * float(np.sum((residual * weight[:, None]) ** 2) + prior)
 
     damping = 1e-4
