@@ -4,6 +4,7 @@ most of it, and the map has no doubled surfaces."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,6 +57,25 @@ def test_closing_the_revisit_loop(tmp_path):
     distance = meshing.closest_on(scene, points)[0]
     assert np.mean(distance > 0.03) < 0.01
     assert np.mean(distance) < 0.01
+
+
+def test_the_command_line_option_writes_the_loop_closure_outputs(tmp_path, capsys):
+    from kintinuous_ref.program.cli import main
+
+    tiny = Path(__file__).resolve().parents[1] / "data" / "tiny_desk"
+    out = tmp_path / "run"
+    arguments = ["reconstruct", str(tiny), "--backend", "ref", "--odometry", "icp", "--frames"]
+    status = main([*arguments, "3", "--resolution", "32", "--loop-closure", "--out", str(out)])
+    assert status == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["loop_closures"]["keyframes"] >= 1 and report["loop_closures"]["closures"] == []
+    assert (out / "trajectory_uncorrected.txt").is_file() and (
+        out / "trajectory_loops.png"
+    ).is_file()
+    assert "loop closure: " in capsys.readouterr().out
+    refused = main([*arguments, "2", "--loop-closure", "--fixed-volume", "--out", str(out / "b")])
+    assert refused != 0
+    assert "needs the moving volume" in capsys.readouterr().err
 
 
 def test_loop_closure_needs_the_moving_volume(tmp_path):

@@ -302,6 +302,12 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
         f"{report['mesh']['vertices']} vertices ({report['shifts']} volume shifts, "
         f"{report['slices']} slices)"
     )
+    if "loop_closures" in report:
+        loops = report["loop_closures"]
+        print(
+            f"loop closure: {loops['keyframes']} keyframes, {loops['candidates']} candidates "
+            f"verified, {len(loops['closures'])} loops closed (docs/loop_closure.md)"
+        )
 
 
 def _add_input_options(parser: argparse.ArgumentParser) -> None:
