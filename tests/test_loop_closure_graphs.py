@@ -220,3 +220,27 @@ def test_poses_move_with_the_graph():
 def test_too_few_points_for_a_graph_is_one_line():
     with pytest.raises(ConfigError, match="too small to deform"):
         deformation_graph.build_graph(np.zeros((3, 3)), np.zeros(3), 0.25)
+
+
+def test_a_map_too_small_for_a_graph_is_left_as_fused():
+    """The authors' code asserted when a small loop left too few nodes; here the trajectory is
+    corrected and the map stays as it is, with a note in the report."""
+    from kintinuous_ref.camera import Intrinsics
+    from kintinuous_ref.config import Config
+    from kintinuous_ref.loop_closure.closer import Closure, LoopCloser
+    from kintinuous_ref.moving_volume import SliceMesh, SliceStore
+
+    closer = LoopCloser(Config(), Intrinsics(100.0, 100.0, 40.0, 30.0, 80, 60))
+    closer.closures.append(Closure(0, 0, 0, np.eye(4), 0.0))
+    store = SliceStore()
+    tiny = SliceMesh(
+        points=np.zeros((1, 3), np.float32),
+        triangles=np.zeros((0, 3), np.int64),
+        colours=np.zeros((1, 3), np.uint8),
+        keys=np.zeros((1, 4), np.int32),
+        box_lo=np.zeros(3, np.int64),
+        box_hi=np.ones(3, np.int64),
+    )
+    store.add(tiny)
+    report = closer.deform_map(store)
+    assert report["nodes"] == 0 and "too small to deform" in report["note"]

@@ -36,6 +36,7 @@ import numpy as np
 from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
+from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.loop_closure import deformation_graph, pose_graph
 from kintinuous_ref.loop_closure.keyframes import Keyframe, is_new_keyframe, make_keyframe
 from kintinuous_ref.loop_closure.place_recognition import (
@@ -239,13 +240,16 @@ class LoopCloser:
             chosen = deformation_graph.sample_nodes(vertices, settings.node_spacing)
             points.append(vertices[chosen])
             times.append(self.vertex_times(vertices[chosen], frames[number], epochs[number]))
-        graph = deformation_graph.build_graph(
-            np.vstack(points),
-            np.concatenate(times),
-            settings.node_spacing,
-            settings.node_neighbours,
-            settings.time_scale,
-        )
+        points = np.vstack(points) if points else np.zeros((0, 3))
+        times = np.concatenate(times) if times else np.zeros(0)
+        try:
+            graph = deformation_graph.build_graph(
+                points, times, settings.node_spacing, settings.node_neighbours, settings.time_scale
+            )
+        except ConfigError as err:
+            # A map too small for a graph (the authors' code asserted here on small loops): the
+            # trajectory is still corrected; the few vertices stay where they were fused.
+            return {"nodes": 0, "vertices": 0, "note": str(err)}
         sources, source_times, targets = self.constraints()
         graph = deformation_graph.optimise(
             graph,
