@@ -182,7 +182,7 @@ def run(
     result = PipelineResult(loop_closer=loop_closer)
     if loop_closer is not None:
         if not config.volume.moving:
-            raise ConfigError("loop closure needs the moving volume: drop --fixed-volume")
+            raise ConfigError("loop closure needs the moving volume (volume.moving = true)")
         result.timings_ms["loop_closure"] = []
     previous = None
     try:
