@@ -25,7 +25,7 @@ def rmse(estimate: tum.Trajectory, truth: tum.Trajectory) -> float:
 @pytest.mark.slow
 def test_closing_the_revisit_loop(tmp_path):
     """300 frames at 160x120 (one lap and a quarter), icp+rgbd on the cpu backend, a 4 m volume
-    of 128^3: about 1-2 minutes on a busy 2-core machine."""
+    of 128^3: 20 s on a 2-core machine, a few minutes while other jobs load it."""
     folder = synthetic.write_scenario("revisit", tmp_path / "revisit", 300, 160, 120)
     sequence = tum.open_sequence(folder)
     out = tmp_path / "run"
