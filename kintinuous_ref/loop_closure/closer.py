@@ -57,6 +57,15 @@ SWITCH_ON = 0.5  # a loop whose switch ends below this is treated as rejected
 EPOCH_FRAMES = 100_000
 
 
+def _on_host(frame: PreprocessedFrame | None) -> bool:
+    """True for a preprocessed frame whose arrays are NumPy arrays (not a GPU backend's)."""
+    if not isinstance(frame, PreprocessedFrame) or not frame.levels:
+        return False
+    level = frame.levels[0]
+    arrays = (frame.depth, level.intensity, level.vertices, level.normals)
+    return all(isinstance(array, np.ndarray) for array in arrays)
+
+
 @dataclass
 class Closure:
     frame: int  # frame at which the loop was closed
@@ -105,7 +114,7 @@ class LoopCloser:
         correction = None
         last = self.keyframes[-1].pose if self.keyframes else None
         if fused and is_new_keyframe(last, pose, self.config.loop_closure):
-            if not isinstance(preprocessed, PreprocessedFrame):
+            if not _on_host(preprocessed):  # a GPU backend's frame: preprocess a host copy
                 preprocessed = preprocess_frame(colour, depth, self.camera, self.config.preprocess)
             correction = self._add_keyframe(frame, pose, preprocessed)
         if correction is not None:
