@@ -90,6 +90,13 @@ class IcpConfig:
     iterations: tuple[int, ...] = (10, 5, 4)  # finest to coarsest
     distance_threshold: float = 0.10  # metres
     angle_threshold_deg: float = 20.0
+    # IRLS weights on the point-to-plane residuals (odometry/icp.py): "none" (least squares, as
+    # the paper and KinectFusion), "huber" or "tukey". `icp+rgbd` takes its kernel from
+    # combined.weighting "huber" / "tukey" instead, whatever this says.
+    robust_kernel: str = "none"
+    # sigma, the spread of a good pair's residual the kernels are tuned to (Huber's k = 1.345
+    # sigma, Tukey's c = 4.685 sigma): metres, fixed (odometry/icp.py says why not a median)
+    robust_noise: float = 0.005
 
 
 @dataclass(frozen=True)
@@ -257,11 +264,13 @@ def _choices() -> dict[str, tuple[str, ...]]:
     """The words each text field accepts (imported late: the odometry modules import this one)."""
     from kintinuous_ref.odometry import FALLBACKS
     from kintinuous_ref.odometry.combined import WEIGHTINGS
+    from kintinuous_ref.odometry.icp import ROBUST_KERNELS
 
     return {
         "volume.placement": ("ahead", "centred"),
         "rgbd.gradient": ("current", "warped"),
         "combined.weighting": tuple(WEIGHTINGS),
+        "icp.robust_kernel": tuple(ROBUST_KERNELS),
         "tracking.fallback": tuple(FALLBACKS),
     }
 

@@ -54,6 +54,12 @@ The other weightings:
   step is not the minimiser of any weighted sum of the two costs.
 - "elasticfusion": ElasticFusion's combination, which is the same formula with its own ICP
   weight of 10: the same system as "original-code".
+- "huber", "tukey": "degeneracy-aware" with the ICP rows robustly weighted by that M-estimator
+  (icp.py: IRLS weights of the point-to-plane residuals, scale config.icp.robust_noise). A
+  robust kernel changes each pair's row, not the 6x6 combination, so it composes with any
+  combination; these two names put it on the default one, where the question is whether cutting
+  the worst-fitting pairs (the model's stray normals at depth edges) removes the bias ICP keeps
+  in the directions it does observe. `icp` alone takes its kernel from config.icp.robust_kernel.
 """
 
 from __future__ import annotations
@@ -61,7 +67,7 @@ from __future__ import annotations
 import numpy as np
 
 from kintinuous_ref import se3
-from kintinuous_ref.config import CombinedConfig
+from kintinuous_ref.config import CombinedConfig, Config
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
@@ -74,13 +80,25 @@ WEIGHTINGS = (
     "elasticfusion",
     "information",
     "degeneracy-aware",
+    "huber",
+    "tukey",
 )
+# Weightings that are "degeneracy-aware" with a robust kernel on the ICP rows (icp.py).
+ROBUST_WEIGHTINGS = ("huber", "tukey")
 # Floor of the ICP residual scale (metres): far below any depth sensor's noise, it only keeps a
 # perfect, noise-free alignment from dividing by zero.
 MIN_ICP_SCALE = 1e-4
 # "degeneracy-aware": an eigen-direction of ICP's per-pair information (module docstring) below
 # this share is one that ICP does not observe.
 DEGENERACY_THRESHOLD = CombinedConfig.degeneracy_threshold
+
+
+def icp_robust_kernel(method: str, config: Config) -> str:
+    """The M-estimator of the ICP rows for a tracker `method`: combined.weighting's for
+    `icp+rgbd` under a robust weighting, else config.icp.robust_kernel."""
+    if method == "icp+rgbd" and config.combined.weighting in ROBUST_WEIGHTINGS:
+        return config.combined.weighting
+    return config.icp.robust_kernel
 
 
 def icp_scale(icp: LinearSystem) -> float:
@@ -170,6 +188,7 @@ def joint_system(
     "information": E = E_icp / sigma_icp^2 + w E_rgbd / sigma_rgbd^2.
     "degeneracy-aware": "paper" with ICP's unobserved directions removed; `camera_position`
     (world frame, the current estimate's) is the centre its information is measured about.
+    "huber", "tukey": "degeneracy-aware" (the kernel is already in `icp`'s rows).
     "original-code", "elasticfusion": A = A_rgbd + s^2 A_icp, b = b_rgbd + s b_icp.
     """
     if weighting == "paper":
@@ -180,7 +199,7 @@ def joint_system(
         return icp.scaled(1.0 / icp_scale(icp) ** 2) + rgbd.scaled(
             rgbd_weight / rgbd_scale(rgbd) ** 2
         )
-    if weighting == "degeneracy-aware":
+    if weighting == "degeneracy-aware" or weighting in ROBUST_WEIGHTINGS:
         centre = np.zeros(3) if camera_position is None else camera_position
         weight, photometric = 1.0 / icp_scale(icp) ** 2, rgbd.scaled(rgbd_weight)
         observed = without_degenerate_directions(
