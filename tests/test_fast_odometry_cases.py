@@ -133,10 +133,16 @@ def check_icp_system_robust(impl: ModuleType, width: int, height: int) -> None:
     camera, previous, current, _, frame, model = room(width, height)
     level = frame.levels[0]
     pose = poses_to_try(previous, current)[-1]
-    args = (level.vertices, level.normals, pose, *model[0], previous, camera, 0.10, 20.0)
+    # A hole in the model (no surface raycast there): its points are rejected, and their NaN
+    # rows must not reach the weighted sums.
+    model_vertices, model_normals = model[0][0].copy(), model[0][1].copy()
+    model_vertices[: height // 3, : width // 3] = np.nan
+    model_normals[: height // 3, : width // 3] = np.nan
+    model_maps = (model_vertices, model_normals)
+    args = (level.vertices, level.normals, pose, *model_maps, previous, camera, 0.10, 20.0)
     points, normals = ref_icp.valid_points(level.vertices, level.normals)
     pairs = ref_icp.associate(
-        points, normals, pose, *ref_icp.map_columns(*model[0]), previous, camera, 0.10, 20.0
+        points, normals, pose, *ref_icp.map_columns(*model_maps), previous, camera, 0.10, 20.0
     )
     residuals = np.abs(ref_icp.point_to_plane_rows(*pairs)[1])
     least_squares = ref_icp.icp_system(*args)

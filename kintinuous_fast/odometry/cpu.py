@@ -179,14 +179,16 @@ def _icp_rows_block(
         out[6 * BLOCK + m] = r if kept else 0.0
         out[7 * BLOCK + m] = 1.0 if kept else 0.0
         if kernel != KERNEL_NONE:
-            w = robust_icp_weight(r, kernel, threshold) if kept else 0.0
-            weighted[m] = w * j0
-            weighted[BLOCK + m] = w * j1
-            weighted[2 * BLOCK + m] = w * j2
-            weighted[3 * BLOCK + m] = w * j3
-            weighted[4 * BLOCK + m] = w * j4
-            weighted[5 * BLOCK + m] = w * j5
-            weighted[6 * BLOCK + m] = w * r
+            # Selects, not products with w = 0: a rejected point's row may hold NaN (no model
+            # surface at its pixel), and 0 * NaN would poison the sums.
+            w = robust_icp_weight(r, kernel, threshold)
+            weighted[m] = w * j0 if kept else 0.0
+            weighted[BLOCK + m] = w * j1 if kept else 0.0
+            weighted[2 * BLOCK + m] = w * j2 if kept else 0.0
+            weighted[3 * BLOCK + m] = w * j3 if kept else 0.0
+            weighted[4 * BLOCK + m] = w * j4 if kept else 0.0
+            weighted[5 * BLOCK + m] = w * j5 if kept else 0.0
+            weighted[6 * BLOCK + m] = w * r if kept else 0.0
 
 
 @numba.njit(cache=True, fastmath={"reassoc"})
