@@ -90,9 +90,9 @@ class IcpConfig:
     iterations: tuple[int, ...] = (10, 5, 4)  # finest to coarsest
     distance_threshold: float = 0.10  # metres
     angle_threshold_deg: float = 20.0
-    # IRLS weights on the point-to-plane residuals (odometry/icp.py): "none" (least squares, as
-    # the paper and KinectFusion), "huber" or "tukey". `icp+rgbd` takes its kernel from
-    # combined.weighting "huber" / "tukey" instead, whatever this says.
+    # IRLS weights on the point-to-plane residuals of `icp` alone (odometry/icp.py): "none"
+    # (least squares, as the paper and KinectFusion), "huber" or "tukey". `icp+rgbd` takes its
+    # kernel from combined.weighting ("huber" / "tukey"; least squares under the others).
     robust_kernel: str = "none"
     # sigma, the spread of a good pair's residual the kernels are tuned to (Huber's k = 1.345
     # sigma, Tukey's c = 4.685 sigma): metres, fixed (odometry/icp.py says why not a median)

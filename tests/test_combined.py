@@ -236,8 +236,11 @@ def test_robust_weightings_are_degeneracy_aware_on_robust_icp_rows(room, kernel)
     config = with_overrides(Config(), {"combined.weighting": kernel})
     assert icp_robust_kernel("icp+rgbd", config) == kernel
     assert icp_robust_kernel("icp", config) == "none"  # icp alone reads icp.robust_kernel
-    alone = with_overrides(Config(), {"icp.robust_kernel": kernel})
+    alone = with_overrides(
+        Config(), {"icp.robust_kernel": kernel, "combined.weighting": "degeneracy-aware"}
+    )
     assert icp_robust_kernel("icp", alone) == kernel
+    assert icp_robust_kernel("icp+rgbd", alone) == "none"  # a named weighting is one system
     with pytest.raises(ConfigError, match="icp.robust_kernel"):
         with_overrides(Config(), {"icp.robust_kernel": "cauchy"})
     with pytest.raises(ConfigError, match="robust_noise"):

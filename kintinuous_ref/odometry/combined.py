@@ -59,7 +59,8 @@ The other weightings:
   robust kernel changes each pair's row, not the 6x6 combination, so it composes with any
   combination; these two names put it on the default one, where the question is whether cutting
   the worst-fitting pairs (the model's stray normals at depth edges) removes the bias ICP keeps
-  in the directions it does observe. `icp` alone takes its kernel from config.icp.robust_kernel.
+  in the directions it does observe. `icp` alone takes its kernel from config.icp.robust_kernel;
+  under the other weightings the ICP rows of `icp+rgbd` are plain least squares.
 """
 
 from __future__ import annotations
@@ -94,10 +95,13 @@ DEGENERACY_THRESHOLD = CombinedConfig.degeneracy_threshold
 
 
 def icp_robust_kernel(method: str, config: Config) -> str:
-    """The M-estimator of the ICP rows for a tracker `method`: combined.weighting's for
-    `icp+rgbd` under a robust weighting, else config.icp.robust_kernel."""
-    if method == "icp+rgbd" and config.combined.weighting in ROBUST_WEIGHTINGS:
-        return config.combined.weighting
+    """The M-estimator of the ICP rows for a tracker `method`. `icp` alone reads
+    config.icp.robust_kernel. `icp+rgbd` reads combined.weighting only: "huber" / "tukey" name
+    their kernel, every other weighting is least squares, so that each named weighting is one
+    fixed joint system whatever the ICP settings (and the tables measured for it stay valid)."""
+    if method == "icp+rgbd":
+        weighting = config.combined.weighting
+        return weighting if weighting in ROBUST_WEIGHTINGS else "none"
     return config.icp.robust_kernel
 
 
