@@ -233,7 +233,7 @@ def test_robust_weightings_are_degeneracy_aware_on_robust_icp_rows(room, kernel)
     expected = joint_system(a, b, weighting="degeneracy-aware", camera_position=pose[:3, 3])
     np.testing.assert_allclose(joint.A, expected.A, rtol=1e-12)
     np.testing.assert_allclose(joint.b, expected.b, rtol=1e-12)
-    config = with_overrides(Config(), {"combined.weighting": kernel})
+    config = with_overrides(Config(), {"combined.weighting": kernel, "icp.robust_kernel": "none"})
     assert icp_robust_kernel("icp+rgbd", config) == kernel
     assert icp_robust_kernel("icp", config) == "none"  # icp alone reads icp.robust_kernel
     alone = with_overrides(

@@ -84,8 +84,17 @@ def test_equivalence_cpu_tracker(method, iterations):
         ("icp", {"icp.robust_kernel": "tukey", "icp.robust_noise": 0.003}),
         ("icp+rgbd", {"combined.weighting": "huber"}),
         ("icp+rgbd", {"combined.weighting": "tukey"}),
+        ("icp", {"icp.robust_kernel": "none"}),
+        ("icp+rgbd", {"combined.weighting": "degeneracy-aware"}),
     ],
-    ids=["icp-huber", "icp-tukey", "combined-huber", "combined-tukey"],
+    ids=[
+        "icp-huber",
+        "icp-tukey",
+        "combined-huber",
+        "combined-tukey",
+        "icp-least-squares",
+        "combined-least-squares",
+    ],
 )
 def test_equivalence_cpu_tracker_robust(method, overrides):
     cases.check_tracker(
