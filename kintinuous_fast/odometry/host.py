@@ -17,13 +17,14 @@ import numpy as np
 
 from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.config import Config
+from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.errors import ConfigError, DatasetError
 from kintinuous_ref.odometry import DenseTracker as RefDenseTracker
 from kintinuous_ref.odometry import FovisTracker as RefFovisTracker
 from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
-from kintinuous_ref.odometry.combined import CombinedProblem
+from kintinuous_ref.odometry.combined import CombinedProblem, icp_robust_kernel
 from kintinuous_ref.odometry.fovis import FovisResult
+from kintinuous_ref.odometry.icp import ROBUST_KERNELS, robust_threshold
 from kintinuous_ref.odometry.rgbd import InterestPoints
 from kintinuous_ref.odometry.rgbd import RgbdProblem as RefRgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
@@ -75,6 +76,15 @@ def icp_constants(
     )
 
 
+def kernel_code(robust_kernel: str) -> int:
+    """The integer code of an ICP robust kernel the kernels take (ops.KERNEL_*)."""
+    if robust_kernel not in ROBUST_KERNELS:
+        raise ConfigError(
+            f"icp.robust_kernel must be one of {ROBUST_KERNELS}, got {robust_kernel!r}"
+        )
+    return ROBUST_KERNELS.index(robust_kernel)
+
+
 def relative_pose(pose: np.ndarray, previous_pose: np.ndarray) -> np.ndarray:
     """T_prev^-1 T exactly as `correspond` computes it (np.linalg.inv)."""
     return np.ascontiguousarray(np.linalg.inv(previous_pose) @ pose, dtype=np.float64)
@@ -113,12 +123,16 @@ class IcpProblemBase:
         model_pose: np.ndarray,
         distance_threshold: float = 0.10,
         angle_threshold_deg: float = 20.0,
+        robust_kernel: str = "none",
+        robust_noise: float = IcpConfig.robust_noise,
     ) -> None:
         self.current_levels = current_levels
         self.model_levels = model_levels
         self.model_pose = model_pose
         self.distance_threshold = distance_threshold
         self.angle_threshold_deg = angle_threshold_deg
+        self.robust_kernel = robust_kernel
+        self.robust_threshold = robust_threshold(robust_kernel, robust_noise)
         self._maps: dict[int, tuple[Any, Any, Any, Any]] = {}
         self._points: dict[int, Any] = {}  # per level, for kernels that compact the valid points
         self._model_inverse: np.ndarray | None = None
@@ -152,6 +166,8 @@ class IcpProblemBase:
             self.current_levels[level].camera,
             self.distance_threshold,
             self.angle_threshold_deg,
+            self.robust_kernel,
+            self.robust_threshold,
         )
 
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
@@ -256,6 +272,8 @@ class FastDenseTracker(RefDenseTracker):
                 model.pose,
                 self.config.icp.distance_threshold,
                 self.config.icp.angle_threshold_deg,
+                icp_robust_kernel(self.method, self.config),
+                self.config.icp.robust_noise,
             )
         if self.method in ("rgbd", "icp+rgbd"):
             rgbd = self.kernels.RgbdProblem(
