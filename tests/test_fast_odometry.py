@@ -155,12 +155,12 @@ def test_make_tracker_backends_and_errors():
     with pytest.raises(ConfigError, match="unknown backend 'gpu'"):
         select_backend("gpu")
     # The backend module has the reference's make_tracker / DenseTracker signatures too.
-    assert cpu.make_tracker("icp+rgbd", Config(), camera).kernels is cpu
-    assert cpu.DenseTracker("rgbd", Config(), camera).kernels is cpu
+    assert cpu.make_tracker("icp+rgbd", Config(), camera).systems is cpu
+    assert cpu.DenseTracker("rgbd", Config(), camera).systems is cpu
     with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
         cpu.make_tracker("kinfu", Config(), camera)
     fovis = cpu.make_tracker("fovis/icp+rgbd", Config(), camera)
-    assert fovis.dense.kernels is cpu  # the dense half is the fast one, FOVIS the reference's
+    assert fovis.dense.systems is cpu  # the dense half is the fast one, FOVIS the reference's
     level = cases.room(80, 60)[4].levels[0]
     with pytest.raises(
         DatasetError, match=r"model vertex map is \(30, 40, 3\), expected \(60, 80, 3\)"

@@ -22,7 +22,6 @@ from kintinuous_ref.errors import ConfigError, DatasetError
 from kintinuous_ref.odometry import DenseTracker as RefDenseTracker
 from kintinuous_ref.odometry import FovisTracker as RefFovisTracker
 from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
-from kintinuous_ref.odometry.combined import CombinedProblem, icp_robust_kernel
 from kintinuous_ref.odometry.fovis import FovisResult
 from kintinuous_ref.odometry.icp import ROBUST_KERNELS, robust_threshold
 from kintinuous_ref.odometry.rgbd import InterestPoints
@@ -251,43 +250,15 @@ class FastDenseTracker(RefDenseTracker):
     def __init__(
         self, method: str, config: Config, camera: Intrinsics, kernels: ModuleType
     ) -> None:
-        super().__init__(method, config, camera)
-        self.kernels = kernels
+        super().__init__(method, config, camera, systems=kernels)
 
     def repeated_streams(
         self, previous: PreprocessedFrame | None, current: PreprocessedFrame
     ) -> tuple[bool, bool]:
         """The reference's stale-stream test, run where the kernels keep the frames (the cuda
         kernels compare device images on the device: three flags cross, not two images)."""
-        compare = getattr(self.kernels, "repeated_streams", ref_repeated_streams)
+        compare = getattr(self.systems, "repeated_streams", ref_repeated_streams)
         return compare(previous, current)
-
-    def _problem(self, previous, current, model, previous_pose):  # noqa: ANN001, ANN202
-        levels = len(self.iterations)
-        icp = rgbd = None
-        if self.method in ("icp", "icp+rgbd"):
-            icp = self.kernels.IcpProblem(
-                current.levels,
-                self.kernels.model_pyramid(model.vertices, model.normals, levels),
-                model.pose,
-                self.config.icp.distance_threshold,
-                self.config.icp.angle_threshold_deg,
-                icp_robust_kernel(self.method, self.config),
-                self.config.icp.robust_noise,
-            )
-        if self.method in ("rgbd", "icp+rgbd"):
-            rgbd = self.kernels.RgbdProblem(
-                previous.levels,
-                current.levels,
-                previous_pose,
-                self.config.rgbd.min_gradient,
-                self.config.rgbd.max_depth_change,
-                self.config.rgbd.max_depth,
-                self.config.rgbd.gradient,
-            )
-        if icp is not None and rgbd is not None:
-            return CombinedProblem.from_config(icp, rgbd, self.config.combined)
-        return icp if icp is not None else rgbd
 
 
 class FastFovisTracker(RefFovisTracker):
