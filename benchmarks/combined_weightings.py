@@ -18,13 +18,16 @@ from pathlib import Path
 
 from kintinuous_ref.config import Config, VolumeConfig, with_overrides
 from kintinuous_ref.odometry.combined import WEIGHTINGS
+from kintinuous_ref.odometry.icp import ROBUST_KERNELS
 from kintinuous_ref.program.evaluation.runs import RunSpec, run_one
 from kintinuous_ref.program.reconstruct import open_dataset
 
 
 def runs(args: argparse.Namespace) -> list[tuple[str, str]]:
-    """(method label, weighting or '') in table order."""
+    """(method label, weighting or '') in table order: the methods, `icp` under each robust
+    kernel of --icp-kernels, then `icp+rgbd` under each weighting."""
     rows = [(method, "") for method in args.methods]
+    rows += [(f"icp {kernel}", "") for kernel in args.icp_kernels]
     return rows + [(f"icp+rgbd {weighting}", weighting) for weighting in args.weightings]
 
 
@@ -37,6 +40,13 @@ def main() -> None:
     parser.add_argument("--volume-size", type=float, default=3.0)
     parser.add_argument("--methods", nargs="*", default=["icp", "rgbd"])
     parser.add_argument("--weightings", nargs="*", default=list(WEIGHTINGS))
+    parser.add_argument(
+        "--icp-kernels",
+        nargs="*",
+        default=[],
+        choices=[kernel for kernel in ROBUST_KERNELS if kernel != "none"],
+        help="also run `icp` alone with each of these icp.robust_kernel values",
+    )
     parser.add_argument("--json", type=Path, help="also write the results here")
     parser.add_argument(
         "--set",
@@ -57,8 +67,10 @@ def main() -> None:
             path = str(open_dataset(dataset).path)
             label = Path(dataset).name
             for name, weighting in runs(args):
-                method = name.split()[0]
+                method, _, variant = name.partition(" ")
                 config = base
+                if method == "icp" and variant:
+                    config = replace(base, icp=replace(base.icp, robust_kernel=variant))
                 if weighting:
                     config = replace(base, combined=replace(base.combined, weighting=weighting))
                 spec = RunSpec(

@@ -215,3 +215,35 @@ def test_the_combined_inlier_check_stands_on_either_term(room):
     assert icp_fraction < 0.1 < rgbd_fraction
     combined = CombinedProblem(narrow, rgbd)
     assert combined.inlier_fraction(current) == rgbd_fraction
+
+
+@pytest.mark.parametrize("kernel", ["huber", "tukey"])
+def test_robust_weightings_are_degeneracy_aware_on_robust_icp_rows(room, kernel):
+    # combined.weighting "huber" / "tukey": the default combination of the robustly weighted ICP
+    # system; the tracker gives the ICP problem that kernel whatever icp.robust_kernel says.
+    from kintinuous_ref.config import Config, with_overrides
+    from kintinuous_ref.odometry.combined import icp_robust_kernel
+
+    previous, current, icp, rgbd = room
+    pose = previous @ se3.exp(0.5 * se3.log(se3.inverse(previous) @ current))
+    robust = IcpProblem(icp.current_levels, icp.model_levels, previous, robust_kernel=kernel)
+    a, b = robust.system(1, pose), rgbd.system(1, pose)
+    assert not np.allclose(a.A, icp.system(1, pose).A, rtol=1e-3)  # the kernel acts here
+    joint = CombinedProblem(robust, rgbd, weighting=kernel).system(1, pose)
+    expected = joint_system(a, b, weighting="degeneracy-aware", camera_position=pose[:3, 3])
+    np.testing.assert_allclose(joint.A, expected.A, rtol=1e-12)
+    np.testing.assert_allclose(joint.b, expected.b, rtol=1e-12)
+    config = with_overrides(Config(), {"combined.weighting": kernel, "icp.robust_kernel": "none"})
+    assert icp_robust_kernel("icp+rgbd", config) == kernel
+    assert icp_robust_kernel("icp", config) == "none"  # icp alone reads icp.robust_kernel
+    alone = with_overrides(
+        Config(), {"icp.robust_kernel": kernel, "combined.weighting": "degeneracy-aware"}
+    )
+    assert icp_robust_kernel("icp", alone) == kernel
+    assert icp_robust_kernel("icp+rgbd", alone) == "none"  # a named weighting is one system
+    with pytest.raises(ConfigError, match="icp.robust_kernel"):
+        with_overrides(Config(), {"icp.robust_kernel": "cauchy"})
+    with pytest.raises(ConfigError, match="robust_noise"):
+        IcpProblem(
+            icp.current_levels, icp.model_levels, previous, robust_kernel="tukey", robust_noise=0
+        )

@@ -27,6 +27,7 @@ IDS = ["80x60", "160x120"]
     "check",
     [
         cases.check_icp_system,
+        cases.check_icp_system_robust,
         cases.check_associate_and_rows,
         cases.check_interest_points,
         cases.check_prepare_level,
@@ -73,6 +74,29 @@ def test_equivalence_cpu_tracker(method, iterations):
     if iterations is None:  # and the reference itself recovers the known motion
         metres, radians = cases.pose_difference(reference, truth)
         assert metres < 2e-3 and radians < np.radians(0.2), (metres, radians)
+
+
+@pytest.mark.parametrize(
+    ("method", "overrides"),
+    [
+        ("icp", {"icp.robust_kernel": "huber"}),
+        ("icp", {"icp.robust_kernel": "tukey", "icp.robust_noise": 0.003}),
+        ("icp+rgbd", {"combined.weighting": "huber"}),
+        ("icp+rgbd", {"combined.weighting": "tukey"}),
+        ("icp", {"icp.robust_kernel": "none"}),
+        ("icp+rgbd", {"combined.weighting": "degeneracy-aware"}),
+    ],
+    ids=[
+        "icp-huber",
+        "icp-tukey",
+        "combined-huber",
+        "combined-tukey",
+        "icp-least-squares",
+        "combined-least-squares",
+    ],
+)
+def test_equivalence_cpu_tracker_robust(method, overrides):
+    cases.check_tracker(cpu.make_tracker, method, 160, 120, (3, 3, 3), FIXED, overrides)
 
 
 def test_cpu_inlier_fraction_counts_the_reference_pairs():
@@ -131,12 +155,12 @@ def test_make_tracker_backends_and_errors():
     with pytest.raises(ConfigError, match="unknown backend 'gpu'"):
         select_backend("gpu")
     # The backend module has the reference's make_tracker / DenseTracker signatures too.
-    assert cpu.make_tracker("icp+rgbd", Config(), camera).kernels is cpu
-    assert cpu.DenseTracker("rgbd", Config(), camera).kernels is cpu
+    assert cpu.make_tracker("icp+rgbd", Config(), camera).systems is cpu
+    assert cpu.DenseTracker("rgbd", Config(), camera).systems is cpu
     with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
         cpu.make_tracker("kinfu", Config(), camera)
     fovis = cpu.make_tracker("fovis/icp+rgbd", Config(), camera)
-    assert fovis.dense.kernels is cpu  # the dense half is the fast one, FOVIS the reference's
+    assert fovis.dense.systems is cpu  # the dense half is the fast one, FOVIS the reference's
     level = cases.room(80, 60)[4].levels[0]
     with pytest.raises(
         DatasetError, match=r"model vertex map is \(30, 40, 3\), expected \(60, 80, 3\)"

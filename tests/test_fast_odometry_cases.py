@@ -127,6 +127,35 @@ def check_icp_system(impl: ModuleType, width: int, height: int) -> None:
     assert_systems_close("icp_system tight", impl.icp_system(*args), ref_icp.icp_system(*args))
 
 
+def check_icp_system_robust(impl: ModuleType, width: int, height: int) -> None:
+    """Huber and Tukey rows (icp.robust_kernel) at an estimate ~1 cm off, with a 2 mm noise
+    scale so that both branches of each kernel are taken by many pairs."""
+    camera, previous, current, _, frame, model = room(width, height)
+    level = frame.levels[0]
+    pose = poses_to_try(previous, current)[-1]
+    # A hole in the model (no surface raycast there): its points are rejected, and their NaN
+    # rows must not reach the weighted sums.
+    model_vertices, model_normals = model[0][0].copy(), model[0][1].copy()
+    model_vertices[: height // 3, : width // 3] = np.nan
+    model_normals[: height // 3, : width // 3] = np.nan
+    model_maps = (model_vertices, model_normals)
+    args = (level.vertices, level.normals, pose, *model_maps, previous, camera, 0.10, 20.0)
+    points, normals = ref_icp.valid_points(level.vertices, level.normals)
+    pairs = ref_icp.associate(
+        points, normals, pose, *ref_icp.map_columns(*model_maps), previous, camera, 0.10, 20.0
+    )
+    residuals = np.abs(ref_icp.point_to_plane_rows(*pairs)[1])
+    least_squares = ref_icp.icp_system(*args)
+    for kernel in ("huber", "tukey"):
+        threshold = ref_icp.robust_threshold(kernel, 0.002)
+        beyond = float(np.mean(residuals > threshold))
+        assert 0.05 < beyond < 0.95, (kernel, beyond)  # both branches are exercised
+        reference = ref_icp.icp_system(*args, kernel, 0.002)
+        assert not np.allclose(reference.A, least_squares.A, rtol=1e-3)  # the weights act
+        fast = impl.icp_system(*args, kernel, 0.002)
+        assert_systems_close(f"icp_system {kernel}", fast, reference)
+
+
 def check_associate_and_rows(impl: ModuleType, width: int, height: int) -> None:
     camera, previous, current, _, frame, model = room(width, height)
     level = frame.levels[0]
@@ -402,14 +431,21 @@ def iterations_config(iterations: tuple[int, ...] | None) -> Config:
 
 
 def check_tracker(
-    make_tracker, method: str, width: int, height: int, iterations, tolerance: tuple[float, float]
+    make_tracker,
+    method: str,
+    width: int,
+    height: int,
+    iterations,
+    tolerance: tuple[float, float],
+    overrides: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The fast tracker's result equals the reference tracker's: same ok / reason / used, poses
-    within `tolerance` (metres, radians). Returns (reference pose, true pose)."""
+    within `tolerance` (metres, radians). `overrides`: configuration values on top of the
+    iterations. Returns (reference pose, true pose)."""
     camera, previous, current, previous_frame, frame, _ = room(width, height, 4)
     vertices, normals = scene.model(previous, camera, 1)[0]
     model = Model(previous, vertices, normals)
-    config = iterations_config(iterations)
+    config = with_overrides(iterations_config(iterations), overrides or {})
     fast = make_tracker(method, config, camera).track(previous_frame, frame, model, previous)
     reference = ref_make_tracker(method, config, camera).track(
         previous_frame, frame, model, previous

@@ -41,6 +41,7 @@ def gpu():
     "check",
     [
         cases.check_icp_system,
+        cases.check_icp_system_robust,
         cases.check_associate_and_rows,
         cases.check_interest_points,
         cases.check_prepare_level,
@@ -70,6 +71,15 @@ def test_equivalence_cuda_tracker(method):
     else:
         for iterations in ((1, 1, 1), (3, 3, 3), None):
             cases.check_tracker(tracker, method, 160, 120, iterations, FIXED)
+
+
+@pytest.mark.parametrize("weighting", ["tukey"] if SIMULATED else ["huber", "tukey"])
+def test_equivalence_cuda_tracker_robust(weighting):
+    from kintinuous_fast.odometry.cuda import make_tracker as tracker
+
+    size, iterations = (SIZES[0], (1, 1)) if SIMULATED else ((160, 120), (3, 3, 3))
+    overrides = {"combined.weighting": weighting}
+    cases.check_tracker(tracker, "icp+rgbd", *size, iterations, FIXED, overrides)
 
 
 def test_equivalence_cuda_device_arrays_stay_on_device(gpu):

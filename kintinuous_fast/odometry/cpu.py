@@ -20,14 +20,15 @@ from numba import prange
 from kintinuous_fast.odometry import host
 from kintinuous_fast.targets.cpu import run_parallel_above
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.config import Config
+from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
 from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
+from kintinuous_ref.odometry.icp import robust_threshold
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
 from kintinuous_ref.preprocess import model_pyramid
 
-from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, build_ops
+from .ops import KERNEL_NONE, NV, SLOT_B, SLOT_COST, SLOT_COUNT, build_ops
 
 __all__ = [
     "METHODS",
@@ -80,6 +81,7 @@ transform = _ops.transform
 rotate = _ops.rotate
 map_point = _ops.map_point
 point_to_plane_row = _ops.point_to_plane_row
+robust_icp_weight = _ops.robust_icp_weight
 is_interest = _ops.is_interest
 has_depth = _ops.has_depth
 backproject = _ops.backproject
@@ -149,10 +151,13 @@ def _gather_model_block(rows, cols, count, mv, mn, model):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _icp_rows_block(points, start, stop, pose, rows, model, dist2, cos_min, out):
+def _icp_rows_block(
+    points, start, stop, pose, rows, model, dist2, cos_min, kernel, threshold, out, weighted
+):
     """match_pixel and point_to_plane_row of points[:, start:stop] and their gathered model
     pixels, branch-free so that it vectorises: out[k * BLOCK + m] = (j0..j5, r, 1) of a kept pair,
-    zeros for any other point (which then add nothing to the sums)."""
+    zeros for any other point (which then add nothing to the sums). With a robust kernel
+    (not KERNEL_NONE) weighted[k * BLOCK + m] = w (j0..j5, r), w = robust_icp_weight."""
     x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
     nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
     for m in range(stop - start):
@@ -173,6 +178,17 @@ def _icp_rows_block(points, start, stop, pose, rows, model, dist2, cos_min, out)
         out[5 * BLOCK + m] = j5 if kept else 0.0
         out[6 * BLOCK + m] = r if kept else 0.0
         out[7 * BLOCK + m] = 1.0 if kept else 0.0
+        if kernel != KERNEL_NONE:
+            # Selects, not products with w = 0: a rejected point's row may hold NaN (no model
+            # surface at its pixel), and 0 * NaN would poison the sums.
+            w = robust_icp_weight(r, kernel, threshold)
+            weighted[m] = w * j0 if kept else 0.0
+            weighted[BLOCK + m] = w * j1 if kept else 0.0
+            weighted[2 * BLOCK + m] = w * j2 if kept else 0.0
+            weighted[3 * BLOCK + m] = w * j3 if kept else 0.0
+            weighted[4 * BLOCK + m] = w * j4 if kept else 0.0
+            weighted[5 * BLOCK + m] = w * j5 if kept else 0.0
+            weighted[6 * BLOCK + m] = w * r if kept else 0.0
 
 
 @numba.njit(cache=True, fastmath={"reassoc"})
@@ -199,49 +215,59 @@ def _add_block(acc, weighted, rows, count):
 
 
 @numba.njit(cache=True)
-def _pair_rows_block(points, start, stop, pose, to_model, mv, mn, camera, dist2, cos_min, work):
+def _pair_rows_block(
+    points, start, stop, pose, to_model, mv, mn, camera, dist2, cos_min, robust, work
+):
     """The ICP rows of points[:, start:stop] (_icp_rows_block's) in three loops: projection,
     gathers, rows. All but the gathers vectorise; one loop that matched and summed pair by pair,
-    with branches, took 1.6x as long. `camera` = (fx, fy, cx, cy), `work` = _block_work()."""
-    rows, cols, model, pair_rows = work
+    with branches, took 1.6x as long. `camera` = (fx, fy, cx, cy), `robust` = (kernel code,
+    threshold), `work` = _block_work()."""
+    rows, cols, model, pair_rows, weighted_rows = work
     fx, fy, cx, cy = camera
     _project_block(
         points, start, stop, to_model, fx, fy, cx, cy, mv.shape[1], mv.shape[0], rows, cols
     )
     _gather_model_block(rows, cols, stop - start, mv, mn, model)
-    _icp_rows_block(points, start, stop, pose, rows, model, dist2, cos_min, pair_rows)
+    _icp_rows_block(
+        points, start, stop, pose, rows, model, dist2, cos_min, robust[0], robust[1], pair_rows,
+        weighted_rows,
+    )  # fmt: skip
 
 
 @numba.njit(cache=True)
 def _block_work(dtype):
     """Work arrays of _pair_rows_block: pixel rows and columns, gathered model values (of the
-    model maps' dtype), pair rows."""
+    model maps' dtype), pair rows, robustly weighted pair rows."""
     return (
         np.empty(BLOCK, dtype=np.int64),
         np.empty(BLOCK, dtype=np.int64),
         np.empty(6 * BLOCK, dtype=dtype),
         np.empty(8 * BLOCK),
+        np.empty(7 * BLOCK),
     )
 
 
 @_loop
-def _icp_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, out):
+def _icp_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, robust, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
-    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points)."""
+    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). `robust` =
+    (kernel code, threshold): the IRLS weights of the rows."""
     n = points.shape[1]
     chunks = out.shape[0]
     for c in prange(chunks):
         acc = np.zeros(NV)
         work = _block_work(mv.dtype)
         pair_matrix = work[3].reshape((8, BLOCK))
+        # Least squares weighs every row by 1: its rows are their own weighted rows.
+        weighted_matrix = pair_matrix if robust[0] == KERNEL_NONE else work[4].reshape((7, BLOCK))
         start, stop = c * n // chunks, (c + 1) * n // chunks
         acc[NV - 1] += stop - start
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
             _pair_rows_block(
-                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min, work
+                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min, robust, work
             )
-            _add_block(acc, pair_matrix, pair_matrix, end - block)
+            _add_block(acc, weighted_matrix, pair_matrix, end - block)
         out[c] = acc
 
 
@@ -259,8 +285,9 @@ def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, out)
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
             _pair_rows_block(
-                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min, work
-            )
+                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min,
+                (KERNEL_NONE, 0.0), work,
+            )  # fmt: skip
             pairs += kept[: end - block].sum()
         out[c, 0] = stop - start
         out[c, 1] = pairs
@@ -508,9 +535,10 @@ def valid_points(vertices, normals) -> np.ndarray:
 
 def _run_on_points(
     loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg, model_inverse,
+    distance_threshold, angle_threshold_deg, model_inverse, *robust,
 ) -> None:  # fmt: skip
-    """Run an ICP loop over the valid current points into `out` (its per-chunk rows)."""
+    """Run an ICP loop over the valid current points into `out` (its per-chunk rows); `robust`:
+    (kernel code, threshold) for the loops that weigh their rows."""
     host.check_map("model vertex map", model_vertices, camera)
     host.check_map("model normal map", model_normals, camera)
     pose, to_model, dist2, cos_min = host.icp_constants(
@@ -518,27 +546,29 @@ def _run_on_points(
     )
     _run(
         loop, points.shape[1], points, pose, to_model, model_vertices, model_normals,
-        host.camera_constants(camera), dist2, cos_min, out,
+        host.camera_constants(camera), dist2, cos_min, *robust, out,
     )  # fmt: skip
 
 
 def icp_points_system(
     points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
-    angle_threshold_deg, model_inverse=None,
+    angle_threshold_deg, model_inverse=None, robust_kernel="none", robust_threshold=0.0,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
     """icp_system of the valid current points (`valid_points`) and their number (for the inlier
-    fraction); `model_inverse` as in host.icp_constants."""
+    fraction); `model_inverse` as in host.icp_constants; `robust_threshold` the kernel's k or c
+    in metres (ref icp.robust_threshold)."""
     out = _partials(points.shape[1])
     _run_on_points(
         _icp_loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
         distance_threshold, angle_threshold_deg, model_inverse,
+        (host.kernel_code(robust_kernel), float(robust_threshold)),
     )  # fmt: skip
     return host.sum_partials(out)
 
 
 def icp_points_pairs(
     points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
-    angle_threshold_deg, model_inverse=None,
+    angle_threshold_deg, model_inverse=None, robust_kernel="none", robust_threshold=0.0,
 ) -> tuple[int, int]:  # fmt: skip
     """icp_pairs of the valid current points (`valid_points`)."""
     out = np.zeros((host.chunks_for(points.shape[1], CHUNKS), 2))
@@ -552,14 +582,14 @@ def icp_points_pairs(
 
 def icp_system_and_valid(
     vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg,
+    distance_threshold, angle_threshold_deg, robust_kernel="none", robust_threshold=0.0,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
     """icp_system and the number of valid current points (for the inlier fraction)."""
     host.check_map("current vertex map", vertices, camera)
     host.check_map("current normal map", normals, camera)
     return icp_points_system(
         valid_points(vertices, normals), model_vertices, model_normals, pose, model_pose, camera,
-        distance_threshold, angle_threshold_deg,
+        distance_threshold, angle_threshold_deg, None, robust_kernel, robust_threshold,
     )  # fmt: skip
 
 
@@ -573,12 +603,15 @@ def icp_system(
     camera: Intrinsics,
     distance_threshold: float = 0.10,
     angle_threshold_deg: float = 20.0,
+    robust_kernel: str = "none",
+    robust_noise: float = IcpConfig.robust_noise,
 ) -> LinearSystem:
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: association,
     rows and sums in one pass over the current maps (nothing is stored per pair)."""
     return icp_system_and_valid(
         stage(vertices), stage(normals), stage(model_vertices), stage(model_normals),
-        pose, model_pose, camera, distance_threshold, angle_threshold_deg,
+        pose, model_pose, camera, distance_threshold, angle_threshold_deg, robust_kernel,
+        robust_threshold(robust_kernel, robust_noise),
     )[0]  # fmt: skip
 
 
@@ -848,6 +881,7 @@ class IcpProblem(host.IcpProblemBase):
         return function(
             self._points[level], model_vertices, model_normals, pose, self.model_pose, camera,
             self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
+            self.robust_kernel, self.robust_threshold,
         )  # fmt: skip
 
 

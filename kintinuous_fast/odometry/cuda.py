@@ -33,10 +33,11 @@ from kintinuous_fast.preprocess.cuda import model_pyramid
 from kintinuous_fast.targets import cuda_device_jit
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, is_device, to_device
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.config import Config
+from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
 from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
 from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
+from kintinuous_ref.odometry.icp import robust_threshold
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
 
@@ -87,6 +88,7 @@ warp_point = _ops.warp_point
 photometric_row = _ops.photometric_row
 robust_weight = _ops.robust_weight
 add_row = _ops.add_row
+robust_icp_weight = _ops.robust_icp_weight
 
 
 # ----------------------------------------------------------------------------------------------
@@ -123,7 +125,10 @@ def _block_reduce(acc, shared, partials):
 
 
 @cuda.jit
-def _icp_kernel(vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, out):
+def _icp_kernel(
+    vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, kernel, threshold,
+    out,
+):  # fmt: skip
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     _zero(acc)
@@ -140,7 +145,8 @@ def _icp_kernel(vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2
             )
             if kept:
                 j0, j1, j2, j3, j4, j5, r = point_to_plane_row(wx, wy, wz, qx, qy, qz, ux, uy, uz)
-                add_row(acc, j0, j1, j2, j3, j4, j5, r, 1.0)
+                w = robust_icp_weight(r, kernel, threshold)
+                add_row(acc, j0, j1, j2, j3, j4, j5, r, w)
     _block_reduce(acc, shared, out)
 
 
@@ -369,9 +375,10 @@ def _counter(dtype=np.int32):
 
 def icp_system_and_valid(
     vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg,
+    distance_threshold, angle_threshold_deg, robust_kernel="none", robust_threshold=0.0,
 ) -> tuple[LinearSystem, int]:  # fmt: skip
-    """icp_system and the number of valid current points (for the inlier fraction)."""
+    """icp_system and the number of valid current points (for the inlier fraction);
+    `robust_threshold` the kernel's k or c in metres (ref icp.robust_threshold)."""
     host.check_map("current vertex map", vertices, camera)
     host.check_map("current normal map", normals, camera)
     host.check_map("model vertex map", model_vertices, camera)
@@ -384,7 +391,7 @@ def icp_system_and_valid(
     _icp_kernel[blocks, BLOCK](
         stage(vertices), stage(normals), cuda.to_device(pose), cuda.to_device(to_model),
         stage(model_vertices), stage(model_normals), *host.camera_constants(camera), dist2,
-        cos_min, out,
+        cos_min, host.kernel_code(robust_kernel), float(robust_threshold), out,
     )  # fmt: skip
     return host.sum_partials(out.copy_to_host())
 
@@ -392,12 +399,14 @@ def icp_system_and_valid(
 def icp_system(
     vertices, normals, pose: np.ndarray, model_vertices, model_normals, model_pose: np.ndarray,
     camera: Intrinsics, distance_threshold: float = 0.10, angle_threshold_deg: float = 20.0,
+    robust_kernel: str = "none", robust_noise: float = IcpConfig.robust_noise,
 ) -> LinearSystem:  # fmt: skip
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: one thread per
     pixel(s), block tree reductions, partials added on the host."""
     return icp_system_and_valid(
         vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-        distance_threshold, angle_threshold_deg,
+        distance_threshold, angle_threshold_deg, robust_kernel,
+        robust_threshold(robust_kernel, robust_noise),
     )[0]  # fmt: skip
 
 

@@ -17,13 +17,13 @@ import numpy as np
 
 from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.config import Config
+from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.errors import ConfigError, DatasetError
 from kintinuous_ref.odometry import DenseTracker as RefDenseTracker
 from kintinuous_ref.odometry import FovisTracker as RefFovisTracker
 from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
-from kintinuous_ref.odometry.combined import CombinedProblem
 from kintinuous_ref.odometry.fovis import FovisResult
+from kintinuous_ref.odometry.icp import ROBUST_KERNELS, robust_threshold
 from kintinuous_ref.odometry.rgbd import InterestPoints
 from kintinuous_ref.odometry.rgbd import RgbdProblem as RefRgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
@@ -75,6 +75,15 @@ def icp_constants(
     )
 
 
+def kernel_code(robust_kernel: str) -> int:
+    """The integer code of an ICP robust kernel the kernels take (ops.KERNEL_*)."""
+    if robust_kernel not in ROBUST_KERNELS:
+        raise ConfigError(
+            f"icp.robust_kernel must be one of {ROBUST_KERNELS}, got {robust_kernel!r}"
+        )
+    return ROBUST_KERNELS.index(robust_kernel)
+
+
 def relative_pose(pose: np.ndarray, previous_pose: np.ndarray) -> np.ndarray:
     """T_prev^-1 T exactly as `correspond` computes it (np.linalg.inv)."""
     return np.ascontiguousarray(np.linalg.inv(previous_pose) @ pose, dtype=np.float64)
@@ -113,12 +122,16 @@ class IcpProblemBase:
         model_pose: np.ndarray,
         distance_threshold: float = 0.10,
         angle_threshold_deg: float = 20.0,
+        robust_kernel: str = "none",
+        robust_noise: float = IcpConfig.robust_noise,
     ) -> None:
         self.current_levels = current_levels
         self.model_levels = model_levels
         self.model_pose = model_pose
         self.distance_threshold = distance_threshold
         self.angle_threshold_deg = angle_threshold_deg
+        self.robust_kernel = robust_kernel
+        self.robust_threshold = robust_threshold(robust_kernel, robust_noise)
         self._maps: dict[int, tuple[Any, Any, Any, Any]] = {}
         self._points: dict[int, Any] = {}  # per level, for kernels that compact the valid points
         self._model_inverse: np.ndarray | None = None
@@ -152,6 +165,8 @@ class IcpProblemBase:
             self.current_levels[level].camera,
             self.distance_threshold,
             self.angle_threshold_deg,
+            self.robust_kernel,
+            self.robust_threshold,
         )
 
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
@@ -235,41 +250,15 @@ class FastDenseTracker(RefDenseTracker):
     def __init__(
         self, method: str, config: Config, camera: Intrinsics, kernels: ModuleType
     ) -> None:
-        super().__init__(method, config, camera)
-        self.kernels = kernels
+        super().__init__(method, config, camera, systems=kernels)
 
     def repeated_streams(
         self, previous: PreprocessedFrame | None, current: PreprocessedFrame
     ) -> tuple[bool, bool]:
         """The reference's stale-stream test, run where the kernels keep the frames (the cuda
         kernels compare device images on the device: three flags cross, not two images)."""
-        compare = getattr(self.kernels, "repeated_streams", ref_repeated_streams)
+        compare = getattr(self.systems, "repeated_streams", ref_repeated_streams)
         return compare(previous, current)
-
-    def _problem(self, previous, current, model, previous_pose):  # noqa: ANN001, ANN202
-        levels = len(self.iterations)
-        icp = rgbd = None
-        if self.method in ("icp", "icp+rgbd"):
-            icp = self.kernels.IcpProblem(
-                current.levels,
-                self.kernels.model_pyramid(model.vertices, model.normals, levels),
-                model.pose,
-                self.config.icp.distance_threshold,
-                self.config.icp.angle_threshold_deg,
-            )
-        if self.method in ("rgbd", "icp+rgbd"):
-            rgbd = self.kernels.RgbdProblem(
-                previous.levels,
-                current.levels,
-                previous_pose,
-                self.config.rgbd.min_gradient,
-                self.config.rgbd.max_depth_change,
-                self.config.rgbd.max_depth,
-                self.config.rgbd.gradient,
-            )
-        if icp is not None and rgbd is not None:
-            return CombinedProblem.from_config(icp, rgbd, self.config.combined)
-        return icp if icp is not None else rgbd
 
 
 class FastFovisTracker(RefFovisTracker):

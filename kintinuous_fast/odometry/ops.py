@@ -27,7 +27,11 @@ from types import SimpleNamespace
 from typing import Any
 
 from kintinuous_fast.targets import build_rint
+from kintinuous_ref.odometry.icp import ROBUST_KERNELS
 from kintinuous_ref.odometry.rgbd import BORDER_SLACK
+
+# The ICP robust kernels as the integer codes the kernels take (index into ROBUST_KERNELS).
+KERNEL_NONE, KERNEL_HUBER, KERNEL_TUKEY = (ROBUST_KERNELS.index(name) for name in ROBUST_KERNELS)
 
 # Slots of the accumulated vector (see the module docstring).
 NV = 30
@@ -213,6 +217,19 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         """J = [p x n_m, n_m] and r = (p - v_m) . n_m of one pair (eq. 9): (j0..j5, r)."""
         r = (wx - qx) * ux + (wy - qy) * uy + (wz - qz) * uz
         return wy * uz - wz * uy, wz * ux - wx * uz, wx * uy - wy * ux, ux, uy, uz, r
+
+    @jit
+    def robust_icp_weight(r: float, kernel: int, threshold: float) -> float:
+        """The IRLS weight of a point-to-plane residual (ref icp.robust_weights): 1 for
+        KERNEL_NONE; Huber: 1 inside k = threshold, k / |r| beyond; Tukey: (1 - (r / c)^2)^2
+        inside c = threshold, 0 beyond. Selects, no data branches: the CPU's loop vectorises."""
+        magnitude = abs(r)
+        huber = 1.0 if magnitude <= threshold else threshold / max(magnitude, 1e-300)
+        ratio = r / threshold if threshold > 0 else 0.0
+        inside = 1.0 - ratio * ratio
+        tukey = inside * inside if magnitude < threshold else 0.0
+        weight = huber if kernel == KERNEL_HUBER else 1.0
+        return tukey if kernel == KERNEL_TUKEY else weight
 
     # ------------------------------------------------------------------------------------------
     # RGB-D (kintinuous_ref.odometry.rgbd)
@@ -424,6 +441,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         icp_match=icp_match,
         map_point=map_point,
         point_to_plane_row=point_to_plane_row,
+        robust_icp_weight=robust_icp_weight,
         is_interest=is_interest,
         has_depth=has_depth,
         backproject=backproject,

@@ -20,7 +20,8 @@ increment = inverse(previous_pose) @ current_pose.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from types import SimpleNamespace
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.odometry.combined import CombinedProblem
+from kintinuous_ref.odometry.combined import CombinedProblem, icp_robust_kernel
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import implausible_motion, refine
@@ -132,16 +133,30 @@ def is_repeated_frame(previous: PreprocessedFrame | None, current: PreprocessedF
     return all(repeated_streams(previous, current))
 
 
+def _reference_systems() -> SimpleNamespace:
+    from kintinuous_ref.preprocess import model_pyramid  # preprocess imports this package
+
+    return SimpleNamespace(
+        IcpProblem=IcpProblem, RgbdProblem=RgbdProblem, model_pyramid=model_pyramid
+    )
+
+
 class DenseTracker:
     """ICP, RGB-D or ICP+RGB-D: coarse-to-fine Gauss-Newton from the previous pose."""
 
-    def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
+    def __init__(
+        self, method: str, config: Config, camera: Intrinsics, systems: Any = None
+    ) -> None:
+        """`systems` builds the ICP and RGB-D normal equations: any object with this module's
+        IcpProblem and RgbdProblem and kintinuous_ref.preprocess's model_pyramid (a fast
+        backend's odometry module); None: the reference's own."""
         if method not in DENSE_METHODS:
             raise ConfigError(f"unknown dense odometry {method!r}; choose from {DENSE_METHODS}")
         self.method = method
         self.config = config
         self.camera = camera
         self.recovery = _Recovery(config.tracking.fallback)
+        self.systems = systems if systems is not None else _reference_systems()
 
     # A method so that a fast backend compares its frames where it keeps them (on the GPU).
     repeated_streams = staticmethod(repeated_streams)
@@ -176,17 +191,17 @@ class DenseTracker:
         levels = len(self.iterations)
         icp = rgbd = None
         if self.method in ("icp", "icp+rgbd"):
-            from kintinuous_ref.preprocess import model_pyramid
-
-            icp = IcpProblem(
+            icp = self.systems.IcpProblem(
                 current.levels,
-                model_pyramid(model.vertices, model.normals, levels),
+                self.systems.model_pyramid(model.vertices, model.normals, levels),
                 model.pose,
                 self.config.icp.distance_threshold,
                 self.config.icp.angle_threshold_deg,
+                icp_robust_kernel(self.method, self.config),
+                self.config.icp.robust_noise,
             )
         if self.method in ("rgbd", "icp+rgbd"):
-            rgbd = RgbdProblem(
+            rgbd = self.systems.RgbdProblem(
                 previous.levels,
                 current.levels,
                 previous_pose,
