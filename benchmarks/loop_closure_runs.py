@@ -1,7 +1,7 @@
 """Loop closure against the same tracker without it, and against known poses (docs/loop_closure.md).
 
     python benchmarks/loop_closure_runs.py DATASET OUT [--frames N] [--volume-size S]
-        [--resolution N] [--backend cpu]
+        [--resolution N] [--backend cpu] [--set KEY=VALUE ...]
 
 DATASET is a TUM folder (a synthetic scenario written by `kintinuous synth`, or real data). Runs
 `reconstruct` three times into OUT/closure, OUT/plain and (when the dataset has a scene.ply, the
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from kintinuous_ref import metrics
-from kintinuous_ref.config import Config, VolumeConfig
+from kintinuous_ref.config import Config, VolumeConfig, with_overrides
 from kintinuous_ref.datasets import tum
 from kintinuous_ref.program import reconstruct
 
@@ -52,10 +52,16 @@ def main() -> None:
     parser.add_argument("--volume-size", type=float, default=4.0)
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--backend", default="cpu")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="a configuration value"
+    )
     args = parser.parse_args()
     sequence = tum.open_sequence(args.dataset)
     truth = sequence.groundtruth_for_frames()
     config = Config(volume=VolumeConfig(size=args.volume_size, resolution=args.resolution))
+    overrides = dict(item.split("=", 1) for item in args.set)
+    config = with_overrides(config, {key: json.loads(value) if value[:1] in "0123456789-[tf"
+                                     else value for key, value in overrides.items()})  # fmt: skip
     scene = args.dataset / "scene.ply"
     runs = [("closure", "icp+rgbd", True), ("plain", "icp+rgbd", False)]
     if scene.exists():
