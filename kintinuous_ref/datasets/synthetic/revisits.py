@@ -5,8 +5,9 @@ textured, the objects along them plain (a faint, almost uniform material) except
 the lap, which faces varied, textured objects; floor and ceiling are plain too. With little
 texture on the geometry that pins the camera's height, a frame-to-model tracker (icp+rgbd at
 160x120, without robust ICP weights) drifts steadily, 22 cm (mostly in height) by the time the
-camera sees its start again; with Huber weights it jumps 30 cm in its first frames instead. After one lap the path goes on for a quarter of a lap over the same ground: the revisit
-that loop closure must find.
+camera sees its start again; with Huber weights it jumps 30 cm in its first frames instead.
+After one lap the path goes on for a quarter of a lap over the same ground: the revisit that
+loop closure must find.
 
 `twins` walks once along a 10 m room looking at one long wall. Two "bays" on that wall, 5 m
 apart, are the same solids with the same textures (same materials, texture offsets and angles),
