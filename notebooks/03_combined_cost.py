@@ -50,7 +50,17 @@ from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.preprocess import model_pyramid, preprocess_frame
 
 WIDTH, HEIGHT, PAIRS = 160, 120, 16
-config = with_overrides(Config(), {"volume.resolution": 128, "volume.size": 4.0})
+# Least-squares ICP rows and the degeneracy-aware weighting: the costs this notebook compares
+# (the defaults add Huber weights to the ICP rows, docs/odometry.md).
+config = with_overrides(
+    Config(),
+    {
+        "volume.resolution": 128,
+        "volume.size": 4.0,
+        "icp.robust_kernel": "none",
+        "combined.weighting": "degeneracy-aware",
+    },
+)
 scenario = make_scenario("corridor", frames=PAIRS + 1, width=WIDTH, height=HEIGHT, seed=0)
 camera, truth = scenario.camera, scenario.trajectory.poses
 frames = [
