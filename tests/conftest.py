@@ -1,9 +1,5 @@
 """Fixtures shared by the test modules, and where the real datasets are.
 
-`compiled_cpu_kernels` (every session): a cold numba cache, as on a fresh installation, is filled
-by two processes at once before the first test (kintinuous warmup's way: 113 s serial, 70 s so
-on an idle 2-core machine), instead of one kernel at a time by whichever test needs it first.
-
 `cuda_simulator`: runs a CUDA test module in a child pytest with numba's CUDA simulator. The
 simulator must be switched on (NUMBA_ENABLE_CUDASIM=1) before numba is imported, so without a
 GPU the CUDA tests are skipped in the main process and run in that child instead.
@@ -39,18 +35,6 @@ def run_in_cuda_simulator(test_file: Path, *arguments: str) -> str:
     assert " passed" in summary, tail
     assert not any(word in summary for word in ("skipped", "failed", "error")), tail
     return summary
-
-
-@pytest.fixture(scope="session", autouse=True)
-def compiled_cpu_kernels() -> None:
-    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
-        return  # a simulator child: its parent has compiled the cpu kernels already
-    from kintinuous_ref.backend import load_backend
-    from kintinuous_ref.config import Config
-    from kintinuous_ref.program import warmup
-
-    if not load_backend("cpu").kernels_cached():
-        warmup.compile_in_two_processes("cpu", Config(), warmup.methods_for("all"))
 
 
 @pytest.fixture
