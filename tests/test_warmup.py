@@ -59,14 +59,31 @@ def test_unknown_odometry_is_one_line():
         main(["warmup", "--odometry", "kinfu"])
 
 
-def test_reconstruct_prepares_the_kernels_before_its_progress_bar(tmp_path, capsys):
-    out = tmp_path / "run"
+@pytest.mark.parametrize("cached", [False, True])
+def test_reconstruct_prepares_the_kernels_before_its_progress_bar(
+    tmp_path, capsys, monkeypatch, cached
+):
+    """The warm-up runs before the bar; a cold cache is announced, a warm one is not."""
+    import sys
+
+    from kintinuous_fast.backend import FastBackend
+    from kintinuous_ref.program import reconstruct
+
+    def spy(*args, **kwargs):
+        print("WARM-UP", file=sys.stderr)
+        return warmup.warm_up(*args, **kwargs)
+
+    monkeypatch.setattr(reconstruct, "_PREPARED", set())
+    monkeypatch.setattr(reconstruct, "warm_up", spy)
+    monkeypatch.setattr(FastBackend, "kernels_cached", lambda self: cached)
     options = ["--backend", "cpu", "--odometry", "icp", "--frames", "2", "--resolution", "32"]
-    assert main(["reconstruct", str(TINY), *options, "--out", str(out)]) == 0
+    assert main(["reconstruct", str(TINY), *options, "--out", str(tmp_path / "run")]) == 0
     err = capsys.readouterr().err
-    preparing = err.index("preparing the cpu kernels")
-    ready = err.index("kernels ready in")
-    assert preparing < ready < err.index("reconstruct:")  # the bar starts after the wait
+    assert err.index("WARM-UP") < err.index("reconstruct:")  # the bar starts after the wait
+    if cached:
+        assert "compiling" not in err
+    else:
+        assert err.index("compiling the cpu kernels, once per installation") < err.index("WARM-UP")
 
 
 def test_two_processes_compile_the_raycast_and_the_other_stages_apart():

@@ -372,20 +372,23 @@ _PREPARED: set[tuple[str, str]] = set()
 
 def prepare_kernels(backend: Backend, config: Config, odometry: str) -> None:
     """Compile (or load from numba's cache) the kernels the run will call, before its progress
-    bar starts, so that the bar's rate and time left count frames only; say how long it took."""
+    bar starts, so that the bar's rate and time left count frames only. A compilation is said,
+    with how long it took; loading from the cache takes about a second and is not."""
     if backend.name == REFERENCE or (backend.name, odometry) in _PREPARED:
         return
-    print(
-        f"preparing the {backend.name} kernels (the first run after installing compiles them, "
-        "a few minutes; later runs load them in seconds)...",
-        file=sys.stderr,
-        flush=True,
-    )
+    cached = backend.kernels_cached()
+    if not cached:
+        print(
+            f"compiling the {backend.name} kernels, once per installation (about a minute on "
+            "2 cores; later runs load them in seconds)...",
+            file=sys.stderr,
+            flush=True,
+        )
     report = warm_up(backend, config, odometry)
     _PREPARED.add((backend.name, odometry))
-    compiled = report.kernel_seconds
-    how = f"compiled {len(compiled)} kernels" if compiled else "loaded from numba's cache"
-    print(f"kernels ready in {report.seconds:.0f} s ({how})", file=sys.stderr, flush=True)
+    if report.kernel_seconds:
+        count = len(report.kernel_seconds)
+        print(f"compiled {count} kernels in {report.seconds:.0f} s", file=sys.stderr, flush=True)
 
 
 def reconstruct(
