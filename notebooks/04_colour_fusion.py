@@ -31,13 +31,8 @@
 # %%
 # %matplotlib inline
 import inspect
-import os
-import platform
-import subprocess
-import time
 
 import matplotlib.pyplot as plt
-import numba
 import numpy as np
 import pyvista as pv
 
@@ -314,29 +309,7 @@ for name in fast_settings:
         np.testing.assert_allclose(np.percentile(difference, 99), 0.0, atol=tolerance)
 
 
-def machine_line() -> str:
-    """CPU model, CPUs and numba threads: a timing means little without them."""
-    try:
-        described = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        model = next(
-            line.split(":", 1)[1].strip()
-            for line in described.splitlines()
-            if line.startswith("Model name")
-        )
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        model = platform.processor() or platform.machine()
-    return f"{model}, {os.cpu_count()} CPUs, numba threads: {numba.get_num_threads()}"
-
-
-def timed(function, repeats: int = 7) -> np.ndarray:
-    """Seconds of `repeats` runs, after one untimed run (which compiles or loads the kernels)."""
-    function()
-    times = np.empty(repeats)
-    for repeat in range(repeats):
-        started = time.perf_counter()
-        function()
-        times[repeat] = time.perf_counter() - started
-    return times
+from kintinuous_ref.program.benchmark import machine_line, timed
 
 
 def speed_line(name: str, reference: np.ndarray, fast: np.ndarray) -> str:

@@ -9,6 +9,11 @@ included.
 
 from __future__ import annotations
 
+import os
+import platform
+import subprocess
+import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -103,3 +108,34 @@ def format_table(report: dict[str, Any]) -> str:
     fps = report["fps"]
     lines.append(f"frames/s (median): {fps:.2f}" if fps else "frames/s: -")
     return "\n".join(lines)
+
+
+def machine_line() -> str:
+    """CPU model, CPUs and numba threads: a timing means little without them."""
+    try:
+        described = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        model = next(
+            line.split(":", 1)[1].strip()
+            for line in described.splitlines()
+            if line.startswith("Model name")
+        )
+    except (OSError, subprocess.CalledProcessError, StopIteration):
+        model = platform.processor() or platform.machine()
+    try:
+        import numba
+
+        threads = str(numba.get_num_threads())
+    except ImportError:
+        threads = "none (numba not installed)"
+    return f"{model}, {os.cpu_count()} CPUs, numba threads: {threads}"
+
+
+def timed(function: Callable[[], Any], repeats: int = 7) -> np.ndarray:
+    """Seconds of `repeats` runs, after one untimed run (which compiles or loads the kernels)."""
+    function()
+    times = np.empty(repeats)
+    for repeat in range(repeats):
+        started = time.perf_counter()
+        function()
+        times[repeat] = time.perf_counter() - started
+    return times
