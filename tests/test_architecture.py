@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from kintinuous_fast.backend import FastBackend
 from kintinuous_ref.backend import Backend, ReferenceBackend
 
@@ -92,3 +94,16 @@ def test_every_document_the_code_names_exists():
             if not (ROOT / name).exists():
                 missing.setdefault(str(path.relative_to(ROOT)), []).append(name)
     assert missing == {}
+
+
+def test_the_entry_points_make_the_backends_or_say_why_not():
+    from kintinuous_fast.backend import cpu_backend, cuda_backend, cuda_status
+    from kintinuous_ref.backend import BackendUnavailable, plugins
+
+    assert {"cpu", "cuda"} <= set(plugins())
+    assert cpu_backend().name == "cpu"
+    if cuda_status():  # no GPU here: a one-line reason instead of a backend
+        with pytest.raises(BackendUnavailable, match="backend 'cuda' does not work"):
+            cuda_backend()
+    else:
+        assert cuda_backend().name == "cuda"
