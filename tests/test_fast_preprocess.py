@@ -87,11 +87,11 @@ def test_equivalence_cpu_preprocess_frame_in_chunks(monkeypatch):
     fe.check_preprocess_frame(cpu, 60, 80)
 
 
-@numba.njit  # not cached: the cache would not see a change of cpu._exp_neg
+@numba.njit  # not cached: the cache would not see a change of cpu.exp_neg
 def _exp_neg_of(x):
     out = np.empty_like(x)
     for i in range(x.shape[0]):
-        out[i] = cpu._exp_neg(x[i])
+        out[i] = cpu.exp_neg(x[i])
     return out
 
 

@@ -6,17 +6,16 @@ stated tolerances); arrays are NumPy arrays.
 
 Speed (target: the whole stage in ~20 ms per 640x480 frame on two cores). Every image loop
 here runs over a contiguous slice of a row with a straight-line body, which LLVM turns into SIMD
-code; a per-pixel call into the 2-D ops (`depth[v + dy, u + dx]` with a possibly negative index)
-does not vectorise, as numba must wrap negative indices. So the filters are written as "for each
-tap, for each pixel of the row", which sums every pixel's taps in the reference's order: the
-results are bit-identical where the reference's arithmetic is repeated (pyramids, gradients,
-vertices, normals, masks). The bilateral filter, 169 exp() per pixel, is the one stage that
-computes differently (float32 weights with an inlined exp, see `_bilateral_sums`).
+code; a per-pixel call into the 2-D `*_pixel` ops (`depth[v + dy, u + dx]` with a possibly
+negative index) does not vectorise, as numba must wrap negative indices. So the filters are
+written as "for each tap, for each pixel of the row", calling ops.py's per-tap and per-result
+functions on row slices; every pixel's taps are summed in the reference's order, so the results
+are bit-identical where the reference's arithmetic is repeated (pyramids, gradients, vertices,
+normals, masks). The bilateral filter weighs each pixel pair once for both of its pixels
+(`_bilateral_rows`), with ops.py's float32 weights.
 """
 
 from __future__ import annotations
-
-import math
 
 import numba
 import numpy as np
@@ -29,7 +28,10 @@ from kintinuous_fast.preprocess.host import (
     SOBEL_Y,
     check_frame_inputs,
     gaussian3x3,
+    inverse_two_variance,
+    pinhole,
     preprocess_frame_with,
+    spatial_exponents,
 )
 from kintinuous_fast.preprocess.ops import build_ops
 from kintinuous_fast.targets import cpu_jit
@@ -54,17 +56,6 @@ __all__ = [
     "vertex_map",
 ]
 
-_ops = build_ops(cpu_jit)
-# Module-level names: numba resolves the scalar functions as globals of the loops below.
-metric_value = _ops.metric_value
-binomial5 = _ops.binomial5
-intensity_pixel = _ops.intensity_pixel
-correlate3x3_pixel = _ops.correlate3x3_pixel
-
-# Images with fewer pixels run on the calling thread: waking the second thread costs more than
-# such a loop, and on a busy machine a parallel region waits for its slowest, descheduled thread.
-PARALLEL_MIN = 40_000
-
 _parallel = numba.njit(parallel=True, cache=True)
 _inline = numba.njit(cache=True, inline="always")
 # FMA contraction only, for the bilateral filter: its weights are float32 approximations anyway
@@ -72,15 +63,6 @@ _inline = numba.njit(cache=True, inline="always")
 # compile with their caller's flags, so the prange loop that inlines them carries the flag too.
 _inline_fma = numba.njit(cache=True, inline="always", fastmath={"contract"})
 _parallel_fma = numba.njit(parallel=True, cache=True, fastmath={"contract"})
-
-
-def _run(loop, pixels: int, *args) -> None:
-    """Call a prange loop, on the calling thread alone below PARALLEL_MIN pixels."""
-    run_parallel_above(PARALLEL_MIN, loop, pixels, *args)
-
-
-# ----------------------------------------------------------------------------------------------
-# exp(-x) in float32 that LLVM can vectorise (numba's math.exp is a scalar libm call per tap)
 
 
 @intrinsic
@@ -100,29 +82,37 @@ def _float32_from_bits(typingctx, bits):
     return types.float32(bits), codegen
 
 
-_LOG2E = np.float32(1.4426950408889634)
-# ln 2 split so that n * _LN2_HI is exact for every n used here (Cody-Waite reduction): r is then
-# accurate with or without FMA contraction.
-_LN2_HI = np.float32(0.693359375)
-_LN2_LO = np.float32(-2.12194440e-4)
-_EXP_MAX = np.float32(80.0)  # exp(-80) = 1.8e-35: such weights are left out
-
-
 @_inline_fma
-def _exp_neg(x):
-    """exp(-x) for float32 0 <= x <= 80, within 2.4e-7 relative: x = n ln2 + r, |r| <= ln2/2,
-    exp(-r) by its degree-6 Taylor polynomial, 2^-n by writing the exponent bits."""
-    n = np.int32(x * _LOG2E + np.float32(0.5))
-    nf = np.float32(n)
-    r = (x - nf * _LN2_HI) - nf * _LN2_LO
-    p = np.float32(1.0 / 720.0)
-    p = p * r - np.float32(1.0 / 120.0)
-    p = p * r + np.float32(1.0 / 24.0)
-    p = p * r - np.float32(1.0 / 6.0)
-    p = p * r + np.float32(0.5)
-    p = p * r - np.float32(1.0)
-    p = p * r + np.float32(1.0)
-    return p * _float32_from_bits((np.int32(127) - n) << 23)
+def _power_of_two_neg(n):
+    """2^-n as float32 by writing its exponent bits: no libm call, so the bilateral loops
+    vectorise."""
+    return _float32_from_bits((np.int32(127) - n) << 23)
+
+
+_ops = build_ops(_inline, _inline_fma, _power_of_two_neg)
+# Module-level names: numba resolves the scalar functions as globals of the loops below.
+metric_value = _ops.metric_value
+exp_neg = _ops.exp_neg
+bilateral_weight = _ops.bilateral_weight
+bilateral_result = _ops.bilateral_result
+binomial5 = _ops.binomial5
+depth_tap_counts = _ops.depth_tap_counts
+pyrdown_depth_result = _ops.pyrdown_depth_result
+vertex_from_depth = _ops.vertex_from_depth
+normal_from_edges = _ops.normal_from_edges
+intensity_pixel = _ops.intensity_pixel
+correlate3x3_pixel = _ops.correlate3x3_pixel
+is_depth_jump = _ops.is_depth_jump
+colour_fusable = _ops.colour_fusable
+
+# Images with fewer pixels run on the calling thread: waking the second thread costs more than
+# such a loop, and on a busy machine a parallel region waits for its slowest, descheduled thread.
+PARALLEL_MIN = 40_000
+
+
+def _run(loop, pixels: int, *args) -> None:
+    """Call a prange loop, on the calling thread alone below PARALLEL_MIN pixels."""
+    run_parallel_above(PARALLEL_MIN, loop, pixels, *args)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -131,15 +121,12 @@ def _exp_neg(x):
 
 @_inline_fma
 def _pair_weights(centre, neighbour, spatial, inv_two_sigma2, w, wd):
-    """For one window offset along a row: w = exp(-spatial - (D(q) - D(p))^2 / 2 sigma_d^2) of
-    each pixel pair (p, q), the spatial Gaussian's exponent `spatial` folded in, and
-    wd = w (D(q) - D(p)). Holes hold a far sentinel (_bilateral_input), so a pair with one hole
-    has x > _EXP_MAX and weighs 0 (two holes do weigh, but only into sums of holes)."""
+    """For one window offset along a row: the bilateral_weight w of each pixel pair (p, q) and
+    wd = w (D(q) - D(p)). Holes hold a far sentinel (bilateral_filter's `work`), so a pair with
+    one hole weighs 0 (two holes do weigh, but only into sums of holes)."""
     for i in range(w.shape[0]):
         difference = neighbour[i] - centre[i]
-        x = difference * difference * inv_two_sigma2 + spatial
-        # a select, not a branch, so that the loop vectorises
-        weight = _exp_neg(min(x, _EXP_MAX)) if x < _EXP_MAX else np.float32(0.0)
+        weight = bilateral_weight(difference, spatial, inv_two_sigma2)
         w[i] = weight
         wd[i] = weight * difference
 
@@ -149,8 +136,7 @@ def _pairs_to_both(centre, neighbour, spatial, inv_two_sigma2, own_w, own_wd, ot
     """_pair_weights added straight to p's and q's sums (rows that do not overlap)."""
     for i in range(own_w.shape[0]):
         difference = neighbour[i] - centre[i]
-        x = difference * difference * inv_two_sigma2 + spatial
-        weight = _exp_neg(min(x, _EXP_MAX)) if x < _EXP_MAX else np.float32(0.0)
+        weight = bilateral_weight(difference, spatial, inv_two_sigma2)
         wd = weight * difference
         own_w[i] += weight
         own_wd[i] += wd
@@ -167,20 +153,12 @@ def _add_pairs(sum_w, sum_wd, w, wd, sign):
 
 @_inline
 def _bilateral_finish_row(depth, sum_w, sum_wd, extra_w, extra_wd, out):
-    """D'(p) = D(p) + sum_q w (D(q) - D(p)) / (1 + sum_q w), the centre weighing 1 * exp(0);
-    `extra_*` are the sums another chunk added (zeros where none).
-
-    The reference sums w D(q) in float64. Summing the differences from the centre instead keeps
-    float32 enough: the correction is a few millimetres, so its float32 rounding (and the weights'
-    1-2 ulp from `_exp_neg`) moves the result far less than one float32 ulp of the depth; the
-    float64 addition of the centre and the division then round as the reference does. Measured on
-    redkitchen: at most 1 ulp from the reference (tests/test_fast_preprocess.py)."""
+    """bilateral_result of one row; `extra_*` are the sums another chunk added (zeros where
+    none)."""
     for u in range(out.shape[0]):
-        c = depth[u]
         w = float(sum_w[u]) + float(extra_w[u])
         wd = float(sum_wd[u]) + float(extra_wd[u])
-        filtered = np.float32(float(c) + wd / (1.0 + w))
-        out[u] = filtered if c > np.float32(0.0) else np.float32(0.0)
+        out[u] = bilateral_result(depth[u], w, wd)
 
 
 @_parallel_fma
@@ -303,9 +281,8 @@ def _tap_columns(dx, out_width, width):
 def _pyrdown_depth_taps(centre, neighbour, cutoff, w, total, weights):
     """One tap of the edge-aware 5x5 Gaussian for a run of half-size pixels (float64)."""
     for i in range(total.shape[0]):
-        c = float(centre[i])
         n = float(neighbour[i])
-        use = (n > 0.0) & (abs(n - c) <= cutoff)
+        use = depth_tap_counts(float(centre[i]), n, cutoff)
         total[i] += w * n if use else 0.0
         weights[i] += w if use else 0.0
 
@@ -336,10 +313,7 @@ def _pyrdown_depth_rows(even, odd, width, cutoff, out):
                     weights[lo:hi],
                 )
         for u in range(out_width):
-            if centre[u] > 0.0:
-                out[v, u] = np.float32(total[u] / weights[u])
-            else:
-                out[v, u] = np.float32(0.0)
+            out[v, u] = pyrdown_depth_result(float(centre[u]), total[u], weights[u])
 
 
 @_inline
@@ -375,51 +349,47 @@ def _pyrdown_intensity_rows(even, odd, width, out):
 
 
 @_inline
-def _vertex_row(depth, v, fx, fy, cx, cy, out):
-    """Vertices of one row as float32 (x, y, z) triples; NaN where D <= 0 (vertex_pixel)."""
+def _vertex_row(depth, v, camera, out):
+    """Vertices of one row as float32 (x, y, z) triples (vertex_from_depth)."""
     for u in range(depth.shape[0]):
-        d = float(depth[u])
-        valid = d > 0.0
-        out[3 * u] = np.float32((u - cx) * d / fx) if valid else np.float32(np.nan)
-        out[3 * u + 1] = np.float32((v - cy) * d / fy) if valid else np.float32(np.nan)
-        out[3 * u + 2] = np.float32(d) if valid else np.float32(np.nan)
+        x, y, z = vertex_from_depth(float(depth[u]), u, v, camera)
+        out[3 * u] = np.float32(x)
+        out[3 * u + 1] = np.float32(y)
+        out[3 * u + 2] = np.float32(z)
 
 
 @_parallel
-def _vertex_rows(depth, fx, fy, cx, cy, out):
+def _vertex_rows(depth, camera, out):
     height, width = depth.shape
     flat = out.reshape((height, 3 * width))
     for v in prange(height):
-        _vertex_row(depth[v], v, fx, fy, cx, cy, flat[v])
+        _vertex_row(depth[v], v, camera, flat[v])
 
 
 @_inline
 def _normal_row(here, below, out):
-    """normal_pixel's float32 cross product and norm for the pixels of a row that have a right
-    and a lower neighbour; rows are flat (x, y, z) triples."""
+    """normal_from_edges for the pixels of a row that have a right and a lower neighbour; rows
+    are flat float32 (x, y, z) triples."""
     for u in range(out.shape[0] // 3 - 1):
         p0 = here[3 * u]
         p1 = here[3 * u + 1]
         p2 = here[3 * u + 2]
-        a0 = below[3 * u] - p0
-        a1 = below[3 * u + 1] - p1
-        a2 = below[3 * u + 2] - p2
-        b0 = here[3 * u + 3] - p0
-        b1 = here[3 * u + 4] - p1
-        b2 = here[3 * u + 5] - p2
-        n0 = a1 * b2 - a2 * b1
-        n1 = a2 * b0 - a0 * b2
-        n2 = a0 * b1 - a1 * b0
-        length = np.float32(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2))
-        valid = length > np.float32(0.0)  # also NaN: a missing neighbour
-        out[3 * u] = n0 / length if valid else np.float32(np.nan)
-        out[3 * u + 1] = n1 / length if valid else np.float32(np.nan)
-        out[3 * u + 2] = n2 / length if valid else np.float32(np.nan)
+        n0, n1, n2 = normal_from_edges(
+            below[3 * u] - p0,
+            below[3 * u + 1] - p1,
+            below[3 * u + 2] - p2,
+            here[3 * u + 3] - p0,
+            here[3 * u + 4] - p1,
+            here[3 * u + 5] - p2,
+        )
+        out[3 * u] = n0
+        out[3 * u + 1] = n1
+        out[3 * u + 2] = n2
 
 
 @_parallel
 def _normal_rows(vertices, out):
-    """normal_map; float32 throughout, as normal_pixel (and the reference's np.cross/norm)."""
+    """normal_map; float32 throughout, as the reference's np.cross/norm."""
     height, width = vertices.shape[0], vertices.shape[1]
     flat = vertices.reshape((height, 3 * width))
     flat_out = out.reshape((height, 3 * width))
@@ -487,9 +457,9 @@ def _sobel_rows(blurred, sobel_x, sobel_y, dx, dy):
 
 @_inline
 def _count_jumps(centre, neighbour, jump, bad):
-    """+1 where |D(q) - D(p)| > jump, in float32 as NumPy compares (NaN: never)."""
+    """+1 where is_depth_jump."""
     for i in range(centre.shape[0]):
-        bad[i] += np.int32(abs(neighbour[i] - centre[i]) > jump)
+        bad[i] += np.int32(is_depth_jump(centre[i], neighbour[i], jump))
 
 
 @_parallel
@@ -511,7 +481,7 @@ def _discontinuity_rows(depth, radius, jump, max_bad, out):
                     continue
                 _count_jumps(centre[lo:hi], depth[y, lo + dx : hi + dx], jump, bad[lo:hi])
         for u in range(width):
-            out[v, u] = centre[u] > np.float32(0.0) and bad[u] <= max_bad
+            out[v, u] = colour_fusable(centre[u], bad[u], max_bad)
 
 
 @_parallel
@@ -551,9 +521,8 @@ def bilateral_filter(
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty(depth.shape, dtype=np.float32)
     radius = int(radius)
-    offsets = np.arange(-radius, radius + 1, dtype=np.float64) ** 2
-    spatial = ((offsets[:, None] + offsets[None, :]) / (2.0 * sigma_space**2)).astype(np.float32)
-    inv_two_sigma2 = np.float32(1.0 / (2.0 * sigma_depth**2))
+    spatial = spatial_exponents(sigma_space, radius)
+    inv_two_sigma2 = inverse_two_variance(sigma_depth)
     # Holes (and NaN) as a depth farther than 12.65 sigma_d from any valid one: x > 80 (weight 0).
     hole = np.float32(-(16.0 * sigma_depth + 1.0))
     work = np.where(depth > 0, depth, hole).astype(np.float32)
@@ -611,16 +580,7 @@ def vertex_map(depth: np.ndarray, camera: Intrinsics) -> np.ndarray:
     """Camera-frame points D K^-1 [u, v, 1]; NaN where D <= 0."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty((*depth.shape, 3), dtype=np.float32)
-    _run(
-        _vertex_rows,
-        depth.size,
-        depth,
-        float(camera.fx),
-        float(camera.fy),
-        float(camera.cx),
-        float(camera.cy),
-        out,
-    )
+    _run(_vertex_rows, depth.size, depth, pinhole(camera), out)
     return out
 
 

@@ -9,6 +9,7 @@ uploads the images once and keeps every intermediate on the device.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -19,8 +20,10 @@ from kintinuous_fast.preprocess.host import (
     SOBEL_Y,
     check_frame_inputs,
     gaussian3x3,
+    inverse_two_variance,
+    pinhole,
     preprocess_frame_with,
-    spatial_weights,
+    spatial_exponents,
 )
 from kintinuous_fast.preprocess.ops import build_ops
 from kintinuous_fast.targets import cuda_device_jit
@@ -46,7 +49,14 @@ __all__ = [
     "vertex_map",
 ]
 
-_ops = build_ops(cuda_device_jit())
+
+@cuda.jit(device=True)
+def _power_of_two_neg(n):
+    """2^-n as float32 (int(): the simulator's math.ldexp takes Python integers only)."""
+    return math.ldexp(np.float32(1.0), int(-n))
+
+
+_ops = build_ops(cuda_device_jit(), cuda_device_jit(), _power_of_two_neg)
 metric_value = _ops.metric_value
 bilateral_pixel = _ops.bilateral_pixel
 pyrdown_depth_pixel = _ops.pyrdown_depth_pixel
@@ -66,10 +76,10 @@ def _metric_depth_kernel(raw, integer, depth_scale, max_depth, out):
 
 
 @cuda.jit
-def _bilateral_kernel(depth, spatial, radius, two_sigma_d2, out):
+def _bilateral_kernel(depth, spatial, radius, inv_two_sigma2, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
-        out[v, u] = bilateral_pixel(depth, v, u, spatial, radius, two_sigma_d2)
+        out[v, u] = bilateral_pixel(depth, v, u, spatial, radius, inv_two_sigma2)
 
 
 @cuda.jit
@@ -87,10 +97,10 @@ def _pyrdown_intensity_kernel(image, out):
 
 
 @cuda.jit
-def _vertex_kernel(depth, fx, fy, cx, cy, out):
+def _vertex_kernel(depth, camera, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
-        x, y, z = vertex_pixel(depth, v, u, fx, fy, cx, cy)
+        x, y, z = vertex_pixel(depth, v, u, camera)
         out[v, u, 0] = x
         out[v, u, 1] = y
         out[v, u, 2] = z
@@ -194,10 +204,9 @@ def bilateral_filter(depth: Any, sigma_space: float, sigma_depth: float, radius:
     """Edge-preserving smoothing of a depth map; holes stay holes (see the reference)."""
     d_depth = to_device(depth, np.float32)
     out = cuda.device_array(depth.shape, dtype=np.float32)
-    spatial = cuda.to_device(spatial_weights(sigma_space, radius))
-    _launch(
-        _bilateral_kernel, depth.shape, d_depth, spatial, int(radius), 2.0 * sigma_depth**2, out
-    )
+    spatial = cuda.to_device(spatial_exponents(sigma_space, int(radius)))
+    inv_two_sigma2 = inverse_two_variance(sigma_depth)
+    _launch(_bilateral_kernel, depth.shape, d_depth, spatial, int(radius), inv_two_sigma2, out)
     return like_input(out, depth)
 
 
@@ -220,16 +229,7 @@ def pyramid_down_intensity(image: Any) -> Any:
 def vertex_map(depth: Any, camera: Intrinsics) -> Any:
     """Camera-frame points D K^-1 [u, v, 1]; NaN where D <= 0."""
     out = cuda.device_array((*depth.shape, 3), dtype=np.float32)
-    _launch(
-        _vertex_kernel,
-        depth.shape,
-        to_device(depth, np.float32),
-        float(camera.fx),
-        float(camera.fy),
-        float(camera.cx),
-        float(camera.cy),
-        out,
-    )
+    _launch(_vertex_kernel, depth.shape, to_device(depth, np.float32), pinhole(camera), out)
     return like_input(out, depth)
 
 

@@ -26,15 +26,21 @@ def gaussian3x3(sigma: float) -> np.ndarray:
     return np.outer(g, g)
 
 
-def spatial_weights(sigma_space: float, radius: int) -> np.ndarray:
-    """exp(-(dx^2 + dy^2) / 2 sigma_s^2) per window offset, each computed as the reference does
-    (one scalar np.exp per offset), so the bilateral weights agree to the bit."""
-    size = 2 * radius + 1
-    table = np.empty((size, size), dtype=np.float64)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            table[dy + radius, dx + radius] = np.exp(-(dx * dx + dy * dy) / (2.0 * sigma_space**2))
-    return table
+def spatial_exponents(sigma_space: float, radius: int) -> np.ndarray:
+    """(dx^2 + dy^2) / 2 sigma_s^2 per window offset, float32: the spatial part of the bilateral
+    weights' exponent (ops.bilateral_weight)."""
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64) ** 2
+    return ((offsets[:, None] + offsets[None, :]) / (2.0 * sigma_space**2)).astype(np.float32)
+
+
+def inverse_two_variance(sigma_depth: float) -> np.float32:
+    """1 / 2 sigma_d^2 in float32, the depth part of the bilateral weights' exponent."""
+    return np.float32(1.0 / (2.0 * sigma_depth**2))
+
+
+def pinhole(camera: Intrinsics) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) as floats: the intrinsics a kernel takes as one argument."""
+    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
 
 
 def check_frame_inputs(colour: Any, depth: Any, camera: Intrinsics) -> None:
