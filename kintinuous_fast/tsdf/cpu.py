@@ -24,7 +24,11 @@ from kintinuous_fast.tsdf.volume import (
     check_volume_config,
     from_reference_volume,
     frustum_box,
+    fusion_limits,
+    image_size,
+    index_box,
     memory_bytes,
+    pinhole,
     projection_constants,
     slab_view,
     to_reference_volume,
@@ -78,11 +82,11 @@ DEPTH_TILE = 8  # pixels per side of the finest level of the max pyramid of lamb
 
 
 @_loop
-def _ray_distance_loop(depth, fx, fy, cx, cy, out):
+def _ray_distance_loop(depth, camera, out):
     height, width = depth.shape
     for v in prange(height):
         for u in range(width):
-            out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+            out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, camera)
     out[height * width] = -np.inf  # the "no pixel" slot (project_voxel)
 
 
@@ -136,15 +140,15 @@ def _largest_over(pyramid, u0, u1, v0, v1):
 
 @_loop
 def _columns_to_visit_loop(
-    base, steps, camera_voxel, intrinsics, width, height, pyramid, reach, voxel_size, lo, hi,
-    visit,
-):  # fmt: skip
-    """visit[I, J] = [k0, k1): the voxels along k, within the box [lo, hi), that the columns of
-    CULL_BRICK[0] x CULL_BRICK[1] bundle (I, J) visit: from the first of its bricks of
+    base, steps, camera_voxel, intrinsics, image_size, pyramid, box, cull, visit
+):
+    """visit[I, J] = [k0, k1): the voxels along k, within the box [lo, hi) = `box`, that the
+    columns of CULL_BRICK[0] x CULL_BRICK[1] bundle (I, J) visit: from the first of its bricks of
     CULL_BRICK voxels that may hold a voxel this frame updates (_brick_may_update) to the
     last (k0 = k1 when none may). A range, not a brick map: looking bricks up inside the
     column loop made LLVM compile it worse (~5 ms a frame slower, measured)."""
     sizes = CULL_BRICK
+    lo, hi = box  # unpacked here: numba's prange bodies take flat tuples only
     for b0 in prange(visit.shape[0]):
         i0, i1 = max(b0 * sizes[0], lo[0]), min((b0 + 1) * sizes[0], hi[0]) - 1
         for b1 in range(visit.shape[1]):
@@ -157,10 +161,17 @@ def _columns_to_visit_loop(
                     and j0 <= j1
                     and k0 <= k1
                     and _brick_may_update(
-                        base, steps, camera_voxel, intrinsics, width, height, pyramid, reach,
-                        voxel_size, i0, i1, j0, j1, k0, k1,
+                        base,
+                        steps,
+                        camera_voxel,
+                        intrinsics,
+                        image_size,
+                        pyramid,
+                        cull,
+                        (i0, j0, k0),
+                        (i1, j1, k1),
                     )
-                ):  # fmt: skip
+                ):
                     first = min(first, k0)
                     end = k1 + 1
             visit[b0, b1, 0], visit[b0, b1, 1] = first, max(end, first)
@@ -168,15 +179,19 @@ def _columns_to_visit_loop(
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _brick_may_update(
-    base, steps, camera_voxel, intrinsics, width, height, pyramid, reach, voxel_size, i0, i1,
-    j0, j1, k0, k1,
-):  # fmt: skip
-    """Whether a voxel of [i0, i1] x [j0, j1] x [k0, k1] may be updated: unless its corners all
-    lie in front of the camera and the largest lambda D over the pixels of its projection's
-    bounds (grown by a pixel: voxels round to the nearest) plus `reach` falls short of its
-    nearest point's distance (the camera at `camera_voxel` in voxel coordinates, clamped into
-    the block: the voxel grid is a scaled rotation of the camera frame), or it projects
-    wholly outside the image."""
+    base, steps, camera_voxel, intrinsics, image_size, pyramid, cull, first, last
+):
+    """Whether a voxel of [i0, i1] x [j0, j1] x [k0, k1] (`first` = (i0, j0, k0), `last` =
+    (i1, j1, k1)) may be updated: unless its corners all lie in front of the camera and the
+    largest lambda D over the pixels of its projection's bounds (grown by a pixel: voxels round
+    to the nearest) plus `reach` falls short of its nearest point's distance (the camera at
+    `camera_voxel` in voxel coordinates, clamped into the block: the voxel grid is a scaled
+    rotation of the camera frame), or it projects wholly outside the image. `cull` = (reach,
+    voxel size), `image_size` = (W, H)."""
+    i0, j0, k0 = first
+    i1, j1, k1 = last
+    width, height = image_size
+    reach, voxel_size = cull
     u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
     for i in (i0, i1):
         for j in (j0, j1):
@@ -207,55 +222,58 @@ def _brick_may_update(
 def _integrate_slice(
     tsdf_weight,
     colour_volume,
-    o0,
-    o1,
-    o2,
+    offsets,
     lo,
     hi,
     base,
     steps,
     intrinsics,
+    image_size,
     far,
     ray_distance,
-    truncation,
-    max_weight,
+    limits,
     colour,
     colour_weights,
     fuse_colour,
-    colour_max_weight,
     masks,
     keep_masks,
     visit,
-    n,
-    height,
-    width,
     i,
 ):
     """The voxel columns of logical slice i (see _integrate_loop), software-pipelined: column
     j is projected (_project_column) and the volume lines it will update are prefetched, then
     column j - 1, projected one step earlier, is fused; its lines have arrived meanwhile."""
+    o0, o1, o2 = offsets
+    n = tsdf_weight.shape[0]
     pixels = np.empty((2, n), dtype=np.uint32)  # two columns: this one and the one before
     norms = np.empty((2, n), dtype=np.float32)
     sdfs = np.empty((2, n), dtype=np.float32)
     updated = np.zeros((2, 2), dtype=np.int64)  # per column: [first, last + 1) updated
     fi = np.float32(i)
     ci = cell(i, o0, n)
+    step = (float(steps[2, 0]), float(steps[2, 1]), float(steps[2, 2]))
     for j in range(lo[1], hi[1] + 1):
         if j < hi[1]:
             this = j & 1
             px, py, pz = column_start(base, steps, fi, np.float32(j))
-            k0, k1 = column_range(
-                float(px), float(py), float(pz), float(steps[2, 0]), float(steps[2, 1]),
-                float(steps[2, 2]), intrinsics, width, height, far, n,
-            )  # fmt: skip
+            start = (float(px), float(py), float(pz))
+            k0, k1 = column_range(start, step, intrinsics, image_size, far, n)
             k0 = max(k0, lo[2])
             bundle = visit[i // CULL_BRICK[0], j // CULL_BRICK[1]]
             k0 = max(k0, bundle[0])
             k1 = max(min(k1, bundle[1]), k0)
             first, last = _project_column(
-                k0, k1, px, py, pz, steps, intrinsics, width, height, ray_distance, truncation,
-                pixels[this], norms[this], sdfs[this],
-            )  # fmt: skip
+                (k0, k1),
+                (px, py, pz),
+                steps,
+                intrinsics,
+                image_size,
+                ray_distance,
+                limits[0],
+                pixels[this],
+                norms[this],
+                sdfs[this],
+            )
             cj = cell(j, o1, n)
             _prefetch_cells(tsdf_weight, ci, cj, first, last, o2, n)
             if fuse_colour:  # the lines of the few voxels near the surface are among these
@@ -264,28 +282,40 @@ def _integrate_slice(
         if j > lo[1]:
             before = (j - 1) & 1
             _fuse_column(
-                tsdf_weight, colour_volume, ci, cell(j - 1, o1, n), o2, n, pixels[before],
-                sdfs[before], updated[before, 0], updated[before, 1], truncation, max_weight,
-                colour, colour_weights, fuse_colour, colour_max_weight, masks, keep_masks, i, j - 1,
-            )  # fmt: skip
+                tsdf_weight,
+                colour_volume,
+                (ci, cell(j - 1, o1, n), o2),
+                (i, j - 1),
+                (updated[before, 0], updated[before, 1]),
+                pixels[before],
+                sdfs[before],
+                limits,
+                colour,
+                colour_weights,
+                fuse_colour,
+                masks,
+                keep_masks,
+            )
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _project_column(
-    k0, k1, px, py, pz, steps, intrinsics, width, height, ray_distance, truncation, pixels,
-    norms, sdfs,
-):  # fmt: skip
-    """Voxels [k0, k1) of a column from camera-frame p + k a: pixel, distance and sdf, in two
-    passes (the first vectorises: counted from 0 with a float32 counter, as LLVM needs; the
-    second is a gather). Returns the first and last k to update (sdf >= -mu), found by a scan
-    from each end afterwards (tracking them inside the gather loop cost more, measured)."""
+    span, start, steps, intrinsics, image_size, ray_distance, truncation, pixels, norms, sdfs
+):
+    """Voxels [k0, k1) = `span` of a column from camera-frame p + k a, p = `start`: pixel,
+    distance and sdf, in two passes (the first vectorises: counted from 0 with a float32
+    counter, as LLVM needs; the second is a gather). Returns the first and last k to update
+    (sdf >= -mu), found by a scan from each end afterwards (tracking them inside the gather
+    loop cost more, measured)."""
+    k0, k1 = span
+    px, py, pz = start
     fk0 = np.float32(k0)
     for m in range(k1 - k0):
         fk = fk0 + np.float32(m)
         x = px + fk * steps[2, 0]
         y = py + fk * steps[2, 1]
         z = pz + fk * steps[2, 2]
-        pixels[k0 + m] = project_voxel(x, y, z, intrinsics, width, height)
+        pixels[k0 + m] = project_voxel(x, y, z, intrinsics, image_size)
         norms[k0 + m] = voxel_norm(x, y, z)
     column_pixels, column_norms, column_sdfs = pixels[k0:k1], norms[k0:k1], sdfs[k0:k1]
     for m in range(k1 - k0):
@@ -312,19 +342,43 @@ def _prefetch_cells(volume, ci, cj, first, last, o2, n):
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _fuse_column(
-    tsdf_weight, colour_volume, ci, cj, o2, n, pixels, sdfs, first, end, truncation, max_weight,
-    colour, colour_weights, fuse_colour, colour_max_weight, masks, keep_masks, i, j,
-):  # fmt: skip
-    """Pass 3: fuse_voxel on the voxels [first, end) of column (i, j) with sdf >= -mu."""
+    tsdf_weight,
+    colour_volume,
+    column_cells,
+    column,
+    span,
+    pixels,
+    sdfs,
+    limits,
+    colour,
+    colour_weights,
+    fuse_colour,
+    masks,
+    keep_masks,
+):
+    """Pass 3: fuse_voxel on the voxels [first, end) = `span` of logical column `column` = (i, j)
+    with sdf >= -mu; `column_cells` = (its array cells ci, cj, and the k offset o2)."""
+    ci, cj, o2 = column_cells
+    i, j = column
+    first, end = span
+    n = tsdf_weight.shape[0]
+    truncation = limits[0]
     span_sdfs, span_pixels = sdfs[first:end], pixels[first:end]
     for m in range(end - first):
         if not span_sdfs[m] >= -truncation:
             continue
         k = first + m
         change = fuse_voxel(
-            tsdf_weight, colour_volume, ci, cj, cell(k, o2, n), span_pixels[m], span_sdfs[m],
-            truncation, max_weight, colour, colour_weights, fuse_colour, colour_max_weight,
-        )  # fmt: skip
+            tsdf_weight,
+            colour_volume,
+            (ci, cj, cell(k, o2, n)),
+            span_pixels[m],
+            span_sdfs[m],
+            limits,
+            colour,
+            colour_weights,
+            fuse_colour,
+        )
         if keep_masks and change != 0:
             bit = fine_voxel_bit(i, j, k)
             mask = masks[i // FINE, j // FINE, k // FINE]
@@ -335,39 +389,51 @@ def _fuse_column(
 def _integrate_loop(
     tsdf_weight,
     colour_volume,
-    o0,
-    o1,
-    o2,
-    lo,
-    hi,
+    offsets,
+    box,
     base,
     steps,
     intrinsics,
+    image_size,
     far,
     ray_distance,
-    truncation,
-    max_weight,
+    limits,
     colour,
     colour_weights,
     fuse_colour,
-    colour_max_weight,
     masks,
     keep_masks,
     visit,
-    height,
-    width,
 ):
+    """`box` = (lo, hi): the voxel index box [lo, hi); `far`: the farthest z to visit;
+    `limits`: fuse_voxel's."""
     # Voxel columns along k: only the k-range that can project into the image (column_range)
     # is visited, so the work follows the viewing pyramid, not its bounding box. Threads take
     # whole fine bricks along i, so no two threads ever change the same brick's mask.
-    n = tsdf_weight.shape[0]
+    lo, hi = box  # unpacked here: numba's prange bodies take flat tuples only
     for brick in prange(lo[0] // FINE, (hi[0] + FINE - 1) // FINE):
         for i in range(max(brick * FINE, lo[0]), min((brick + 1) * FINE, hi[0])):
             _integrate_slice(
-                tsdf_weight, colour_volume, o0, o1, o2, lo, hi, base, steps, intrinsics, far,
-                ray_distance, truncation, max_weight, colour, colour_weights, fuse_colour,
-                colour_max_weight, masks, keep_masks, visit, n, height, width, i,
-            )  # fmt: skip
+                tsdf_weight,
+                colour_volume,
+                offsets,
+                lo,
+                hi,
+                base,
+                steps,
+                intrinsics,
+                image_size,
+                far,
+                ray_distance,
+                limits,
+                colour,
+                colour_weights,
+                fuse_colour,
+                masks,
+                keep_masks,
+                visit,
+                i,
+            )
 
 
 @_loop
@@ -432,7 +498,7 @@ def integrate(
     if box is None:
         return
     ray_distance = np.empty(depth.size + 1, dtype=np.float32)  # flat (project_voxel)
-    _ray_distance_loop(depth, camera.fx, camera.fy, camera.cx, camera.cy, ray_distance)
+    _ray_distance_loop(depth, pinhole(camera), ray_distance)
     fuse_colour = colour is not None and volume.colour is not None
     if fuse_colour:
         colour = np.ascontiguousarray(colour, dtype=np.uint8).reshape(-1, 3)
@@ -450,25 +516,21 @@ def integrate(
         _integrate_loop(
             volume.tsdf_weight,
             colour_volume,
-            *volume.offsets(),
-            box[0],
-            box[1],
+            volume.offsets(),
+            index_box(box),
             base,
             steps,
             projection_constants(camera),
+            image_size(camera),
             largest + float(volume.truncation),
             ray_distance,
-            np.float32(volume.truncation),
-            np.float32(volume.max_weight),
+            fusion_limits(volume),
             colour,
             colour_weights,
             fuse_colour,
-            np.float32(volume.colour_max_weight),
             _NO_MASKS if masks is None else masks,
             masks is not None,
             visit,
-            camera.height,
-            camera.width,
         )
 
 
@@ -486,11 +548,19 @@ def _columns_to_visit(
     n = volume.resolution
     visit = np.empty((-(-n // CULL_BRICK[0]), -(-n // CULL_BRICK[1]), 2), dtype=np.int64)
     camera_voxel = volume.world_to_voxel(pose[:3, 3][None])[0].astype(np.float64)
+    lo, hi = index_box(box)
+    reach = float(volume.truncation) + CULL_MARGIN
     _columns_to_visit_loop(
-        base, steps, camera_voxel, projection_constants(camera), camera.width, camera.height,
+        base,
+        steps,
+        camera_voxel,
+        projection_constants(camera),
+        image_size(camera),
         _max_pyramid(ray_distance, camera.height, camera.width),
-        float(volume.truncation) + CULL_MARGIN, float(volume.voxel_size), box[0], box[1], visit,
-    )  # fmt: skip
+        (lo, hi),
+        (reach, float(volume.voxel_size)),
+        visit,
+    )
     return visit
 
 

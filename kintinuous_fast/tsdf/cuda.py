@@ -23,7 +23,11 @@ from kintinuous_fast.tsdf.volume import (
     camera_frame_steps,
     check_depth,
     frustum_box,
+    fusion_limits,
+    image_size,
+    index_box,
     memory_bytes,
+    pinhole,
     projection_constants,
     slab_view,
     to_reference_volume,
@@ -73,12 +77,12 @@ def _max_depth_kernel(depth, result):
 
 
 @cuda.jit
-def _ray_distance_kernel(depth, fx, fy, cx, cy, out):
+def _ray_distance_kernel(depth, camera, out):
     # flat, with -inf in the "no pixel" slot one past the image (tsdf.ops.project_voxel)
     u, v = cuda.grid(2)
     height, width = depth.shape
     if v < height and u < width:
-        out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, fx, fy, cx, cy)
+        out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, camera)
     if u == 0 and v == 0:
         out[height * width] = -np.inf
 
@@ -87,53 +91,38 @@ def _ray_distance_kernel(depth, fx, fy, cx, cy, out):
 def _integrate_kernel(
     tsdf_weight,
     colour_volume,
-    o0,
-    o1,
-    o2,
-    lo0,
-    hi0,
-    lo1,
-    lo2,
-    hi1,
-    hi2,
+    offsets,
+    box,
     base,
     steps,
     intrinsics,
-    width,
-    height,
+    image_size,
     ray_distance,
-    truncation,
-    max_weight,
+    limits,
     colour,
     colour_weights,
     fuse_colour,
-    colour_max_weight,
 ):
+    # `box` = (lo, hi): voxel indices [lo, hi); `limits` = tsdf.ops.fuse_voxel's
+    lo, hi = box
     dk, dj = cuda.grid(2)
-    k, j = lo2 + dk, lo1 + dj
-    if k < hi2 and j < hi1:
-        for i in range(lo0, hi0):
+    k, j = lo[2] + dk, lo[1] + dj
+    if k < hi[2] and j < hi[1]:
+        for i in range(lo[0], hi[0]):
             integrate_voxel(
                 tsdf_weight,
                 colour_volume,
-                i,
-                j,
-                k,
-                o0,
-                o1,
-                o2,
+                (i, j, k),
+                offsets,
                 base,
                 steps,
                 intrinsics,
-                width,
-                height,
+                image_size,
                 ray_distance,
-                truncation,
-                max_weight,
+                limits,
                 colour,
                 colour_weights,
                 fuse_colour,
-                colour_max_weight,
             )
 
 
@@ -212,9 +201,7 @@ def integrate(
     if box is None:
         return
     ray_distance = cuda.device_array(camera.height * camera.width + 1, dtype=np.float32)
-    _ray_distance_kernel[grid, BLOCK_2D](
-        d_depth, camera.fx, camera.fy, camera.cx, camera.cy, ray_distance
-    )
+    _ray_distance_kernel[grid, BLOCK_2D](d_depth, pinhole(camera), ray_distance)
     fuse_colour = colour is not None and volume.colour is not None
     if fuse_colour:
         colour = to_device(colour, np.uint8).reshape(-1, 3)
@@ -232,30 +219,22 @@ def integrate(
     if colour_volume is None:
         colour_volume = cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
     base, steps = camera_frame_steps(volume, pose)
-    (lo0, lo1, lo2), (hi0, hi1, hi2) = (int(x) for x in box[0]), (int(x) for x in box[1])
-    threads = grid_2d(hi1 - lo1, hi2 - lo2)  # x: k (contiguous in memory), y: j
+    lo, hi = index_box(box)
+    threads = grid_2d(hi[1] - lo[1], hi[2] - lo[2])  # x: k (contiguous in memory), y: j
     _integrate_kernel[threads, BLOCK_2D](
         volume.tsdf_weight,
         colour_volume,
-        *volume.offsets(),
-        lo0,
-        hi0,
-        lo1,
-        lo2,
-        hi1,
-        hi2,
+        volume.offsets(),
+        (lo, hi),
         cuda.to_device(base),
         cuda.to_device(steps),
         cuda.to_device(projection_constants(camera)),
-        camera.width,
-        camera.height,
+        image_size(camera),
         ray_distance,
-        np.float32(volume.truncation),
-        np.float32(volume.max_weight),
+        fusion_limits(volume),
         colour,
         colour_weights,
         fuse_colour,
-        np.float32(volume.colour_max_weight),
     )
 
 

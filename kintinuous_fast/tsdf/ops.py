@@ -26,26 +26,27 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
     rint32 = build_rint(jit)[1]
 
     @jit
-    def ray_distance_pixel(
-        d: Any, u: int, v: int, fx: float, fy: float, cx: float, cy: float
-    ) -> Any:
-        """lambda D: the measured distance along pixel (u, v)'s ray (float32 as the reference);
-        -inf where D is not > 0 (no measurement), so that every sdf taken from it is below -mu:
-        no update, as the reference's D > 0 test."""
+    def ray_distance_pixel(d: Any, u: int, v: int, camera: Any) -> Any:
+        """lambda D: the measured distance along pixel (u, v)'s ray (float32 as the reference),
+        `camera` = (fx, fy, cx, cy); -inf where D is not > 0 (no measurement), so that every sdf
+        taken from it is below -mu: no update, as the reference's D > 0 test."""
+        fx, fy, cx, cy = camera
         x = (u - cx) * 1.0 / fx
         y = (v - cy) * 1.0 / fy
         measured = np.float32(float(d) * math.sqrt(x * x + y * y + 1.0))
         return measured if d > 0 else np.float32(-np.inf)
 
     @jit
-    def project_voxel(x: Any, y: Any, z: Any, intrinsics: Any, width: int, height: int) -> Any:
+    def project_voxel(x: Any, y: Any, z: Any, intrinsics: Any, image_size: tuple) -> Any:
         """The pixel of a camera-frame voxel centre, (u, v) = round(pi(p_c)) (float32, as NumPy 2
-        computes the reference's projection), as the flat index v W + u (uint32); W H, the
+        computes the reference's projection), as the flat index v W + u (uint32), `image_size`
+        = (W, H); W H, the
         "no pixel" slot one past the image, when z <= 0 or it falls outside the image. Images
         are read flat here: ray distances (ray_distance_pixel's, H W + 1 with -inf in that
         slot), colour (H W, 3), colour weights (H W). Selects only, no branch and no
         integer-to-float conversion, so that a loop of it vectorises (the cpu integration's
         first pass)."""
+        width, height = image_size
         uf = intrinsics[0] * x / z + intrinsics[2]
         vf = intrinsics[1] * y / z + intrinsics[3]
         ur = rint32(uf)  # float32: a float64 rounding costs 10 % of integration (measured)
@@ -64,52 +65,50 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
     def update_voxel(
         tsdf_weight: Any,
         colour_volume: Any,
-        ci: int,
-        cj: int,
-        ck: int,
-        x: Any,
-        y: Any,
-        z: Any,
+        voxel: tuple,
+        point: tuple,
         intrinsics: Any,
-        width: int,
-        height: int,
+        image_size: tuple,
         ray_distance: Any,
-        truncation: Any,
-        max_weight: Any,
+        limits: tuple,
         colour: Any,
         colour_weights: Any,
         fuse_colour: bool,
-        colour_max_weight: Any,
     ) -> int:
         """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place: the voxel in
-        array cell (ci, cj, ck) whose camera-frame centre is (x, y, z) (float32):
-        project_voxel, its sdf, then fuse_voxel. Returns fuse_voxel's change of the negative
-        count."""
-        pixel = project_voxel(x, y, z, intrinsics, width, height)
+        array cell `voxel` = (ci, cj, ck) whose camera-frame centre is `point` = (x, y, z)
+        (float32): project_voxel, its sdf, then fuse_voxel. Returns fuse_voxel's change of the
+        negative count."""
+        x, y, z = point
+        pixel = project_voxel(x, y, z, intrinsics, image_size)
+        sdf = ray_distance[pixel] - voxel_norm(x, y, z)
         return fuse_voxel(
-            tsdf_weight, colour_volume, ci, cj, ck, pixel,
-            ray_distance[pixel] - voxel_norm(x, y, z), truncation, max_weight,
-            colour, colour_weights, fuse_colour, colour_max_weight,
-        )  # fmt: skip
+            tsdf_weight,
+            colour_volume,
+            voxel,
+            pixel,
+            sdf,
+            limits,
+            colour,
+            colour_weights,
+            fuse_colour,
+        )
 
     @jit
     def fuse_voxel(
         tsdf_weight: Any,
         colour_volume: Any,
-        ci: int,
-        cj: int,
-        ck: int,
+        voxel: tuple,
         pixel: Any,
         sdf: Any,
-        truncation: Any,
-        max_weight: Any,
+        limits: tuple,
         colour: Any,
         colour_weights: Any,
         fuse_colour: bool,
-        colour_max_weight: Any,
     ) -> int:
-        """The update of the voxel in array cell (ci, cj, ck) projecting to flat pixel index
-        `pixel` (project_voxel's), with sdf = lambda D - |p_c| (-inf without a measurement).
+        """The update of the voxel in array cell `voxel` = (ci, cj, ck) projecting to flat pixel
+        index `pixel` (project_voxel's), with sdf = lambda D - |p_c| (-inf without a
+        measurement); `limits` = (mu, the weight cap, the colour weight cap) in float32.
 
         Update if sdf >= -mu: running average of min(1, sdf/mu) with weight W + 1 (capped);
         colour where |sdf| < mu and the pixel's colour weight > 0.
@@ -119,6 +118,8 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
         skipping. Values that do not change are not written back (a saturated free-space voxel,
         F = 1 at the weight cap, stays as it is: no store, no dirty cache line).
         """
+        ci, cj, ck = voxel
+        truncation, max_weight, colour_max_weight = limits
         if not sdf >= -truncation:
             return 0
         q_old = tsdf_weight[ci, cj, ck, 0]
@@ -186,52 +187,40 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
     def integrate_voxel(
         tsdf_weight: Any,
         colour_volume: Any,
-        i: int,
-        j: int,
-        k: int,
-        o0: int,
-        o1: int,
-        o2: int,
+        index: tuple,
+        offsets: tuple,
         base: Any,
         steps: Any,
         intrinsics: Any,
-        width: int,
-        height: int,
+        image_size: tuple,
         ray_distance: Any,
-        truncation: Any,
-        max_weight: Any,
+        limits: tuple,
         colour: Any,
         colour_weights: Any,
         fuse_colour: bool,
-        colour_max_weight: Any,
     ) -> None:
-        """Logical voxel (i, j, k): p_c = base + i a_x + j a_y + k a_z (float32, the
-        reference's order of additions), then update_voxel on its array cell."""
+        """Logical voxel `index` = (i, j, k): p_c = base + i a_x + j a_y + k a_z (float32, the
+        reference's order of additions), then update_voxel on its array cell (the buffer's
+        `offsets` = (o0, o1, o2))."""
+        i, j, k = index
+        o0, o1, o2 = offsets
         px, py, pz = column_start(base, steps, np.float32(i), np.float32(j))
         fk = np.float32(k)
-        x = px + fk * steps[2, 0]
-        y = py + fk * steps[2, 1]
-        z = pz + fk * steps[2, 2]
+        point = (px + fk * steps[2, 0], py + fk * steps[2, 1], pz + fk * steps[2, 2])
         n = tsdf_weight.shape[0]
+        voxel = (cell(i, o0, n), cell(j, o1, n), cell(k, o2, n))
         update_voxel(
             tsdf_weight,
             colour_volume,
-            cell(i, o0, n),
-            cell(j, o1, n),
-            cell(k, o2, n),
-            x,
-            y,
-            z,
+            voxel,
+            point,
             intrinsics,
-            width,
-            height,
+            image_size,
             ray_distance,
-            truncation,
-            max_weight,
+            limits,
             colour,
             colour_weights,
             fuse_colour,
-            colour_max_weight,
         )
 
     @jit
@@ -247,24 +236,18 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
 
     @jit
     def column_range(
-        px: float,
-        py: float,
-        pz: float,
-        ax: float,
-        ay: float,
-        az: float,
-        intrinsics: Any,
-        width: int,
-        height: int,
-        far: float,
-        n: int,
+        start: tuple, step: tuple, intrinsics: Any, image_size: tuple, far: float, n: int
     ) -> tuple:
         """[k0, k1) holding every k of the voxel column p_c(k) = p + k a that update_voxel can
         change: 0 < z <= far (the largest depth + mu bounds z, as |p_c| <= lambda D + mu) and
         the projection within half a pixel of the image (u in [-1, W], v in [-1, H], i.e.
         fx x + (cx + 1) z >= 0 and (W - cx) z - fx x >= 0 for z > 0, linear in k). A margin of
         one voxel at each end covers float32 rounding of the voxel positions; update_voxel
-        still makes the exact decision, so only voxels it would skip are left out."""
+        still makes the exact decision, so only voxels it would skip are left out. `start` = p
+        and `step` = a (float64), `image_size` = (W, H)."""
+        px, py, pz = start
+        ax, ay, az = step
+        width, height = image_size
         fx, fy = float(intrinsics[0]), float(intrinsics[1])
         cx, cy = float(intrinsics[2]), float(intrinsics[3])
         lo, hi = -1.0, float(n)

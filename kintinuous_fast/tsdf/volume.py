@@ -191,6 +191,31 @@ def projection_constants(camera: Intrinsics) -> np.ndarray:
     return np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float32)
 
 
+def pinhole(camera: Intrinsics) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) as floats: the intrinsics a kernel takes as one argument."""
+    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+
+
+def image_size(camera: Intrinsics) -> tuple[int, int]:
+    """(W, H): the image size a kernel takes as one argument."""
+    return int(camera.width), int(camera.height)
+
+
+def index_box(box: tuple[np.ndarray, np.ndarray]) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """frustum_box's [lo, hi) as two tuples of three ints (one kernel argument)."""
+    return tuple(int(x) for x in box[0]), tuple(int(x) for x in box[1])
+
+
+def fusion_limits(volume: FastTsdfVolume) -> tuple[np.float32, np.float32, np.float32]:
+    """(mu, the weight cap, the colour weight cap) in float32, the reference's precision:
+    the limits of tsdf.ops.fuse_voxel, one kernel argument."""
+    return (
+        np.float32(volume.truncation),
+        np.float32(volume.max_weight),
+        np.float32(volume.colour_max_weight),
+    )
+
+
 def frustum_box(
     volume: FastTsdfVolume, max_depth: float, pose: np.ndarray, camera: Intrinsics
 ) -> tuple[np.ndarray, np.ndarray] | None:
