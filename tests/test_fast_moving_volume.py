@@ -363,8 +363,8 @@ def _samples_of_every_ray(volume, pose, camera) -> tuple[np.ndarray, np.ndarray]
          for v in range(camera.height)]
     )  # fmt: skip
     span = np.array(
-        [[cpu_raycast._ops.ray_span(origin, *d, volume_origin, volume.voxel_size, volume.resolution)
-          for d in row] for row in directions]
+        [[cpu_raycast._ops.ray_span(origin, tuple(d), volume_origin, volume.voxel_size,
+                                    volume.resolution) for d in row] for row in directions]
     )  # fmt: skip
     step = STEP_FRACTION * volume.truncation
     count = int(np.ceil(volume.resolution * np.sqrt(3) * volume.voxel_size / step)) + 1

@@ -301,10 +301,10 @@ def _near_box_starts(
                     end = k + 1
                     while end < min(m, k + longest) and row[end]:
                         end += 1
+                    run = (i, j, k, end - k)
                     _paint_box(
-                        i, j, k, end - k, offset, steps, camera, origin, volume_origin, size,
-                        inverse, starts[c],
-                    )  # fmt: skip
+                        run, offset, steps, camera, origin, volume_origin, size, inverse, starts[c]
+                    )
                     k = _next_near(row, end)
 
 
@@ -333,11 +333,12 @@ def _next_near(row, k):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _paint_box(i, j, k, run, offset, steps, camera, origin, volume_origin, size, inverse, start):
+def _paint_box(bricks, offset, steps, camera, origin, volume_origin, size, inverse, start):
     """start = min(start, where the pixel's ray enters the box of fine bricks (i, j, k) ..
-    (i, j, k + run - 1)) over the pixels of the bounding box of its projection, grown by half a
-    pixel (the whole image when the box reaches behind the camera's plane; nothing when it lies
-    wholly behind), whose rays meet the box."""
+    (i, j, k + run - 1), `bricks` = (i, j, k, run)) over the pixels of the bounding box of its
+    projection, grown by half a pixel (the whole image when the box reaches behind the camera's
+    plane; nothing when it lies wholly behind), whose rays meet the box."""
+    i, j, k, run = bricks
     height, width = start.shape
     u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
     behind = 0
@@ -380,23 +381,31 @@ def _paint_box(i, j, k, run, offset, steps, camera, origin, volume_origin, size,
     # The box's faces relative to the camera, grown by ENTRY_MARGIN so that rounding in the
     # slab test never misses a ray that touches it; a ray's slab distances are these times its
     # inverse direction.
-    low0 = np.float32(volume_origin[0] + i * size - origin[0] - ENTRY_MARGIN)
-    low1 = np.float32(volume_origin[1] + j * size - origin[1] - ENTRY_MARGIN)
-    low2 = np.float32(volume_origin[2] + k * size - origin[2] - ENTRY_MARGIN)
-    grown = np.float32(size + 2.0 * ENTRY_MARGIN)
-    long = np.float32(run * size + 2.0 * ENTRY_MARGIN)
+    low = (
+        np.float32(volume_origin[0] + i * size - origin[0] - ENTRY_MARGIN),
+        np.float32(volume_origin[1] + j * size - origin[1] - ENTRY_MARGIN),
+        np.float32(volume_origin[2] + k * size - origin[2] - ENTRY_MARGIN),
+    )
+    sides = (np.float32(size + 2.0 * ENTRY_MARGIN), np.float32(run * size + 2.0 * ENTRY_MARGIN))
     for v in range(v0, v1 + 1):
+        columns = slice(u0, u1 + 1)
         _enter_row(
-            low0, low1, low2, grown, long, inverse[0, v, u0 : u1 + 1],
-            inverse[1, v, u0 : u1 + 1], inverse[2, v, u0 : u1 + 1], start[v, u0 : u1 + 1],
-        )  # fmt: skip
+            low,
+            sides,
+            inverse[0, v, columns],
+            inverse[1, v, columns],
+            inverse[2, v, columns],
+            start[v, columns],
+        )
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _enter_row(low0, low1, low2, size, length, inverse0, inverse1, inverse2, line):
+def _enter_row(low, sides, inverse0, inverse1, inverse2, line):
     """line = min(line, the ray distance where each ray enters the box from `low` (camera at
-    0) with sides size, size, length, less the slack) over the rays that meet it at t >= 0
-    (slab test; branch free, so the loop vectorises)."""
+    0) with sides size, size, length (`sides` = (size, length)), less the slack) over the rays
+    that meet it at t >= 0 (slab test; branch free, so the loop vectorises)."""
+    low0, low1, low2 = low
+    size, length = sides
     for u in range(line.shape[0]):
         a0, b0 = low0 * inverse0[u], (low0 + size) * inverse0[u]
         a1, b1 = low1 * inverse1[u], (low1 + size) * inverse1[u]
@@ -490,9 +499,7 @@ def near_starts(
 @cpu_jit_numpy_errors_called
 def march_two_rays(
     tsdf_weight: Any,
-    o0: int,
-    o1: int,
-    o2: int,
+    offsets: tuple,
     empty: Any,
     fine_distance: Any,
     origin: Any,
@@ -509,32 +516,64 @@ def march_two_rays(
     works on the other's meanwhile. The same answers as marching them one after the
     other."""
     n = tsdf_weight.shape[0]
-    ray_a = march_start(origin, a[0], a[1], a[2], volume_origin, voxel_size, n, step, safe_a)
-    ray_b = march_start(origin, b[0], b[1], b[2], volume_origin, voxel_size, n, step, safe_b)
+    ray_a = march_start(origin, a, volume_origin, voxel_size, n, step, safe_a)
+    ray_b = march_start(origin, b, volume_origin, voxel_size, n, step, safe_b)
     m_a, previous_a, known_a, crossing_a, value_a = ray_a[0], np.nan, ray_a[0] == 0, np.nan, 0.0
     m_b, previous_b, known_b, crossing_b, value_b = ray_b[0], np.nan, ray_b[0] == 0, np.nan, 0.0
     while m_a >= 0 or m_b >= 0:
         if m_a >= 0:
             m_a, previous_a, known_a, crossing_a, value_a = march_step(
-                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a[0], a[1], a[2],
-                volume_origin, voxel_size, step, ray_a, m_a, previous_a, known_a,
-            )  # fmt: skip
+                tsdf_weight,
+                offsets,
+                empty,
+                fine_distance,
+                origin,
+                a,
+                volume_origin,
+                voxel_size,
+                step,
+                ray_a,
+                (m_a, previous_a, known_a),
+            )
         if m_b >= 0:
             m_b, previous_b, known_b, crossing_b, value_b = march_step(
-                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, b[0], b[1], b[2],
-                volume_origin, voxel_size, step, ray_b, m_b, previous_b, known_b,
-            )  # fmt: skip
+                tsdf_weight,
+                offsets,
+                empty,
+                fine_distance,
+                origin,
+                b,
+                volume_origin,
+                voxel_size,
+                step,
+                ray_b,
+                (m_b, previous_b, known_b),
+            )
     # Both refinements after both marches: two independent chains of loads and divisions
     # that the core overlaps (refining inside the step left one ray's chain alone at the
     # end: ~4 % of the cpu raycast, measured).
     hit_a = surface_at(
-        tsdf_weight, o0, o1, o2, origin, a[0], a[1], a[2], crossing_a, step, previous_a,
-        value_a, volume_origin, voxel_size,
-    )  # fmt: skip
+        tsdf_weight,
+        offsets,
+        origin,
+        a,
+        (crossing_a, value_a),
+        previous_a,
+        step,
+        volume_origin,
+        voxel_size,
+    )
     hit_b = surface_at(
-        tsdf_weight, o0, o1, o2, origin, b[0], b[1], b[2], crossing_b, step, previous_b,
-        value_b, volume_origin, voxel_size,
-    )  # fmt: skip
+        tsdf_weight,
+        offsets,
+        origin,
+        b,
+        (crossing_b, value_b),
+        previous_b,
+        step,
+        volume_origin,
+        voxel_size,
+    )
     return hit_a, hit_b
 
 
@@ -543,14 +582,9 @@ def shade_two_pixels(
     tsdf_weight: Any,
     colour_volume: Any,
     has_colour: bool,
-    o0: int,
-    o1: int,
-    o2: int,
-    u_a: int,
-    u_b: int,
-    v: int,
-    t_a: float,
-    t_b: float,
+    offsets: tuple,
+    pixels: tuple,
+    hits: tuple,
     origin: Any,
     a: tuple,
     b: tuple,
@@ -560,19 +594,45 @@ def shade_two_pixels(
     normals: Any,
     colours: Any,
 ) -> None:
-    """shade_pixel of pixels (u_a, v) and (u_b, v), whose rays (directions a and b) met the
-    surface at t_a and t_b (both finite), their normals taken together (gradient_normals)."""
-    ax, ay, az = voxel_coordinates(origin, a[0], a[1], a[2], t_a, volume_origin, voxel_size)
-    bx, by, bz = voxel_coordinates(origin, b[0], b[1], b[2], t_b, volume_origin, voxel_size)
+    """shade_pixel of pixels (u_a, v) and (u_b, v), `pixels` = (u_a, u_b, v) (a flat tuple:
+    numba's prange bodies take no nested ones), whose rays (directions a and b) met the surface
+    at `hits` = (t_a, t_b) (both finite), their normals taken together (gradient_normals)."""
+    u_a, u_b, v = pixels
+    o0, o1, o2 = offsets
+    t_a, t_b = hits
+    point_a = voxel_coordinates(origin, a, t_a, volume_origin, voxel_size)
+    point_b = voxel_coordinates(origin, b, t_b, volume_origin, voxel_size)
+    ax, ay, az = point_a
+    bx, by, bz = point_b
     n = gradient_normals(tsdf_weight, o0, o1, o2, ax, ay, az, bx, by, bz)
     store_hit(
-        colour_volume, has_colour, o0, o1, o2, u_a, v, t_a, origin, a[0], a[1], a[2], ax, ay,
-        az, n[0], n[1], n[2], vertices, normals, colours,
-    )  # fmt: skip
+        colour_volume,
+        has_colour,
+        offsets,
+        (u_a, v),
+        t_a,
+        origin,
+        a,
+        point_a,
+        (n[0], n[1], n[2]),
+        vertices,
+        normals,
+        colours,
+    )
     store_hit(
-        colour_volume, has_colour, o0, o1, o2, u_b, v, t_b, origin, b[0], b[1], b[2], bx, by,
-        bz, n[3], n[4], n[5], vertices, normals, colours,
-    )  # fmt: skip
+        colour_volume,
+        has_colour,
+        offsets,
+        (u_b, v),
+        t_b,
+        origin,
+        b,
+        point_b,
+        (n[3], n[4], n[5]),
+        vertices,
+        normals,
+        colours,
+    )
 
 
 @cpu_jit_numpy_errors
@@ -580,53 +640,98 @@ def raycast_pixel_pair(
     tsdf_weight: Any,
     colour_volume: Any,
     has_colour: bool,
-    o0: int,
-    o1: int,
-    o2: int,
+    offsets: tuple,
     empty: Any,
     fine_distance: Any,
-    u: int,
-    v: int,
+    pixel: tuple,
+    march: tuple,
     camera: Any,
     rotation: Any,
     origin: Any,
     volume_origin: Any,
-    voxel_size: float,
-    step: float,
     vertices: Any,
     normals: Any,
     colours: Any,
-    safe_until: float,
-    partner: int,
-    partner_safe_until: float,
+    partner: tuple,
 ) -> None:
-    """ops.raycast_pixel of pixel (u, v) from `safe_until` on (its near_starts), and with
-    `partner` > 0 of pixel (u + partner, v) too, from partner_safe_until: the two rays marched
-    in lockstep (march_two_rays), then shaded together where both hit."""
-    if partner == 0:
+    """ops.raycast_pixel of `pixel` = (u, v) from its near_starts distance on, and with
+    `partner` = (offset du > 0, its near_starts distance) of pixel (u + du, v) too: the two
+    rays marched in lockstep (march_two_rays), then shaded together where both hit. `march` =
+    (voxel size, step, the pixel's near_starts distance)."""
+    u, v = pixel
+    voxel_size, step, safe_until = march
+    du, partner_safe_until = partner
+    if du == 0:
         raycast_pixel(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
-            camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
-            colours, safe_until,
-        )  # fmt: skip
+            tsdf_weight,
+            colour_volume,
+            has_colour,
+            offsets,
+            empty,
+            fine_distance,
+            pixel,
+            camera,
+            rotation,
+            origin,
+            volume_origin,
+            voxel_size,
+            step,
+            vertices,
+            normals,
+            colours,
+            safe_until,
+        )
         return
     a = ray_direction(u, v, camera, rotation)
-    b = ray_direction(u + partner, v, camera, rotation)
+    b = ray_direction(u + du, v, camera, rotation)
     t_a, t_b = march_two_rays(
-        tsdf_weight, o0, o1, o2, empty, fine_distance, origin, a, b, volume_origin,
-        voxel_size, step, safe_until, partner_safe_until,
-    )  # fmt: skip
+        tsdf_weight,
+        offsets,
+        empty,
+        fine_distance,
+        origin,
+        a,
+        b,
+        volume_origin,
+        voxel_size,
+        step,
+        safe_until,
+        partner_safe_until,
+    )
     if math.isfinite(t_a) and math.isfinite(t_b):
         shade_two_pixels(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, u + partner, v, t_a,
-            t_b, origin, a, b, volume_origin, voxel_size, vertices, normals, colours,
-        )  # fmt: skip
+            tsdf_weight,
+            colour_volume,
+            has_colour,
+            offsets,
+            (u, u + du, v),
+            (t_a, t_b),
+            origin,
+            a,
+            b,
+            volume_origin,
+            voxel_size,
+            vertices,
+            normals,
+            colours,
+        )
         return
-    for pixel, t, d in ((u, t_a, a), (u + partner, t_b, b)):
+    for column, t, d in ((u, t_a, a), (u + du, t_b, b)):
         shade_pixel(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, pixel, v, t, origin, d[0],
-            d[1], d[2], volume_origin, voxel_size, vertices, normals, colours,
-        )  # fmt: skip
+            tsdf_weight,
+            colour_volume,
+            has_colour,
+            offsets,
+            (column, v),
+            t,
+            origin,
+            d,
+            volume_origin,
+            voxel_size,
+            vertices,
+            normals,
+            colours,
+        )
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -634,9 +739,7 @@ def _raycast_loop(
     tsdf_weight,
     colour_volume,
     has_colour,
-    o0,
-    o1,
-    o2,
+    offsets,
     empty,
     fine_distance,
     camera,
@@ -666,13 +769,25 @@ def _raycast_loop(
             colours[rows] = 0
         for v in range(band * span, min((band + 1) * span, height), stride):
             for u in range(0, width, 2 * stride):  # pixels two at a time
-                partner = stride if u + stride < width else 0
+                du = stride if u + stride < width else 0
                 raycast_pixel_pair(
-                    tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance,
-                    u, v, camera, rotation, origin, volume_origin, voxel_size, step,
-                    vertices, normals, colours, starts[v, u], partner,
-                    starts[v, u + partner],
-                )  # fmt: skip
+                    tsdf_weight,
+                    colour_volume,
+                    has_colour,
+                    offsets,
+                    empty,
+                    fine_distance,
+                    (u, v),
+                    (voxel_size, step, starts[v, u]),
+                    camera,
+                    rotation,
+                    origin,
+                    volume_origin,
+                    vertices,
+                    normals,
+                    colours,
+                    (du, starts[v, u + du]),
+                )
 
 
 def raycast(
@@ -706,7 +821,7 @@ def raycast(
             volume.tsdf_weight,
             colour_volume,
             has_colour,
-            *volume.offsets(),
+            volume.offsets(),
             empty,
             fine_distance,
             *_view_constants(volume, pose, camera),

@@ -123,9 +123,7 @@ def _raycast_kernel(
     tsdf_weight,
     colour_volume,
     has_colour,
-    o0,
-    o1,
-    o2,
+    offsets,
     empty,
     fine_distance,
     camera,
@@ -144,10 +142,24 @@ def _raycast_kernel(
     u, v = cast_u * stride, cast_v * stride
     if v < vertices.shape[0] and u < vertices.shape[1]:
         raycast_pixel(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, empty, fine_distance, u, v,
-            camera, rotation, origin, volume_origin, voxel_size, step, vertices, normals,
-            colours, 0.0,
-        )  # fmt: skip
+            tsdf_weight,
+            colour_volume,
+            has_colour,
+            offsets,
+            empty,
+            fine_distance,
+            (u, v),
+            camera,
+            rotation,
+            origin,
+            volume_origin,
+            voxel_size,
+            step,
+            vertices,
+            normals,
+            colours,
+            0.0,
+        )
 
 
 def raycast(
@@ -181,7 +193,7 @@ def raycast(
         volume.tsdf_weight,
         colour_volume,
         has_colour,
-        *volume.offsets(),
+        volume.offsets(),
         empty_space(volume) if skip_empty else _map_that_skips_nothing(),
         _map_that_skips_nothing(),  # no finer level
         cuda.to_device(np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)),

@@ -60,12 +60,13 @@ def build_ops(
 
     @jit
     def ray_span(
-        origin: Any, d0: float, d1: float, d2: float, volume_origin: Any, voxel_size: float, n: int
+        origin: Any, direction: tuple, volume_origin: Any, voxel_size: float, n: int
     ) -> tuple:
         """(entry, exit): the ray parameters where the ray is inside the volume's sample box
         [0, N - 1]^3 (entry >= 0; empty when entry >= exit). Multiplies by the direction's
         inverse where the reference divides (within an ulp: a ray's samples move by ~1e-16 m;
         the divisions per ray cost the cpu raycast ~3 %)."""
+        d0, d1, d2 = direction
         upper = (n - 1) * voxel_size
         i0, i1, i2 = inverse_or_zero(d0), inverse_or_zero(d1), inverse_or_zero(d2)
         lo0, hi0 = axis_interval(origin[0], d0, i0, volume_origin[0], volume_origin[0] + upper)
@@ -80,42 +81,37 @@ def build_ops(
     @jit
     def sample_along(
         tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
+        offsets: tuple,
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
+        direction: tuple,
         t: float,
         volume_origin: Any,
         voxel_size: float,
     ) -> float:
-        cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
+        """sample_tsdf_at the ray point at t; `offsets` = the buffer's (o0, o1, o2)."""
+        o0, o1, o2 = offsets
+        cx, cy, cz = voxel_coordinates(origin, direction, t, volume_origin, voxel_size)
         return sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
 
     @jit
     def refine_crossing(
         tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
+        offsets: tuple,
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
-        t0: float,
-        f0: float,
-        t1: float,
-        f1: float,
+        direction: tuple,
+        before: tuple,
+        after: tuple,
         volume_origin: Any,
         voxel_size: float,
     ) -> float:
-        """The ray distance of the surface between samples t0 (F > 0) and t1 (F < 0): one
-        secant step, then a second on whichever side the estimate falls (the reference's)."""
+        """The ray distance of the surface between samples `before` = (t0, F > 0) and `after`
+        = (t1, F < 0): one secant step, then a second on whichever side the estimate falls
+        (the reference's)."""
+        t0, f0 = before
+        t1, f1 = after
         estimate = zero_crossing(t0, f0, t1, f1)
         f = sample_along(
-            tsdf_weight, o0, o1, o2, origin, d0, d1, d2, estimate, volume_origin, voxel_size
+            tsdf_weight, offsets, origin, direction, estimate, volume_origin, voxel_size
         )
         if f > 0:
             return zero_crossing(estimate, f, t1, f1)
@@ -144,30 +140,18 @@ def build_ops(
 
     @jit
     def first_sample_outside(
-        m: int,
-        cx: float,
-        cy: float,
-        cz: float,
-        dcx: float,
-        dcy: float,
-        dcz: float,
-        ix: float,
-        iy: float,
-        iz: float,
-        lower_x: float,
-        lower_y: float,
-        lower_z: float,
-        size: float,
+        m: int, c: tuple, dc: tuple, inverse: tuple, lower: tuple, size: float
     ) -> int:
         """Index of the first sample after sample m (at voxel coordinates c, advancing dc per
-        sample, i = 1 / dc) that may lie outside the cube [lower, lower + size)^3; at least
-        m + 1. Multiplications only: the margin of samples_to_leave keeps it conservative."""
+        sample, inverse = 1 / dc, all (x, y, z)) that may lie outside the cube
+        [lower, lower + size)^3; at least m + 1. Multiplications only: the margin of
+        samples_to_leave keeps it conservative."""
         to_leave = min(
             min(
-                samples_to_leave(cx, dcx, ix, lower_x, lower_x + size),
-                samples_to_leave(cy, dcy, iy, lower_y, lower_y + size),
+                samples_to_leave(c[0], dc[0], inverse[0], lower[0], lower[0] + size),
+                samples_to_leave(c[1], dc[1], inverse[1], lower[1], lower[1] + size),
             ),
-            samples_to_leave(cz, dcz, iz, lower_z, lower_z + size),
+            samples_to_leave(c[2], dc[2], inverse[2], lower[2], lower[2] + size),
         )
         return m + max(int(math.floor(to_leave)) + 1, 1)
 
@@ -178,15 +162,11 @@ def build_ops(
     @jit_called
     def march_ray(
         tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
+        offsets: tuple,
         empty: Any,
         fine_distance: Any,
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
+        direction: tuple,
         volume_origin: Any,
         voxel_size: float,
         step: float,
@@ -213,52 +193,67 @@ def build_ops(
         The march is march_start, then march_step until it says the ray is done, then
         surface_at.
         """
-        ray = march_start(
-            origin, d0, d1, d2, volume_origin, voxel_size, tsdf_weight.shape[0], step, safe_until
-        )
+        n = tsdf_weight.shape[0]
+        ray = march_start(origin, direction, volume_origin, voxel_size, n, step, safe_until)
         m, previous, previous_known, crossing, value = ray[0], np.nan, ray[0] == 0, np.nan, 0.0
         while m >= 0:
             m, previous, previous_known, crossing, value = march_step(
-                tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d0, d1, d2,
-                volume_origin, voxel_size, step, ray, m, previous, previous_known,
-            )  # fmt: skip
+                tsdf_weight,
+                offsets,
+                empty,
+                fine_distance,
+                origin,
+                direction,
+                volume_origin,
+                voxel_size,
+                step,
+                ray,
+                (m, previous, previous_known),
+            )
         return surface_at(
-            tsdf_weight, o0, o1, o2, origin, d0, d1, d2, crossing, step, previous, value,
-            volume_origin, voxel_size,
-        )  # fmt: skip
+            tsdf_weight,
+            offsets,
+            origin,
+            direction,
+            (crossing, value),
+            previous,
+            step,
+            volume_origin,
+            voxel_size,
+        )
 
     @jit
     def surface_at(
         tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
+        offsets: tuple,
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
-        crossing: float,
-        step: float,
+        direction: tuple,
+        sample: tuple,
         before: float,
-        after: float,
+        step: float,
         volume_origin: Any,
         voxel_size: float,
     ) -> float:
         """The refined surface of a ray whose march found F = `before` > 0 at crossing - step
-        and `after` < 0 at `crossing` (NaN: no crossing, no surface)."""
+        and F < 0 at `sample` = (crossing, F) (crossing NaN: no crossing, no surface)."""
+        crossing = sample[0]
         if not math.isfinite(crossing):
             return np.nan
         return refine_crossing(
-            tsdf_weight, o0, o1, o2, origin, d0, d1, d2, crossing - step, before, crossing,
-            after, volume_origin, voxel_size,
-        )  # fmt: skip
+            tsdf_weight,
+            offsets,
+            origin,
+            direction,
+            (crossing - step, before),
+            sample,
+            volume_origin,
+            voxel_size,
+        )
 
     @jit
     def march_start(
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
+        direction: tuple,
         volume_origin: Any,
         voxel_size: float,
         n: int,
@@ -268,7 +263,8 @@ def build_ops(
         """(m, entry, exit, sx, sy, sz, dcx, dcy, dcz, ix, iy, iz) of a skipping march: the first
         sample m to look at (-1: the ray has none), the ray's span in the volume, the voxel
         coordinates of sample 0, their advance per sample and its inverses (0 where none)."""
-        entry, exit_ = ray_span(origin, d0, d1, d2, volume_origin, voxel_size, n)
+        d0, d1, d2 = direction
+        entry, exit_ = ray_span(origin, direction, volume_origin, voxel_size, n)
         m = 0
         if not entry < exit_:
             m = -1
@@ -281,7 +277,7 @@ def build_ops(
                     m = -1
         # voxel coordinates of sample m, nominally: start + m * per_sample (jump lengths only)
         voxels_per_step = step / voxel_size
-        sx, sy, sz = voxel_coordinates(origin, d0, d1, d2, entry, volume_origin, voxel_size)
+        sx, sy, sz = voxel_coordinates(origin, direction, entry, volume_origin, voxel_size)
         dcx, dcy, dcz = d0 * voxels_per_step, d1 * voxels_per_step, d2 * voxels_per_step
         return (
             m,
@@ -302,27 +298,24 @@ def build_ops(
     @jit
     def march_step(
         tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
+        offsets: tuple,
         empty: Any,
         fine_distance: Any,
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
+        direction: tuple,
         volume_origin: Any,
         voxel_size: float,
         step: float,
         ray: tuple,
-        m: int,
-        previous: float,
-        previous_known: bool,
+        state: tuple,
     ) -> tuple:
-        """One step of march_ray at sample m: a jump or a sample. Returns (m, previous,
-        previous_known, crossing, value) for the next step; m = -1 once the ray is done, and
-        then crossing is the ray parameter of the sample past a + to - crossing, value its F
-        and previous the F before it (surface_at refines them), or NaN: no surface."""
+        """One step of march_ray from `state` = (sample m, previous F, whether it is known): a
+        jump or a sample (`empty`, `fine_distance`: march_ray's maps; `ray`: march_start's).
+        Returns (m, previous, previous_known, crossing, value) for the next step; m = -1 once
+        the ray is done, and then crossing is the ray parameter of the sample past a + to -
+        crossing, value its F and previous the F before it (surface_at refines them), or NaN:
+        no surface."""
+        m, previous, previous_known = state
         entry, exit_ = ray[1], ray[2]
         t = entry + m * step
         # The maps are read, and the sample taken, at the nominal coordinates (one
@@ -332,7 +325,7 @@ def build_ops(
         cx, cy, cz = ray[3] + m * ray[6], ray[4] + m * ray[7], ray[5] + m * ray[8]
         wx, wy, wz = whole_fine(cx), whole_fine(cy), whole_fine(cz)
         if not (clear_of_faces(cx, wx) and clear_of_faces(cy, wy) and clear_of_faces(cz, wz)):
-            cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
+            cx, cy, cz = voxel_coordinates(origin, direction, t, volume_origin, voxel_size)
             wx, wy, wz = whole_fine(cx), whole_fine(cy), whole_fine(cz)
         # The fine map first: near surfaces, where most steps are, the brick map has nothing to
         # add, and one dependent load less per step made the cpu raycast ~4% faster.
@@ -351,35 +344,34 @@ def build_ops(
             by = min(max(int(math.floor(cy / BRICK)), 0), bricks - 1)
             bz = min(max(int(math.floor(cz / BRICK)), 0), bricks - 1)
             radius = int(empty[bx, by, bz])
+        advance, inverse = (ray[6], ray[7], ray[8]), (ray[9], ray[10], ray[11])
         if radius >= FINE_LEVEL_BELOW:  # far from surfaces: past the empty cube of bricks
             reach = radius - 1
+            lower = ((bx - reach) * BRICK, (by - reach) * BRICK, (bz - reach) * BRICK)
             m_next = first_sample_outside(
-                m, cx, cy, cz, ray[6], ray[7], ray[8], ray[9], ray[10], ray[11],
-                (bx - reach) * BRICK, (by - reach) * BRICK, (bz - reach) * BRICK,
-                (2 * reach + 1) * BRICK,
-            )  # fmt: skip
+                m, (cx, cy, cz), advance, inverse, lower, (2 * reach + 1) * BRICK
+            )
             previous_known = False
         elif fine > 0:  # no sample in the cube of fine bricks can be negative: jump past it
             reach = fine - 1
+            lower = ((fx - reach) * FINE, (fy - reach) * FINE, (fz - reach) * FINE)
             m_next = first_sample_outside(
-                m, cx, cy, cz, ray[6], ray[7], ray[8], ray[9], ray[10], ray[11],
-                (fx - reach) * FINE, (fy - reach) * FINE, (fz - reach) * FINE,
-                (2 * reach + 1) * FINE,
-            )  # fmt: skip
+                m, (cx, cy, cz), advance, inverse, lower, (2 * reach + 1) * FINE
+            )
             previous_known = False
         else:
             # (~1e-13 voxels from the reference's sample, a change in F far below its float32
             # output; recomputing the exact coordinates cost the cpu raycast ~2.5 %)
-            value = sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
+            value = sample_tsdf_at(tsdf_weight, offsets[0], offsets[1], offsets[2], cx, cy, cz)
             # A skipped sample is >= 0 or unknown, so after a jump the one before matters
             # only if this one is negative (a crossing, never a back face): fetched then.
             if not previous_known and value < 0:
                 previous = np.nan
                 if m > 0:
+                    before = entry + (m - 1) * step
                     previous = sample_along(
-                        tsdf_weight, o0, o1, o2, origin, d0, d1, d2,
-                        entry + (m - 1) * step, volume_origin, voxel_size,
-                    )  # fmt: skip
+                        tsdf_weight, offsets, origin, direction, before, volume_origin, voxel_size
+                    )
             elif not previous_known:
                 previous = np.nan
             if previous > 0 and value < 0:
@@ -407,21 +399,15 @@ def build_ops(
 
     @jit
     def voxel_coordinates(
-        origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
-        t: float,
-        volume_origin: Any,
-        voxel_size: float,
+        origin: Any, direction: tuple, t: float, volume_origin: Any, voxel_size: float
     ) -> tuple:
         """Continuous voxel coordinates of the ray point at t (sample_along's). The reference
         divides by the voxel size; a multiply by its inverse (within an ulp of the quotient)
         keeps the division's latency out of every sample: the cpu raycast ~3 % faster."""
         inverse = 1.0 / voxel_size
-        cx = (origin[0] + t * d0 - volume_origin[0]) * inverse
-        cy = (origin[1] + t * d1 - volume_origin[1]) * inverse
-        cz = (origin[2] + t * d2 - volume_origin[2]) * inverse
+        cx = (origin[0] + t * direction[0] - volume_origin[0]) * inverse
+        cy = (origin[1] + t * direction[1] - volume_origin[1]) * inverse
+        cz = (origin[2] + t * direction[2] - volume_origin[2]) * inverse
         return cx, cy, cz
 
     @jit
@@ -440,13 +426,10 @@ def build_ops(
         tsdf_weight: Any,
         colour_volume: Any,
         has_colour: bool,
-        o0: int,
-        o1: int,
-        o2: int,
+        offsets: tuple,
         empty: Any,
         fine_distance: Any,
-        u: int,
-        v: int,
+        pixel: tuple,
         camera: Any,
         rotation: Any,
         origin: Any,
@@ -458,94 +441,114 @@ def build_ops(
         colours: Any,
         safe_until: float,
     ) -> None:
-        """Vertex, normal and colour of pixel (u, v) (kintinuous_ref.raycast.raycast) by
+        """Vertex, normal and colour of `pixel` = (u, v) (kintinuous_ref.raycast.raycast) by
         march_ray from `safe_until` on (0: from where the ray enters the volume). `camera` is
-        float64 (fx, fy, cx, cy). Every pixel cast is written, hit or miss, so the caller
-        clears only the pixels a stride leaves out."""
-        d = ray_direction(u, v, camera, rotation)
+        float64 (fx, fy, cx, cy). Every pixel cast is
+        written, hit or miss, so the caller clears only the pixels a stride leaves out."""
+        d = ray_direction(pixel[0], pixel[1], camera, rotation)
         t = march_ray(
-            tsdf_weight, o0, o1, o2, empty, fine_distance, origin, d[0], d[1], d[2],
-            volume_origin, voxel_size, step, safe_until,
-        )  # fmt: skip
+            tsdf_weight,
+            offsets,
+            empty,
+            fine_distance,
+            origin,
+            d,
+            volume_origin,
+            voxel_size,
+            step,
+            safe_until,
+        )
         shade_pixel(
-            tsdf_weight, colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d[0], d[1],
-            d[2], volume_origin, voxel_size, vertices, normals, colours,
-        )  # fmt: skip
+            tsdf_weight,
+            colour_volume,
+            has_colour,
+            offsets,
+            pixel,
+            t,
+            origin,
+            d,
+            volume_origin,
+            voxel_size,
+            vertices,
+            normals,
+            colours,
+        )
 
     @jit
     def shade_pixel(
         tsdf_weight: Any,
         colour_volume: Any,
         has_colour: bool,
-        o0: int,
-        o1: int,
-        o2: int,
-        u: int,
-        v: int,
+        offsets: tuple,
+        pixel: tuple,
         t: float,
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
+        direction: tuple,
         volume_origin: Any,
         voxel_size: float,
         vertices: Any,
         normals: Any,
         colours: Any,
     ) -> None:
-        """Vertex, normal and colour of pixel (u, v) whose ray met the surface at t (NaN: none)."""
+        """Vertex, normal and colour of `pixel` = (u, v) whose ray met the surface at t (NaN:
+        none)."""
         if not math.isfinite(t):
-            store_miss(u, v, vertices, normals, colours)
+            store_miss(pixel, vertices, normals, colours)
             return
-        cx, cy, cz = voxel_coordinates(origin, d0, d1, d2, t, volume_origin, voxel_size)
-        nx, ny, nz = gradient_normal(tsdf_weight, o0, o1, o2, cx, cy, cz)
+        o0, o1, o2 = offsets
+        point = voxel_coordinates(origin, direction, t, volume_origin, voxel_size)
+        normal = gradient_normal(tsdf_weight, o0, o1, o2, point[0], point[1], point[2])
         store_hit(
-            colour_volume, has_colour, o0, o1, o2, u, v, t, origin, d0, d1, d2, cx, cy, cz, nx,
-            ny, nz, vertices, normals, colours,
-        )  # fmt: skip
+            colour_volume,
+            has_colour,
+            offsets,
+            pixel,
+            t,
+            origin,
+            direction,
+            point,
+            normal,
+            vertices,
+            normals,
+            colours,
+        )
 
     @jit
     def store_hit(
         colour_volume: Any,
         has_colour: bool,
-        o0: int,
-        o1: int,
-        o2: int,
-        u: int,
-        v: int,
+        offsets: tuple,
+        pixel: tuple,
         t: float,
         origin: Any,
-        d0: float,
-        d1: float,
-        d2: float,
-        cx: float,
-        cy: float,
-        cz: float,
-        nx: float,
-        ny: float,
-        nz: float,
+        direction: tuple,
+        point: tuple,
+        normal: tuple,
         vertices: Any,
         normals: Any,
         colours: Any,
     ) -> None:
-        """Writes pixel (u, v)'s vertex (the ray point at t), normal and colour (at voxel
-        coordinates c; black without `has_colour`); a miss when the normal is NaN (no use to
-        ICP: dropped)."""
-        if math.isnan(nx):
-            store_miss(u, v, vertices, normals, colours)
+        """Writes `pixel` = (u, v)'s vertex (the ray point at t), normal and colour (at voxel
+        coordinates `point`; black without `has_colour`); a miss when the normal is NaN (no use
+        to ICP: dropped)."""
+        if math.isnan(normal[0]):
+            store_miss(pixel, vertices, normals, colours)
             return
-        vertices[v, u, 0] = origin[0] + t * d0
-        vertices[v, u, 1] = origin[1] + t * d1
-        vertices[v, u, 2] = origin[2] + t * d2
-        normals[v, u, 0], normals[v, u, 1], normals[v, u, 2] = nx, ny, nz
+        u, v = pixel
+        vertices[v, u, 0] = origin[0] + t * direction[0]
+        vertices[v, u, 1] = origin[1] + t * direction[1]
+        vertices[v, u, 2] = origin[2] + t * direction[2]
+        normals[v, u, 0], normals[v, u, 1], normals[v, u, 2] = normal
         r, g, b = 0, 0, 0
         if has_colour:
-            r, g, b = surface_colour_at(colour_volume, o0, o1, o2, cx, cy, cz)
+            o0, o1, o2 = offsets
+            r, g, b = surface_colour_at(colour_volume, o0, o1, o2, point[0], point[1], point[2])
         colours[v, u, 0], colours[v, u, 1], colours[v, u, 2] = r, g, b
 
     @jit
-    def store_miss(u: int, v: int, vertices: Any, normals: Any, colours: Any) -> None:
-        """Writes pixel (u, v) as seeing no surface: NaN vertex and normal, black."""
+    def store_miss(pixel: tuple, vertices: Any, normals: Any, colours: Any) -> None:
+        """Writes `pixel` = (u, v) as seeing no surface: NaN vertex and normal, black."""
+        u, v = pixel
         for c in range(3):
             vertices[v, u, c] = np.nan
             normals[v, u, c] = np.nan
