@@ -124,7 +124,7 @@ def _compact_loop(vertices, normals, starts, points):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _project_block(points, start, stop, to_model, fx, fy, cx, cy, width, height, rows, cols):
+def _project_block(points, start, stop, to_model, camera, size, rows, cols):
     """project_nearest of points[:, start:stop] into rows / cols: branch-free, so LLVM vectorises
     it (its own function: the NumPy error model leaves the guarded division without a zero test,
     and the loop with the data-dependent branches below would not vectorise). The rows are read
@@ -132,9 +132,7 @@ def _project_block(points, start, stop, to_model, fx, fy, cx, cy, width, height,
     wraparound made LLVM load them with gathers (ICP level 0: 6.0 -> 4.6 ms single-thread)."""
     x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
     for m in range(stop - start):
-        rows[m], cols[m] = project_nearest(
-            to_model, x[m], y[m], z[m], fx, fy, cx, cy, width, height
-        )
+        rows[m], cols[m] = project_nearest(to_model, (x[m], y[m], z[m]), camera, size)
 
 
 @numba.njit(cache=True)
@@ -151,25 +149,24 @@ def _gather_model_block(rows, cols, count, mv, mn, model):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _icp_rows_block(
-    points, start, stop, pose, rows, model, dist2, cos_min, kernel, threshold, out, weighted
-):
+def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out, weighted):
     """match_pixel and point_to_plane_row of points[:, start:stop] and their gathered model
     pixels, branch-free so that it vectorises: out[k * BLOCK + m] = (j0..j5, r, 1) of a kept pair,
     zeros for any other point (which then add nothing to the sums). With a robust kernel
-    (not KERNEL_NONE) weighted[k * BLOCK + m] = w (j0..j5, r), w = robust_icp_weight."""
+    (`robust` = (kernel code, threshold), not KERNEL_NONE) weighted[k * BLOCK + m] =
+    w (j0..j5, r), w = robust_icp_weight; `limits`: is_compatible's."""
+    kernel, threshold = robust
     x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
     nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
     for m in range(stop - start):
         qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
         ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
         uz = float(model[5 * BLOCK + m])
-        wx, wy, wz = transform(pose, x[m], y[m], z[m])
-        gx, gy, gz = rotate(pose, nx[m], ny[m], nz[m])
-        kept = (rows[m] >= 0) & is_compatible(
-            wx, wy, wz, gx, gy, gz, qx, qy, qz, ux, uy, uz, dist2, cos_min
-        )
-        j0, j1, j2, j3, j4, j5, r = point_to_plane_row(wx, wy, wz, qx, qy, qz, ux, uy, uz)
+        world = transform(pose, x[m], y[m], z[m])
+        g = rotate(pose, nx[m], ny[m], nz[m])
+        vertex, normal = (qx, qy, qz), (ux, uy, uz)
+        kept = (rows[m] >= 0) & is_compatible(world, g, vertex, normal, limits)
+        j0, j1, j2, j3, j4, j5, r = point_to_plane_row(world, vertex, normal)
         out[m] = j0 if kept else 0.0
         out[BLOCK + m] = j1 if kept else 0.0
         out[2 * BLOCK + m] = j2 if kept else 0.0
@@ -215,23 +212,17 @@ def _add_block(acc, weighted, rows, count):
 
 
 @numba.njit(cache=True)
-def _pair_rows_block(
-    points, start, stop, pose, to_model, mv, mn, camera, dist2, cos_min, robust, work
-):
+def _pair_rows_block(points, start, stop, pose, to_model, mv, mn, camera, limits, robust, work):
     """The ICP rows of points[:, start:stop] (_icp_rows_block's) in three loops: projection,
     gathers, rows. All but the gathers vectorise; one loop that matched and summed pair by pair,
-    with branches, took 1.6x as long. `camera` = (fx, fy, cx, cy), `robust` = (kernel code,
-    threshold), `work` = _block_work()."""
+    with branches, took 1.6x as long. `camera` = (fx, fy, cx, cy), `limits` = (squared
+    distance, cos angle), `robust` = (kernel code, threshold), `work` = _block_work()."""
     rows, cols, model, pair_rows, weighted_rows = work
-    fx, fy, cx, cy = camera
-    _project_block(
-        points, start, stop, to_model, fx, fy, cx, cy, mv.shape[1], mv.shape[0], rows, cols
-    )
+    _project_block(points, start, stop, to_model, camera, (mv.shape[1], mv.shape[0]), rows, cols)
     _gather_model_block(rows, cols, stop - start, mv, mn, model)
     _icp_rows_block(
-        points, start, stop, pose, rows, model, dist2, cos_min, robust[0], robust[1], pair_rows,
-        weighted_rows,
-    )  # fmt: skip
+        points, start, stop, pose, rows, model, limits, robust, pair_rows, weighted_rows
+    )
 
 
 @numba.njit(cache=True)
@@ -248,7 +239,7 @@ def _block_work(dtype):
 
 
 @_loop
-def _icp_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, robust, out):
+def _icp_loop(points, pose, to_model, mv, mn, camera, limits, robust, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
     out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). `robust` =
     (kernel code, threshold): the IRLS weights of the rows."""
@@ -265,14 +256,14 @@ def _icp_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, robust, ou
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
             _pair_rows_block(
-                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min, robust, work
+                points, block, end, pose, to_model, mv, mn, camera, limits, robust, work
             )
             _add_block(acc, weighted_matrix, pair_matrix, end - block)
         out[c] = acc
 
 
 @_loop
-def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, out):
+def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, limits, out):
     """out[c] = (valid current points, ICP pairs) of chunk c: the counts of _icp_loop without
     its sums."""
     n = points.shape[1]
@@ -284,37 +275,22 @@ def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, dist2, cos_min, out)
         pairs = 0.0
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
+            no_kernel = (KERNEL_NONE, 0.0)
             _pair_rows_block(
-                points, block, end, pose, to_model, mv, mn, camera, dist2, cos_min,
-                (KERNEL_NONE, 0.0), work,
-            )  # fmt: skip
+                points, block, end, pose, to_model, mv, mn, camera, limits, no_kernel, work
+            )
             pairs += kept[: end - block].sum()
         out[c, 0] = stop - start
         out[c, 1] = pairs
 
 
 @_loop
-def _associate_loop(
-    points, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, keep, out
-):
+def _associate_loop(points, normals, pose, to_model, mv, mn, camera, limits, keep, out):
     for k in prange(points.shape[1]):
+        point = (points[0, k], points[1, k], points[2, k])
+        normal = (normals[0, k], normals[1, k], normals[2, k])
         kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
-            points[0, k],
-            points[1, k],
-            points[2, k],
-            normals[0, k],
-            normals[1, k],
-            normals[2, k],
-            pose,
-            to_model,
-            mv,
-            mn,
-            fx,
-            fy,
-            cx,
-            cy,
-            dist2,
-            cos_min,
+            point, normal, pose, to_model, mv, mn, camera, limits
         )
         keep[k] = kept
         out[0, k], out[1, k], out[2, k] = wx, wy, wz
@@ -326,9 +302,10 @@ def _associate_loop(
 def _point_to_plane_loop(world, mv, mn, jacobian, residuals):
     for k in prange(world.shape[1]):
         j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
-            world[0, k], world[1, k], world[2, k], mv[0, k], mv[1, k], mv[2, k], mn[0, k],
-            mn[1, k], mn[2, k],
-        )  # fmt: skip
+            (world[0, k], world[1, k], world[2, k]),
+            (mv[0, k], mv[1, k], mv[2, k]),
+            (mn[0, k], mn[1, k], mn[2, k]),
+        )
         jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
         jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
         residuals[k] = r
@@ -342,10 +319,15 @@ def _accumulate_loop(jacobian, residuals, weights, weighted, out):
         acc = out[c]
         for k in range(c * n // chunks, (c + 1) * n // chunks):
             w = weights[k] if weighted else 1.0
-            add_row(
-                acc, jacobian[0, k], jacobian[1, k], jacobian[2, k], jacobian[3, k],
-                jacobian[4, k], jacobian[5, k], residuals[k], w,
-            )  # fmt: skip
+            row = (
+                jacobian[0, k],
+                jacobian[1, k],
+                jacobian[2, k],
+                jacobian[3, k],
+                jacobian[4, k],
+                jacobian[5, k],
+            )
+            add_row(acc, row, residuals[k], w)
 
 
 @_loop
@@ -359,38 +341,37 @@ def _interest_mask_loop(dx, dy, depth, g2, use_depth, max_depth, mask):
 
 
 @_loop
-def _interest_data_loop(indices, depth, intensity, dx, dy, fx, fy, cx, cy, points, values, grad):
+def _interest_data_loop(indices, depth, intensity, dx, dy, camera, points, values, grad):
     width = depth.shape[1]
     for k in prange(indices.shape[0]):
         i = indices[k]
         v = i // width
         u = i - v * width
-        points[0, k], points[1, k], points[2, k] = backproject(
-            u, v, float(depth[v, u]), fx, fy, cx, cy
-        )
+        points[0, k], points[1, k], points[2, k] = backproject(u, v, float(depth[v, u]), camera)
         values[k] = float(intensity[v, u])
         grad[0, k] = float(dx[v, u])
         grad[1, k] = float(dy[v, u])
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _warp_block(points, start, stop, relative, fx, fy, cx, cy, warp):
+def _warp_block(points, start, stop, relative, camera, warp):
     """warp_project of points start:stop into warp's columns (x, y, z, u, v): branch-free, so
     it vectorises (divisions 8 at a time; rows read as slices, see _project_block)."""
     px, py, pz = points[0, start:stop], points[1, start:stop], points[2, start:stop]
     for i in range(stop - start):
-        x, y, z, u, v = warp_project(relative, px[i], py[i], pz[i], fx, fy, cx, cy)
+        x, y, z, u, v = warp_project(relative, (px[i], py[i], pz[i]), camera)
         warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i] = x, y, z, u, v
 
 
 @_loop
 def _correspond_loop(
-    points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy, warped,
-    fx, fy, cx, cy, max_change, pairs, sums,
-):  # fmt: skip
+    points, intensity, gradient, relative, pose, previous, warped, camera, max_change, pairs, sums
+):
     """Algorithm 2 per interest point k: pairs[:, k] = (residual, NaN = not kept; world point;
     warped point; gradient), what J needs; sums[c] = (sum r^2, count) of chunk c for sigma'.
-    Each block's warps first, in a loop that vectorises."""
+    Each block's warps first, in a loop that vectorises. `previous` = (depth, intensity, dx,
+    dy) images of the previous frame."""
+    depth, prev_i, prev_dx, prev_dy = previous
     n = pairs.shape[1]
     chunks = sums.shape[0]
     for c in prange(chunks):
@@ -398,14 +379,24 @@ def _correspond_loop(
         start, stop = c * n // chunks, (c + 1) * n // chunks
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
-            _warp_block(points, block, end, relative, fx, fy, cx, cy, warp)
+            _warp_block(points, block, end, relative, camera, warp)
             for k in range(block, end):
                 i = k - block
+                sample = (warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i])
                 ok, r, wx, wy, wz, x, y, z, gx, gy = warp_sample(
-                    points, intensity, gradient, k, warp[0, i], warp[1, i], warp[2, i],
-                    warp[3, i], warp[4, i], pose, depth, prev_i, prev_dx, prev_dy, warped,
+                    points,
+                    intensity,
+                    gradient,
+                    k,
+                    sample,
+                    pose,
+                    depth,
+                    prev_i,
+                    prev_dx,
+                    prev_dy,
+                    warped,
                     max_change,
-                )  # fmt: skip
+                )
                 pairs[0, k], pairs[1, k], pairs[2, k], pairs[3, k] = r, wx, wy, wz
                 pairs[4, k], pairs[5, k], pairs[6, k] = x, y, z
                 pairs[7, k], pairs[8, k] = gx, gy
@@ -415,18 +406,21 @@ def _correspond_loop(
 
 
 @_loop
-def _photometric_loop(world, warped_points, gradient, previous_pose, fx, fy, jacobian):
+def _photometric_loop(world, warped_points, gradient, previous_pose, focal, jacobian):
     for k in prange(world.shape[1]):
         j0, j1, j2, j3, j4, j5 = photometric_row(
-            world[0, k], world[1, k], world[2, k], warped_points[0, k], warped_points[1, k],
-            warped_points[2, k], gradient[0, k], gradient[1, k], previous_pose, fx, fy,
-        )  # fmt: skip
+            (world[0, k], world[1, k], world[2, k]),
+            (warped_points[0, k], warped_points[1, k], warped_points[2, k]),
+            (gradient[0, k], gradient[1, k]),
+            previous_pose,
+            focal,
+        )
         jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
         jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _weighted_rows_block(pairs, start, stop, previous_pose, fx, fy, sigma, rows):
+def _weighted_rows_block(pairs, start, stop, previous_pose, focal, sigma, rows):
     """photometric_row and the squared robust weight w of pairs[:, start:stop] (_correspond_loop's
     columns), branch-free so that it vectorises: rows[k * BLOCK + m] = (j0..j5, r, 1) for
     k = 0..7 and (w j0..w j5, w r) for k = 8..14 of a kept pair, zeros for a pair not kept (NaN
@@ -438,7 +432,7 @@ def _weighted_rows_block(pairs, start, stop, previous_pose, fx, fy, sigma, rows)
     z, gx, gy = pairs[6, start:stop], pairs[7, start:stop], pairs[8, start:stop]
     for i in range(stop - start):
         j0, j1, j2, j3, j4, j5 = photometric_row(
-            wx[i], wy[i], wz[i], x[i], y[i], z[i], gx[i], gy[i], previous_pose, fx, fy
+            (wx[i], wy[i], wz[i]), (x[i], y[i], z[i]), (gx[i], gy[i]), previous_pose, focal
         )
         kept = not np.isnan(r[i])
         w = robust_weight(r[i], sigma)
@@ -455,7 +449,7 @@ def _weighted_rows_block(pairs, start, stop, previous_pose, fx, fy, sigma, rows)
 
 
 @_loop
-def _rgbd_rows_loop(pairs, previous_pose, fx, fy, sigma, out):
+def _rgbd_rows_loop(pairs, previous_pose, focal, sigma, out):
     """Robustly weighted photometric rows of the kept pairs, summed per chunk (block by block:
     the rows, then their sums, each in a loop that vectorises)."""
     n = pairs.shape[1]
@@ -467,7 +461,7 @@ def _rgbd_rows_loop(pairs, previous_pose, fx, fy, sigma, out):
         start, stop = c * n // chunks, (c + 1) * n // chunks
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
-            _weighted_rows_block(pairs, block, end, previous_pose, fx, fy, sigma, rows)
+            _weighted_rows_block(pairs, block, end, previous_pose, focal, sigma, rows)
             _add_block(acc, matrix[8:], matrix[:8], end - block)
         out[c] = acc
 
@@ -544,10 +538,9 @@ def _run_on_points(
     pose, to_model, dist2, cos_min = host.icp_constants(
         pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
     )
-    _run(
-        loop, points.shape[1], points, pose, to_model, model_vertices, model_normals,
-        host.camera_constants(camera), dist2, cos_min, *robust, out,
-    )  # fmt: skip
+    camera_constants = host.camera_constants(camera)
+    arguments = (pose, to_model, model_vertices, model_normals, camera_constants, (dist2, cos_min))
+    _run(loop, points.shape[1], points, *arguments, *robust, out)
 
 
 def icp_points_system(
@@ -641,11 +634,17 @@ def associate(
     _run(
         _associate_loop,
         points.shape[1],
-        points, point_normals, pose, to_model,
+        points,
+        point_normals,
+        pose,
+        to_model,
         np.ascontiguousarray(np.asarray(model_vertices).T.reshape(shape)),
         np.ascontiguousarray(np.asarray(model_normals).T.reshape(shape)),
-        *host.camera_constants(camera), dist2, cos_min, keep, out,
-    )  # fmt: skip
+        host.camera_constants(camera),
+        (dist2, cos_min),
+        keep,
+        out,
+    )
     kept = np.compress(keep, out, axis=1)
     return kept[0:3], kept[3:6], kept[6:9]
 
@@ -735,12 +734,8 @@ def prepare_level(
     indices = np.flatnonzero(_interest_mask(dx, dy, depth, min_gradient, max_depth))
     n = len(indices)
     points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
-    _run(
-        _interest_data_loop,
-        n,
-        indices, depth, intensity, dx, dy, *host.camera_constants(camera), points, values,
-        gradient,
-    )  # fmt: skip
+    images = (indices, depth, intensity, dx, dy)
+    _run(_interest_data_loop, n, *images, host.camera_constants(camera), points, values, gradient)
     return InterestPoints(indices, points, values, gradient)
 
 
@@ -767,10 +762,13 @@ def _correspond_all(
         np.ascontiguousarray(points.gradient, dtype=np.float64),
         host.relative_pose(pose, previous_pose),
         np.ascontiguousarray(pose, dtype=np.float64),
-        previous_depth, previous_intensity, prev_dx, prev_dy, warped,
-        *host.camera_constants(camera), float(max_depth_change),
-        pairs, sums,
-    )  # fmt: skip
+        (previous_depth, previous_intensity, prev_dx, prev_dy),
+        warped,
+        host.camera_constants(camera),
+        float(max_depth_change),
+        pairs,
+        sums,
+    )
     return pairs, sums.sum(axis=0)
 
 
@@ -815,8 +813,7 @@ def photometric_rows(
         np.ascontiguousarray(correspondences.warped, dtype=np.float64),
         np.ascontiguousarray(correspondences.gradient, dtype=np.float64),
         np.ascontiguousarray(previous_pose, dtype=np.float64),
-        float(camera.fx),
-        float(camera.fy),
+        (float(camera.fx), float(camera.fy)),
         jacobian,
     )
     return jacobian, correspondences.residuals
@@ -848,8 +845,10 @@ def rgbd_system(
         pairs.shape[1],
         pairs,
         np.ascontiguousarray(previous_pose, dtype=np.float64),
-        float(camera.fx), float(camera.fy), sigma, out,
-    )  # fmt: skip
+        (float(camera.fx), float(camera.fy)),
+        sigma,
+        out,
+    )
     return host.sum_partials(out)[0]
 
 

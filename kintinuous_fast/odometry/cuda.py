@@ -125,10 +125,9 @@ def _block_reduce(acc, shared, partials):
 
 
 @cuda.jit
-def _icp_kernel(
-    vertices, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, kernel, threshold,
-    out,
-):  # fmt: skip
+def _icp_kernel(vertices, normals, pose, to_model, mv, mn, camera, limits, robust, out):
+    # `camera` = (fx, fy, cx, cy), `limits` = (squared distance, cos angle), `robust` = (kernel
+    # code, threshold)
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     _zero(acc)
@@ -141,25 +140,26 @@ def _icp_kernel(
         if ok:
             acc[NV - 1] += 1.0
             kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
-                px, py, pz, nx, ny, nz, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min
+                (px, py, pz), (nx, ny, nz), pose, to_model, mv, mn, camera, limits
             )
             if kept:
-                j0, j1, j2, j3, j4, j5, r = point_to_plane_row(wx, wy, wz, qx, qy, qz, ux, uy, uz)
-                w = robust_icp_weight(r, kernel, threshold)
-                add_row(acc, j0, j1, j2, j3, j4, j5, r, w)
+                j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
+                    (wx, wy, wz), (qx, qy, qz), (ux, uy, uz)
+                )
+                w = robust_icp_weight(r, robust[0], robust[1])
+                add_row(acc, (j0, j1, j2, j3, j4, j5), r, w)
     _block_reduce(acc, shared, out)
 
 
 @cuda.jit
-def _associate_kernel(
-    points, normals, pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min, count, out
-):
+def _associate_kernel(points, normals, pose, to_model, mv, mn, camera, limits, count, out):
     k = cuda.grid(1)
     if k < points.shape[1]:
+        point = (points[0, k], points[1, k], points[2, k])
+        normal = (normals[0, k], normals[1, k], normals[2, k])
         kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
-            points[0, k], points[1, k], points[2, k], normals[0, k], normals[1, k],
-            normals[2, k], pose, to_model, mv, mn, fx, fy, cx, cy, dist2, cos_min,
-        )  # fmt: skip
+            point, normal, pose, to_model, mv, mn, camera, limits
+        )
         if kept:
             slot = cuda.atomic.add(count, 0, 1)
             out[0, slot], out[1, slot], out[2, slot] = wx, wy, wz
@@ -172,9 +172,10 @@ def _point_to_plane_kernel(world, mv, mn, jacobian, residuals):
     k = cuda.grid(1)
     if k < world.shape[1]:
         j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
-            world[0, k], world[1, k], world[2, k], mv[0, k], mv[1, k], mv[2, k], mn[0, k],
-            mn[1, k], mn[2, k],
-        )  # fmt: skip
+            (world[0, k], world[1, k], world[2, k]),
+            (mv[0, k], mv[1, k], mv[2, k]),
+            (mn[0, k], mn[1, k], mn[2, k]),
+        )
         jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
         jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
         residuals[k] = r
@@ -187,10 +188,15 @@ def _accumulate_kernel(jacobian, residuals, weights, weighted, out):
     _zero(acc)
     for k in range(cuda.grid(1), residuals.shape[0], cuda.gridsize(1)):
         w = weights[k] if weighted else 1.0
-        add_row(
-            acc, jacobian[0, k], jacobian[1, k], jacobian[2, k], jacobian[3, k], jacobian[4, k],
-            jacobian[5, k], residuals[k], w,
-        )  # fmt: skip
+        row = (
+            jacobian[0, k],
+            jacobian[1, k],
+            jacobian[2, k],
+            jacobian[3, k],
+            jacobian[4, k],
+            jacobian[5, k],
+        )
+        add_row(acc, row, residuals[k], w)
     _block_reduce(acc, shared, out)
 
 
@@ -227,14 +233,14 @@ def _interest_kernel(dx, dy, depth, g2, use_depth, max_depth, count, indices):
 
 
 @cuda.jit
-def _interest_data_kernel(indices, depth, intensity, dx, dy, fx, fy, cx, cy, points, values, grad):
+def _interest_data_kernel(indices, depth, intensity, dx, dy, camera, points, values, grad):
     k = cuda.grid(1)
     if k < indices.shape[0]:
         width = depth.shape[1]
         i = indices[k]
         v = i // width
         u = i - v * width
-        x, y, z = backproject(u, v, float(depth[v, u]), fx, fy, cx, cy)
+        x, y, z = backproject(u, v, float(depth[v, u]), camera)
         points[0, k] = x
         points[1, k] = y
         points[2, k] = z
@@ -245,9 +251,22 @@ def _interest_data_kernel(indices, depth, intensity, dx, dy, fx, fy, cx, cy, poi
 
 @cuda.jit
 def _correspond_kernel(
-    points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy, warped,
-    fx, fy, cx, cy, max_change, count, squares, pairs,
-):  # fmt: skip
+    points,
+    intensity,
+    gradient,
+    relative,
+    pose,
+    depth,
+    prev_i,
+    prev_dx,
+    prev_dy,
+    warped,
+    camera,
+    max_change,
+    count,
+    squares,
+    pairs,
+):
     """Algorithm 2: kept pairs listed per block in shared memory, then each adds r^2 to the
     global sum and takes its slot in the global list with atomics."""
     local = cuda.shared.array(BLOCK, int64)
@@ -260,9 +279,20 @@ def _correspond_kernel(
     k = cuda.grid(1)
     if k < points.shape[1]:
         ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
-            points, intensity, gradient, k, relative, pose, depth, prev_i, prev_dx, prev_dy,
-            warped, fx, fy, cx, cy, max_change,
-        )  # fmt: skip
+            points,
+            intensity,
+            gradient,
+            k,
+            relative,
+            pose,
+            depth,
+            prev_i,
+            prev_dx,
+            prev_dy,
+            warped,
+            camera,
+            max_change,
+        )
         if ok:
             slot = cuda.atomic.add(local_count, 0, 1)
             local[slot] = k
@@ -276,15 +306,42 @@ def _correspond_kernel(
 
 @cuda.jit
 def _correspondence_data_kernel(
-    pairs, n_pairs, points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy,
-    warped, fx, fy, cx, cy, max_change, residuals, world, warped_points, used_gradient,
-):  # fmt: skip
+    pairs,
+    n_pairs,
+    points,
+    intensity,
+    gradient,
+    relative,
+    pose,
+    depth,
+    prev_i,
+    prev_dx,
+    prev_dy,
+    warped,
+    camera,
+    max_change,
+    residuals,
+    world,
+    warped_points,
+    used_gradient,
+):
     j = cuda.grid(1)
     if j < n_pairs:
         ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
-            points, intensity, gradient, pairs[j], relative, pose, depth, prev_i, prev_dx,
-            prev_dy, warped, fx, fy, cx, cy, max_change,
-        )  # fmt: skip
+            points,
+            intensity,
+            gradient,
+            pairs[j],
+            relative,
+            pose,
+            depth,
+            prev_i,
+            prev_dx,
+            prev_dy,
+            warped,
+            camera,
+            max_change,
+        )
         residuals[j] = r
         world[0, j], world[1, j], world[2, j] = wx, wy, wz
         warped_points[0, j], warped_points[1, j], warped_points[2, j] = x, y, z
@@ -293,32 +350,63 @@ def _correspondence_data_kernel(
 
 @cuda.jit
 def _rgbd_rows_kernel(
-    pairs, n_pairs, points, intensity, gradient, relative, pose, depth, prev_i, prev_dx, prev_dy,
-    warped, fx, fy, cx, cy, max_change, previous_pose, sigma, out,
-):  # fmt: skip
+    pairs,
+    n_pairs,
+    points,
+    intensity,
+    gradient,
+    relative,
+    pose,
+    depth,
+    prev_i,
+    prev_dx,
+    prev_dy,
+    warped,
+    camera,
+    max_change,
+    previous_pose,
+    sigma,
+    out,
+):
     """The robustly weighted photometric rows of the listed pairs, tree-reduced per block."""
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     _zero(acc)
     for j in range(cuda.grid(1), n_pairs, cuda.gridsize(1)):
         ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
-            points, intensity, gradient, pairs[j], relative, pose, depth, prev_i, prev_dx,
-            prev_dy, warped, fx, fy, cx, cy, max_change,
-        )  # fmt: skip
-        j0, j1, j2, j3, j4, j5 = photometric_row(wx, wy, wz, x, y, z, gx, gy, previous_pose, fx, fy)
+            points,
+            intensity,
+            gradient,
+            pairs[j],
+            relative,
+            pose,
+            depth,
+            prev_i,
+            prev_dx,
+            prev_dy,
+            warped,
+            camera,
+            max_change,
+        )
+        row = photometric_row(
+            (wx, wy, wz), (x, y, z), (gx, gy), previous_pose, (camera[0], camera[1])
+        )
         w = robust_weight(r, sigma)
-        add_row(acc, j0, j1, j2, j3, j4, j5, r, w * w)
+        add_row(acc, row, r, w * w)
     _block_reduce(acc, shared, out)
 
 
 @cuda.jit
-def _photometric_kernel(world, warped_points, gradient, previous_pose, fx, fy, jacobian):
+def _photometric_kernel(world, warped_points, gradient, previous_pose, focal, jacobian):
     k = cuda.grid(1)
     if k < world.shape[1]:
         j0, j1, j2, j3, j4, j5 = photometric_row(
-            world[0, k], world[1, k], world[2, k], warped_points[0, k], warped_points[1, k],
-            warped_points[2, k], gradient[0, k], gradient[1, k], previous_pose, fx, fy,
-        )  # fmt: skip
+            (world[0, k], world[1, k], world[2, k]),
+            (warped_points[0, k], warped_points[1, k], warped_points[2, k]),
+            (gradient[0, k], gradient[1, k]),
+            previous_pose,
+            focal,
+        )
         jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
         jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
 
@@ -389,10 +477,17 @@ def icp_system_and_valid(
     blocks = _reduction_blocks(camera.height * camera.width)
     out = cuda.device_array((blocks, NV), dtype=np.float64)
     _icp_kernel[blocks, BLOCK](
-        stage(vertices), stage(normals), cuda.to_device(pose), cuda.to_device(to_model),
-        stage(model_vertices), stage(model_normals), *host.camera_constants(camera), dist2,
-        cos_min, host.kernel_code(robust_kernel), float(robust_threshold), out,
-    )  # fmt: skip
+        stage(vertices),
+        stage(normals),
+        cuda.to_device(pose),
+        cuda.to_device(to_model),
+        stage(model_vertices),
+        stage(model_normals),
+        host.camera_constants(camera),
+        (dist2, cos_min),
+        (host.kernel_code(robust_kernel), float(robust_threshold)),
+        out,
+    )
     return host.sum_partials(out.copy_to_host())
 
 
@@ -432,9 +527,17 @@ def associate(
     model_v = to_device(np.asarray(model_vertices).T.reshape(shape))
     model_n = to_device(np.asarray(model_normals).T.reshape(shape))
     _associate_kernel[grid_1d(n, BLOCK), BLOCK](
-        _f64(points), _f64(point_normals), cuda.to_device(pose), cuda.to_device(to_model),
-        model_v, model_n, *host.camera_constants(camera), dist2, cos_min, count, out,
-    )  # fmt: skip
+        _f64(points),
+        _f64(point_normals),
+        cuda.to_device(pose),
+        cuda.to_device(to_model),
+        model_v,
+        model_n,
+        host.camera_constants(camera),
+        (dist2, cos_min),
+        count,
+        out,
+    )
     kept = int(count.copy_to_host()[0])
     pairs = _back(out[:, :kept], points)
     return pairs[0:3], pairs[3:6], pairs[6:9]
@@ -519,10 +622,11 @@ def prepare_level(
     values = cuda.device_array(size, dtype=np.float64)
     gradient = cuda.device_array((2, size), dtype=np.float64)
     if n:
+        images = (indices, d_depth, stage(intensity), d_dx, d_dy)
+        camera_constants = host.camera_constants(camera)
         _interest_data_kernel[grid_1d(n, BLOCK), BLOCK](
-            indices, d_depth, stage(intensity), d_dx, d_dy, *host.camera_constants(camera),
-            points, values, gradient,
-        )  # fmt: skip
+            *images, camera_constants, points, values, gradient
+        )
     result = (indices, points[:, :n], values[:n], gradient[:, :n])
     if not is_device(depth):
         result = tuple(array.copy_to_host() for array in result)
@@ -550,7 +654,7 @@ def _pair_arguments(
         stage(previous_dx) if warped else prev_i,
         stage(previous_dy) if warped else prev_i,
         warped,
-        *host.camera_constants(camera),
+        host.camera_constants(camera),
         float(max_depth_change),
     )
 
@@ -610,8 +714,7 @@ def photometric_rows(
         _f64(correspondences.warped),
         _f64(correspondences.gradient),
         cuda.to_device(np.ascontiguousarray(previous_pose, dtype=np.float64)),
-        float(camera.fx),
-        float(camera.fy),
+        (float(camera.fx), float(camera.fy)),
         jacobian,
     )
     return _back(jacobian, correspondences.world), correspondences.residuals

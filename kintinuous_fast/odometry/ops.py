@@ -68,22 +68,14 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     # ICP (kintinuous_ref.odometry.icp)
 
     @jit
-    def project_nearest(
-        m: Any,
-        x: float,
-        y: float,
-        z: float,
-        fx: float,
-        fy: float,
-        cx: float,
-        cy: float,
-        width: int,
-        height: int,
-    ) -> tuple[int, int]:
-        """(row, column) of the pixel nearest to m (x, y, z) in a (height, width) camera, (-1, -1)
-        behind the camera or outside the image (ref `associate`). No branch on the data (NaN
-        fails every test), so that a loop of these vectorises."""
-        mx, my, mz = transform(m, x, y, z)
+    def project_nearest(m: Any, point: tuple, camera: tuple, size: tuple) -> tuple[int, int]:
+        """(row, column) of the pixel nearest to m `point` in a camera `camera` = (fx, fy, cx,
+        cy) of `size` = (width, height), (-1, -1) behind the camera or outside the image (ref
+        `associate`). No branch on the data (NaN fails every test), so that a loop of these
+        vectorises."""
+        fx, fy, cx, cy = camera
+        width, height = size
+        mx, my, mz = transform(m, point[0], point[1], point[2])
         front = mz > 1e-6
         safe_z = mz if front else 1.0
         u = rint(fx * mx / safe_z + cx)
@@ -92,95 +84,66 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return (int(v) if inside else -1), (int(u) if inside else -1)
 
     @jit
-    def is_compatible(
-        wx: float,
-        wy: float,
-        wz: float,
-        gx: float,
-        gy: float,
-        gz: float,
-        qx: float,
-        qy: float,
-        qz: float,
-        ux: float,
-        uy: float,
-        uz: float,
-        dist2: float,
-        cos_min: float,
-    ) -> bool:
+    def is_compatible(w: tuple, g: tuple, q: tuple, u: tuple, limits: tuple) -> bool:
         """The ICP pair tests of a world point w with normal g against a model vertex q with
-        normal u: at most the distance threshold apart, normals within the angle threshold
-        (NaN fails both)."""
-        dx = wx - qx
-        dy = wy - qy
-        dz = wz - qz
+        normal u (each (x, y, z)): at most the distance threshold apart, normals within the
+        angle threshold, `limits` = (squared distance, cos angle) (NaN fails both)."""
+        dist2, cos_min = limits
+        dx = w[0] - q[0]
+        dy = w[1] - q[1]
+        dz = w[2] - q[2]
         squared = dx * dx + dy * dy + dz * dz
-        cos_angle = gx * ux + gy * uy + gz * uz
+        cos_angle = g[0] * u[0] + g[1] * u[1] + g[2] * u[2]
         return (squared <= dist2) & (cos_angle >= cos_min)
 
     @jit
     def match_pixel(
-        px: float,
-        py: float,
-        pz: float,
-        nx: float,
-        ny: float,
-        nz: float,
+        point: tuple,
+        normal: tuple,
         pose: Any,
         model_vertices: Any,
         model_normals: Any,
-        iv: int,
-        iu: int,
-        dist2: float,
-        cos_min: float,
+        pixel: tuple,
+        limits: tuple,
     ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
-        """The ICP pair of one valid current point and the model pixel (iv, iu) it projects to:
-        (kept, world point p = T v, model vertex, model normal). Rejected without a model surface
-        there (NaN fails both tests), farther than the distance threshold or with normals more
-        than the angle threshold apart."""
-        wx, wy, wz = transform(pose, px, py, pz)
+        """The ICP pair of one valid current point (`point`, `normal`) and the model `pixel` =
+        (iv, iu) it projects to: (kept, world point p = T v, model vertex, model normal).
+        Rejected without a model surface there (NaN fails both tests), farther than the distance
+        threshold or with normals more than the angle threshold apart (is_compatible's
+        `limits`)."""
+        iv, iu = pixel
+        wx, wy, wz = transform(pose, point[0], point[1], point[2])
         qx = float(model_vertices[iv, iu, 0])
         qy = float(model_vertices[iv, iu, 1])
         qz = float(model_vertices[iv, iu, 2])
         ux = float(model_normals[iv, iu, 0])
         uy = float(model_normals[iv, iu, 1])
         uz = float(model_normals[iv, iu, 2])
-        gx, gy, gz = rotate(pose, nx, ny, nz)
-        if is_compatible(wx, wy, wz, gx, gy, gz, qx, qy, qz, ux, uy, uz, dist2, cos_min):
+        g = rotate(pose, normal[0], normal[1], normal[2])
+        if is_compatible((wx, wy, wz), g, (qx, qy, qz), (ux, uy, uz), limits):
             return True, wx, wy, wz, qx, qy, qz, ux, uy, uz
         nan = math.nan
         return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
 
     @jit
     def icp_match(
-        px: float,
-        py: float,
-        pz: float,
-        nx: float,
-        ny: float,
-        nz: float,
+        point: tuple,
+        normal: tuple,
         pose: Any,
         to_model: Any,
         model_vertices: Any,
         model_normals: Any,
-        fx: float,
-        fy: float,
-        cx: float,
-        cy: float,
-        dist2: float,
-        cos_min: float,
+        camera: tuple,
+        limits: tuple,
     ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
         """Projective association of one valid current point (ref `associate`): the nearest pixel
         of the model's camera (project_nearest), then the tests of match_pixel."""
-        iv, iu = project_nearest(
-            to_model, px, py, pz, fx, fy, cx, cy, model_vertices.shape[1], model_vertices.shape[0]
-        )
-        if iv < 0:
+        size = (model_vertices.shape[1], model_vertices.shape[0])
+        pixel = project_nearest(to_model, point, camera, size)
+        if pixel[0] < 0:
             nan = math.nan
             return False, nan, nan, nan, nan, nan, nan, nan, nan, nan
-        return match_pixel(
-            px, py, pz, nx, ny, nz, pose, model_vertices, model_normals, iv, iu, dist2, cos_min
-        )
+        return match_pixel(point, normal, pose, model_vertices, model_normals, pixel, limits)
 
     @jit
     def map_point(vertices: Any, normals: Any, v: int, u: int) -> tuple[bool, float, ...]:
@@ -204,17 +167,13 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
 
     @jit
     def point_to_plane_row(
-        wx: float,
-        wy: float,
-        wz: float,
-        qx: float,
-        qy: float,
-        qz: float,
-        ux: float,
-        uy: float,
-        uz: float,
+        world: tuple, vertex: tuple, normal: tuple
     ) -> tuple[float, float, float, float, float, float, float]:
-        """J = [p x n_m, n_m] and r = (p - v_m) . n_m of one pair (eq. 9): (j0..j5, r)."""
+        """J = [p x n_m, n_m] and r = (p - v_m) . n_m of one pair (eq. 9): (j0..j5, r), p =
+        `world`, v_m = `vertex`, n_m = `normal` (x, y, z)."""
+        wx, wy, wz = world
+        qx, qy, qz = vertex
+        ux, uy, uz = normal
         r = (wx - qx) * ux + (wy - qy) * uy + (wz - qz) * uz
         return wy * uz - wz * uy, wz * ux - wx * uz, wx * uy - wy * ux, ux, uy, uz, r
 
@@ -248,10 +207,9 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return z > 0 and z <= max_depth and math.isfinite(z)
 
     @jit
-    def backproject(
-        u: int, v: int, z: float, fx: float, fy: float, cx: float, cy: float
-    ) -> tuple[float, float, float]:
-        """X = z K^-1 (u, v, 1) as prepare_level computes it."""
+    def backproject(u: int, v: int, z: float, camera: tuple) -> tuple[float, float, float]:
+        """X = z K^-1 (u, v, 1) as prepare_level computes it, `camera` = (fx, fy, cx, cy)."""
+        fx, fy, cx, cy = camera
         return (u - cx) * z / fx, (v - cy) * z / fy, z
 
     @jit
@@ -269,11 +227,13 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
 
     @jit
     def warp_project(
-        relative: Any, px: float, py: float, pz: float, fx: float, fy: float, cx: float, cy: float
+        relative: Any, point: tuple, camera: tuple
     ) -> tuple[float, float, float, float, float]:
-        """The first half of warp_point: X' = T_rel X and its projection (u, v); (u, v) only mean
-        something where z' > 1e-6. No branch on the data, so that a loop of these vectorises."""
-        x, y, z = transform(relative, px, py, pz)
+        """The first half of warp_point: X' = T_rel X and its projection (u, v) by `camera` =
+        (fx, fy, cx, cy); (u, v) only mean something where z' > 1e-6. No branch on the data, so
+        that a loop of these vectorises."""
+        fx, fy, cx, cy = camera
+        x, y, z = transform(relative, point[0], point[1], point[2])
         safe_z = z if z > 1e-6 else 1.0
         return x, y, z, fx * x / safe_z + cx, fy * y / safe_z + cy
 
@@ -283,11 +243,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         intensity: Any,
         gradient: Any,
         k: int,
-        x: float,
-        y: float,
-        z: float,
-        u: float,
-        v: float,
+        warp: tuple,
         pose: Any,
         previous_depth: Any,
         previous_intensity: Any,
@@ -296,7 +252,9 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         warped_gradient: bool,
         max_depth_change: float,
     ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
-        """The second half of warp_point, from warp_project's (x, y, z, u, v) of point k."""
+        """The second half of warp_point, from warp_project's `warp` = (x, y, z, u, v) of point
+        k."""
+        x, y, z, u, v = warp
         height = previous_depth.shape[0]
         width = previous_depth.shape[1]
         nan = math.nan
@@ -331,10 +289,7 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         previous_dx: Any,
         previous_dy: Any,
         warped_gradient: bool,
-        fx: float,
-        fy: float,
-        cx: float,
-        cy: float,
+        camera: tuple,
         max_depth_change: float,
     ) -> tuple[bool, float, float, float, float, float, float, float, float, float]:
         """Algorithm 2 for interest point k (ref `correspond`): (kept, r = I_n(p') - I_{n+1}(p),
@@ -342,30 +297,33 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         image (room for the 2x2 bilinear neighbourhood) and the previous depth at the nearest
         pixel agrees with z' to within d_s. warp_project then warp_sample (the CPU runs the
         first half of a block of points in a loop that vectorises)."""
-        x, y, z, u, v = warp_project(
-            relative, points[0, k], points[1, k], points[2, k], fx, fy, cx, cy
-        )
+        warp = warp_project(relative, (points[0, k], points[1, k], points[2, k]), camera)
         return warp_sample(
-            points, intensity, gradient, k, x, y, z, u, v, pose, previous_depth,
-            previous_intensity, previous_dx, previous_dy, warped_gradient, max_depth_change,
-        )  # fmt: skip
+            points,
+            intensity,
+            gradient,
+            k,
+            warp,
+            pose,
+            previous_depth,
+            previous_intensity,
+            previous_dx,
+            previous_dy,
+            warped_gradient,
+            max_depth_change,
+        )
 
     @jit
     def photometric_row(
-        wx: float,
-        wy: float,
-        wz: float,
-        x: float,
-        y: float,
-        z: float,
-        gx: float,
-        gy: float,
-        previous_pose: Any,
-        fx: float,
-        fy: float,
+        world: tuple, warped: tuple, gradient: tuple, previous_pose: Any, focal: tuple
     ) -> tuple[float, float, float, float, float, float]:
         """J of one intensity difference (ref photometric_rows): a = grad I . dpi/dX', turned
-        into the world frame c = R_prev a, J = [p x c, c]."""
+        into the world frame c = R_prev a, J = [p x c, c]; p = `world`, X' = `warped` (x, y, z),
+        grad I = `gradient` (gx, gy), `focal` = (fx, fy)."""
+        wx, wy, wz = world
+        x, y, z = warped
+        gx, gy = gradient
+        fx, fy = focal
         a0 = gx * fx / z
         a1 = gy * fy / z
         a2 = -(gx * fx * x + gy * fy * y) / (z * z)
@@ -383,18 +341,10 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
     # Normal equations
 
     @jit
-    def add_row(
-        acc: Any,
-        j0: float,
-        j1: float,
-        j2: float,
-        j3: float,
-        j4: float,
-        j5: float,
-        r: float,
-        w: float,
-    ) -> None:
-        """acc += w [J^T J (upper triangle), J^T r, r^2, 1] for one row (ref accumulate)."""
+    def add_row(acc: Any, jacobian: tuple, r: float, w: float) -> None:
+        """acc += w [J^T J (upper triangle), J^T r, r^2, 1] for one row (ref accumulate), J =
+        `jacobian` (j0..j5)."""
+        j0, j1, j2, j3, j4, j5 = jacobian
         a0 = w * j0
         a1 = w * j1
         a2 = w * j2
