@@ -528,9 +528,19 @@ def valid_points(vertices, normals) -> np.ndarray:
 
 
 def _run_on_points(
-    loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg, model_inverse, *robust,
-) -> None:  # fmt: skip
+    loop,
+    out,
+    points,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    model_inverse,
+    *robust,
+) -> None:
     """Run an ICP loop over the valid current points into `out` (its per-chunk rows); `robust`:
     (kernel code, threshold) for the loops that weigh their rows."""
     host.check_map("model vertex map", model_vertices, camera)
@@ -544,46 +554,100 @@ def _run_on_points(
 
 
 def icp_points_system(
-    points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
-    angle_threshold_deg, model_inverse=None, robust_kernel="none", robust_threshold=0.0,
-) -> tuple[LinearSystem, int]:  # fmt: skip
+    points,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    model_inverse=None,
+    robust_kernel="none",
+    robust_threshold=0.0,
+) -> tuple[LinearSystem, int]:
     """icp_system of the valid current points (`valid_points`) and their number (for the inlier
     fraction); `model_inverse` as in host.icp_constants; `robust_threshold` the kernel's k or c
     in metres (ref icp.robust_threshold)."""
     out = _partials(points.shape[1])
     _run_on_points(
-        _icp_loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
-        distance_threshold, angle_threshold_deg, model_inverse,
+        _icp_loop,
+        out,
+        points,
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        model_inverse,
         (host.kernel_code(robust_kernel), float(robust_threshold)),
-    )  # fmt: skip
+    )
     return host.sum_partials(out)
 
 
 def icp_points_pairs(
-    points, model_vertices, model_normals, pose, model_pose, camera, distance_threshold,
-    angle_threshold_deg, model_inverse=None, robust_kernel="none", robust_threshold=0.0,
-) -> tuple[int, int]:  # fmt: skip
+    points,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    model_inverse=None,
+    robust_kernel="none",
+    robust_threshold=0.0,
+) -> tuple[int, int]:
     """icp_pairs of the valid current points (`valid_points`)."""
     out = np.zeros((host.chunks_for(points.shape[1], CHUNKS), 2))
     _run_on_points(
-        _icp_pairs_loop, out, points, model_vertices, model_normals, pose, model_pose, camera,
-        distance_threshold, angle_threshold_deg, model_inverse,
-    )  # fmt: skip
+        _icp_pairs_loop,
+        out,
+        points,
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        model_inverse,
+    )
     valid, pairs = out.sum(axis=0)
     return int(pairs), int(valid)
 
 
 def icp_system_and_valid(
-    vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg, robust_kernel="none", robust_threshold=0.0,
-) -> tuple[LinearSystem, int]:  # fmt: skip
+    vertices,
+    normals,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    robust_kernel="none",
+    robust_threshold=0.0,
+) -> tuple[LinearSystem, int]:
     """icp_system and the number of valid current points (for the inlier fraction)."""
     host.check_map("current vertex map", vertices, camera)
     host.check_map("current normal map", normals, camera)
     return icp_points_system(
-        valid_points(vertices, normals), model_vertices, model_normals, pose, model_pose, camera,
-        distance_threshold, angle_threshold_deg, None, robust_kernel, robust_threshold,
-    )  # fmt: skip
+        valid_points(vertices, normals),
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        None,
+        robust_kernel,
+        robust_threshold,
+    )
 
 
 def icp_system(
@@ -602,10 +666,18 @@ def icp_system(
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: association,
     rows and sums in one pass over the current maps (nothing is stored per pair)."""
     return icp_system_and_valid(
-        stage(vertices), stage(normals), stage(model_vertices), stage(model_normals),
-        pose, model_pose, camera, distance_threshold, angle_threshold_deg, robust_kernel,
+        stage(vertices),
+        stage(normals),
+        stage(model_vertices),
+        stage(model_normals),
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        robust_kernel,
         robust_threshold(robust_kernel, robust_noise),
-    )[0]  # fmt: skip
+    )[0]
 
 
 def associate(
@@ -701,9 +773,14 @@ def _interest_mask(dx, dy, depth, min_gradient, max_depth) -> np.ndarray:
     _run(
         _interest_mask_loop,
         dx.size,
-        dx, dy, depth if use_depth else dx, float(min_gradient) ** 2, use_depth,
-        float(max_depth), mask,
-    )  # fmt: skip
+        dx,
+        dy,
+        depth if use_depth else dx,
+        float(min_gradient) ** 2,
+        use_depth,
+        float(max_depth),
+        mask,
+    )
     return mask
 
 
@@ -740,9 +817,16 @@ def prepare_level(
 
 
 def _correspond_all(
-    points, pose, previous_pose, previous_depth, previous_intensity, camera, max_depth_change,
-    previous_dx, previous_dy,
-):  # fmt: skip
+    points,
+    pose,
+    previous_pose,
+    previous_depth,
+    previous_intensity,
+    camera,
+    max_depth_change,
+    previous_dx,
+    previous_dy,
+):
     """Per interest point: ((9, n) pairs as _correspond_loop writes them, (sum r^2, count))."""
     previous_depth, previous_intensity = stage(previous_depth), stage(previous_intensity)
     shape = (camera.height, camera.width)
@@ -786,9 +870,16 @@ def correspond(
     """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
     image and d_s tests, in the reference's order."""
     pairs, _ = _correspond_all(
-        points, pose, previous_pose, previous_depth, previous_intensity, camera,
-        max_depth_change, previous_dx, previous_dy,
-    )  # fmt: skip
+        points,
+        pose,
+        previous_pose,
+        previous_depth,
+        previous_intensity,
+        camera,
+        max_depth_change,
+        previous_dx,
+        previous_dy,
+    )
     kept = np.flatnonzero(~np.isnan(pairs[0]))
     columns = np.take(pairs, kept, axis=1)
     return Correspondences(
@@ -833,9 +924,16 @@ def rgbd_system(
     """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted: pass 1
     finds the pairs and sum r^2 (sigma'), pass 2 sums the weighted rows."""
     pairs, (squares, count) = _correspond_all(
-        points, pose, previous_pose, previous_depth, previous_intensity, camera,
-        max_depth_change, previous_dx, previous_dy,
-    )  # fmt: skip
+        points,
+        pose,
+        previous_pose,
+        previous_depth,
+        previous_intensity,
+        camera,
+        max_depth_change,
+        previous_dx,
+        previous_dy,
+    )
     if count == 0:
         return LinearSystem.empty()
     sigma = float(np.sqrt(squares / count))
@@ -878,10 +976,18 @@ class IcpProblem(host.IcpProblemBase):
             host.check_map("current normal map", normals, camera)
             self._points[level] = valid_points(vertices, normals)
         return function(
-            self._points[level], model_vertices, model_normals, pose, self.model_pose, camera,
-            self.distance_threshold, self.angle_threshold_deg, self.model_inverse,
-            self.robust_kernel, self.robust_threshold,
-        )  # fmt: skip
+            self._points[level],
+            model_vertices,
+            model_normals,
+            pose,
+            self.model_pose,
+            camera,
+            self.distance_threshold,
+            self.angle_threshold_deg,
+            self.model_inverse,
+            self.robust_kernel,
+            self.robust_threshold,
+        )
 
 
 class RgbdProblem(host.RgbdProblemBase):

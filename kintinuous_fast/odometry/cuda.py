@@ -462,9 +462,18 @@ def _counter(dtype=np.int32):
 
 
 def icp_system_and_valid(
-    vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-    distance_threshold, angle_threshold_deg, robust_kernel="none", robust_threshold=0.0,
-) -> tuple[LinearSystem, int]:  # fmt: skip
+    vertices,
+    normals,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    robust_kernel="none",
+    robust_threshold=0.0,
+) -> tuple[LinearSystem, int]:
     """icp_system and the number of valid current points (for the inlier fraction);
     `robust_threshold` the kernel's k or c in metres (ref icp.robust_threshold)."""
     host.check_map("current vertex map", vertices, camera)
@@ -492,24 +501,46 @@ def icp_system_and_valid(
 
 
 def icp_system(
-    vertices, normals, pose: np.ndarray, model_vertices, model_normals, model_pose: np.ndarray,
-    camera: Intrinsics, distance_threshold: float = 0.10, angle_threshold_deg: float = 20.0,
-    robust_kernel: str = "none", robust_noise: float = IcpConfig.robust_noise,
-) -> LinearSystem:  # fmt: skip
+    vertices,
+    normals,
+    pose: np.ndarray,
+    model_vertices,
+    model_normals,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float = 0.10,
+    angle_threshold_deg: float = 20.0,
+    robust_kernel: str = "none",
+    robust_noise: float = IcpConfig.robust_noise,
+) -> LinearSystem:
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: one thread per
     pixel(s), block tree reductions, partials added on the host."""
     return icp_system_and_valid(
-        vertices, normals, model_vertices, model_normals, pose, model_pose, camera,
-        distance_threshold, angle_threshold_deg, robust_kernel,
+        vertices,
+        normals,
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        robust_kernel,
         robust_threshold(robust_kernel, robust_noise),
-    )[0]  # fmt: skip
+    )[0]
 
 
 def associate(
-    points, point_normals, pose: np.ndarray, model_vertices, model_normals,
-    model_pose: np.ndarray, camera: Intrinsics, distance_threshold: float,
+    points,
+    point_normals,
+    pose: np.ndarray,
+    model_vertices,
+    model_normals,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float,
     angle_threshold_deg: float,
-) -> tuple:  # fmt: skip
+) -> tuple:
     """Projective data association: (world point, model vertex, model normal) as (3, M) columns
     in atomic order. Model maps as (3, h*w) columns (ref map_columns)."""
     shape = (camera.height, camera.width, 3)
@@ -590,9 +621,15 @@ def _interest_list(dx, dy, depth, min_gradient: float, max_depth: float):
     indices = cuda.device_array(max(n, 1), dtype=np.int64)
     use_depth = depth is not None
     _interest_kernel[grid_1d(n, BLOCK), BLOCK](
-        dx, dy, depth if use_depth else dx, float(min_gradient) ** 2, use_depth,
-        float(max_depth), count, indices,
-    )  # fmt: skip
+        dx,
+        dy,
+        depth if use_depth else dx,
+        float(min_gradient) ** 2,
+        use_depth,
+        float(max_depth),
+        count,
+        indices,
+    )
     total = int(count.copy_to_host()[0])
     return indices[:total], total
 
@@ -605,15 +642,23 @@ def interest_points(intensity_dx, intensity_dy, min_gradient: float):
 
 
 def prepare_level(
-    depth, intensity, intensity_dx, intensity_dy, camera: Intrinsics, min_gradient: float,
+    depth,
+    intensity,
+    intensity_dx,
+    intensity_dy,
+    camera: Intrinsics,
+    min_gradient: float,
     max_depth: float,
-) -> InterestPoints:  # fmt: skip
+) -> InterestPoints:
     """Interest points with valid depth and their 3D points, intensities and gradients (on the
     device when `depth` is a device array)."""
     shape = (camera.height, camera.width)
     for name, image in (
-        ("depth", depth), ("intensity", intensity), ("dx", intensity_dx), ("dy", intensity_dy)
-    ):  # fmt: skip
+        ("depth", depth),
+        ("intensity", intensity),
+        ("dx", intensity_dx),
+        ("dy", intensity_dy),
+    ):
         host.check_image(f"current {name} image", image, shape)
     d_depth, d_dx, d_dy = stage(depth), stage(intensity_dx), stage(intensity_dy)
     indices, n = _interest_list(d_dx, d_dy, d_depth, min_gradient, max_depth)
@@ -634,9 +679,16 @@ def prepare_level(
 
 
 def _pair_arguments(
-    points, pose, previous_pose, previous_depth, previous_intensity, camera, max_depth_change,
-    previous_dx, previous_dy,
-) -> tuple:  # fmt: skip
+    points,
+    pose,
+    previous_pose,
+    previous_depth,
+    previous_intensity,
+    camera,
+    max_depth_change,
+    previous_dx,
+    previous_dy,
+) -> tuple:
     """The arguments warp_point needs, on the device, in the kernels' order."""
     shape = (camera.height, camera.width)
     host.check_image("previous depth image", previous_depth, shape)
@@ -670,16 +722,29 @@ def _pair_list(arguments: tuple, n: int):
 
 
 def correspond(
-    points: InterestPoints, pose: np.ndarray, previous_pose: np.ndarray, previous_depth,
-    previous_intensity, camera: Intrinsics, max_depth_change: float, previous_dx=None,
+    points: InterestPoints,
+    pose: np.ndarray,
+    previous_pose: np.ndarray,
+    previous_depth,
+    previous_intensity,
+    camera: Intrinsics,
+    max_depth_change: float,
+    previous_dx=None,
     previous_dy=None,
-) -> Correspondences:  # fmt: skip
+) -> Correspondences:
     """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
     image and d_s tests, in atomic order (`kept` says which interest point each pair is)."""
     arguments = _pair_arguments(
-        points, pose, previous_pose, previous_depth, previous_intensity, camera,
-        max_depth_change, previous_dx, previous_dy,
-    )  # fmt: skip
+        points,
+        pose,
+        previous_pose,
+        previous_depth,
+        previous_intensity,
+        camera,
+        max_depth_change,
+        previous_dx,
+        previous_dy,
+    )
     n = points.points.shape[1]
     pairs, kept, _ = _pair_list(arguments, n)
     size = max(kept, 1)
@@ -721,17 +786,30 @@ def photometric_rows(
 
 
 def rgbd_system(
-    points: InterestPoints, pose: np.ndarray, previous_pose: np.ndarray, previous_depth,
-    previous_intensity, camera: Intrinsics, max_depth_change: float = 0.07, previous_dx=None,
+    points: InterestPoints,
+    pose: np.ndarray,
+    previous_pose: np.ndarray,
+    previous_depth,
+    previous_intensity,
+    camera: Intrinsics,
+    max_depth_change: float = 0.07,
+    previous_dx=None,
     previous_dy=None,
-) -> LinearSystem:  # fmt: skip
+) -> LinearSystem:
     """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted:
     Algorithm 2 (list + sum r^2 by atomics), sigma' on the host, then the weighted rows of the
     listed pairs tree-reduced per block."""
     arguments = _pair_arguments(
-        points, pose, previous_pose, previous_depth, previous_intensity, camera,
-        max_depth_change, previous_dx, previous_dy,
-    )  # fmt: skip
+        points,
+        pose,
+        previous_pose,
+        previous_depth,
+        previous_intensity,
+        camera,
+        max_depth_change,
+        previous_dx,
+        previous_dy,
+    )
     pairs, kept, squares = _pair_list(arguments, points.points.shape[1])
     if kept == 0:
         return LinearSystem.empty()

@@ -42,10 +42,16 @@ def prefetch_cell(typing_context: Any, array: Any, i: Any, j: Any, k: Any) -> An
         ]
         indices.append(context.get_constant(types.intp, 0))
         address = cgutils.get_item_pointer2(
-            context, builder, data=view.data, shape=cgutils.unpack_tuple(builder, view.shape),
-            strides=cgutils.unpack_tuple(builder, view.strides), layout=array_type.layout,
-            inds=indices, wraparound=False, boundscheck=False,
-        )  # fmt: skip
+            context,
+            builder,
+            data=view.data,
+            shape=cgutils.unpack_tuple(builder, view.shape),
+            strides=cgutils.unpack_tuple(builder, view.strides),
+            layout=array_type.layout,
+            inds=indices,
+            wraparound=False,
+            boundscheck=False,
+        )
         i32 = ir.IntType(32)
         prefetch = cgutils.get_or_insert_function(
             builder.module,
