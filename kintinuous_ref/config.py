@@ -119,8 +119,8 @@ class CombinedConfig:
     rgbd_weight: float = 1.0
     # "huber" (default): "degeneracy-aware" on Huber-weighted ICP rows (odometry/icp.py);
     # "tukey": the same with Tukey's biweight;
-    # "degeneracy-aware": "paper", with ICP silenced along the directions it does not
-    # observe (a corridor's length, a floor's plane), where RGB-D decides alone;
+    # "degeneracy-aware": "paper", with ICP's say cut along the directions few of its pairs
+    # observe (a corridor's length, a floor's plane), which RGB-D then decides;
     # "paper": A = J_icp^T J_icp / sigma_icp^2 + w J_rgbd^T J_rgbd (eq. 12-13, both terms in units
     # of their own noise); "information": RGB-D divided by its own noise too;
     # "paper-metres": the literal sum, ICP in metres;
@@ -128,8 +128,8 @@ class CombinedConfig:
     # public codes' scaling). docs/odometry.md measures each on every scene.
     weighting: str = "huber"
     original_code_icp_scale: float = 10.0  # "original-code": A_rgbd + s^2 A_icp, b_rgbd + s b_icp
-    # "degeneracy-aware": ICP eigen-directions observed by less than this share of its pairs are
-    # left to RGB-D where RGB-D knows more about them (odometry/combined.py)
+    # "degeneracy-aware": along an ICP eigen-direction observed by a share s of its pairs below
+    # this, ICP keeps s / threshold of its information (odometry/combined.py)
     degeneracy_threshold: float = 0.02
 
 

@@ -23,29 +23,36 @@ mean squared residual sigma_icp^2 (recomputed every iteration, as sigma' is):
 each term in units of its own noise: every pair counts by how well it fits. That balance fails
 where ICP's information is degenerate but biased: along a corridor of flat walls the stray
 normals of the voxelised model give ICP a weak constraint that still outweighs the texture, and
-over one plane ICP observes only three of six directions. "degeneracy-aware" (Zhang, Kaess
-and Singh, ICRA 2016) is "paper" with ICP silenced along the directions it does not observe.
-Its information matrix is taken about the camera (a twist that rotates about the camera
-centre, so that rotations and translations separate), rotations scaled by the RMS lever
+over one plane ICP observes only three of six directions. "degeneracy-aware" (after Zhang,
+Kaess and Singh, ICRA 2016) is "paper" with ICP's say cut along the directions few of its pairs
+observe. Its information matrix is taken about the camera (a twist that rotates about the
+camera centre, so that rotations and translations separate), rotations scaled by the RMS lever
 arm rho of the pairs, and divided by the pair count: a dimensionless 6x6 whose eigenvalues say
-what share of the pairs constrains each direction (the translational ones sum to 1).
-Eigen-directions below `degeneracy_threshold` are projected off the ICP term (its A and b)
-wherever RGB-D holds more information along them than ICP does, so RGB-D alone decides them: the
-walking direction in a corridor, the in-plane motion over a floor. In the dark RGB-D holds none,
-and ICP keeps them. ATE RMSE of the whole pipeline, 300 frames at 320x240 (docs/odometry.md has
-every scene at both resolutions and redkitchen):
+what share of the pairs constrains each direction (the translational ones sum to 1). Along an
+eigen-direction of share s below `degeneracy_threshold` the ICP term (A and b alike) keeps the
+fraction s / threshold of its information: the walking direction in a corridor (s ~ 1e-4)
+keeps under 1 %, and RGB-D decides it; a weakly but truly observed direction (s ~ 0.007 on a
+desk) keeps a third. ICP's own minimiser does not move, only its weight against RGB-D, so in
+the dark, where RGB-D holds nothing, ICP still decides every direction. A gate that removes a
+direction whole where RGB-D knows more about it flips when RGB-D's information dips for a few
+frames, and ICP's biased sliver then holds the camera still (docs/odometry.md measures both).
+ATE RMSE of the whole pipeline, 300 frames (docs/odometry.md has every weighting):
 
-    weighting            corridor   floor      desk     dark
-    icp alone            293 mm     673 mm     1.9 mm   3.0 mm
+    320x240              corridor   floor      desk     dark
+    icp alone            473 mm     669 mm     1.9 mm   3.1 mm
     rgbd alone           7.4 mm     23.4 mm    13.8 mm  353 mm (101 frames lost)
     "paper"              49.0 mm    501 mm     1.9 mm   2.9 mm
-    "degeneracy-aware"   11.4 mm    3.8 mm     2.1 mm   2.9 mm
-    "huber" (default)    11.0 mm    3.8 mm     2.0 mm   3.1 mm
     "original-code"      5.2 mm     12.3 mm    12.5 mm  6.3 mm
+    "huber" (default)    10.3 mm    4.4 mm     1.9 mm   3.0 mm
+
+    640x480              corridor   floor      desk     dark
+    icp alone            493 mm     530 mm     0.8 mm   0.8 mm
+    rgbd alone           2.1 mm     0.8 mm     5.5 mm   352 mm (101 frames lost)
+    "huber" (default)    4.6 mm     0.8 mm     0.8 mm   0.8 mm
 
 The default, "huber", is "degeneracy-aware" on Huber-weighted ICP rows (below): on redkitchen at
-640x480 it reaches 23.4 mm where "degeneracy-aware" reaches 26.9 mm; it loses on the synthetic
-corridor and floor at 640x480 (36.9 and 22.1 mm against 22.7 and 17.2 mm).
+640x480 it reaches 23.4 mm where least-squares rows reach 26.9 mm. It loses on the corridor at
+640x480, 2.2x RGB-D alone: ICP's bias there also sits in directions 3-5 % of its pairs observe.
 
 The other weightings:
 
@@ -150,35 +157,26 @@ def information_spectrum(
     return eigenvalues, eigenvectors, change @ scale
 
 
-def without_degenerate_directions(
-    icp: LinearSystem,
-    camera_position: np.ndarray,
-    threshold: float = DEGENERACY_THRESHOLD,
-    icp_weight: float = 1.0,
-    other: LinearSystem | None = None,
+def discount_weak_directions(
+    icp: LinearSystem, camera_position: np.ndarray, threshold: float = DEGENERACY_THRESHOLD
 ) -> LinearSystem:
-    """The ICP system with A and b projected off its unobserved eigen-directions
-    (`information_spectrum` below `threshold`); unchanged when it observes all six. With
-    `other` (the other term, weighted), a direction is given up only where `other` holds more
-    information than `icp_weight` * ICP does there: in the dark, ICP keeps what it has."""
-    # In the scaled coordinates eta (xi = M D eta): A_eta = D M^T A M D, b_eta = D M^T b.
+    """The ICP system with its information along each eigen-direction of `information_spectrum`
+    multiplied by min(1, share / threshold): a direction observed by a share s < threshold of
+    the pairs keeps s / threshold of its say; the directions above it keep all of it. A and b
+    shrink together along each eigen-direction, so ICP alone still has the same minimiser: only
+    its weight against the other term changes, direction by direction."""
+    # In the scaled coordinates eta (xi = M D eta): A_eta = D M^T A M D, b_eta = D M^T b, and
+    # A_eta shares its eigenvectors V with the spectrum, so V diag(f) V^T commutes with it.
     eigenvalues, eigenvectors, to_scaled = information_spectrum(icp, camera_position)
-    weak = eigenvalues < threshold
-    if other is not None:
-        other_along = np.einsum(
-            "ij,ik,kj->j", eigenvectors, to_scaled.T @ other.A @ to_scaled, eigenvectors
-        )
-        weak &= other_along > icp_weight * eigenvalues * icp.count
-    if not weak.any():
+    kept = np.minimum(eigenvalues / threshold, 1.0) if threshold > 0 else np.ones(6)
+    if kept.min() >= 1.0:
         return icp
-    kept = eigenvectors[:, ~weak]
-    projector = kept @ kept.T
-    a_eta = projector @ (to_scaled.T @ icp.A @ to_scaled) @ projector
-    b_eta = projector @ (to_scaled.T @ icp.b)
+    shrink = eigenvectors @ np.diag(np.maximum(kept, 0.0)) @ eigenvectors.T
+    a_eta = shrink @ (to_scaled.T @ icp.A @ to_scaled)
+    b_eta = shrink @ (to_scaled.T @ icp.b)
     from_scaled = np.linalg.inv(to_scaled)
-    return LinearSystem(
-        from_scaled.T @ a_eta @ from_scaled, from_scaled.T @ b_eta, icp.count, icp.cost
-    )
+    a_world = from_scaled.T @ ((a_eta + a_eta.T) / 2) @ from_scaled
+    return LinearSystem(a_world, from_scaled.T @ b_eta, icp.count, icp.cost)
 
 
 def joint_system(
@@ -210,11 +208,8 @@ def joint_system(
         )
     if weighting == "degeneracy-aware" or weighting in ROBUST_WEIGHTINGS:
         centre = np.zeros(3) if camera_position is None else camera_position
-        weight, photometric = 1.0 / icp_scale(icp) ** 2, rgbd.scaled(rgbd_weight)
-        observed = without_degenerate_directions(
-            icp, centre, degeneracy_threshold, weight, photometric
-        )
-        return observed.scaled(weight) + photometric
+        discounted = discount_weak_directions(icp, centre, degeneracy_threshold)
+        return discounted.scaled(1.0 / icp_scale(icp) ** 2) + rgbd.scaled(rgbd_weight)
     if weighting in ("original-code", "elasticfusion"):
         s = original_code_icp_scale
         return rgbd + icp.scaled(s * s, s)

@@ -4,8 +4,8 @@
 textured, the objects along them plain (a faint, almost uniform material) except at the start of
 the lap, which faces varied, textured objects (a pillar among them); floor and ceiling are plain
 too. With little texture on the geometry that pins the camera's height, a frame-to-model tracker
-(icp+rgbd at 160x120, the default Huber-weighted combination) drifts steadily, 17.5 cm (mostly
-in height) by the time the camera sees its start again.
+(icp+rgbd at 160x120, the default combination) drifts steadily, 22 cm (mostly in height) by
+the time the camera sees its start again.
 After one lap the path goes on for a quarter of a lap over the same ground: the revisit that
 loop closure must find.
 
@@ -62,10 +62,10 @@ def revisit(
         b.solids.append(solid)
         b.materials.append(materials if solid.pose[0, 3] > 1.2 else [faint_material(rng)])
     # A textured pillar in the start's view. Without it the first frames see one wall plane
-    # and a small stack in a corner: ICP then observes the sliding along the wall through
-    # about 0.1-0.4 % of its pairs, biased, and the Huber-weighted combination keeps that
-    # direction (RGB-D holds less information along it), so icp+rgbd jumps 30 cm in 8 frames
-    # (docs/loop_closure.md): a failure at the loop's anchor, not the drift this scene is for.
+    # and a small stack in a corner: ICP observes the sliding along the wall through about
+    # 0.1-0.4 % of its pairs, biased, and a combination that lets ICP keep such a direction
+    # jumps 30 cm in 8 frames (docs/loop_closure.md): the loop's anchor then sits at the edge
+    # of a tracking failure instead of in the drift this scene is for.
     b.add(Cylinder(placed(2.7, 0.25, 0.8), 0.2, 0.8))
 
     def path(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
