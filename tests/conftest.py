@@ -2,12 +2,15 @@
 
 `cuda_simulator`: runs a CUDA test module in a child pytest with numba's CUDA simulator. The
 simulator must be switched on (NUMBA_ENABLE_CUDASIM=1) before numba is imported, so without a
-GPU the CUDA tests are skipped in the main process and run in that child instead.
+GPU the CUDA tests are skipped in the main process and run in that child instead. A test names
+its child with `@pytest.mark.cuda_simulator(test_file, *pytest_arguments)`; every named child
+starts when collection ends, so on two cores the simulator runs beside the other tests.
 """
 
 import os
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,25 +22,87 @@ ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("KINTINUOUS_DATA", str(ROOT.parent / "shared" / "data"))
 
 
-def run_in_cuda_simulator(test_file: Path, *arguments: str) -> str:
-    """Run `test_file` (with extra pytest `arguments`, e.g. "-k", "volume") on numba's CUDA
-    simulator in a child pytest and return the child's summary line. Every selected test must
-    pass: a failure, an error or a skip fails the caller."""
+SIMULATOR_MARK = "cuda_simulator"
+# Children started when collection ends, by (test module, pytest arguments).
+_started: dict[tuple[str, ...], tuple[subprocess.Popen, Path]] = {}
+
+
+def _simulator_key(test_file: Path, arguments: tuple[str, ...]) -> tuple[str, ...]:
+    return (str(test_file), *arguments)
+
+
+def start_in_cuda_simulator(test_file: Path, *arguments: str) -> None:
+    """Start `test_file` (with extra pytest `arguments`, e.g. "-k", "volume") on numba's CUDA
+    simulator in a child pytest, its output going to a temporary file."""
+    key = _simulator_key(test_file, arguments)
+    if key in _started:
+        return
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
     command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(test_file)]
-    result = subprocess.run(
-        [*command, *arguments], env=env, capture_output=True, text=True, timeout=600, cwd=ROOT
-    )
-    tail = (result.stdout + result.stderr)[-4000:]
+    log = Path(tempfile.mkstemp(prefix="cuda-simulator-", suffix=".log")[1])
+    with log.open("w") as output:
+        child = subprocess.Popen(
+            [*command, *arguments], env=env, stdout=output, stderr=subprocess.STDOUT, cwd=ROOT
+        )
+    _started[key] = (child, log)
+
+
+def run_in_cuda_simulator(test_file: Path, *arguments: str) -> str:
+    """Wait for the simulator child of `test_file` and `arguments` (started now if it was not
+    yet) and return its summary line. Every selected test must pass: a failure, an error or a
+    skip fails the caller."""
+    start_in_cuda_simulator(test_file, *arguments)
+    child, log = _started.pop(_simulator_key(test_file, arguments))
+    try:
+        child.wait(timeout=600)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        raise
+    tail = log.read_text()[-4000:]
+    log.unlink(missing_ok=True)
     lines = tail.strip().splitlines()
     summary = lines[-1] if lines else ""
-    assert result.returncode == 0, tail
+    assert child.returncode == 0, tail
     assert " passed" in summary, tail
     assert not any(word in summary for word in ("skipped", "failed", "error")), tail
     return summary
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        f"{SIMULATOR_MARK}(test_file, *arguments): the test waits for that CUDA simulator child",
+    )
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Start every simulator child the selected tests wait for, so that the children (one core's
+    worth of Python threads) run beside the main process instead of after it."""
+    if not session.items or not _cuda_is_missing():
+        return
+    for item in session.items:
+        mark = item.get_closest_marker(SIMULATOR_MARK)
+        if mark is not None:
+            start_in_cuda_simulator(*mark.args)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Children nobody waited for (their tests deselected or stopped early) are ended."""
+    for child, log in _started.values():
+        child.kill()
+        log.unlink(missing_ok=True)
+    _started.clear()
+
+
+def _cuda_is_missing() -> bool:
+    import kintinuous_fast
+
+    return bool(kintinuous_fast.cuda_status())
+
+
 @pytest.fixture
-def cuda_simulator() -> Callable[..., str]:
-    """run_in_cuda_simulator, for tests that start the simulator's child process."""
-    return run_in_cuda_simulator
+def cuda_simulator(request: pytest.FixtureRequest) -> Callable[[], str]:
+    """Waits for the simulator child that the test's `cuda_simulator` mark names."""
+    mark = request.node.get_closest_marker(SIMULATOR_MARK)
+    assert mark is not None, f"{request.node.name} needs a @pytest.mark.{SIMULATOR_MARK}"
+    return lambda: run_in_cuda_simulator(*mark.args)

@@ -84,6 +84,14 @@ def test_cuda_backend_runs_on_the_gpu_here():
     kintinuous_fast.cuda_status() == "",
     reason="CUDA works in this process: tests/test_fast_cuda.py runs directly",
 )
-@pytest.mark.parametrize("stage", ["preprocess", "volume"])
+@pytest.mark.parametrize(
+    "stage",
+    [
+        pytest.param(
+            stage, marks=pytest.mark.cuda_simulator(TESTS / "test_fast_cuda.py", "-k", stage)
+        )
+        for stage in ("preprocess", "volume")
+    ],
+)
 def test_equivalence_cuda_in_simulator(stage, cuda_simulator):
-    cuda_simulator(TESTS / "test_fast_cuda.py", "-k", stage)
+    cuda_simulator()

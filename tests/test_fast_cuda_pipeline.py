@@ -58,8 +58,9 @@ on_device = pytest.mark.skipif(
 
 
 @pytest.mark.skipif(not cuda_status(), reason="CUDA works here: the tests run in this process")
+@pytest.mark.cuda_simulator(Path(__file__), "-k", "not in_simulator")
 def test_equivalence_cuda_pipeline_in_simulator(cuda_simulator):
-    cuda_simulator(Path(__file__), "-k", "not in_simulator")
+    cuda_simulator()
 
 
 # ----------------------------------------------------------------------------------------------

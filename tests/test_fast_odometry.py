@@ -190,5 +190,6 @@ def test_fast_odometry_skips_the_finest_level():
     kintinuous_fast.cuda_status() == "",
     reason="CUDA works in this process: tests/test_fast_odometry_cuda.py runs directly",
 )
+@pytest.mark.cuda_simulator(Path(__file__).parent / "test_fast_odometry_cuda.py")
 def test_equivalence_cuda_odometry_in_simulator(cuda_simulator):
-    cuda_simulator(Path(__file__).parent / "test_fast_odometry_cuda.py")
+    cuda_simulator()
