@@ -19,6 +19,7 @@ each downsampled value is a Gaussian average *centred on the even pixel*.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -234,13 +235,16 @@ def discontinuity_mask(depth: np.ndarray, window: int, jump: float, max_bad: int
 # The whole stage
 
 
-def _check_inputs(colour: np.ndarray, depth: np.ndarray, camera: Intrinsics) -> None:
+def check_frame_inputs(colour: Any, depth: Any, camera: Intrinsics) -> None:
+    """A one-line DatasetError for images that do not fit the camera. Only shape and dtype are
+    read, so host and device arrays (the fast backends') are checked alike."""
     expected = (camera.height, camera.width)
-    if depth.ndim != 2 or depth.shape != expected:
-        raise DatasetError(f"depth image is {depth.shape}, expected {expected} from the camera")
-    if colour.shape != (*expected, 3) or colour.dtype != np.uint8:
+    depth_shape, colour_shape = tuple(depth.shape), tuple(colour.shape)
+    if depth_shape != expected:
+        raise DatasetError(f"depth image is {depth_shape}, expected {expected} from the camera")
+    if colour_shape != (*expected, 3) or colour.dtype != np.uint8:
         raise DatasetError(
-            f"colour image is {colour.shape} {colour.dtype}, expected {(*expected, 3)} uint8 RGB"
+            f"colour image is {colour_shape} {colour.dtype}, expected {(*expected, 3)} uint8 RGB"
         )
 
 
@@ -248,7 +252,7 @@ def preprocess_frame(
     colour: np.ndarray, depth: np.ndarray, camera: Intrinsics, config: PreprocessConfig
 ) -> PreprocessedFrame:
     """Everything tracking and fusion need from one RGB-D pair (see the module docstring)."""
-    _check_inputs(colour, depth, camera)
+    check_frame_inputs(colour, depth, camera)
     raw = metric_depth(depth, config.max_depth, camera.depth_scale)
     filtered = bilateral_filter(
         raw, config.bilateral_sigma_space, config.bilateral_sigma_depth, config.bilateral_radius

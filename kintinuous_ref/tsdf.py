@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -124,6 +125,15 @@ def refuse_if_too_big(config: VolumeConfig, needed: int, available: int, headroo
         raise ConfigError(
             f"a {config.resolution}^3 volume needs {needed / 2**30:.1f} GiB but only "
             f"{available / 2**30:.1f} GiB of memory is available; lower --resolution"
+        )
+
+
+def check_depth(depth: Any, camera: Intrinsics) -> None:
+    """A one-line DatasetError for a depth image that does not fit the camera (host or device
+    array: only its shape is read)."""
+    if tuple(depth.shape) != (camera.height, camera.width):
+        raise DatasetError(
+            f"depth image is {tuple(depth.shape)}, camera expects {(camera.height, camera.width)}"
         )
 
 
@@ -309,10 +319,7 @@ def integrate(
     Only voxels inside the camera's viewing pyramid are visited, slab by slab along x (which
     also bounds the temporaries' memory at 512^3).
     """
-    if depth.shape != (camera.height, camera.width):
-        raise DatasetError(
-            f"depth image is {depth.shape}, camera expects {(camera.height, camera.width)}"
-        )
+    check_depth(depth, camera)
     pyramid = _frustum_corners(volume, depth, pose, camera)
     if pyramid is None:
         return

@@ -26,7 +26,6 @@ from numba.extending import intrinsic
 from kintinuous_fast.preprocess.host import (
     SOBEL_X,
     SOBEL_Y,
-    check_frame_inputs,
     gaussian3x3,
     inverse_two_variance,
     pinhole,
@@ -38,7 +37,12 @@ from kintinuous_fast.targets import cpu_jit
 from kintinuous_fast.targets.cpu import run_parallel_above
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
-from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel, model_pyramid
+from kintinuous_ref.preprocess import (
+    PreprocessedFrame,
+    PyramidLevel,
+    check_frame_inputs,
+    model_pyramid,
+)
 
 __all__ = [
     "PreprocessedFrame",

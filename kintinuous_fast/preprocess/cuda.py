@@ -18,7 +18,6 @@ from numba import cuda
 from kintinuous_fast.preprocess.host import (
     SOBEL_X,
     SOBEL_Y,
-    check_frame_inputs,
     gaussian3x3,
     inverse_two_variance,
     pinhole,
@@ -30,7 +29,7 @@ from kintinuous_fast.targets import cuda_device_jit
 from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, is_device, like_input, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
-from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel
+from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel, check_frame_inputs
 from kintinuous_ref.preprocess import model_pyramid as host_model_pyramid
 
 __all__ = [

@@ -11,7 +11,6 @@ import numpy as np
 
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
-from kintinuous_ref.errors import DatasetError
 from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel
 
 # Sobel kernels scaled by 1/8: intensity change per pixel (as the reference).
@@ -41,20 +40,6 @@ def inverse_two_variance(sigma_depth: float) -> np.float32:
 def pinhole(camera: Intrinsics) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) as floats: the intrinsics a kernel takes as one argument."""
     return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
-
-
-def check_frame_inputs(colour: Any, depth: Any, camera: Intrinsics) -> None:
-    """The reference's one-line DatasetError for images that do not fit the camera."""
-    expected = (camera.height, camera.width)
-    if len(depth.shape) != 2 or tuple(depth.shape) != expected:
-        raise DatasetError(
-            f"depth image is {tuple(depth.shape)}, expected {expected} from the camera"
-        )
-    if tuple(colour.shape) != (*expected, 3) or colour.dtype != np.uint8:
-        raise DatasetError(
-            f"colour image is {tuple(colour.shape)} {colour.dtype}, expected {(*expected, 3)} "
-            "uint8 RGB"
-        )
 
 
 def preprocess_frame_with(

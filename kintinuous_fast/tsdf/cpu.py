@@ -20,7 +20,6 @@ from kintinuous_fast.tsdf.volume import (
     NegativeMasks,
     available_memory_bytes,
     camera_frame_steps,
-    check_depth,
     check_volume_config,
     from_reference_volume,
     frustum_box,
@@ -37,7 +36,7 @@ from kintinuous_fast.tsdf.volume import (
 from kintinuous_fast.tsdf.voxel import FINE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.tsdf import volume_origin
+from kintinuous_ref.tsdf import check_depth, volume_origin
 
 __all__ = [
     "FastTsdfVolume",

@@ -21,7 +21,6 @@ from kintinuous_fast.tsdf import voxel as volume
 from kintinuous_fast.tsdf.volume import (
     FastTsdfVolume,
     camera_frame_steps,
-    check_depth,
     frustum_box,
     fusion_limits,
     image_size,
@@ -38,7 +37,7 @@ from kintinuous_fast.tsdf.volume import check_volume_config as _check_memory
 from kintinuous_fast.tsdf.volume import from_reference_volume as _from_reference_host
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.tsdf import TsdfVolume, volume_origin
+from kintinuous_ref.tsdf import TsdfVolume, check_depth, volume_origin
 
 __all__ = [
     "FastTsdfVolume",

@@ -12,7 +12,6 @@ import numpy as np
 from kintinuous_fast.tsdf.voxel import TSDF_SCALE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.errors import DatasetError
 from kintinuous_ref.tsdf import (
     TsdfVolume,
     available_memory_bytes,
@@ -168,13 +167,6 @@ def from_reference_volume(volume: TsdfVolume) -> FastTsdfVolume:
 
 # ----------------------------------------------------------------------------------------------
 # Per-frame set-up of integration
-
-
-def check_depth(depth: Any, camera: Intrinsics) -> None:
-    if tuple(depth.shape) != (camera.height, camera.width):
-        raise DatasetError(
-            f"depth image is {tuple(depth.shape)}, camera expects {(camera.height, camera.width)}"
-        )
 
 
 def camera_frame_steps(volume: FastTsdfVolume, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
