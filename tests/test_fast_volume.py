@@ -199,7 +199,8 @@ def test_cpu_integration_visits_every_voxel_the_reference_updates(pose_index):
     hold an update, from a max pyramid of lambda D) hold every voxel that the reference's
     integration of the frame updates, and leave out a real share of the frustum's voxels
     (those far behind the wall)."""
-    from kintinuous_fast.tsdf.volume import camera_frame_steps, frustum_box, pinhole
+    from kintinuous_fast.targets import pinhole
+    from kintinuous_fast.tsdf.volume import camera_frame_steps, frustum_box
 
     height, width, n = 120, 160, 64
     camera = fe.camera_for(height, width)

@@ -18,6 +18,7 @@ import numpy as np
 from numba import prange
 
 from kintinuous_fast.odometry import host
+from kintinuous_fast.targets import pinhole
 from kintinuous_fast.targets.cpu import run_parallel_above
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config, IcpConfig
@@ -548,8 +549,8 @@ def _run_on_points(
     pose, to_model, dist2, cos_min = host.icp_constants(
         pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
     )
-    camera_constants = host.camera_constants(camera)
-    arguments = (pose, to_model, model_vertices, model_normals, camera_constants, (dist2, cos_min))
+    intrinsics = pinhole(camera)
+    arguments = (pose, to_model, model_vertices, model_normals, intrinsics, (dist2, cos_min))
     _run(loop, points.shape[1], points, *arguments, *robust, out)
 
 
@@ -712,7 +713,7 @@ def associate(
         to_model,
         np.ascontiguousarray(np.asarray(model_vertices).T.reshape(shape)),
         np.ascontiguousarray(np.asarray(model_normals).T.reshape(shape)),
-        host.camera_constants(camera),
+        pinhole(camera),
         (dist2, cos_min),
         keep,
         out,
@@ -812,7 +813,7 @@ def prepare_level(
     n = len(indices)
     points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
     images = (indices, depth, intensity, dx, dy)
-    _run(_interest_data_loop, n, *images, host.camera_constants(camera), points, values, gradient)
+    _run(_interest_data_loop, n, *images, pinhole(camera), points, values, gradient)
     return InterestPoints(indices, points, values, gradient)
 
 
@@ -848,7 +849,7 @@ def _correspond_all(
         np.ascontiguousarray(pose, dtype=np.float64),
         (previous_depth, previous_intensity, prev_dx, prev_dy),
         warped,
-        host.camera_constants(camera),
+        pinhole(camera),
         float(max_depth_change),
         pairs,
         sums,

@@ -30,7 +30,7 @@ from numba import cuda, float64, int32, int64
 
 from kintinuous_fast.odometry import host
 from kintinuous_fast.preprocess.cuda import model_pyramid
-from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets import cuda_device_jit, pinhole
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, is_device, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config, IcpConfig
@@ -492,7 +492,7 @@ def icp_system_and_valid(
         cuda.to_device(to_model),
         stage(model_vertices),
         stage(model_normals),
-        host.camera_constants(camera),
+        pinhole(camera),
         (dist2, cos_min),
         (host.kernel_code(robust_kernel), float(robust_threshold)),
         out,
@@ -564,7 +564,7 @@ def associate(
         cuda.to_device(to_model),
         model_v,
         model_n,
-        host.camera_constants(camera),
+        pinhole(camera),
         (dist2, cos_min),
         count,
         out,
@@ -668,9 +668,9 @@ def prepare_level(
     gradient = cuda.device_array((2, size), dtype=np.float64)
     if n:
         images = (indices, d_depth, stage(intensity), d_dx, d_dy)
-        camera_constants = host.camera_constants(camera)
+        intrinsics = pinhole(camera)
         _interest_data_kernel[grid_1d(n, BLOCK), BLOCK](
-            *images, camera_constants, points, values, gradient
+            *images, intrinsics, points, values, gradient
         )
     result = (indices, points[:, :n], values[:n], gradient[:, :n])
     if not is_device(depth):
@@ -706,7 +706,7 @@ def _pair_arguments(
         stage(previous_dx) if warped else prev_i,
         stage(previous_dy) if warped else prev_i,
         warped,
-        host.camera_constants(camera),
+        pinhole(camera),
         float(max_depth_change),
     )
 

@@ -50,10 +50,6 @@ def sum_partials(partials: np.ndarray) -> tuple[LinearSystem, int]:
     return unpack(np.asarray(partials, dtype=np.float64).reshape(-1, NV).sum(axis=0))
 
 
-def camera_constants(camera: Intrinsics) -> tuple[float, float, float, float]:
-    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
-
-
 def icp_constants(
     pose: np.ndarray,
     model_pose: np.ndarray,

@@ -28,12 +28,11 @@ from kintinuous_fast.preprocess.host import (
     SOBEL_Y,
     gaussian3x3,
     inverse_two_variance,
-    pinhole,
     preprocess_frame_with,
     spatial_exponents,
 )
 from kintinuous_fast.preprocess.ops import build_ops
-from kintinuous_fast.targets import cpu_jit
+from kintinuous_fast.targets import cpu_jit, pinhole
 from kintinuous_fast.targets.cpu import run_parallel_above
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig

@@ -20,12 +20,11 @@ from kintinuous_fast.preprocess.host import (
     SOBEL_Y,
     gaussian3x3,
     inverse_two_variance,
-    pinhole,
     preprocess_frame_with,
     spatial_exponents,
 )
 from kintinuous_fast.preprocess.ops import build_ops
-from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets import cuda_device_jit, pinhole
 from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, is_device, like_input, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig

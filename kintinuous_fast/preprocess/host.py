@@ -37,11 +37,6 @@ def inverse_two_variance(sigma_depth: float) -> np.float32:
     return np.float32(1.0 / (2.0 * sigma_depth**2))
 
 
-def pinhole(camera: Intrinsics) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) as floats: the intrinsics a kernel takes as one argument."""
-    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
-
-
 def preprocess_frame_with(
     stages: ModuleType,
     colour: Any,

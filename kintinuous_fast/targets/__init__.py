@@ -70,3 +70,8 @@ def cuda_device_jit() -> Callable[[Any], Any]:
     from numba import cuda
 
     return cuda.jit(device=True)
+
+
+def pinhole(camera: Any) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) as floats: the intrinsics a kernel takes as one argument."""
+    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)

@@ -11,7 +11,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from kintinuous_fast.targets import cpu_jit_numpy_errors
+from kintinuous_fast.targets import cpu_jit_numpy_errors, pinhole
 from kintinuous_fast.targets.cpu import prefetch_cell
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel as volume
@@ -27,7 +27,6 @@ from kintinuous_fast.tsdf.volume import (
     image_size,
     index_box,
     memory_bytes,
-    pinhole,
     projection_constants,
     slab_view,
     to_reference_volume,

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets import cuda_device_jit, pinhole
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel as volume
@@ -26,7 +26,6 @@ from kintinuous_fast.tsdf.volume import (
     image_size,
     index_box,
     memory_bytes,
-    pinhole,
     projection_constants,
     slab_view,
     to_reference_volume,

@@ -183,11 +183,6 @@ def projection_constants(camera: Intrinsics) -> np.ndarray:
     return np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float32)
 
 
-def pinhole(camera: Intrinsics) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) as floats: the intrinsics a kernel takes as one argument."""
-    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
-
-
 def image_size(camera: Intrinsics) -> tuple[int, int]:
     """(W, H): the image size a kernel takes as one argument."""
     return int(camera.width), int(camera.height)
