@@ -60,17 +60,22 @@ class FastBackend:
     def host_volume(self, volume: Any) -> TsdfVolume:
         return self.tsdf.to_reference_volume(volume)
 
-    def kernels_cached(self) -> bool:
-        """For cpu: whether numba's on-disk cache holds the raycast loop, the slowest kernel to
-        compile (a cache written by an earlier run or warm-up). The cuda kernels are compiled
-        at their first launch in the process that launches them, so there is nothing to
-        compile ahead elsewhere: True."""
+    def kernels_cached(self, tracking: bool = True) -> bool:
+        """For cpu: whether numba's on-disk cache holds the slowest kernel to compile of each
+        stage the run calls (a cache written by an earlier run or warm-up). The cuda kernels are
+        compiled at their first launch in the process that launches them, so there is nothing
+        to compile ahead elsewhere: True."""
         if self.name != "cpu":
             return True
+        from kintinuous_fast.odometry.cpu import _icp_loop
+        from kintinuous_fast.preprocess.cpu import _bilateral_rows
         from kintinuous_fast.raycast.cpu import _raycast_loop
+        from kintinuous_fast.tsdf.cpu import _integrate_loop
 
+        kernels = [_bilateral_rows, _integrate_loop]
+        kernels += [_icp_loop, _raycast_loop] if tracking else []
         try:
-            return os.path.exists(_raycast_loop._cache._cache_file._index_path)
+            return all(os.path.exists(kernel._cache._cache_file._index_path) for kernel in kernels)
         except AttributeError:  # another numba's cache layout: assume a compile is due
             return False
 

@@ -80,8 +80,9 @@ class Backend(Protocol):
         """`volume` as a host TsdfVolume for meshing and output."""
         ...
 
-    def kernels_cached(self) -> bool:
-        """False when a run would first compile kernels that another process could compile
+    def kernels_cached(self, tracking: bool = True) -> bool:
+        """False when a run (with `tracking`, one that tracks and raycasts; without, one that
+        maps with known poses) would first compile kernels that other processes could compile
         into an on-disk cache for it (kintinuous_ref.program.warmup); True otherwise."""
         ...
 
@@ -119,7 +120,7 @@ class ReferenceBackend:
     def host_volume(self, volume: TsdfVolume) -> TsdfVolume:
         return volume
 
-    def kernels_cached(self) -> bool:
+    def kernels_cached(self, tracking: bool = True) -> bool:
         return True  # NumPy: nothing to compile
 
     def __repr__(self) -> str:

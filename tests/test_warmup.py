@@ -2,6 +2,9 @@
 through its compile events, and a warmed-up backend compiles nothing more."""
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numba
@@ -75,7 +78,7 @@ def test_reconstruct_prepares_the_kernels_before_its_progress_bar(
 
     monkeypatch.setattr(reconstruct, "_PREPARED", set())
     monkeypatch.setattr(reconstruct, "warm_up", spy)
-    monkeypatch.setattr(FastBackend, "kernels_cached", lambda self: cached)
+    monkeypatch.setattr(FastBackend, "kernels_cached", lambda self, tracking=True: cached)
     options = ["--backend", "cpu", "--odometry", "icp", "--frames", "2", "--resolution", "32"]
     assert main(["reconstruct", str(TINY), *options, "--out", str(tmp_path / "run")]) == 0
     err = capsys.readouterr().err
@@ -86,10 +89,34 @@ def test_reconstruct_prepares_the_kernels_before_its_progress_bar(
         assert err.index("compiling the cpu kernels, once per installation") < err.index("WARM-UP")
 
 
-def test_two_processes_compile_the_raycast_and_the_other_stages_apart():
-    """The plumbing on the reference (nothing to compile, seconds): the raycast part and the
-    stages part, whose trackers get the reference's raycast, both run to the end."""
+def test_two_processes_compile_the_model_and_the_tracking_apart():
+    """The plumbing on the reference (nothing to compile, seconds): the model half, tracked by
+    the reference, and the tracking half, on the reference's model, both run to the end."""
     assert warmup.compile_in_two_processes("ref", Config(), ["icp+rgbd"]) == {}
+
+
+def test_each_half_compiles_the_types_of_a_whole_run(tmp_path):
+    """Two children compile into an empty cache; a whole cpu warm-up in a third process then
+    loads every kernel from it and compiles none (a half that fed a fast stage another type
+    than a real run does would leave that kernel to compile again)."""
+    script = (
+        "import json, sys\n"
+        "from kintinuous_ref.backend import load_backend\n"
+        "from kintinuous_ref.config import Config\n"
+        "from kintinuous_ref.program import warmup\n"
+        "if __name__ == '__main__':\n"
+        "    warmup.compile_in_two_processes('cpu', Config(), ['icp+rgbd'])\n"
+        "    backend = load_backend('cpu')\n"
+        "    report = warmup.warm_up(backend, Config(), 'icp+rgbd', parallel=False)\n"
+        "    print(json.dumps([backend.kernels_cached(), report.kernel_seconds]))\n"
+    )
+    environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=environment
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    cached, compiled_after = json.loads(done.stdout.strip().splitlines()[-1])
+    assert cached and compiled_after == {}
 
 
 def test_a_warm_cache_is_never_compiled_again_in_other_processes():

@@ -38,15 +38,17 @@ def build_ops(
     jit_called: Callable[[Any], Any] | None = None,
     voxels: SimpleNamespace | None = None,
 ) -> SimpleNamespace:
-    """The march functions compiled with `jit`; the large per-ray ones (a whole march) with
-    `jit_called` (default `jit`, see tsdf.voxel.build_ops), on `voxels`
-    (tsdf.voxel.build_ops(jit, jit_called) unless given)."""
+    """The march functions on `voxels` (tsdf.voxel.build_ops(jit, jit_called) unless given):
+    with `jit` the step of a march and the per-pixel functions, which the cpu loop needs
+    inlined at numba IR level (as calls that LLVM keeps, its raycast took 1.8-5x as long);
+    with `jit_called` (default `jit`) every other function, which LLVM inlines where that pays
+    (see tsdf.voxel.build_ops)."""
     jit_called = jit_called or jit
     voxels = voxels or voxel_ops.build_ops(jit, jit_called)
     sample_tsdf_at, gradient_normal = voxels.sample_tsdf_at, voxels.gradient_normal
     surface_colour_at = voxels.surface_colour_at
 
-    @jit
+    @jit_called
     def axis_interval(o: float, d: float, inverse: float, lower: float, upper: float) -> tuple:
         """(t_min, t_max) of one slab [lower, upper] along one axis (infinite when parallel),
         for direction component d = 1 / inverse."""
@@ -58,7 +60,7 @@ def build_ops(
         t1 = (upper - o) * inverse
         return min(t0, t1), max(t0, t1)
 
-    @jit
+    @jit_called
     def ray_span(
         origin: Any, direction: tuple, volume_origin: Any, voxel_size: float, n: int
     ) -> tuple:
@@ -74,11 +76,11 @@ def build_ops(
         lo2, hi2 = axis_interval(origin[2], d2, i2, volume_origin[2], volume_origin[2] + upper)
         return max(max(max(lo0, lo1), lo2), 0.0), min(min(hi0, hi1), hi2)
 
-    @jit
+    @jit_called
     def zero_crossing(t0: float, f0: float, t1: float, f1: float) -> float:
         return t0 + (t1 - t0) * f0 / (f0 - f1)
 
-    @jit
+    @jit_called
     def sample_along(
         tsdf_weight: Any,
         offsets: tuple,
@@ -93,7 +95,7 @@ def build_ops(
         cx, cy, cz = voxel_coordinates(origin, direction, t, volume_origin, voxel_size)
         return sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
 
-    @jit
+    @jit_called
     def refine_crossing(
         tsdf_weight: Any,
         offsets: tuple,
@@ -119,14 +121,14 @@ def build_ops(
             return zero_crossing(t0, f0, estimate, f)
         return estimate
 
-    @jit
+    @jit_called
     def fine_index(whole: int, n: int, last: int) -> int:
         """Fine brick of the lower corner voxel of a sample at voxel coordinate c (clamped as
         sample_tsdf_at clamps it), at most `last`, from whole = floor(c / FINE): floor(c) //
         FINE clamped to [0, (N - 2) // FINE] is floor(c / FINE) clamped the same way."""
         return min(max(int(whole), 0), min((n - 2) // FINE, last))
 
-    @jit
+    @jit_called
     def samples_to_leave(c: float, dc: float, inverse: float, lower: float, upper: float) -> float:
         """Samples (a real number) until the coordinate c + m dc leaves [lower, upper) shrunk
         by JUMP_MARGIN voxels, `inverse` = 1 / dc; inf when dc = 0. The margin dwarfs the
@@ -138,7 +140,7 @@ def build_ops(
             return (lower + JUMP_MARGIN - c) * inverse
         return np.inf
 
-    @jit
+    @jit_called
     def first_sample_outside(
         m: int, c: tuple, dc: tuple, inverse: tuple, lower: tuple, size: float
     ) -> int:
@@ -155,7 +157,7 @@ def build_ops(
         )
         return m + max(int(math.floor(to_leave)) + 1, 1)
 
-    @jit
+    @jit_called
     def inverse_or_zero(x: float) -> float:
         return 1.0 / x if x != 0 else 0.0
 
@@ -222,7 +224,7 @@ def build_ops(
             voxel_size,
         )
 
-    @jit
+    @jit_called
     def surface_at(
         tsdf_weight: Any,
         offsets: tuple,
@@ -250,7 +252,7 @@ def build_ops(
             voxel_size,
         )
 
-    @jit
+    @jit_called
     def march_start(
         origin: Any,
         direction: tuple,
@@ -385,19 +387,19 @@ def build_ops(
             return -1, previous, previous_known, np.nan, np.nan
         return m_next, previous, previous_known, np.nan, np.nan
 
-    @jit
+    @jit_called
     def whole_fine(c: float) -> int:
         """floor(c / FINE): the fine brick of coordinate c, unclamped."""
         return math.floor(c * (1.0 / FINE))
 
-    @jit
+    @jit_called
     def clear_of_faces(c: float, whole: int) -> bool:
         """Whether coordinate c (whole = whole_fine(c)) is more than JUMP_MARGIN voxels from
         every fine brick face."""
         f = c * (1.0 / FINE) - whole
         return f >= JUMP_MARGIN / FINE and f <= 1.0 - JUMP_MARGIN / FINE
 
-    @jit
+    @jit_called
     def voxel_coordinates(
         origin: Any, direction: tuple, t: float, volume_origin: Any, voxel_size: float
     ) -> tuple:
@@ -410,7 +412,7 @@ def build_ops(
         cz = (origin[2] + t * direction[2] - volume_origin[2]) * inverse
         return cx, cy, cz
 
-    @jit
+    @jit_called
     def ray_direction(u: int, v: int, camera: Any, rotation: Any) -> tuple:
         """Unit world-frame direction of pixel (u, v)'s ray (`camera` float64 fx, fy, cx, cy)."""
         rx = (u - camera[2]) * 1.0 / camera[0]

@@ -29,8 +29,9 @@ cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
 cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", inline="always"
 )
-# The same, called rather than inlined (`jit_called` of tsdf.voxel and raycast.ops), and without
-# numba's reference counting: these functions allocate nothing, but the array arguments of the
+# The same, called rather than inlined by numba (`jit_called` of tsdf.voxel and raycast.ops: LLVM
+# still inlines the small ones, at a fraction of the compile time), and without numba's
+# reference counting: these functions allocate nothing, but the array arguments of the
 # functions inlined into their loops were counted up and down on every step of a ray, in
 # branches that numba's pruning pass cannot pair up, each an atomic operation on a count that
 # the other threads update too. Dropping them made the raycast 13-16 % faster, bit-identical

@@ -38,15 +38,18 @@ def build_ops(
     jit_called: Callable[[Any], Any] | None = None,
     dequantise_table: bool = False,
 ) -> SimpleNamespace:
-    """The voxel functions compiled with `jit`; the two large per-ray ones (a normal, a colour)
-    with `jit_called` (default `jit`). The cpu backend's `jit` inlines at numba IR level, which
-    is what makes the per-voxel loops fast, but inlining a whole march and its samples into
-    every caller made the raycast take minutes to compile; called once per ray, these lose
-    nothing by being calls. With `dequantise_table`, dequantise reads its (equal) values from a
-    table of all 65536 (256 KiB): a load instead of three conversions and a multiply made the
-    cpu raycast ~4 % faster (its samples and normals dequantise ~80 values per ray), but cpu
-    integration, one value per updated voxel, ~4 % slower: it keeps the arithmetic, and so
-    does CUDA, whose constant memory holds 64 KiB."""
+    """The voxel functions compiled with `jit`, those the raycast calls (samples, normals,
+    colours and what they build on) with `jit_called` (default `jit`). Integration compiles all
+    of them with numba's IR-level inlining, which its per-voxel loops need to vectorise (as
+    calls, integration took twice as long). The raycast compiles the ones it calls as calls
+    without reference counting: LLVM still inlines them where they are small, so the march runs
+    as fast (bit-identical), and numba no longer re-types each of them at every call site, which
+    had been most of the raycast's compile time (57 s -> 18 s on the 2-core machine).
+    With `dequantise_table`, dequantise reads its (equal) values from a table of all 65536
+    (256 KiB): a load instead of three conversions and a multiply made the cpu raycast ~4 %
+    faster (its samples and normals dequantise ~80 values per ray), but cpu integration, one
+    value per updated voxel, ~4 % slower: it keeps the arithmetic, and so does CUDA, whose
+    constant memory holds 64 KiB."""
     jit_called = jit_called or jit
 
     if dequantise_table:
@@ -54,14 +57,14 @@ def build_ops(
         # the compiled code as a constant
         table = (np.arange(-32768, 32768) * TSDF_INVERSE_SCALE).astype(np.float32)
 
-        @jit
+        @jit_called
         def dequantise(q: Any) -> Any:
             """The arithmetic dequantise's value, read from the table of every int16."""
             return table[np.intp(q) + 32768]
 
     else:
 
-        @jit
+        @jit_called
         def dequantise(q: Any) -> Any:
             """float32 TSDF of a stored int16: q / 32767 correctly rounded to float32, the
             division to_reference_volume does. Computed as a float64 product (a float32
@@ -71,13 +74,13 @@ def build_ops(
             checked for every int16 by the tests."""
             return np.float32(float(q) * TSDF_INVERSE_SCALE)
 
-    @jit
+    @jit_called
     def quantise(f: Any) -> int:
         """Nearest int16 of F * 32767, F in [-1, 1]."""
         q = round(float(f) * TSDF_SCALE)
         return min(max(q, -32767), 32767)
 
-    @jit
+    @jit_called
     def cell(index: int, offset: int, n: int) -> int:
         """Array cell of logical index `index` in [0, N) with buffer offset in [0, N), unsigned:
         numba then indexes without its negative-index wraparound (a compare and select per
@@ -85,7 +88,7 @@ def build_ops(
         c = index + offset
         return np.uint64(c - n if c >= n else c)
 
-    @jit
+    @jit_called
     def sample_tsdf_at(
         tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
     ) -> float:
@@ -122,7 +125,7 @@ def build_ops(
             return np.nan
         return total / coverage
 
-    @jit
+    @jit_called
     def observed_corner(tsdf_weight: Any, i: int, j: int, k: int, weight: float) -> tuple:
         """(weight, weight * F) of stored voxel (i, j, k), or (0, 0) when it is unobserved
         (branch free: both loads share a cache line)."""
@@ -130,7 +133,7 @@ def build_ops(
         observed = weight if tsdf_weight[i, j, k, 1] > 0 else 0.0
         return observed, observed * value
 
-    @jit
+    @jit_called
     def trilinear_tsdf(
         tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
     ) -> Any:
@@ -155,7 +158,7 @@ def build_ops(
                     total += wa * wb * wc * value
         return np.float32(total)
 
-    @jit
+    @jit_called
     def clip(c: float, limit: float) -> float:
         return min(max(c, 0.0), limit)
 
@@ -200,12 +203,12 @@ def build_ops(
             nb = gradient_normal(tsdf_weight, o0, o1, o2, bx, by, bz)
         return na[0], na[1], na[2], nb[0], nb[1], nb[2]
 
-    @jit
+    @jit_called
     def in_interior(cx: float, cy: float, cz: float, n: int) -> bool:
         """Whether 1 <= c < N - 2 on every axis (interior_gradient's domain)."""
         return cx >= 1 and cx < n - 2 and cy >= 1 and cy < n - 2 and cz >= 1 and cz < n - 2
 
-    @jit
+    @jit_called
     def unit_or_nan(gx: float, gy: float, gz: float) -> tuple:
         """g / |g|, NaN when g vanishes."""
         length = math.sqrt(gx * gx + gy * gy + gz * gz)
@@ -214,7 +217,7 @@ def build_ops(
         scale = 1.0 / length  # one division, not three (within an ulp)
         return gx * scale, gy * scale, gz * scale
 
-    @jit
+    @jit_called
     def interior_gradient(
         tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
     ) -> tuple:
@@ -254,7 +257,7 @@ def build_ops(
         )  # fmt: skip
         return gx, gy, gz
 
-    @jit
+    @jit_called
     def four_cells(index: int, offset: int, n: int) -> tuple:
         """The cells of logical indices index - 1 .. index + 2."""
         return (
@@ -264,19 +267,19 @@ def build_ops(
             cell(index + 2, offset, n),
         )
 
-    @jit
+    @jit_called
     def difference(v0: int, v1: int, v2: int, v3: int, f: float) -> float:
         """T(c + 1) - T(c - 1) along one axis from the stored values at floor(c) - 1 .. + 2."""
         return (1.0 - f) * float(np.int32(v2) - np.int32(v0)) + f * float(
             np.int32(v3) - np.int32(v1)
         )
 
-    @jit
+    @jit_called
     def bilinear(f: float, g: float, d00: float, d01: float, d10: float, d11: float) -> float:
         """Bilinear blend of values at the corners (0, 0), (0, 1), (1, 0), (1, 1)."""
         return (1.0 - f) * ((1.0 - g) * d00 + g * d01) + f * ((1.0 - g) * d10 + g * d11)
 
-    @jit
+    @jit_called
     def clipped_gradient(
         tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
     ) -> tuple:

@@ -376,10 +376,10 @@ def prepare_kernels(backend: Backend, config: Config, odometry: str) -> None:
     with how long it took; loading from the cache takes about a second and is not."""
     if backend.name == REFERENCE or (backend.name, odometry) in _PREPARED:
         return
-    cached = backend.kernels_cached()
+    cached = backend.kernels_cached(tracking=odometry != GROUNDTRUTH)
     if not cached:
         print(
-            f"compiling the {backend.name} kernels, once per installation (about a minute on "
+            f"compiling the {backend.name} kernels, once per installation (about half a minute on "
             "2 cores; later runs load them in seconds)...",
             file=sys.stderr,
             flush=True,

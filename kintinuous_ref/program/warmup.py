@@ -12,10 +12,10 @@ it is loaded from the cache) say which kernels the time went into.
 `reconstruct` warms up before its progress bar starts, so the bar's rate and time left count
 frames only, and it says how long the wait was.
 
-Compilation is single-threaded, and the raycast's loop alone is about half of it, so on a
-machine with two or more cores the first warm-up compiles in two child processes at once: one
-the raycast, one every other stage (their trackers fed a model that the reference raycasts).
-Both write numba's on-disk cache, from which this process then loads everything in seconds.
+Compilation is single-threaded, so on a machine with two or more cores the first warm-up
+compiles in two child processes at once, each one half of the stages (PARTS below) with the
+other half taken from the reference. Both write numba's on-disk cache, from which this process
+then loads everything in about a second.
 """
 
 from __future__ import annotations
@@ -40,7 +40,6 @@ from kintinuous_ref.datasets.tum import Frame
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.odometry import DENSE_METHODS, METHODS
 from kintinuous_ref.pipeline import GROUNDTRUTH, STAGES, run
-from kintinuous_ref.raycast import ModelPrediction
 
 FRAMES = 3  # the first fuses, the second tracks, the third tracks against a raycast model
 WIDTH, HEIGHT = 160, 120
@@ -107,8 +106,8 @@ def warm_up(
     report = WarmupReport(backend.name, methods=methods_for(odometry))
     start = time.perf_counter()
     compiled: dict[str, float] = {}
-    raycasts = report.methods != [GROUNDTRUTH]  # mapping with known poses needs no model
-    if parallel and raycasts and (os.cpu_count() or 1) >= 2 and not backend.kernels_cached():
+    tracking = report.methods != [GROUNDTRUTH]
+    if parallel and (os.cpu_count() or 1) >= 2 and not backend.kernels_cached(tracking):
         compiled = compile_in_two_processes(backend.name, config, report.methods)
     with compile_events() as kernels:
         for method in report.methods:
@@ -133,49 +132,54 @@ def _run_warmup(backend: Backend, config: Config, method: str) -> Any:
     return result
 
 
-class _ReferenceRaycast:
-    """`backend` with the reference's raycast for the model: the stages but the raycast compile,
-    and the trackers still get a model of the right types (float32 maps)."""
+# The two halves of a cold warm-up, each compiled in its own child process: the model (the
+# volume, its colour and the raycast that reads it) and the tracking (preprocessing and the
+# odometry that reads its pyramids). Their compile times are close (about 30 s each on the
+# 2-core machine), and each half takes the other's stages from the reference, whose outputs have
+# the types the fast stages take in a real run (NumPy arrays, float32 maps), so nothing is
+# compiled for the wrong types.
+MODEL, TRACKING = "model", "tracking"
+PARTS = (MODEL, TRACKING)
+
+
+class _TrackingFromReference:
+    """`backend` with the reference's preprocessing and odometry: runs compile the model half."""
 
     def __init__(self, backend: Backend) -> None:
         self._backend = backend
-        self._reference = ReferenceBackend()
+        reference = ReferenceBackend()
+        self.preprocess, self.odometry = reference.preprocess, reference.odometry
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._backend, name)
 
-    def predict_surface(self, volume: Any, pose: Any, camera: Any, stride: int = 1) -> Any:
-        host = self._backend.host_volume(volume)
-        return self._reference.predict_surface(host, pose, camera, stride)
+
+def _model_from_reference(backend: Backend) -> Backend:
+    """The reference with `backend`'s preprocessing and odometry: runs compile the tracking
+    half, on a reference volume raycast by the reference."""
+    mixed = ReferenceBackend()
+    mixed.preprocess, mixed.odometry = backend.preprocess, backend.odometry
+    mixed.upload = backend.upload  # type: ignore[method-assign]
+    return mixed
 
 
 def _compile_part(backend_name: str, config: Config, methods: list[str], part: str) -> dict:
-    """In a child process: compile the raycast ("raycast") or every other stage ("stages")."""
+    """In a child process: compile the `part` (MODEL or TRACKING) of each method's kernels."""
     backend = load_backend(backend_name)
+    mixed = _TrackingFromReference(backend) if part == MODEL else _model_from_reference(backend)
     with compile_events() as kernels:
-        if part == "raycast":
-            frames, camera, trajectory = warmup_frames()
-            small = small_config(config)
-            pose = trajectory.poses[0]
-            volume = backend.tsdf.make_volume(small.volume, pose, small.colour.max_weight)
-            prediction: ModelPrediction = backend.predict_surface(volume, pose, camera)
-            assert prediction.vertices.shape[:2] == (camera.height, camera.width)
-        else:
-            for method in methods:
-                _run_warmup(_ReferenceRaycast(backend), config, method)
+        for method in methods:
+            _run_warmup(mixed, config, method)  # type: ignore[arg-type]
     return kernels
 
 
 def compile_in_two_processes(backend_name: str, config: Config, methods: list[str]) -> dict:
-    """Compile the raycast and the other stages in two child processes at once (spawned: a
+    """Compile the model and the tracking halves in two child processes at once (spawned: a
     fresh interpreter each, nothing inherited from this one's numba state); seconds per
     kernel compiled there."""
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=2, mp_context=context) as pool:
-        parts = [
-            pool.submit(_compile_part, backend_name, config, methods, part)
-            for part in ("raycast", "stages")
-        ]
+        parts = [pool.submit(_compile_part, backend_name, config, methods, part) for part in PARTS]
         compiled: dict[str, float] = {}
         for future in parts:
             compiled.update(future.result())
