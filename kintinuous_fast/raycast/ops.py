@@ -39,10 +39,10 @@ def build_ops(
     voxels: SimpleNamespace | None = None,
 ) -> SimpleNamespace:
     """The march functions on `voxels` (tsdf.voxel.build_ops(jit, jit_called) unless given):
-    with `jit` the step of a march and the per-pixel functions, which the cpu loop needs
-    inlined at numba IR level (as calls that LLVM keeps, its raycast took 1.8-5x as long);
-    with `jit_called` (default `jit`) every other function, which LLVM inlines where that pays
-    (see tsdf.voxel.build_ops)."""
+    with `jit` the march's start, step and refinement and the per-pixel functions, which the cpu
+    loop needs inlined at numba IR level (as calls that LLVM keeps, its raycast took 1.2-5x as
+    long); with `jit_called` (default `jit`) the small scalar helpers, which LLVM inlines
+    anyway, and the whole march of one ray (see tsdf.voxel.build_ops)."""
     jit_called = jit_called or jit
     voxels = voxels or voxel_ops.build_ops(jit, jit_called)
     sample_tsdf_at, gradient_normal = voxels.sample_tsdf_at, voxels.gradient_normal
@@ -80,7 +80,7 @@ def build_ops(
     def zero_crossing(t0: float, f0: float, t1: float, f1: float) -> float:
         return t0 + (t1 - t0) * f0 / (f0 - f1)
 
-    @jit_called
+    @jit
     def sample_along(
         tsdf_weight: Any,
         offsets: tuple,
@@ -95,7 +95,7 @@ def build_ops(
         cx, cy, cz = voxel_coordinates(origin, direction, t, volume_origin, voxel_size)
         return sample_tsdf_at(tsdf_weight, o0, o1, o2, cx, cy, cz)
 
-    @jit_called
+    @jit
     def refine_crossing(
         tsdf_weight: Any,
         offsets: tuple,
@@ -224,7 +224,7 @@ def build_ops(
             voxel_size,
         )
 
-    @jit_called
+    @jit
     def surface_at(
         tsdf_weight: Any,
         offsets: tuple,
@@ -252,7 +252,7 @@ def build_ops(
             voxel_size,
         )
 
-    @jit_called
+    @jit
     def march_start(
         origin: Any,
         direction: tuple,
