@@ -5,7 +5,9 @@
 
 DATASET is a TUM folder (a synthetic scenario written by `kintinuous synth`, or real data). Runs
 `reconstruct` three times into OUT/closure, OUT/plain and (when the dataset has a scene.ply, the
-synthetic ground-truth surface) OUT/groundtruth, then prints and writes OUT/summary.json: ATE of
+synthetic ground-truth surface) OUT/groundtruth, and, where open3d is installed, Open3D's
+frame-to-model dense SLAM on the same frames with the same voxel size (OUT/open3d, its mesh in
+OUT/open3d/mesh.ply; it closes no loops), then prints and writes OUT/summary.json: ATE of
 each trajectory (the closure run's corrected and uncorrected ones too), the loop closure
 report, and with scene.ply the mesh's mean distance to the true surface and the share of its
 vertices more than 3 cm away (a doubled surface shows there).
@@ -18,6 +20,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pipeline_vs_open3d  # benchmarks/, beside this file
 
 from kintinuous_ref import metrics
 from kintinuous_ref.config import Config, VolumeConfig, with_overrides
@@ -42,6 +45,22 @@ def mesh_distances(mesh: Path, scene: Path) -> dict[str, float]:
         "median_m": float(np.median(distance)),
         "beyond_3cm": float(np.mean(distance > 0.03)),
     }
+
+
+def run_open3d(sequence, config: Config, frames: int | None, out: Path, scene: Path) -> dict | None:  # noqa: ANN001
+    """Open3D's frame-to-model tracker and fusion over the same frames (None without open3d)."""
+    out.mkdir(parents=True, exist_ok=True)
+    count = frames or len(sequence)
+    mesh = out / "mesh.ply"
+    row = pipeline_vs_open3d.run_open3d(
+        sequence, config.volume.voxel_size, config.preprocess.max_depth, count, mesh
+    )
+    if row is None:
+        return None
+    entry: dict = {"ate_m": row["ate_mm"] / 1000.0}
+    if scene.exists():
+        entry["mesh"] = mesh_distances(mesh, scene)
+    return entry
 
 
 def main() -> None:
@@ -84,6 +103,10 @@ def main() -> None:
             entry["mesh"] = mesh_distances(out / "mesh.ply", scene)
         summary[name] = entry
         print(name, json.dumps(entry, indent=1))
+    entry = run_open3d(sequence, config, args.frames, args.out / "open3d", scene)
+    if entry is not None:
+        summary["open3d"] = entry
+        print("open3d", json.dumps(entry, indent=1))
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 

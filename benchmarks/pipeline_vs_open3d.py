@@ -85,8 +85,11 @@ def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # no
     return row
 
 
-def run_open3d(sequence, voxel_size: float, max_depth: float, frames: int) -> dict | None:  # noqa: ANN001
-    """As run_ours, for Open3D's dense SLAM (None without open3d)."""
+def run_open3d(  # noqa: ANN001
+    sequence, voxel_size: float, max_depth: float, frames: int, mesh: Path | None = None
+) -> dict | None:
+    """As run_ours, for Open3D's dense SLAM (None without open3d); with `mesh`, its model's
+    triangle mesh (in world coordinates, as ours) is written there too."""
     try:
         import open3d as o3d
         import open3d.core as o3c
@@ -128,6 +131,9 @@ def run_open3d(sequence, voxel_size: float, max_depth: float, frames: int) -> di
         poses.append(first @ to_model)
     row: dict = dict(laps)
     row["ate_mm"] = ate_mm(poses, groundtruth, frames)
+    if mesh is not None:
+        surface = model.extract_trianglemesh().to_legacy().transform(first)
+        o3d.io.write_triangle_mesh(str(mesh), surface)
     return row
 
 
