@@ -85,11 +85,17 @@ def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # no
     return row
 
 
-def run_open3d(  # noqa: ANN001
-    sequence, voxel_size: float, max_depth: float, frames: int, mesh: Path | None = None
+def run_open3d(  # noqa: ANN001, PLR0913
+    sequence,
+    voxel_size: float,
+    max_depth: float,
+    frames: int,
+    mesh: Path | None = None,
+    truncation_voxels: float = 8.0,
 ) -> dict | None:
-    """As run_ours, for Open3D's dense SLAM (None without open3d); with `mesh`, its model's
-    triangle mesh (in world coordinates, as ours) is written there too."""
+    """As run_ours, for Open3D's dense SLAM (None without open3d), its truncation band
+    `truncation_voxels` voxels wide (8: Open3D's default); with `mesh`, its model's triangle
+    mesh (in world coordinates, as ours) is written there too."""
     try:
         import open3d as o3d
         import open3d.core as o3c
@@ -119,9 +125,11 @@ def run_open3d(  # noqa: ANN001
             to_model = to_model @ tracked.transformation.numpy()
         tracked_at = time.perf_counter()
         model.update_frame_pose(index, o3c.Tensor(to_model))
-        model.integrate(current, camera.depth_scale, max_depth, 8.0)
+        model.integrate(current, camera.depth_scale, max_depth, truncation_voxels)
         integrated_at = time.perf_counter()
-        model.synthesize_model_frame(predicted, camera.depth_scale, 0.1, max_depth, 8.0, False)
+        model.synthesize_model_frame(
+            predicted, camera.depth_scale, 0.1, max_depth, truncation_voxels, False
+        )
         end = time.perf_counter()
         if index > 0:
             laps["odometry"].append(1000.0 * (tracked_at - start))
