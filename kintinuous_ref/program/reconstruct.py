@@ -376,10 +376,12 @@ def prepare_kernels(backend: Backend, config: Config, odometry: str) -> None:
     with how long it took; loading from the cache takes about a second and is not."""
     if backend.name == REFERENCE or (backend.name, odometry) in _PREPARED:
         return
-    cached = backend.kernels_cached(tracking=odometry != GROUNDTRUTH)
-    if not cached:
+    tracking = odometry != GROUNDTRUTH
+    if not backend.kernels_cached(tracking=tracking):
+        # the cold warm-up's wall time on the 2-core machine (docs/benchmarks.md)
+        wait = "40" if tracking else "20"
         print(
-            f"compiling the {backend.name} kernels, once per installation (about half a minute on "
+            f"compiling the {backend.name} kernels, once per installation (about {wait} s on "
             "2 cores; later runs load them in seconds)...",
             file=sys.stderr,
             flush=True,
