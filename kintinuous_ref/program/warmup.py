@@ -133,32 +133,35 @@ def _run_warmup(backend: Backend, config: Config, method: str) -> Any:
 
 
 # The two halves of a cold warm-up, each compiled in its own child process: the model (the
-# volume, its colour and the raycast that reads it) and the tracking (preprocessing and the
-# odometry that reads its pyramids). Their compile times are close (about 30 s each on the
-# 2-core machine), and each half takes the other's stages from the reference, whose outputs have
-# the types the fast stages take in a real run (NumPy arrays, float32 maps), so nothing is
+# volume and the raycast that reads it) and the tracking (preprocessing, and the odometry and
+# colour weights that read its pyramids). Their compile times are close (about 35 and 31 s on
+# the 2-core machine), and each half takes the other's stages from the reference, whose outputs
+# have the types the fast stages take in a real run (NumPy arrays, float32 maps), so nothing is
 # compiled for the wrong types.
 MODEL, TRACKING = "model", "tracking"
 PARTS = (MODEL, TRACKING)
 
 
 class _TrackingFromReference:
-    """`backend` with the reference's preprocessing and odometry: runs compile the model half."""
+    """`backend` with the reference's preprocessing, odometry and colour weights: runs compile
+    the model half."""
 
     def __init__(self, backend: Backend) -> None:
         self._backend = backend
         reference = ReferenceBackend()
         self.preprocess, self.odometry = reference.preprocess, reference.odometry
+        self.colour = reference.colour
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._backend, name)
 
 
 def _model_from_reference(backend: Backend) -> Backend:
-    """The reference with `backend`'s preprocessing and odometry: runs compile the tracking
-    half, on a reference volume raycast by the reference."""
+    """The reference with `backend`'s preprocessing, odometry and colour weights: runs compile
+    the tracking half, on a reference volume raycast by the reference."""
     mixed = ReferenceBackend()
     mixed.preprocess, mixed.odometry = backend.preprocess, backend.odometry
+    mixed.colour = backend.colour
     mixed.upload = backend.upload  # type: ignore[method-assign]
     return mixed
 
