@@ -116,6 +116,9 @@ def cpu_backend() -> Backend:
     reason = numba_status()
     if reason:
         raise BackendUnavailable(f"backend 'cpu' does not work on this machine: {reason}")
+    from kintinuous_fast.targets.cache import drop_stale_kernels
+
+    drop_stale_kernels()  # kernels cached from other sources (targets/cache.py)
     return FastBackend("cpu")
 
 

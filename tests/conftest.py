@@ -75,6 +75,20 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Kernels that numba cached from other sources of kintinuous_fast are dropped before any
+    test runs (kintinuous_fast/targets/cache.py): tests that call the cpu loops directly never
+    go through the cpu backend, which drops them too. The simulator children find the stamp
+    this process wrote and leave the cache alone."""
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
+        return
+    try:
+        from kintinuous_fast.targets.cache import drop_stale_kernels
+    except ImportError:  # the reference alone: nothing compiled, nothing to drop
+        return
+    drop_stale_kernels()
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
     """Start every simulator child the selected tests wait for, so that the children (one core's
     worth of Python threads) run beside the main process instead of after it."""

@@ -124,3 +124,39 @@ def test_a_warm_cache_is_never_compiled_again_in_other_processes():
     warmup.warm_up(backend, Config(), "icp")
     assert backend.kernels_cached()  # the index of the raycast loop is on disk now
     assert load_backend("ref").kernels_cached()
+
+
+def test_kernels_cached_from_other_sources_are_dropped(tmp_path):
+    """A stamp of the package's sources in each cache folder: a folder stamped with other
+    sources loses its cached kernels (and only those files) and is stamped anew; a folder
+    stamped with these sources, and a second call, drop nothing."""
+    from kintinuous_fast.targets import cache
+
+    sources = tmp_path / "package"
+    (sources / "stage").mkdir(parents=True)
+    ops = sources / "stage" / "ops.py"
+    ops.write_text("x = 1\n")
+    before = cache.sources_stamp(sources)
+    ops.write_text("x = 22\n")  # an edit: another size (and time)
+    after = cache.sources_stamp(sources)
+    assert before != after
+
+    stale, fresh = tmp_path / "stale", tmp_path / "fresh"
+    for folder, stamp in ((stale, before), (fresh, after)):
+        folder.mkdir()
+        for name in ("cpu._loop-12.py311.nbi", "cpu._loop-12.py311.1.nbc", "keep.txt"):
+            (folder / name).write_text("-")
+        (folder / cache.STAMP_NAME).write_text(stamp)
+    assert cache.drop_stale_kernels([stale, fresh], after) == 2
+    assert sorted(path.name for path in stale.iterdir()) == sorted([cache.STAMP_NAME, "keep.txt"])
+    assert (stale / cache.STAMP_NAME).read_text() == after
+    assert len(list(fresh.iterdir())) == 4
+    assert cache.drop_stale_kernels([stale, fresh], after) == 0
+
+
+def test_the_cache_stamp_matches_these_sources_after_loading_the_cpu_backend():
+    from kintinuous_fast.targets import cache
+
+    load_backend("cpu")
+    for folder in cache.cache_folders():
+        assert (folder / cache.STAMP_NAME).read_text() == cache.sources_stamp()
