@@ -106,9 +106,9 @@ def main() -> None:
         summary[name] = entry
         print(name, json.dumps(entry, indent=1))
     # Open3D's default band (8 voxels) and ours (config.volume.truncation)
-    for name, band in (("open3d", 8.0), ("open3d_our_band", config.volume.truncation)):
-        voxels = band if name == "open3d" else band / config.volume.voxel_size
-        entry = run_open3d(sequence, config, args.frames, args.out / name, scene, voxels)
+    our_band = config.volume.truncation / config.volume.voxel_size
+    for name, band_voxels in (("open3d", 8.0), ("open3d_our_band", our_band)):
+        entry = run_open3d(sequence, config, args.frames, args.out / name, scene, band_voxels)
         if entry is not None:
             summary[name] = entry
             print(name, json.dumps(entry, indent=1))
