@@ -67,15 +67,15 @@ class FastBackend:
         to compile ahead elsewhere: True."""
         if self.name != "cpu":
             return True
-        from kintinuous_fast.odometry.cpu import _icp_loop
-        from kintinuous_fast.preprocess.cpu import _bilateral_rows
-        from kintinuous_fast.raycast.cpu import _raycast_loop
-        from kintinuous_fast.tsdf.cpu import _integrate_loop
+        from kintinuous_fast.targets.cache import slowest_kernels
 
-        kernels = [_bilateral_rows, _integrate_loop]
-        kernels += [_icp_loop, _raycast_loop] if tracking else []
+        kernels = slowest_kernels()
+        mapping = ("preprocess", "tsdf", "colour")  # what a run with known poses calls
+        stages = (*mapping, "odometry", "raycast") if tracking else mapping
         try:
-            return all(os.path.exists(kernel._cache._cache_file._index_path) for kernel in kernels)
+            return all(
+                os.path.exists(kernels[stage]._cache._cache_file._index_path) for stage in stages
+            )
         except AttributeError:  # another numba's cache layout: assume a compile is due
             return False
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import Any
 
 PACKAGE = Path(__file__).resolve().parents[1]
 STAMP_NAME = "kintinuous_fast_sources.stamp"
@@ -28,17 +29,28 @@ def sources_stamp(root: Path = PACKAGE) -> str:
     return digest.hexdigest()
 
 
-def cache_folders() -> list[Path]:
-    """The folders numba keeps this package's cpu kernels in: one per stage package (beside the
-    sources, or under NUMBA_CACHE_DIR or the user's cache where numba puts them instead)."""
+def slowest_kernels() -> dict[str, Any]:
+    """Per stage package, the cpu kernel that takes longest to compile: where one is cached, a
+    warm-up compiled that stage, and its cache folder is the stage's."""
     from kintinuous_fast.colour.cpu import _weights_loop
     from kintinuous_fast.odometry.cpu import _icp_loop
     from kintinuous_fast.preprocess.cpu import _bilateral_rows
     from kintinuous_fast.raycast.cpu import _raycast_loop
     from kintinuous_fast.tsdf.cpu import _integrate_loop
 
-    kernels = (_weights_loop, _icp_loop, _bilateral_rows, _raycast_loop, _integrate_loop)
-    return sorted({Path(kernel._cache._cache_path) for kernel in kernels})
+    return {
+        "preprocess": _bilateral_rows,
+        "tsdf": _integrate_loop,
+        "colour": _weights_loop,
+        "odometry": _icp_loop,
+        "raycast": _raycast_loop,
+    }
+
+
+def cache_folders() -> list[Path]:
+    """The folders numba keeps this package's cpu kernels in: one per stage package (beside the
+    sources, or under NUMBA_CACHE_DIR or the user's cache where numba puts them instead)."""
+    return sorted({Path(kernel._cache._cache_path) for kernel in slowest_kernels().values()})
 
 
 def drop_stale_kernels(folders: list[Path] | None = None, stamp: str | None = None) -> int:

@@ -134,42 +134,34 @@ def _run_warmup(backend: Backend, config: Config, method: str) -> Any:
 
 # The two halves of a cold warm-up, each compiled in its own child process: the model (the
 # volume and the raycast that reads it) and the tracking (preprocessing, and the odometry and
-# colour weights that read its pyramids). Their compile times are close (about 35 and 31 s on
-# the 2-core machine), and each half takes the other's stages from the reference, whose outputs
-# have the types the fast stages take in a real run (NumPy arrays, float32 maps), so nothing is
+# colour weights that read its pyramids). Their compile times are close (about 33 s each on the
+# 2-core machine), and each half takes the other's stages from the reference, whose outputs have
+# the types the fast stages take in a real run (NumPy arrays, float32 maps), so nothing is
 # compiled for the wrong types.
 MODEL, TRACKING = "model", "tracking"
 PARTS = (MODEL, TRACKING)
 
 
-class _TrackingFromReference:
-    """`backend` with the reference's preprocessing, odometry and colour weights: runs compile
-    the model half."""
+class _WithTracking:
+    """`base` (its volume, raycast and the rest) with the preprocessing, odometry and colour
+    weights of `tracking`."""
 
-    def __init__(self, backend: Backend) -> None:
-        self._backend = backend
-        reference = ReferenceBackend()
-        self.preprocess, self.odometry = reference.preprocess, reference.odometry
-        self.colour = reference.colour
+    def __init__(self, base: Backend, tracking: Backend) -> None:
+        self._base = base
+        self.preprocess, self.odometry = tracking.preprocess, tracking.odometry
+        self.colour = tracking.colour
 
     def __getattr__(self, name: str) -> Any:
-        return getattr(self._backend, name)
-
-
-def _model_from_reference(backend: Backend) -> Backend:
-    """The reference with `backend`'s preprocessing, odometry and colour weights: runs compile
-    the tracking half, on a reference volume raycast by the reference."""
-    mixed = ReferenceBackend()
-    mixed.preprocess, mixed.odometry = backend.preprocess, backend.odometry
-    mixed.colour = backend.colour
-    mixed.upload = backend.upload  # type: ignore[method-assign]
-    return mixed
+        return getattr(self._base, name)
 
 
 def _compile_part(backend_name: str, config: Config, methods: list[str], part: str) -> dict:
     """In a child process: compile the `part` (MODEL or TRACKING) of each method's kernels."""
-    backend = load_backend(backend_name)
-    mixed = _TrackingFromReference(backend) if part == MODEL else _model_from_reference(backend)
+    backend, reference = load_backend(backend_name), ReferenceBackend()
+    if part == MODEL:
+        mixed = _WithTracking(backend, tracking=reference)
+    else:  # on a reference volume, raycast by the reference
+        mixed = _WithTracking(reference, tracking=backend)
     with compile_events() as kernels:
         for method in methods:
             _run_warmup(mixed, config, method)  # type: ignore[arg-type]
