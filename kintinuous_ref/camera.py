@@ -18,6 +18,17 @@ import numpy as np
 from kintinuous_ref.errors import ConfigError, DatasetError
 
 TUM_DEPTH_SCALE = 5000.0
+# The axial (along-the-ray) depth noise of a structured-light camera, sigma(z) = AXIAL_NOISE_BASE
+# + AXIAL_NOISE_GROWTH (z - AXIAL_NOISE_NEAREST)^2 metres (Nguyen, Izadi and Lovell, 3DIMPVT 2012,
+# fitted to a Kinect for surfaces seen at under about 60 degrees).
+AXIAL_NOISE_BASE = 0.0012
+AXIAL_NOISE_GROWTH = 0.0019
+AXIAL_NOISE_NEAREST = 0.4
+
+
+def axial_noise(depth: np.ndarray | float) -> np.ndarray | float:
+    """The standard deviation (metres) of a depth measurement at `depth` metres."""
+    return AXIAL_NOISE_BASE + AXIAL_NOISE_GROWTH * (np.asarray(depth) - AXIAL_NOISE_NEAREST) ** 2
 
 
 @dataclass(frozen=True)

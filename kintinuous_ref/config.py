@@ -98,6 +98,10 @@ class IcpConfig:
     # sigma, the spread of a good pair's residual the kernels are tuned to (Huber's k = 1.345
     # sigma, Tukey's c = 4.685 sigma): metres, fixed (odometry/icp.py says why not a median)
     robust_noise: float = 0.005
+    # weigh each pair by the noise at its depth: the camera's axial noise and the model's
+    # voxelisation, voxel / sqrt(12) (odometry/icp.py); for `icp` and the robust weightings of
+    # `icp+rgbd`. False: every pair the same, as KinectFusion.
+    depth_noise: bool = True
 
 
 @dataclass(frozen=True)

@@ -46,14 +46,16 @@ from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.preprocess import model_pyramid, preprocess_frame
 
 WIDTH, HEIGHT, PAIRS = 160, 120, 16
-# Least-squares ICP rows and the degeneracy-aware weighting: the costs this notebook compares
-# (the defaults add Huber weights to the ICP rows, docs/odometry.md).
+# Least-squares ICP rows, every pair alike, and the degeneracy-aware weighting: the costs this
+# notebook compares (the defaults weigh the ICP pairs by Huber's kernel and by the noise at
+# their depth, docs/odometry.md).
 config = with_overrides(
     Config(),
     {
         "volume.resolution": 128,
         "volume.size": 4.0,
         "icp.robust_kernel": "none",
+        "icp.depth_noise": False,
         "combined.weighting": "degeneracy-aware",
     },
 )

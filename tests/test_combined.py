@@ -8,10 +8,12 @@ import odometry_scene as scene
 import pytest
 
 from kintinuous_ref import se3
+from kintinuous_ref.config import Config, VolumeConfig, with_overrides
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.odometry.combined import (
     CombinedProblem,
     discount_weak_directions,
+    icp_model_noise,
     icp_scale,
     information_spectrum,
     joint_system,
@@ -279,3 +281,16 @@ def test_robust_weightings_are_degeneracy_aware_on_robust_icp_rows(room, kernel)
         IcpProblem(
             icp.current_levels, icp.model_levels, previous, robust_kernel="tukey", robust_noise=0
         )
+
+
+def test_the_depth_noise_model_follows_the_voxels_and_the_weighting():
+    # icp alone and the robust weightings of icp+rgbd weigh pairs by the noise at their depth,
+    # the model's part a uniform error over one voxel (voxel / sqrt(12)); the least-squares
+    # weightings keep the system their name fixes; icp.depth_noise = False turns it off.
+    config = Config(volume=VolumeConfig(resolution=256, size=3.0))
+    voxel_noise = 3.0 / 256 / np.sqrt(12.0)
+    assert icp_model_noise("icp", config) == pytest.approx(voxel_noise)
+    assert icp_model_noise("icp+rgbd", config) == pytest.approx(voxel_noise)  # "huber"
+    paper = with_overrides(config, {"combined.weighting": "paper"})
+    assert icp_model_noise("icp+rgbd", paper) is None
+    assert icp_model_noise("icp", with_overrides(config, {"icp.depth_noise": False})) is None

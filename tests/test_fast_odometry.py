@@ -85,6 +85,7 @@ def test_equivalence_cpu_tracker(method, iterations):
         ("icp+rgbd", {"combined.weighting": "tukey"}),
         ("icp", {"icp.robust_kernel": "none"}),
         ("icp+rgbd", {"combined.weighting": "degeneracy-aware"}),
+        ("icp", {"icp.depth_noise": False}),
     ],
     ids=[
         "icp-huber",
@@ -93,6 +94,7 @@ def test_equivalence_cpu_tracker(method, iterations):
         "combined-tukey",
         "icp-least-squares",
         "combined-least-squares",
+        "icp-huber-no-depth-noise",
     ],
 )
 def test_equivalence_cpu_tracker_robust(method, overrides):

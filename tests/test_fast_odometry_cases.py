@@ -129,7 +129,8 @@ def check_icp_system(impl: ModuleType, width: int, height: int) -> None:
 
 def check_icp_system_robust(impl: ModuleType, width: int, height: int) -> None:
     """Huber and Tukey rows (icp.robust_kernel) at an estimate ~1 cm off, with a 2 mm noise
-    scale so that both branches of each kernel are taken by many pairs."""
+    scale so that both branches of each kernel are taken by many pairs, then each kernel with
+    the depth noise weights."""
     camera, previous, current, _, frame, model = room(width, height)
     level = frame.levels[0]
     pose = poses_to_try(previous, current)[-1]
@@ -154,6 +155,14 @@ def check_icp_system_robust(impl: ModuleType, width: int, height: int) -> None:
         assert not np.allclose(reference.A, least_squares.A, rtol=1e-3)  # the weights act
         fast = impl.icp_system(*args, kernel, 0.002)
         assert_systems_close(f"icp_system {kernel}", fast, reference)
+    # Depth noise weights (icp.pair_weights) on each kernel, least squares included: the room's
+    # depths span metres, so the pairs' weights differ by an order of magnitude.
+    for kernel in ("none", "huber", "tukey"):
+        unweighted = ref_icp.icp_system(*args, kernel, 0.002)
+        reference = ref_icp.icp_system(*args, kernel, 0.002, 0.0034)
+        assert not np.allclose(reference.A, unweighted.A, rtol=1e-3)
+        fast = impl.icp_system(*args, kernel, 0.002, 0.0034)
+        assert_systems_close(f"icp_system {kernel} depth noise", fast, reference)
 
 
 def check_associate_and_rows(impl: ModuleType, width: int, height: int) -> None:

@@ -15,6 +15,7 @@ from kintinuous_ref.odometry.icp import (
     IcpProblem,
     associate,
     icp_system,
+    pair_weights,
     point_to_plane_cost,
     point_to_plane_rows,
     robust_threshold,
@@ -234,6 +235,32 @@ def test_an_outlier_pair_gets_the_kernels_weight():
     weighted = accumulate(jacobian, residuals, robust_weights(residuals, "tukey", 0.023425))
     first_two = accumulate(jacobian[:, :2], residuals[:2], robust_weights(r[:2], "tukey", 0.023425))
     np.testing.assert_allclose(weighted.A, first_two.A, atol=1e-15)
+
+
+def test_depth_noise_weights_are_each_pairs_information():
+    # sigma(z)^2 = axial(z)^2 + model^2, axial(z) = 1.2 mm + 1.9 mm (z - 0.4)^2 (Nguyen et al.):
+    # 1.884 mm at 1 m, 14.044 mm at 3 m; a model noise of 3.4 mm (11.7 mm voxels / sqrt(12)).
+    far_share = (0.001884**2 + 0.0034**2) / (0.014044**2 + 0.0034**2)  # 0.0724
+    depths = np.array([1.0, 3.0])
+    residuals = np.array([0.0, 0.006])
+    # Least squares: each pair's weight is its information relative to a pair at 1 m.
+    weights = pair_weights(residuals, depths, "none", 0.0, 0.0034)
+    np.testing.assert_allclose(weights, [1.0, far_share], rtol=1e-4)
+    assert pair_weights(residuals, depths, "none", 0.0) is None  # no noise model: every pair 1
+    # Huber reads the far residual in units of the noise at 1 m: 6 mm * sqrt(0.0724) = 1.6 mm,
+    # inside k = 6.7 mm, where without the noise model the pair lies in the linear tail.
+    huber = pair_weights(residuals, depths, "huber", 0.006725, 0.0034)
+    np.testing.assert_allclose(huber, [1.0, far_share], rtol=1e-4)
+    # A far plane whose model lies 6 mm off and a true near plane, both frontal: the step along
+    # the axis is the information-weighted mean of the residuals, 6 mm * w / (1 + w) = 0.405 mm
+    # instead of least squares' 3 mm.
+    world = np.array([[0.0, 0.0], [0.0, 0.0], depths])
+    normals = np.array([[0.0, 0.0], [0.0, 0.0], [-1.0, -1.0]])
+    jacobian, rows = point_to_plane_rows(world, world - normals * residuals, normals)
+    for pair_weighting, expected in ((weights, 0.006 * far_share / (1 + far_share)), (None, 0.003)):
+        system = accumulate(jacobian, rows, pair_weighting)
+        step = -system.b[5] / system.A[5, 5]
+        assert abs(step) == pytest.approx(expected, rel=1e-4)
 
 
 def test_robust_kernels_ignore_a_foreground_object(room_pair):

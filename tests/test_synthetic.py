@@ -12,11 +12,10 @@ import numpy as np
 import pytest
 
 from kintinuous_ref import se3
-from kintinuous_ref.camera import Intrinsics, load_intrinsics_json
+from kintinuous_ref.camera import Intrinsics, axial_noise, load_intrinsics_json
 from kintinuous_ref.datasets import synthetic, tum
 from kintinuous_ref.datasets.synthetic import SensorModel
 from kintinuous_ref.datasets.synthetic.scene import Scene
-from kintinuous_ref.datasets.synthetic.sensor import axial_sigma
 from kintinuous_ref.datasets.synthetic.solids import Box, Cylinder, Rectangle, Sphere
 from kintinuous_ref.datasets.synthetic.textures import random_material
 from kintinuous_ref.errors import ConfigError, DatasetError, KintinuousError
@@ -236,7 +235,7 @@ def test_axial_noise_std_matches_nguyen_model(distance):
     measured = depth[depth > 0].astype(np.float64)
     assert measured.size > 0.95 * depth.size
     expected = 0.0012 + 0.0019 * (distance - 0.4) ** 2
-    assert axial_sigma(distance) == pytest.approx(expected)
+    assert axial_noise(distance) == pytest.approx(expected)
     assert np.std(measured - distance) == pytest.approx(expected, rel=0.03)
     assert abs(np.mean(measured - distance)) < 4 * expected / np.sqrt(measured.size)
 

@@ -29,7 +29,7 @@ from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
 from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
 from kintinuous_ref.preprocess import model_pyramid
 
-from .ops import KERNEL_NONE, NV, SLOT_B, SLOT_COST, SLOT_COUNT, build_ops
+from .ops import NV, SLOT_B, SLOT_COST, SLOT_COUNT, build_ops
 
 __all__ = [
     "METHODS",
@@ -82,7 +82,9 @@ transform = _ops.transform
 rotate = _ops.rotate
 map_point = _ops.map_point
 point_to_plane_row = _ops.point_to_plane_row
-robust_icp_weight = _ops.robust_icp_weight
+pair_weight = _ops.pair_weight
+weighs_pairs = _ops.weighs_pairs
+NO_WEIGHTS = host.NO_WEIGHTS
 is_interest = _ops.is_interest
 has_depth = _ops.has_depth
 backproject = _ops.backproject
@@ -153,10 +155,10 @@ def _gather_model_block(rows, cols, count, mv, mn, model):
 def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out, weighted):
     """match_pixel and point_to_plane_row of points[:, start:stop] and their gathered model
     pixels, branch-free so that it vectorises: out[k * BLOCK + m] = (j0..j5, r, 1) of a kept pair,
-    zeros for any other point (which then add nothing to the sums). With a robust kernel
-    (`robust` = (kernel code, threshold), not KERNEL_NONE) weighted[k * BLOCK + m] =
-    w (j0..j5, r), w = robust_icp_weight; `limits`: is_compatible's."""
-    kernel, threshold = robust
+    zeros for any other point (which then add nothing to the sums). Where the pairs have
+    weights (`robust`: host.robust_terms, weighs_pairs) weighted[k * BLOCK + m] =
+    w (j0..j5, r), w = pair_weight; `limits`: is_compatible's."""
+    weighs = weighs_pairs(robust)
     x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
     nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
     for m in range(stop - start):
@@ -176,10 +178,10 @@ def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out,
         out[5 * BLOCK + m] = j5 if kept else 0.0
         out[6 * BLOCK + m] = r if kept else 0.0
         out[7 * BLOCK + m] = 1.0 if kept else 0.0
-        if kernel != KERNEL_NONE:
+        if weighs:
             # Selects, not products with w = 0: a rejected point's row may hold NaN (no model
             # surface at its pixel), and 0 * NaN would poison the sums.
-            w = robust_icp_weight(r, kernel, threshold)
+            w = pair_weight(r, z[m], robust)
             weighted[m] = w * j0 if kept else 0.0
             weighted[BLOCK + m] = w * j1 if kept else 0.0
             weighted[2 * BLOCK + m] = w * j2 if kept else 0.0
@@ -243,7 +245,7 @@ def _block_work(dtype):
 def _icp_loop(points, pose, to_model, mv, mn, camera, limits, robust, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
     out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). `robust` =
-    (kernel code, threshold): the IRLS weights of the rows."""
+    host.robust_terms: the weights of the rows."""
     n = points.shape[1]
     chunks = out.shape[0]
     for c in prange(chunks):
@@ -251,7 +253,8 @@ def _icp_loop(points, pose, to_model, mv, mn, camera, limits, robust, out):
         work = _block_work(mv.dtype)
         pair_matrix = work[3].reshape((8, BLOCK))
         # Least squares weighs every row by 1: its rows are their own weighted rows.
-        weighted_matrix = pair_matrix if robust[0] == KERNEL_NONE else work[4].reshape((7, BLOCK))
+        weighs = weighs_pairs(robust)
+        weighted_matrix = work[4].reshape((7, BLOCK)) if weighs else pair_matrix
         start, stop = c * n // chunks, (c + 1) * n // chunks
         acc[NV - 1] += stop - start
         for block in range(start, stop, BLOCK):
@@ -276,9 +279,8 @@ def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, limits, out):
         pairs = 0.0
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
-            no_kernel = (KERNEL_NONE, 0.0)
             _pair_rows_block(
-                points, block, end, pose, to_model, mv, mn, camera, limits, no_kernel, work
+                points, block, end, pose, to_model, mv, mn, camera, limits, NO_WEIGHTS, work
             )
             pairs += kept[: end - block].sum()
         out[c, 0] = stop - start
@@ -543,7 +545,7 @@ def _run_on_points(
     *robust,
 ) -> None:
     """Run an ICP loop over the valid current points into `out` (its per-chunk rows); `robust`:
-    (kernel code, threshold) for the loops that weigh their rows."""
+    host.robust_terms for the loops that weigh their rows."""
     host.check_map("model vertex map", model_vertices, camera)
     host.check_map("model normal map", model_normals, camera)
     pose, to_model, dist2, cos_min = host.icp_constants(
@@ -566,10 +568,11 @@ def icp_points_system(
     model_inverse=None,
     robust_kernel="none",
     robust_threshold=0.0,
+    model_noise=None,
 ) -> tuple[LinearSystem, int]:
     """icp_system of the valid current points (`valid_points`) and their number (for the inlier
     fraction); `model_inverse` as in host.icp_constants; `robust_threshold` the kernel's k or c
-    in metres (ref icp.robust_threshold)."""
+    in metres (ref icp.robust_threshold); `model_noise` as ref icp.pair_weights'."""
     out = _partials(points.shape[1])
     _run_on_points(
         _icp_loop,
@@ -583,7 +586,7 @@ def icp_points_system(
         distance_threshold,
         angle_threshold_deg,
         model_inverse,
-        (host.kernel_code(robust_kernel), float(robust_threshold)),
+        host.robust_terms(robust_kernel, robust_threshold, model_noise),
     )
     return host.sum_partials(out)
 
@@ -600,6 +603,7 @@ def icp_points_pairs(
     model_inverse=None,
     robust_kernel="none",
     robust_threshold=0.0,
+    model_noise=None,
 ) -> tuple[int, int]:
     """icp_pairs of the valid current points (`valid_points`)."""
     out = np.zeros((host.chunks_for(points.shape[1], CHUNKS), 2))
@@ -632,6 +636,7 @@ def icp_system_and_valid(
     angle_threshold_deg,
     robust_kernel="none",
     robust_threshold=0.0,
+    model_noise=None,
 ) -> tuple[LinearSystem, int]:
     """icp_system and the number of valid current points (for the inlier fraction)."""
     host.check_map("current vertex map", vertices, camera)
@@ -648,6 +653,7 @@ def icp_system_and_valid(
         None,
         robust_kernel,
         robust_threshold,
+        model_noise,
     )
 
 
@@ -663,6 +669,7 @@ def icp_system(
     angle_threshold_deg: float = 20.0,
     robust_kernel: str = "none",
     robust_noise: float = IcpConfig.robust_noise,
+    model_noise: float | None = None,
 ) -> LinearSystem:
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: association,
     rows and sums in one pass over the current maps (nothing is stored per pair)."""
@@ -678,6 +685,7 @@ def icp_system(
         angle_threshold_deg,
         robust_kernel,
         robust_threshold(robust_kernel, robust_noise),
+        model_noise,
     )[0]
 
 
@@ -988,6 +996,7 @@ class IcpProblem(host.IcpProblemBase):
             self.model_inverse,
             self.robust_kernel,
             self.robust_threshold,
+            self.model_noise,
         )
 
 

@@ -88,7 +88,7 @@ warp_point = _ops.warp_point
 photometric_row = _ops.photometric_row
 robust_weight = _ops.robust_weight
 add_row = _ops.add_row
-robust_icp_weight = _ops.robust_icp_weight
+pair_weight = _ops.pair_weight
 
 
 # ----------------------------------------------------------------------------------------------
@@ -126,8 +126,8 @@ def _block_reduce(acc, shared, partials):
 
 @cuda.jit
 def _icp_kernel(vertices, normals, pose, to_model, mv, mn, camera, limits, robust, out):
-    # `camera` = (fx, fy, cx, cy), `limits` = (squared distance, cos angle), `robust` = (kernel
-    # code, threshold)
+    # `camera` = (fx, fy, cx, cy), `limits` = (squared distance, cos angle), `robust` =
+    # host.robust_terms
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     _zero(acc)
@@ -146,7 +146,7 @@ def _icp_kernel(vertices, normals, pose, to_model, mv, mn, camera, limits, robus
                 j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
                     (wx, wy, wz), (qx, qy, qz), (ux, uy, uz)
                 )
-                w = robust_icp_weight(r, robust[0], robust[1])
+                w = pair_weight(r, pz, robust)
                 add_row(acc, (j0, j1, j2, j3, j4, j5), r, w)
     _block_reduce(acc, shared, out)
 
@@ -473,9 +473,11 @@ def icp_system_and_valid(
     angle_threshold_deg,
     robust_kernel="none",
     robust_threshold=0.0,
+    model_noise=None,
 ) -> tuple[LinearSystem, int]:
     """icp_system and the number of valid current points (for the inlier fraction);
-    `robust_threshold` the kernel's k or c in metres (ref icp.robust_threshold)."""
+    `robust_threshold` the kernel's k or c in metres (ref icp.robust_threshold), `model_noise`
+    as ref icp.pair_weights'."""
     host.check_map("current vertex map", vertices, camera)
     host.check_map("current normal map", normals, camera)
     host.check_map("model vertex map", model_vertices, camera)
@@ -494,7 +496,7 @@ def icp_system_and_valid(
         stage(model_normals),
         pinhole(camera),
         (dist2, cos_min),
-        (host.kernel_code(robust_kernel), float(robust_threshold)),
+        host.robust_terms(robust_kernel, robust_threshold, model_noise),
         out,
     )
     return host.sum_partials(out.copy_to_host())
@@ -512,6 +514,7 @@ def icp_system(
     angle_threshold_deg: float = 20.0,
     robust_kernel: str = "none",
     robust_noise: float = IcpConfig.robust_noise,
+    model_noise: float | None = None,
 ) -> LinearSystem:
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: one thread per
     pixel(s), block tree reductions, partials added on the host."""
@@ -527,6 +530,7 @@ def icp_system(
         angle_threshold_deg,
         robust_kernel,
         robust_threshold(robust_kernel, robust_noise),
+        model_noise,
     )[0]
 
 

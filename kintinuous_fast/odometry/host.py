@@ -16,14 +16,14 @@ from typing import Any
 import numpy as np
 
 from kintinuous_ref import se3
-from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.camera import Intrinsics, axial_noise
 from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.errors import ConfigError, DatasetError
 from kintinuous_ref.odometry import DenseTracker as RefDenseTracker
 from kintinuous_ref.odometry import FovisTracker as RefFovisTracker
 from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
 from kintinuous_ref.odometry.fovis import FovisResult
-from kintinuous_ref.odometry.icp import ROBUST_KERNELS, robust_threshold
+from kintinuous_ref.odometry.icp import REFERENCE_DEPTH, ROBUST_KERNELS, robust_threshold
 from kintinuous_ref.odometry.rgbd import InterestPoints
 from kintinuous_ref.odometry.rgbd import RgbdProblem as RefRgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
@@ -80,6 +80,21 @@ def kernel_code(robust_kernel: str) -> int:
     return ROBUST_KERNELS.index(robust_kernel)
 
 
+# robust_terms of least squares: every pair weighs 1.
+NO_WEIGHTS = (ROBUST_KERNELS.index("none"), 0.0, -1.0, 1.0)
+
+
+def robust_terms(robust_kernel: str, threshold: float, model_noise: float | None) -> tuple:
+    """The ICP pair weights as ops.pair_weight takes them: (kernel code, Huber's k or Tukey's c,
+    model_noise^2, sigma(REFERENCE_DEPTH)^2); a model variance of -1 without `model_noise`
+    (ref icp.pair_weights). NO_WEIGHTS: least squares."""
+    if model_noise is None:
+        return kernel_code(robust_kernel), float(threshold), NO_WEIGHTS[2], NO_WEIGHTS[3]
+    variance = float(model_noise) ** 2
+    reference = float(axial_noise(REFERENCE_DEPTH)) ** 2 + variance
+    return kernel_code(robust_kernel), float(threshold), variance, reference
+
+
 def relative_pose(pose: np.ndarray, previous_pose: np.ndarray) -> np.ndarray:
     """T_prev^-1 T exactly as `correspond` computes it (np.linalg.inv)."""
     return np.ascontiguousarray(np.linalg.inv(previous_pose) @ pose, dtype=np.float64)
@@ -120,6 +135,7 @@ class IcpProblemBase:
         angle_threshold_deg: float = 20.0,
         robust_kernel: str = "none",
         robust_noise: float = IcpConfig.robust_noise,
+        model_noise: float | None = None,
     ) -> None:
         self.current_levels = current_levels
         self.model_levels = model_levels
@@ -128,6 +144,7 @@ class IcpProblemBase:
         self.angle_threshold_deg = angle_threshold_deg
         self.robust_kernel = robust_kernel
         self.robust_threshold = robust_threshold(robust_kernel, robust_noise)
+        self.model_noise = model_noise
         self._maps: dict[int, tuple[Any, Any, Any, Any]] = {}
         self._points: dict[int, Any] = {}  # per level, for kernels that compact the valid points
         self._model_inverse: np.ndarray | None = None
@@ -163,6 +180,7 @@ class IcpProblemBase:
             self.angle_threshold_deg,
             self.robust_kernel,
             self.robust_threshold,
+            self.model_noise,
         )
 
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:

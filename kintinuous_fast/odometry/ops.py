@@ -27,6 +27,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from kintinuous_fast.targets import build_rint
+from kintinuous_ref.camera import AXIAL_NOISE_BASE, AXIAL_NOISE_GROWTH, AXIAL_NOISE_NEAREST
 from kintinuous_ref.odometry.icp import ROBUST_KERNELS
 from kintinuous_ref.odometry.rgbd import BORDER_SLACK
 
@@ -189,6 +190,25 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         tukey = inside * inside if magnitude < threshold else 0.0
         weight = huber if kernel == KERNEL_HUBER else 1.0
         return tukey if kernel == KERNEL_TUKEY else weight
+
+    @jit
+    def weighs_pairs(robust: tuple) -> bool:
+        """Whether host.robust_terms give the pairs weights other than 1 (else least squares)."""
+        return robust[0] != KERNEL_NONE or robust[2] >= 0
+
+    @jit
+    def pair_weight(r: float, z: float, robust: tuple) -> float:
+        """A pair's weight in the normal equations (ref icp.pair_weights) for a current point at
+        depth z: `robust` = (kernel code, threshold, model variance, reference variance), the
+        last two host.robust_terms'. The robust weight of s r times s^2, s^2 = reference /
+        (axial_noise(z)^2 + model variance); s = 1 where the model variance is negative (no
+        depth noise weights)."""
+        kernel, threshold, model_variance, reference_variance = robust
+        offset = z - AXIAL_NOISE_NEAREST
+        axial = AXIAL_NOISE_BASE + AXIAL_NOISE_GROWTH * (offset * offset)
+        ratio = reference_variance / (axial * axial + model_variance)
+        scale = math.sqrt(ratio) if model_variance >= 0 else 1.0
+        return robust_icp_weight(scale * r, kernel, threshold) * (scale * scale)
 
     # ------------------------------------------------------------------------------------------
     # RGB-D (kintinuous_ref.odometry.rgbd)
@@ -392,6 +412,8 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         map_point=map_point,
         point_to_plane_row=point_to_plane_row,
         robust_icp_weight=robust_icp_weight,
+        pair_weight=pair_weight,
+        weighs_pairs=weighs_pairs,
         is_interest=is_interest,
         has_depth=has_depth,
         backproject=backproject,

@@ -29,7 +29,7 @@ from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.odometry.combined import CombinedProblem, icp_robust_kernel
+from kintinuous_ref.odometry.combined import CombinedProblem, icp_model_noise, icp_robust_kernel
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import implausible_motion, refine
@@ -199,6 +199,7 @@ class DenseTracker:
                 self.config.icp.angle_threshold_deg,
                 icp_robust_kernel(self.method, self.config),
                 self.config.icp.robust_noise,
+                icp_model_noise(self.method, self.config),
             )
         if self.method in ("rgbd", "icp+rgbd"):
             rgbd = self.systems.RgbdProblem(

@@ -117,6 +117,18 @@ def icp_robust_kernel(method: str, config: Config) -> str:
     return config.icp.robust_kernel
 
 
+def icp_model_noise(method: str, config: Config) -> float | None:
+    """The model's noise for the ICP rows' depth noise weights (icp.py), None where the pairs
+    weigh the same: the voxelisation's error, voxel / sqrt(12), when config.icp.depth_noise is
+    on, for `icp` and for the robust weightings of `icp+rgbd` (the others keep the joint system
+    their name fixes)."""
+    if not config.icp.depth_noise:
+        return None
+    if method == "icp+rgbd" and config.combined.weighting not in ROBUST_WEIGHTINGS:
+        return None
+    return config.volume.voxel_size / np.sqrt(12.0)
+
+
 def icp_scale(icp: LinearSystem) -> float:
     """sigma_icp: the RMS point-to-plane residual (metres), at least MIN_ICP_SCALE."""
     if icp.count == 0:

@@ -19,10 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-
-def axial_sigma(depth: np.ndarray) -> np.ndarray:
-    """Nguyen et al. 2012 axial noise std (metres) at depth z (metres)."""
-    return 0.0012 + 0.0019 * (np.asarray(depth) - 0.4) ** 2
+from kintinuous_ref import camera
 
 
 @dataclass(frozen=True)
@@ -91,7 +88,8 @@ def measure_depth(
         valid &= ~edges & ~(grown & (rng.random(depth.shape) < model.edge_dropout))
     measured = np.where(valid, depth, 0.0)
     if model.axial_noise:
-        measured = measured + valid * rng.standard_normal(depth.shape) * axial_sigma(measured)
+        noise = rng.standard_normal(depth.shape) * camera.axial_noise(measured)
+        measured = measured + valid * noise
     if model.quantise:
         measured = np.round(measured * depth_scale) / depth_scale
     measured = np.where(valid & (measured > 0), measured, 0.0)
