@@ -99,8 +99,9 @@ class IcpConfig:
     # sigma, Tukey's c = 4.685 sigma): metres, fixed (odometry/icp.py says why not a median)
     robust_noise: float = 0.005
     # weigh each pair by the noise at its depth: the camera's axial noise and the model's
-    # voxelisation, voxel / sqrt(12) (odometry/icp.py); for `icp` and the robust weightings of
-    # `icp+rgbd`. False: every pair the same, as KinectFusion.
+    # voxelisation, voxel / sqrt(12) (odometry/icp.py; corridor at 640x480 4.6 -> 2.9 mm,
+    # redkitchen 23.7 -> 21.4 mm); for `icp` and the robust weightings of `icp+rgbd`. False:
+    # every pair alike, as KinectFusion.
     depth_noise: bool = True
 
 

@@ -322,10 +322,11 @@ for name, value in rms.items():
 #   2-7 % of its say along the corridor, but here it stays well behind RGB-D alone:
 #   these pairs are tracked against a model fused from at most 16 frames at 31 mm voxels, whose
 #   stray normals also bias directions that count as observed. Over whole runs (320x240, the
-#   default `huber` rows) it holds the corridor to 10 mm where RGB-D alone reaches 7 mm and the
-#   authors' weighting 5 mm; unlike those two it keeps ICP's accuracy on the desk (2 mm against
-#   12-14 mm), and over a single plane (the floor scene) it beats both of its parts, 4 mm against
-#   23 mm (RGB-D) and 669 mm (ICP).
+#   default `huber` rows, weighted by Huber's kernel and by each pair's depth noise) it holds the
+#   corridor to 9 mm where RGB-D alone reaches 7 mm and the authors' weighting 5 mm; unlike
+#   those two it keeps ICP's accuracy on the desk (2 mm against 12-14 mm), and over a single
+#   plane (the floor scene) it beats both of its parts, 4 mm against 23 mm (RGB-D) and 625 mm
+#   (ICP).
 #   docs/odometry.md has every scene at both resolutions.
 
 # %%

@@ -36,23 +36,26 @@ desk) keeps a third. ICP's own minimiser does not move, only its weight against 
 the dark, where RGB-D holds nothing, ICP still decides every direction. A gate that removes a
 direction whole where RGB-D knows more about it flips when RGB-D's information dips for a few
 frames, and ICP's biased sliver then holds the camera still (docs/odometry.md measures both).
-ATE RMSE of the whole pipeline, 300 frames (docs/odometry.md has every weighting):
+ATE RMSE of the whole pipeline, 300 frames (docs/odometry.md has every weighting; "paper" and
+"original-code" with least-squares ICP rows):
 
     320x240              corridor   floor      desk     dark
-    icp alone            473 mm     669 mm     1.9 mm   3.1 mm
+    icp alone            499 mm     625 mm     2.0 mm   3.9 mm
     rgbd alone           7.4 mm     23.4 mm    13.8 mm  353 mm (101 frames lost)
     "paper"              49.0 mm    501 mm     1.9 mm   2.9 mm
     "original-code"      5.2 mm     12.3 mm    12.5 mm  6.3 mm
-    "huber" (default)    10.3 mm    4.4 mm     1.9 mm   3.0 mm
+    "huber" (default)    9.2 mm     4.4 mm     2.0 mm   3.8 mm
 
     640x480              corridor   floor      desk     dark
-    icp alone            493 mm     530 mm     0.8 mm   0.8 mm
+    icp alone            616 mm     523 mm     0.8 mm   0.7 mm
     rgbd alone           2.1 mm     0.8 mm     5.5 mm   352 mm (101 frames lost)
-    "huber" (default)    4.6 mm     0.8 mm     0.8 mm   0.8 mm
+    "huber" (default)    2.9 mm     0.7 mm     0.8 mm   0.7 mm
 
-The default, "huber", is "degeneracy-aware" on Huber-weighted ICP rows (below): on redkitchen at
-640x480 it reaches 23.4 mm where least-squares rows reach 26.9 mm. It loses on the corridor at
-640x480, 2.2x RGB-D alone: ICP's bias there also sits in directions 3-5 % of its pairs observe.
+The default, "huber", is "degeneracy-aware" on ICP rows weighted by Huber's kernel and by the
+noise at each pair's depth (icp.py): on redkitchen at 640x480 it reaches 22.1 mm where
+least-squares rows reach 26.9 mm. RGB-D alone still does better on the corridors (1.39x at
+640x480, 1.24x at 320x240): ICP's remaining bias there sits in directions 3-5 % of its pairs
+observe.
 
 The other weightings:
 
@@ -67,7 +70,8 @@ The other weightings:
 - "elasticfusion": ElasticFusion's combination, which is the same formula with its own ICP
   weight of 10: the same system as "original-code".
 - "huber", "tukey": "degeneracy-aware" with the ICP rows robustly weighted by that M-estimator
-  (icp.py: IRLS weights of the point-to-plane residuals, scale config.icp.robust_noise). A
+  (icp.py: IRLS weights of the point-to-plane residuals, scale config.icp.robust_noise) and,
+  with config.icp.depth_noise, by the noise at each pair's depth. A
   robust kernel changes each pair's row, not the 6x6 combination, so it composes with any
   combination; these two names put it on the default one, where the question is whether cutting
   the worst-fitting pairs (the model's stray normals at depth edges) removes the bias ICP keeps
