@@ -51,12 +51,18 @@ def run_open3d(  # noqa: ANN001, PLR0913
     sequence, config: Config, frames: int | None, out: Path, scene: Path, band_voxels: float
 ) -> dict | None:
     """Open3D's frame-to-model tracker and fusion over the same frames, its truncation band
-    `band_voxels` voxels wide (None without open3d)."""
+    `band_voxels` voxels wide (None without open3d). Open3D raises where its tracking fails (a
+    singular system); the entry then says so and the other runs stand."""
     out.mkdir(parents=True, exist_ok=True)
     count = frames or len(sequence)
     mesh = out / "mesh.ply"
     voxel_size, max_depth = config.volume.voxel_size, config.preprocess.max_depth
-    row = pipeline_vs_open3d.run_open3d(sequence, voxel_size, max_depth, count, mesh, band_voxels)
+    try:
+        row = pipeline_vs_open3d.run_open3d(
+            sequence, voxel_size, max_depth, count, mesh, band_voxels
+        )
+    except RuntimeError as error:
+        return {"failed": str(error).strip().splitlines()[-1]}
     if row is None:
         return None
     entry: dict = {"ate_m": row["ate_mm"] / 1000.0}
@@ -105,6 +111,7 @@ def main() -> None:
             entry["mesh"] = mesh_distances(out / "mesh.ply", scene)
         summary[name] = entry
         print(name, json.dumps(entry, indent=1))
+        write_summary(args.out, summary)
     # Open3D's default band (8 voxels) and ours (config.volume.truncation)
     our_band = config.volume.truncation / config.volume.voxel_size
     for name, band_voxels in (("open3d", 8.0), ("open3d_our_band", our_band)):
@@ -112,7 +119,12 @@ def main() -> None:
         if entry is not None:
             summary[name] = entry
             print(name, json.dumps(entry, indent=1))
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+            write_summary(args.out, summary)
+
+
+def write_summary(out: Path, summary: dict) -> None:
+    """OUT/summary.json after every run, so that a run that fails later loses none of it."""
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
 if __name__ == "__main__":

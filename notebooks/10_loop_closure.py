@@ -200,7 +200,7 @@ assert residual.mean() < 0.005 and residual.max() < 0.02
 #   neither folds the map nor cancels a true loop beside it.
 # - The deformation graph bends the map as rigidly and smoothly as its pinned points allow.
 # - In a full run (`kintinuous reconstruct DATASET --out DIR --loop-closure`) the three work
-#   together: on the `revisit` scenario (the default tracker, 160x120) the ATE falls from 73
+#   together: on the `revisit` scenario (the default tracker, 160x120) the ATE falls from 72
 #   to 6.8 mm and the start, fused twice without loop closure, is one surface again
 #   (`docs/loop_closure.md`).
 #

@@ -24,11 +24,11 @@ def rmse(estimate: tum.Trajectory, truth: tum.Trajectory) -> float:
 
 @pytest.mark.slow
 def test_closing_the_revisit_loop(tmp_path):
-    """300 frames at 160x120 (one lap and a quarter), icp+rgbd (the default Huber-weighted
-    combination) on the cpu backend, a 4 m volume of 128^3: 20 s on a 2-core machine, a few
-    minutes while other jobs load it. Measured: 221 mm of drift at frame 240, ATE 73.2 mm
-    uncorrected and 6.8 mm corrected, mesh 12.0 mm from the true surface (1.5 % of it beyond
-    3 cm; without loop closure 20.2 mm and 10.9 %)."""
+    """300 frames at 160x120 (one lap and a quarter), icp+rgbd (the default combination) on the
+    cpu backend, a 4 m volume of 128^3: 20 s on a 2-core machine, a few minutes while other
+    jobs load it. Measured: 218 mm of drift at frame 240, ATE 72.2 mm uncorrected and 6.8 mm
+    corrected, mesh 12.2 mm from the true surface (1.6 % of it beyond 3 cm; without loop
+    closure 19.4 mm and 10.2 %)."""
     folder = synthetic.write_scenario("revisit", tmp_path / "revisit", 300, 160, 120)
     sequence = tum.open_sequence(folder)
     out = tmp_path / "run"
