@@ -408,6 +408,14 @@ assert condition["corridor"] > 10 * condition["desk"]
 #    returns $N I_3$.
 # 3. **Thresholds.** Set the angle threshold to 5 degrees and the distance threshold to 2 cm:
 #    how does the final error change? Check with `exercise_3` below (it prints both errors).
+# 4. **Weighing the pairs** (beyond the paper). The project's default `icp` weighs each pair
+#    by Huber's kernel and by the noise at its depth: the camera's axial noise
+#    $\sigma_a(z) = 1.2 + 1.9 (z - 0.4)^2$ mm ($z$ in metres) together with the model's
+#    voxelisation, voxel $/\sqrt{12}$ (`icp.pair_weights`, docs/odometry.md). What weight does a
+#    pair at 3 m keep relative to one at 1 m with this notebook's voxels? Rerun the coarse-to-fine
+#    solve with `robust_kernel="huber"` and `model_noise` set: does one frame pair show a
+#    difference? (Over whole sequences it does: docs/odometry.md measures 300-frame runs.)
+#    Check: `exercise_4()` below returns the weight and both errors.
 
 # %%
 big_motion = se3.exp(4 * se3.log(true_motion))
@@ -442,6 +450,36 @@ def exercise_3(distance: float = 0.02, angle_deg: float = 5.0) -> tuple[float, f
 
 
 exercise_3()
+
+
+def exercise_4() -> tuple[float, float, float]:
+    """(the weight of a pair at 3 m relative to 1 m, the final translation error in mm with
+    every pair alike, and with Huber and depth noise weights)."""
+    model_noise = config.volume.voxel_size / np.sqrt(12.0)
+    weight_at_3m = float(icp.depth_noise_scale(np.array([3.0]), model_noise)[0] ** 2)
+    errors = []
+    for kernel, noise in (("none", None), ("huber", model_noise)):
+        weighted = icp.IcpProblem(
+            current.levels,
+            preprocess.model_pyramid(model.vertices, model.normals, levels),
+            model.pose,
+            robust_kernel=kernel,
+            model_noise=noise,
+        )
+        pose, _ = refine(previous_pose.copy(), weighted.system, config.icp.iterations)
+        errors.append(pose_error(pose, current_pose)[0])
+    print(
+        f"exercise 4: a pair at 3 m weighs {weight_at_3m:.3f} of one at 1 m; final error "
+        f"{errors[0]:.2f} mm with every pair alike, {errors[1]:.2f} mm weighted"
+    )
+    return weight_at_3m, errors[0], errors[1]
+
+
+weight_at_3m, *_ = exercise_4()
+# sigma(1 m)^2 / sigma(3 m)^2 with sigma^2 = axial^2 + (voxel / sqrt(12))^2, by hand.
+voxel_variance = config.volume.voxel_size**2 / 12
+expected_weight = (0.001884**2 + voxel_variance) / (0.014044**2 + voxel_variance)
+assert abs(weight_at_3m - expected_weight) < 1e-4 * expected_weight
 
 
 def point_to_point_block(p: np.ndarray) -> np.ndarray:
