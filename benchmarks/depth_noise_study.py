@@ -38,6 +38,7 @@ MODEL_NOISES = {"11.7 mm voxels (640x480)": 3.0 / 256, "23.4 mm voxels (320x240)
 def position_errors(dataset: str, size: tuple[int, int], config: Config, frames: int) -> dict:
     """{label: (frame indices, position error in metres)} for each of RUNS."""
     path = str(open_dataset(dataset).path)
+    truth = tum.open_sequence(path).groundtruth_for_frames()
     errors = {}
     with tempfile.TemporaryDirectory() as scratch:
         for index, (label, method, depth_noise) in enumerate(RUNS):
@@ -49,10 +50,9 @@ def position_errors(dataset: str, size: tuple[int, int], config: Config, frames:
             if outcome.errors is None:
                 raise SystemExit(f"{label}: {outcome.reason}")
             estimate = tum.read_trajectory(Path(out) / "trajectory.txt")
-            truth = tum.open_sequence(path).groundtruth_for_frames()
             count = len(estimate.positions)
-            truth = tum.Trajectory(truth.timestamps[:count], truth.poses[:count])
-            errors[label] = metrics.absolute_trajectory_errors(estimate, truth)
+            same_frames = tum.Trajectory(truth.timestamps[:count], truth.poses[:count])
+            errors[label] = metrics.absolute_trajectory_errors(estimate, same_frames)
             rmse = 1000 * np.sqrt(np.mean(errors[label] ** 2))
             print(f"{label:42s} ATE {rmse:6.2f} mm", flush=True)
     return errors
