@@ -21,7 +21,7 @@ import numpy as np
 from kintinuous_ref import metrics
 from kintinuous_ref.config import Config, VolumeConfig
 from kintinuous_ref.datasets import tum
-from kintinuous_ref.odometry.icp import depth_noise_scale
+from kintinuous_ref.odometry.icp import depth_noise_scale, voxel_noise
 from kintinuous_ref.program.evaluation.runs import RunSpec, run_one
 from kintinuous_ref.program.reconstruct import open_dataset
 
@@ -67,7 +67,7 @@ def plot(errors: dict, title: str, path: Path) -> None:
     depths = np.linspace(0.4, 4.0, 200)
     figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
     for label, voxel in MODEL_NOISES.items():
-        left.plot(depths, depth_noise_scale(depths, voxel / np.sqrt(12.0)) ** 2, label=label)
+        left.plot(depths, depth_noise_scale(depths, voxel_noise(voxel)) ** 2, label=label)
     left.plot(depths, depth_noise_scale(depths, 0.0) ** 2, "--", label="axial noise alone")
     left.set(xlabel="depth of the pair (m)", ylabel="weight relative to a pair at 1 m",
              yscale="log", title="a pair's weight: its information")  # fmt: skip

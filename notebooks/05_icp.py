@@ -455,7 +455,7 @@ exercise_3()
 def exercise_4() -> tuple[float, float, float]:
     """(the weight of a pair at 3 m relative to 1 m, the final translation error in mm with
     every pair alike, and with Huber and depth noise weights)."""
-    model_noise = config.volume.voxel_size / np.sqrt(12.0)
+    model_noise = icp.voxel_noise(config.volume.voxel_size)
     weight_at_3m = float(icp.depth_noise_scale(np.array([3.0]), model_noise)[0] ** 2)
     errors = []
     for kernel, noise in (("none", None), ("huber", model_noise)):

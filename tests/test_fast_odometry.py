@@ -171,6 +171,36 @@ def test_make_tracker_backends_and_errors():
                        level.normals, np.eye(4), camera)  # fmt: skip
 
 
+def test_cpu_icp_helpers_are_the_reference_system_and_valid_count():
+    # icp_system_and_valid (from the maps) and icp_points_system (from the valid points,
+    # compacted once per level) are the halves of the CPU's icp_system that the per-frame
+    # problem calls: the reference's system with Huber and depth noise weights, and the number
+    # of valid current vertices the inlier fraction divides by.
+    from kintinuous_ref.odometry import icp as ref_icp
+
+    camera, previous, current, _, frame, model = cases.room(160, 120)
+    level, pose = frame.levels[0], cases.poses_to_try(previous, current)[-1]
+    noise, threshold = ref_icp.voxel_noise(3.0 / 256), ref_icp.robust_threshold("huber", 0.005)
+    reference = ref_icp.icp_system(level.vertices, level.normals, pose, *model[0], previous,
+                                   camera, 0.10, 20.0, "huber", 0.005, noise)  # fmt: skip
+    valid = ref_icp.valid_points(level.vertices, level.normals)[0].shape[1]
+    limits = (camera, 0.10, 20.0)
+    weights = ("huber", threshold, noise)
+    maps = (level.vertices, level.normals, *model[0])
+    system, count = cpu.icp_system_and_valid(*maps, pose, previous, *limits, *weights)
+    cases.assert_systems_close("icp_system_and_valid", system, reference)
+    assert count == valid
+    points = cpu.valid_points(level.vertices, level.normals)
+    system, count = cpu.icp_points_system(
+        points, *model[0], pose, previous, *limits, None, *weights
+    )
+    cases.assert_systems_close("icp_points_system", system, reference)
+    assert count == valid
+    # Images of different sizes: a one-line DatasetError naming the one that does not fit.
+    with pytest.raises(DatasetError, match=r"intensity_dy is \(120, 159\), expected \(120, 160\)"):
+        cpu.interest_points(level.intensity_dx, level.intensity_dy[:, 1:], 5.0)
+
+
 def test_fast_odometry_skips_the_finest_level():
     config = fast_odometry(Config())
     assert config.icp.iterations == (0, 5, 4)

@@ -86,7 +86,7 @@ import numpy as np
 from kintinuous_ref import se3
 from kintinuous_ref.config import CombinedConfig, Config
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.odometry.icp import IcpProblem
+from kintinuous_ref.odometry.icp import IcpProblem, voxel_noise
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
 
@@ -130,7 +130,7 @@ def icp_model_noise(method: str, config: Config) -> float | None:
         return None
     if method == "icp+rgbd" and config.combined.weighting not in ROBUST_WEIGHTINGS:
         return None
-    return config.volume.voxel_size / np.sqrt(12.0)
+    return voxel_noise(config.volume.voxel_size)
 
 
 def icp_scale(icp: LinearSystem) -> float:

@@ -97,6 +97,12 @@ def robust_weights(residuals: np.ndarray, kernel: str, threshold: float) -> np.n
     raise ConfigError(f"icp.robust_kernel must be one of {ROBUST_KERNELS}, got {kernel!r}")
 
 
+def voxel_noise(voxel_size: float) -> float:
+    """The model's noise for the depth noise weights: a uniform error over one voxel,
+    voxel / sqrt(12) (module docstring)."""
+    return voxel_size / float(np.sqrt(12.0))
+
+
 def depth_noise_scale(depths: np.ndarray, model_noise: float) -> np.ndarray:
     """s = sigma(REFERENCE_DEPTH) / sigma(z) of pairs at camera depths z, with sigma(z)^2 =
     axial_noise(z)^2 + model_noise^2 (module docstring)."""
