@@ -47,6 +47,7 @@ def main() -> None:
         choices=[kernel for kernel in ROBUST_KERNELS if kernel != "none"],
         help="also run `icp` alone with each of these icp.robust_kernel values",
     )
+    parser.add_argument("--backend", default="cpu", help="ref, cpu or cuda (default: cpu)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     parser.add_argument(
         "--set",
@@ -81,7 +82,7 @@ def main() -> None:
                     config,
                     frames=args.frames,
                     size=(width, height),
-                    backend="cpu",
+                    backend=args.backend,
                 )
                 outcome = run_one(spec)
                 ate = outcome.errors["ate_rmse"] * 1000 if outcome.errors else None

@@ -3,11 +3,30 @@
 # CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 256^3 and 512^3.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
-# Writes cuda_tests.log and bench_cuda_{256,512}.json into OUT_DIR (default: the current folder).
+# Writes cuda_tests.log, bench_cuda_{256,512}.json, ate_cuda.json and bench_ref_256.json into
+# OUT_DIR (default: the current folder).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
+# The backends are entry points: where the package is not installed (a bare GPU machine, no
+# index to install from), a folder with its metadata alone makes them discoverable.
+if ! python3 -c "import importlib.metadata as m; m.distribution('kintinuous')" 2>/dev/null; then
+    metadata=${TMPDIR:-/tmp}/kintinuous-metadata
+    rm -rf "$metadata" && mkdir -p "$metadata"
+    python3 - "$metadata" <<'PY'
+import pathlib, sys, tomllib
+project = tomllib.loads(pathlib.Path("pyproject.toml").read_text())["project"]
+info = pathlib.Path(sys.argv[1]) / "kintinuous-0.0.0+source.dist-info"
+info.mkdir()
+info.joinpath("METADATA").write_text("Metadata-Version: 2.1\nName: kintinuous\nVersion: 0.0.0+source\n")
+groups = project["entry-points"]
+info.joinpath("entry_points.txt").write_text("".join(
+    f"[{group}]\n" + "".join(f"{name} = {target}\n" for name, target in points.items())
+    for group, points in groups.items()))
+PY
+    export PYTHONPATH=$PYTHONPATH:$metadata
+fi
 date -u
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', numpy.__version__)"
@@ -23,6 +42,9 @@ for resolution in 256 512; do
     echo "benchmark $resolution^3: exit $?, $(($(date +%s) - start)) s wall, compilation included"
     python3 -m json.tool "$out/bench_cuda_$resolution.json" | head -60
 done
+# the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
+timeout 150 python3 benchmarks/combined_weightings.py "$data" --size 640x480 --resolution 256 \
+    --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
 # the NumPy reference on the same machine, for the ratio (a few frames: seconds each)
 timeout 120 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend ref "${@:3}" --frames 4 \
     --json >"$out/bench_ref_256.json"
