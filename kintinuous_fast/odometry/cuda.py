@@ -125,9 +125,10 @@ def _block_reduce(acc, shared, partials):
 
 
 @cuda.jit
-def _icp_kernel(vertices, normals, pose, to_model, mv, mn, camera, limits, robust, out):
-    # `camera` = (fx, fy, cx, cy), `limits` = (squared distance, cos angle), `robust` =
-    # host.robust_terms
+def _icp_kernel(vertices, normals, poses, mv, mn, camera, limits, robust, out):
+    # `poses` = (pose, current camera to model camera) stacked, `camera` = (fx, fy, cx, cy),
+    # `limits` = (squared distance, cos angle), `robust` = host.robust_terms
+    pose, to_model = poses[0], poses[1]
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     _zero(acc)
@@ -152,7 +153,8 @@ def _icp_kernel(vertices, normals, pose, to_model, mv, mn, camera, limits, robus
 
 
 @cuda.jit
-def _associate_kernel(points, normals, pose, to_model, mv, mn, camera, limits, count, out):
+def _associate_kernel(points, normals, poses, mv, mn, camera, limits, count, out):
+    pose, to_model = poses[0], poses[1]
     k = cuda.grid(1)
     if k < points.shape[1]:
         point = (points[0, k], points[1, k], points[2, k])
@@ -254,8 +256,7 @@ def _correspond_kernel(
     points,
     intensity,
     gradient,
-    relative,
-    pose,
+    poses,
     depth,
     prev_i,
     prev_dx,
@@ -263,12 +264,13 @@ def _correspond_kernel(
     warped,
     camera,
     max_change,
-    count,
-    squares,
+    tally,
     pairs,
 ):
     """Algorithm 2: kept pairs listed per block in shared memory, then each adds r^2 to the
-    global sum and takes its slot in the global list with atomics."""
+    global sum (tally[1]) and takes its slot in the global list (counted in tally[0], a float64
+    that counts exactly to 2^53) with atomics. `poses` = (relative, pose, previous) stacked."""
+    relative, pose = poses[0], poses[1]
     local = cuda.shared.array(BLOCK, int64)
     local_r = cuda.shared.array(BLOCK, float64)
     local_count = cuda.shared.array(1, int32)
@@ -300,8 +302,8 @@ def _correspond_kernel(
     cuda.syncthreads()
     if t < local_count[0]:
         r = local_r[t]
-        cuda.atomic.add(squares, 0, r * r)
-        pairs[cuda.atomic.add(count, 0, 1)] = local[t]
+        cuda.atomic.add(tally, 1, r * r)
+        pairs[int(cuda.atomic.add(tally, 0, 1.0))] = local[t]
 
 
 @cuda.jit
@@ -311,8 +313,7 @@ def _correspondence_data_kernel(
     points,
     intensity,
     gradient,
-    relative,
-    pose,
+    poses,
     depth,
     prev_i,
     prev_dx,
@@ -325,6 +326,7 @@ def _correspondence_data_kernel(
     warped_points,
     used_gradient,
 ):
+    relative, pose = poses[0], poses[1]
     j = cuda.grid(1)
     if j < n_pairs:
         ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
@@ -351,12 +353,11 @@ def _correspondence_data_kernel(
 @cuda.jit
 def _rgbd_rows_kernel(
     pairs,
-    n_pairs,
+    tally,
     points,
     intensity,
     gradient,
-    relative,
-    pose,
+    poses,
     depth,
     prev_i,
     prev_dx,
@@ -364,14 +365,17 @@ def _rgbd_rows_kernel(
     warped,
     camera,
     max_change,
-    previous_pose,
-    sigma,
     out,
 ):
-    """The robustly weighted photometric rows of the listed pairs, tree-reduced per block."""
+    """The robustly weighted photometric rows of the listed pairs, tree-reduced per block. The
+    pair count and sum of r^2 are read from `tally` where _correspond_kernel left them, so the
+    host waits for neither: sigma' = sqrt(sum r^2 / count), as the host computed it."""
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     _zero(acc)
+    relative, pose, previous_pose = poses[0], poses[1], poses[2]
+    n_pairs = int(tally[0])
+    sigma = math.sqrt(tally[1] / n_pairs) if n_pairs > 0 else 0.0
     for j in range(cuda.grid(1), n_pairs, cuda.gridsize(1)):
         ok, r, wx, wy, wz, x, y, z, gx, gy = warp_point(
             points,
@@ -490,8 +494,7 @@ def icp_system_and_valid(
     _icp_kernel[blocks, BLOCK](
         stage(vertices),
         stage(normals),
-        cuda.to_device(pose),
-        cuda.to_device(to_model),
+        cuda.to_device(np.stack((pose, to_model))),
         stage(model_vertices),
         stage(model_normals),
         pinhole(camera),
@@ -564,8 +567,7 @@ def associate(
     _associate_kernel[grid_1d(n, BLOCK), BLOCK](
         _f64(points),
         _f64(point_normals),
-        cuda.to_device(pose),
-        cuda.to_device(to_model),
+        cuda.to_device(np.stack((pose, to_model))),
         model_v,
         model_n,
         pinhole(camera),
@@ -693,18 +695,19 @@ def _pair_arguments(
     previous_dx,
     previous_dy,
 ) -> tuple:
-    """The arguments warp_point needs, on the device, in the kernels' order."""
+    """The arguments warp_point needs, on the device, in the kernels' order; the three poses
+    (relative, current, previous) go up as one array, one copy per iteration."""
     shape = (camera.height, camera.width)
     host.check_image("previous depth image", previous_depth, shape)
     host.check_image("previous intensity image", previous_intensity, shape)
     prev_i = stage(previous_intensity)
     warped = previous_dx is not None and previous_dy is not None
+    poses = (host.relative_pose(pose, previous_pose), pose, previous_pose)
     return (
         _f64(points.points),
         _f64(points.intensity),
         _f64(points.gradient),
-        cuda.to_device(host.relative_pose(pose, previous_pose)),
-        cuda.to_device(np.ascontiguousarray(pose, dtype=np.float64)),
+        cuda.to_device(np.stack(poses).astype(np.float64)),
         stage(previous_depth),
         prev_i,
         stage(previous_dx) if warped else prev_i,
@@ -716,13 +719,12 @@ def _pair_arguments(
 
 
 def _pair_list(arguments: tuple, n: int):
-    """Algorithm 2 on the device: (pair list, count, sum of r^2)."""
-    count = _counter()
-    squares = cuda.to_device(np.zeros(1))
+    """Algorithm 2 on the device: (pair list, tally = [count, sum of r^2]), both left there."""
+    tally = cuda.to_device(np.zeros(2))
     pairs = cuda.device_array(max(n, 1), dtype=np.int64)
     if n:
-        _correspond_kernel[grid_1d(n, BLOCK), BLOCK](*arguments, count, squares, pairs)
-    return pairs, int(count.copy_to_host()[0]), float(squares.copy_to_host()[0])
+        _correspond_kernel[grid_1d(n, BLOCK), BLOCK](*arguments, tally, pairs)
+    return pairs, tally
 
 
 def correspond(
@@ -750,7 +752,8 @@ def correspond(
         previous_dy,
     )
     n = points.points.shape[1]
-    pairs, kept, _ = _pair_list(arguments, n)
+    pairs, tally = _pair_list(arguments, n)
+    kept = int(tally.copy_to_host()[0])
     size = max(kept, 1)
     residuals = cuda.device_array(size, dtype=np.float64)
     world = cuda.device_array((3, size), dtype=np.float64)
@@ -801,8 +804,8 @@ def rgbd_system(
     previous_dy=None,
 ) -> LinearSystem:
     """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted:
-    Algorithm 2 (list + sum r^2 by atomics), sigma' on the host, then the weighted rows of the
-    listed pairs tree-reduced per block."""
+    Algorithm 2 (list + sum r^2 by atomics), then sigma' and the weighted rows of the listed
+    pairs tree-reduced per block; the host waits only for the block partials."""
     arguments = _pair_arguments(
         points,
         pose,
@@ -814,14 +817,13 @@ def rgbd_system(
         previous_dx,
         previous_dy,
     )
-    pairs, kept, squares = _pair_list(arguments, points.points.shape[1])
-    if kept == 0:
+    n = points.points.shape[1]
+    if n == 0:
         return LinearSystem.empty()
-    sigma = math.sqrt(squares / kept)
-    blocks = _reduction_blocks(kept)
+    pairs, tally = _pair_list(arguments, n)
+    blocks = _reduction_blocks(n)  # enough for every interest point kept: no count to wait for
     out = cuda.device_array((blocks, NV), dtype=np.float64)
-    previous = cuda.to_device(np.ascontiguousarray(previous_pose, dtype=np.float64))
-    _rgbd_rows_kernel[blocks, BLOCK](pairs, kept, *arguments, previous, sigma, out)
+    _rgbd_rows_kernel[blocks, BLOCK](pairs, tally, *arguments, out)
     return host.sum_partials(out.copy_to_host())[0]
 
 
