@@ -182,6 +182,7 @@ class Crossings:
         from numba import cuda
 
         self.log: list[tuple[str, tuple[int, ...]]] = []
+        self._copying_in = 0  # inside copy_to_device: the simulator's reads are the upload's
         upload = cuda.to_device
 
         def to_device(array, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
@@ -190,11 +191,28 @@ class Crossings:
 
         monkeypatch.setattr(cuda, "to_device", to_device)
         if cuda_is_simulated():
+            from numba.cuda.simulator.cudadrv.devicearray import FakeCUDAArray as device_array
+
             self._watch_simulator(monkeypatch)
         else:
-            from numba.cuda.cudadrv.devicearray import DeviceNDArrayBase
+            from numba.cuda.cudadrv.devicearray import DeviceNDArrayBase as device_array
 
-            self._watch_downloads(monkeypatch, DeviceNDArrayBase)
+            self._watch_downloads(monkeypatch, device_array)
+        self._watch_copies_in(monkeypatch, device_array)
+
+    def _watch_copies_in(self, monkeypatch: pytest.MonkeyPatch, cls: type) -> None:
+        """copy_to_device, a host array copied into an existing device array, is an upload."""
+        copy_in = cls.copy_to_device
+
+        def copy_to_device(array, source, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+            self.log.append(("up", tuple(np.shape(source))))
+            self._copying_in += 1
+            try:
+                return copy_in(array, source, *args, **kwargs)
+            finally:
+                self._copying_in -= 1
+
+        monkeypatch.setattr(cls, "copy_to_device", copy_to_device)
 
     def _watch_downloads(self, monkeypatch: pytest.MonkeyPatch, cls: type) -> None:
         download = cls.copy_to_host
@@ -217,7 +235,7 @@ class Crossings:
         attribute = FakeCUDAArray.__getattr__
 
         def getattr_(array, name):  # noqa: ANN001, ANN202
-            if name not in metadata:
+            if name not in metadata and not self._copying_in:
                 self.log.append((f"down (NumPy reads .{name})", tuple(array._ary.shape)))
             return attribute(array, name)
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import Any
 
 import numpy as np
 from numba import cuda, float64, int32, int64
@@ -452,6 +453,32 @@ def _reduction_blocks(count: int) -> int:
     return min(grid_1d(count, BLOCK), MAX_BLOCKS)
 
 
+# Device arrays reused from one Gauss-Newton iteration to the next: creating one costs numba
+# more host time (an allocation through the driver, a Python object, its finalizer) than the
+# kernels it feeds take on the GPU. Only for arrays a call writes and reads back itself: the
+# copies and kernels of the one stream run in order, so a later call's writes wait for them.
+_SCRATCH: dict[tuple, Any] = {}
+
+
+def _scratch(name: str, shape: tuple[int, ...], dtype: Any = np.float64) -> Any:
+    key = (name, shape, np.dtype(dtype))
+    if key not in _SCRATCH:
+        _SCRATCH[key] = cuda.device_array(shape, dtype=dtype)
+    return _SCRATCH[key]
+
+
+def _upload(name: str, array: np.ndarray) -> Any:
+    """`array` copied into the scratch device array `name` of its shape and type."""
+    device = _scratch(name, array.shape, array.dtype)
+    device.copy_to_device(np.ascontiguousarray(array))
+    return device
+
+
+def _rounded_up(count: int) -> int:
+    """The power of two at or above `count` (>= 1): few shapes, so few scratch arrays."""
+    return 1 << max(count - 1, 0).bit_length()
+
+
 def _back(array, given):
     """`array` (device) returned where `given` lives."""
     return array if is_device(given) else array.copy_to_host()
@@ -490,11 +517,11 @@ def icp_system_and_valid(
         pose, model_pose, distance_threshold, angle_threshold_deg
     )
     blocks = _reduction_blocks(camera.height * camera.width)
-    out = cuda.device_array((blocks, NV), dtype=np.float64)
+    out = _scratch("icp partials", (blocks, NV))
     _icp_kernel[blocks, BLOCK](
         stage(vertices),
         stage(normals),
-        cuda.to_device(np.stack((pose, to_model))),
+        _upload("icp poses", np.stack((pose, to_model))),
         stage(model_vertices),
         stage(model_normals),
         pinhole(camera),
@@ -707,7 +734,7 @@ def _pair_arguments(
         _f64(points.points),
         _f64(points.intensity),
         _f64(points.gradient),
-        cuda.to_device(np.stack(poses).astype(np.float64)),
+        _upload("rgbd poses", np.stack(poses).astype(np.float64)),
         stage(previous_depth),
         prev_i,
         stage(previous_dx) if warped else prev_i,
@@ -718,10 +745,12 @@ def _pair_arguments(
     )
 
 
-def _pair_list(arguments: tuple, n: int):
-    """Algorithm 2 on the device: (pair list, tally = [count, sum of r^2]), both left there."""
-    tally = cuda.to_device(np.zeros(2))
-    pairs = cuda.device_array(max(n, 1), dtype=np.int64)
+def _pair_list(arguments: tuple, n: int, pairs=None):
+    """Algorithm 2 on the device: (pair list, tally = [count, sum of r^2]), both left there;
+    `pairs`: the list's array (at least n long), else a new one."""
+    tally = _upload("rgbd tally", np.zeros(2))
+    if pairs is None:
+        pairs = cuda.device_array(max(n, 1), dtype=np.int64)
     if n:
         _correspond_kernel[grid_1d(n, BLOCK), BLOCK](*arguments, tally, pairs)
     return pairs, tally
@@ -820,9 +849,11 @@ def rgbd_system(
     n = points.points.shape[1]
     if n == 0:
         return LinearSystem.empty()
-    pairs, tally = _pair_list(arguments, n)
-    blocks = _reduction_blocks(n)  # enough for every interest point kept: no count to wait for
-    out = cuda.device_array((blocks, NV), dtype=np.float64)
+    pairs = _scratch("rgbd pairs", (_rounded_up(n),), np.int64)
+    pairs, tally = _pair_list(arguments, n, pairs)
+    # enough blocks for every interest point kept: no count to wait for
+    blocks = _rounded_up(_reduction_blocks(n))
+    out = _scratch("rgbd partials", (blocks, NV))
     _rgbd_rows_kernel[blocks, BLOCK](pairs, tally, *arguments, out)
     return host.sum_partials(out.copy_to_host())[0]
 
