@@ -3,8 +3,8 @@
 # CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 256^3 and 512^3.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
-# Writes cuda_tests.log, bench_cuda_{256,512}.json, ate_cuda.json and bench_ref_256.json into
-# OUT_DIR (default: the current folder).
+# Writes cuda_tests.log, bench_cuda_{256,512}.json, ate_cuda.json, profile.txt, cuda_warm.prof
+# and bench_ref_256.json into OUT_DIR (default: the current folder).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
@@ -45,6 +45,9 @@ done
 # the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
 timeout 150 python3 benchmarks/combined_weightings.py "$data" --size 640x480 --resolution 256 \
     --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
+# where the warm pipeline's host time goes (launches, uploads): profile.txt and cuda_warm.prof
+timeout 100 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 30 \
+    --top 40 --out "$out/cuda_warm.prof" >"$out/profile.txt" 2>/dev/null
 # the NumPy reference on the same machine, for the ratio (a few frames: seconds each)
 timeout 120 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend ref "${@:3}" --frames 4 \
     --json >"$out/bench_ref_256.json"
