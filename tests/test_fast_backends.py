@@ -1,6 +1,7 @@
 """Backend selection, the `kintinuous info` command, and the CUDA equivalence tests run on numba's
 CUDA simulator in a child process (the simulator must be enabled before numba is imported)."""
 
+import warnings
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,22 @@ def test_backends_that_always_work():
     assert set(status) == {"ref", "cpu", "cuda"}
     assert status["ref"] == "" and status["cpu"] == ""
     assert status["cuda"] == kintinuous_fast.cuda_status() or "does not work" in status["cuda"]
+
+
+def test_only_the_small_grid_warning_is_silenced():
+    """numba's low-occupancy warning (once per grid size: hundreds of lines in a run) is off;
+    its other performance warnings are not. The messages are numba's own (bold included)."""
+    from numba.core.errors import NumbaPerformanceWarning
+
+    from kintinuous_fast.targets.cuda import quiet_small_grids
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet_small_grids()
+        small = "Grid size 8 will likely result in GPU under-utilization due to low occupancy."
+        warnings.warn(NumbaPerformanceWarning(small), stacklevel=1)
+        warnings.warn(NumbaPerformanceWarning("Host array used in CUDA kernel"), stacklevel=1)
+    assert len(caught) == 1 and "Host array used in CUDA kernel" in str(caught[0].message)
 
 
 def test_select_backend_modules_and_auto():

@@ -9,6 +9,7 @@ tests use). Runs on numba's CUDA simulator too (NUMBA_ENABLE_CUDASIM=1), very sl
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,20 @@ from numba import cuda
 BLOCK_2D = (16, 16)
 # Threads per block of 1-D kernels (voxel columns, lists).
 BLOCK_1D = 128
+
+# numba warns of every launch of fewer than 128 blocks, once per grid size. The coarse pyramid
+# levels, the interest-point and pair lists and the reductions launch such grids by design
+# (their work is small, not spread thin), so a run would print hundreds of these lines into its
+# progress bar. (numba may wrap its messages in a terminal's bold: \x1b[1m ... \x1b[0m.)
+SMALL_GRID_WARNING = r"(?:\x1b\[[0-9;]*m)?Grid size \d+ will likely result in GPU under-utilization"
+
+
+def quiet_small_grids() -> None:
+    """Silence numba's low-occupancy warning (SMALL_GRID_WARNING), and only that one."""
+    warnings.filterwarnings("ignore", message=SMALL_GRID_WARNING)
+
+
+quiet_small_grids()
 
 
 def is_device(array: Any) -> bool:
