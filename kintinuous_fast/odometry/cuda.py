@@ -32,7 +32,15 @@ from numba import cuda, float64, int32, int64
 from kintinuous_fast.odometry import host
 from kintinuous_fast.preprocess.cuda import model_pyramid
 from kintinuous_fast.targets import cuda_device_jit, pinhole
-from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, is_device, to_device
+from kintinuous_fast.targets.cuda import (
+    BLOCK_1D,
+    BLOCK_2D,
+    grid_1d,
+    grid_2d,
+    is_device,
+    like_input,
+    to_device,
+)
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
@@ -474,14 +482,12 @@ def _upload(name: str, array: np.ndarray) -> Any:
     return device
 
 
+_EMPTY_TALLY = np.zeros(2)  # [pairs listed, sum of their r^2] before Algorithm 2
+
+
 def _rounded_up(count: int) -> int:
     """The power of two at or above `count` (>= 1): few shapes, so few scratch arrays."""
     return 1 << max(count - 1, 0).bit_length()
-
-
-def _back(array, given):
-    """`array` (device) returned where `given` lives."""
-    return array if is_device(given) else array.copy_to_host()
 
 
 def _counter(dtype=np.int32):
@@ -594,7 +600,7 @@ def associate(
     _associate_kernel[grid_1d(n, BLOCK), BLOCK](
         _f64(points),
         _f64(point_normals),
-        cuda.to_device(np.stack((pose, to_model))),
+        _upload("icp poses", np.stack((pose, to_model))),
         model_v,
         model_n,
         pinhole(camera),
@@ -603,7 +609,7 @@ def associate(
         out,
     )
     kept = int(count.copy_to_host()[0])
-    pairs = _back(out[:, :kept], points)
+    pairs = like_input(out[:, :kept], points)
     return pairs[0:3], pairs[3:6], pairs[6:9]
 
 
@@ -617,7 +623,7 @@ def point_to_plane_rows(world, model_vertices, model_normals) -> tuple:
     _point_to_plane_kernel[grid_1d(n, BLOCK), BLOCK](
         _f64(world), _f64(model_vertices), _f64(model_normals), jacobian, residuals
     )
-    return _back(jacobian, world), _back(residuals, world)
+    return like_input(jacobian, world), like_input(residuals, world)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -671,7 +677,7 @@ def interest_points(intensity_dx, intensity_dy, min_gradient: float):
     """Algorithm 1: flat indices of the pixels with dx^2 + dy^2 >= g^2 (atomic order)."""
     host.check_image("intensity_dy", intensity_dy, intensity_dx.shape)
     indices, _ = _interest_list(stage(intensity_dx), stage(intensity_dy), None, min_gradient, 0)
-    return _back(indices, intensity_dx)
+    return like_input(indices, intensity_dx)
 
 
 def prepare_level(
@@ -748,7 +754,7 @@ def _pair_arguments(
 def _pair_list(arguments: tuple, n: int, pairs=None):
     """Algorithm 2 on the device: (pair list, tally = [count, sum of r^2]), both left there;
     `pairs`: the list's array (at least n long), else a new one."""
-    tally = _upload("rgbd tally", np.zeros(2))
+    tally = _upload("rgbd tally", _EMPTY_TALLY)
     if pairs is None:
         pairs = cuda.device_array(max(n, 1), dtype=np.int64)
     if n:
@@ -794,11 +800,11 @@ def correspond(
         )
     given = points.points
     return Correspondences(
-        _back(world[:, :kept], given),
-        _back(warped_points[:, :kept], given),
-        _back(residuals[:kept], given),
-        _back(gradient[:, :kept], given),
-        _back(pairs[:kept], given),
+        like_input(world[:, :kept], given),
+        like_input(warped_points[:, :kept], given),
+        like_input(residuals[:kept], given),
+        like_input(gradient[:, :kept], given),
+        like_input(pairs[:kept], given),
     )
 
 
@@ -818,7 +824,7 @@ def photometric_rows(
         (float(camera.fx), float(camera.fy)),
         jacobian,
     )
-    return _back(jacobian, correspondences.world), correspondences.residuals
+    return like_input(jacobian, correspondences.world), correspondences.residuals
 
 
 def rgbd_system(
