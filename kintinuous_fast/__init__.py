@@ -1,10 +1,10 @@
 """kintinuous_fast: the functions of kintinuous_ref with the same names and signatures, compiled
-with numba: CUDA kernels where a GPU is present, parallel CPU loops (`prange`) where not.
+with numba: CUDA kernels where a GPU is present, CPU loops run on several threads where not.
 
 The package mirrors kintinuous_ref stage by stage. Each stage is a package with the same
 three files: `ops.py`, its per-element maths written once (filter one pixel, update one voxel,
 march one ray, one pair's rows of the normal equations) and compiled for both targets; `cpu.py`,
-the prange loops around it; `cuda.py`, the kernels around it.
+the loops around it (targets/cpu.py runs them on all threads); `cuda.py`, the kernels around it.
 
     preprocess/   ops.py cpu.py cuda.py, host.py (weight tables, checks, the stage order)
     tsdf/         ops.py (integrate one voxel), voxel.py (the stored voxel), volume.py

@@ -1,7 +1,7 @@
 """The cpu and cuda backends: kintinuous_ref.backend.Backend over this package's stage modules.
 
 Every stage has one package here with the same layout (docs/architecture.md): `ops.py` holds its
-per-element maths once, `cpu.py` the numba prange loops around it and `cuda.py` the numba.cuda
+per-element maths once, `cpu.py` the numba loops around it and `cuda.py` the numba.cuda
 kernels, so a backend's stage module is `kintinuous_fast.<stage>.<backend>`. The two factories
 below are the entry points pyproject.toml registers in the `kintinuous.backends` group.
 """

@@ -300,8 +300,8 @@ plt.show()
 # %% [markdown]
 # ## The same with `kintinuous_fast`
 #
-# `kintinuous_fast` compiles the same per-voxel and per-ray arithmetic with numba (CPU `prange`
-# loops here; CUDA kernels where a GPU is present) and stores 8 bytes per voxel: the TSDF as
+# `kintinuous_fast` compiles the same per-voxel and per-ray arithmetic with numba (CPU loops
+# on all threads here; CUDA kernels where a GPU is present) and stores 8 bytes per voxel: the TSDF as
 # int16 scaled by 32767 and the weight as int16. So the fast volume equals the reference up to
 # the rounding of each update, at most half a step of 1/32767 per fused frame.
 

@@ -199,7 +199,6 @@ def test_cpu_integration_visits_every_voxel_the_reference_updates(pose_index):
     hold an update, from a max pyramid of lambda D) hold every voxel that the reference's
     integration of the frame updates, and leave out a real share of the frustum's voxels
     (those far behind the wall)."""
-    from kintinuous_fast.targets import pinhole
     from kintinuous_fast.tsdf.volume import camera_frame_steps, frustum_box
 
     height, width, n = 120, 160, 64
@@ -214,8 +213,7 @@ def test_cpu_integration_visits_every_voxel_the_reference_updates(pose_index):
 
     fast = cpu_tsdf.make_volume(config, fe.moving_poses(1)[0])
     box = frustum_box(fast, float(depth.max()), pose, camera)
-    ray_distance = np.empty(depth.size + 1, dtype=np.float32)
-    cpu_tsdf._ray_distance_loop(depth, pinhole(camera), ray_distance)
+    ray_distance = cpu_tsdf.ray_distances(depth.astype(np.float32), camera)
     base, steps = camera_frame_steps(fast, pose)
     visit = cpu_tsdf._columns_to_visit(fast, box, base, steps, camera, ray_distance, pose)
     bundle = visit[updated[:, 0] // cpu_tsdf.CULL_BRICK[0], updated[:, 1] // cpu_tsdf.CULL_BRICK[1]]

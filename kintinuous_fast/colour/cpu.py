@@ -1,16 +1,15 @@
 # ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
-"""kintinuous_ref.colour's colour_weights on the CPU: one prange loop over rows around
+"""kintinuous_ref.colour's colour_weights on the CPU: one loop over rows (run on all threads) around
 kintinuous_fast.tsdf.ops.colour_weight (the reference's three whole-image NumPy passes took
 2.7 ms at 640x480, ~15 % of a frame's integration stage; this loop ~0.2 ms). Bit-identical.
 """
 
 from __future__ import annotations
 
-import numba
 import numpy as np
-from numba import prange
 
 from kintinuous_fast.targets import cpu_jit_numpy_errors
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_ref.config import ColourConfig
 from kintinuous_ref.preprocess import PreprocessedFrame
@@ -20,9 +19,9 @@ __all__ = ["colour_weights"]
 colour_weight = integration.build_ops(cpu_jit_numpy_errors).colour_weight
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
-def _weights_loop(depth, mask, normals, use_mask, use_angle, out):
-    for v in prange(depth.shape[0]):
+@parallel_part(error_model="numpy")
+def _weights_loop(claims, parts, depth, mask, normals, use_mask, use_angle, out):
+    for v in claimed_items(claims, depth.shape[0], parts):
         for u in range(depth.shape[1]):
             nz = normals[v, u, 2]
             out[v, u] = colour_weight(depth[v, u], mask[v, u], nz, use_mask, use_angle)
@@ -32,7 +31,8 @@ def colour_weights(frame: PreprocessedFrame, config: ColourConfig) -> np.ndarray
     """Weight (H, W) float32 of each pixel's colour update; 0 = do not update (paper VI-B)."""
     depth = np.ascontiguousarray(frame.depth, dtype=np.float32)
     out = np.empty(depth.shape, dtype=np.float32)
-    _weights_loop(
+    run_parallel(
+        _weights_loop,
         depth,
         np.asarray(frame.colour_mask, dtype=np.bool_),
         np.asarray(frame.levels[0].normals, dtype=np.float32),

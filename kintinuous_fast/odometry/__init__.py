@@ -3,7 +3,7 @@
 The NumPy specification these kernels match is ``kintinuous_ref.odometry``; the modules here
 have its public names and signatures:
 
-- ``kintinuous_fast.odometry.cpu``:  numba prange loops with fixed-chunk float64 partial sums
+- ``kintinuous_fast.odometry.cpu``:  numba loops, on all threads, with fixed-chunk float64 sums
   (deterministic on any thread count; lists in the reference's order),
 - ``kintinuous_fast.odometry.cuda``: CUDA kernels following the paper's GPU design (section IV-A):
   the interest-point list built per block in shared memory with one atomic per block

@@ -1,5 +1,5 @@
 # ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
-"""kintinuous_ref.odometry on the CPU: numba prange loops around kintinuous_fast.odometry.ops.
+"""kintinuous_ref.odometry on the CPU: loops on all threads around kintinuous_fast.odometry.ops.
 
 Same public names, signatures and results as the reference modules icp.py, rgbd.py, solve.py and
 combined.py (tests/test_fast_odometry.py states the tolerances). The normal equations are summed
@@ -15,11 +15,16 @@ import sys
 
 import numba
 import numpy as np
-from numba import prange
 
 from kintinuous_fast.odometry import host
 from kintinuous_fast.targets import pinhole
-from kintinuous_fast.targets.cpu import run_parallel_above
+from kintinuous_fast.targets.cpu import (
+    claim_slot,
+    claimed_items,
+    parallel_part,
+    run_parallel_above,
+    threads,
+)
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
@@ -95,7 +100,8 @@ photometric_row = _ops.photometric_row
 robust_weight = _ops.robust_weight
 add_row = _ops.add_row
 
-_loop = numba.njit(parallel=True, cache=True)
+_loop = parallel_part()
+_allocating_loop = parallel_part(_nrt=True)  # for loops with work arrays of their own
 
 
 # ----------------------------------------------------------------------------------------------
@@ -103,9 +109,9 @@ _loop = numba.njit(parallel=True, cache=True)
 
 
 @_loop
-def _valid_counts(vertices, normals, counts):
+def _valid_counts(claims, parts, vertices, normals, counts):
     """counts[v] = the valid current points (finite vertex and normal) of row v."""
-    for v in prange(vertices.shape[0]):
+    for v in claimed_items(claims, vertices.shape[0], parts):
         count = 0
         for u in range(vertices.shape[1]):
             count += map_point(vertices, normals, v, u)[0]
@@ -113,10 +119,10 @@ def _valid_counts(vertices, normals, counts):
 
 
 @_loop
-def _compact_loop(vertices, normals, starts, points):
+def _compact_loop(claims, parts, vertices, normals, starts, points):
     """The valid current points as columns (px, py, pz, nx, ny, nz) in row-major order, row v's
     from column starts[v]."""
-    for v in prange(vertices.shape[0]):
+    for v in claimed_items(claims, vertices.shape[0], parts):
         k = starts[v]
         for u in range(vertices.shape[1]):
             ok, px, py, pz, nx, ny, nz = map_point(vertices, normals, v, u)
@@ -241,14 +247,14 @@ def _block_work(dtype):
     )
 
 
-@_loop
-def _icp_loop(points, pose, to_model, mv, mn, camera, limits, robust, out):
+@_allocating_loop
+def _icp_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, robust, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
     out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). `robust` =
     host.robust_terms: the weights of the rows."""
     n = points.shape[1]
     chunks = out.shape[0]
-    for c in prange(chunks):
+    for c in claimed_items(claims, chunks, parts):
         acc = np.zeros(NV)
         work = _block_work(mv.dtype)
         pair_matrix = work[3].reshape((8, BLOCK))
@@ -266,13 +272,13 @@ def _icp_loop(points, pose, to_model, mv, mn, camera, limits, robust, out):
         out[c] = acc
 
 
-@_loop
-def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, limits, out):
+@_allocating_loop
+def _icp_pairs_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, out):
     """out[c] = (valid current points, ICP pairs) of chunk c: the counts of _icp_loop without
     its sums."""
     n = points.shape[1]
     chunks = out.shape[0]
-    for c in prange(chunks):
+    for c in claimed_items(claims, chunks, parts):
         work = _block_work(mv.dtype)
         kept = work[3][7 * BLOCK :]
         start, stop = c * n // chunks, (c + 1) * n // chunks
@@ -288,8 +294,10 @@ def _icp_pairs_loop(points, pose, to_model, mv, mn, camera, limits, out):
 
 
 @_loop
-def _associate_loop(points, normals, pose, to_model, mv, mn, camera, limits, keep, out):
-    for k in prange(points.shape[1]):
+def _associate_loop(
+    claims, parts, points, normals, pose, to_model, mv, mn, camera, limits, keep, out
+):
+    for k in claimed_items(claims, points.shape[1], parts):
         point = (points[0, k], points[1, k], points[2, k])
         normal = (normals[0, k], normals[1, k], normals[2, k])
         kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = icp_match(
@@ -302,8 +310,8 @@ def _associate_loop(points, normals, pose, to_model, mv, mn, camera, limits, kee
 
 
 @_loop
-def _point_to_plane_loop(world, mv, mn, jacobian, residuals):
-    for k in prange(world.shape[1]):
+def _point_to_plane_loop(claims, parts, world, mv, mn, jacobian, residuals):
+    for k in claimed_items(claims, world.shape[1], parts):
         j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
             (world[0, k], world[1, k], world[2, k]),
             (mv[0, k], mv[1, k], mv[2, k]),
@@ -315,10 +323,10 @@ def _point_to_plane_loop(world, mv, mn, jacobian, residuals):
 
 
 @_loop
-def _accumulate_loop(jacobian, residuals, weights, weighted, out):
+def _accumulate_loop(claims, parts, jacobian, residuals, weights, weighted, out):
     n = residuals.shape[0]
     chunks = out.shape[0]
-    for c in prange(chunks):
+    for c in claimed_items(claims, chunks, parts):
         acc = out[c]
         for k in range(c * n // chunks, (c + 1) * n // chunks):
             w = weights[k] if weighted else 1.0
@@ -334,8 +342,8 @@ def _accumulate_loop(jacobian, residuals, weights, weighted, out):
 
 
 @_loop
-def _interest_mask_loop(dx, dy, depth, g2, use_depth, max_depth, mask):
-    for v in prange(dx.shape[0]):
+def _interest_mask_loop(claims, parts, dx, dy, depth, g2, use_depth, max_depth, mask):
+    for v in claimed_items(claims, dx.shape[0], parts):
         for u in range(dx.shape[1]):
             keep = is_interest(dx, dy, v, u, g2)
             if keep and use_depth:
@@ -344,9 +352,11 @@ def _interest_mask_loop(dx, dy, depth, g2, use_depth, max_depth, mask):
 
 
 @_loop
-def _interest_data_loop(indices, depth, intensity, dx, dy, camera, points, values, grad):
+def _interest_data_loop(
+    claims, parts, indices, depth, intensity, dx, dy, camera, points, values, grad
+):
     width = depth.shape[1]
-    for k in prange(indices.shape[0]):
+    for k in claimed_items(claims, indices.shape[0], parts):
         i = indices[k]
         v = i // width
         u = i - v * width
@@ -368,17 +378,30 @@ def _warp_block(points, start, stop, relative, camera, warp):
 
 @_loop
 def _correspond_loop(
-    points, intensity, gradient, relative, pose, previous, warped, camera, max_change, pairs, sums
+    claims,
+    parts,
+    points,
+    intensity,
+    gradient,
+    relative,
+    pose,
+    previous,
+    warped,
+    camera,
+    max_change,
+    pairs,
+    sums,
+    warps,
 ):
     """Algorithm 2 per interest point k: pairs[:, k] = (residual, NaN = not kept; world point;
     warped point; gradient), what J needs; sums[c] = (sum r^2, count) of chunk c for sigma'.
     Each block's warps first, in a loop that vectorises. `previous` = (depth, intensity, dx,
-    dy) images of the previous frame."""
+    dy) images of the previous frame; `warps` (threads, 5, BLOCK): each thread's work array."""
     depth, prev_i, prev_dx, prev_dy = previous
     n = pairs.shape[1]
     chunks = sums.shape[0]
-    for c in prange(chunks):
-        warp = np.empty((5, BLOCK))
+    warp = warps[claim_slot(claims)]
+    for c in claimed_items(claims, chunks, parts):
         start, stop = c * n // chunks, (c + 1) * n // chunks
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
@@ -409,8 +432,10 @@ def _correspond_loop(
 
 
 @_loop
-def _photometric_loop(world, warped_points, gradient, previous_pose, focal, jacobian):
-    for k in prange(world.shape[1]):
+def _photometric_loop(
+    claims, parts, world, warped_points, gradient, previous_pose, focal, jacobian
+):
+    for k in claimed_items(claims, world.shape[1], parts):
         j0, j1, j2, j3, j4, j5 = photometric_row(
             (world[0, k], world[1, k], world[2, k]),
             (warped_points[0, k], warped_points[1, k], warped_points[2, k]),
@@ -451,13 +476,13 @@ def _weighted_rows_block(pairs, start, stop, previous_pose, focal, sigma, rows):
         rows[13 * BLOCK + i], rows[14 * BLOCK + i] = w * j5, w * residual
 
 
-@_loop
-def _rgbd_rows_loop(pairs, previous_pose, focal, sigma, out):
+@_allocating_loop
+def _rgbd_rows_loop(claims, parts, pairs, previous_pose, focal, sigma, out):
     """Robustly weighted photometric rows of the kept pairs, summed per chunk (block by block:
     the rows, then their sums, each in a loop that vectorises)."""
     n = pairs.shape[1]
     chunks = out.shape[0]
-    for c in prange(chunks):
+    for c in claimed_items(claims, chunks, parts):
         acc = np.zeros(NV)
         rows = np.empty(15 * BLOCK)
         matrix = rows.reshape((15, BLOCK))
@@ -500,7 +525,7 @@ def stage(array):
 
 
 def _run(loop, count: int, *args) -> None:
-    """Call a prange loop; below PARALLEL_MIN items on the calling thread alone. Waking the other
+    """run_parallel a loop; below PARALLEL_MIN items on the calling thread alone. Waking the other
     threads costs more than such a loop, and on a busy machine a parallel region waits for its
     slowest (descheduled) thread: tens of milliseconds per call were measured at load 9 on two
     cores for loops of a few thousand points."""
@@ -861,6 +886,7 @@ def _correspond_all(
         float(max_depth_change),
         pairs,
         sums,
+        np.empty((threads(), 5, BLOCK)),
     )
     return pairs, sums.sum(axis=0)
 

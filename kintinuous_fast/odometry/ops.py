@@ -3,7 +3,7 @@
 `build_ops(jit)` (the pattern of kintinuous_fast.targets) defines scalar functions - transform a
 point, round a projection, associate one ICP point, warp one RGB-D interest point, build one
 Jacobian row, add one row to the normal equations - compiled with the decorator it is given:
-`numba.njit(cache=True)` for the prange loops of odometry/cpu.py, `cuda.jit(device=True)` for the
+`numba.njit(cache=True)` for the loops of odometry/cpu.py, `cuda.jit(device=True)` for the
 kernels of odometry/cuda.py.
 
 Precision: the reference computes every per-correspondence quantity in float64 (its maps are

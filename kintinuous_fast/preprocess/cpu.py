@@ -1,5 +1,5 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
-"""kintinuous_ref.preprocess on the CPU: prange loops over rows around each stage's ops.py.
+"""kintinuous_ref.preprocess on the CPU: loops over rows, on all threads, around each stage's ops.
 
 Same names, signatures and results as the reference (see tests/test_fast_preprocess.py for the
 stated tolerances); arrays are NumPy arrays.
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 from llvmlite import ir
-from numba import prange, types
+from numba import types
 from numba.extending import intrinsic
 
 from kintinuous_fast.preprocess.host import (
@@ -33,7 +33,12 @@ from kintinuous_fast.preprocess.host import (
 )
 from kintinuous_fast.preprocess.ops import build_ops
 from kintinuous_fast.targets import cpu_jit, pinhole
-from kintinuous_fast.targets.cpu import run_parallel_above
+from kintinuous_fast.targets.cpu import (
+    claimed_items,
+    parallel_part,
+    run_parallel,
+    run_parallel_above,
+)
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
 from kintinuous_ref.preprocess import (
@@ -59,13 +64,14 @@ __all__ = [
     "vertex_map",
 ]
 
-_parallel = numba.njit(parallel=True, cache=True)
+_parallel = parallel_part()
+_parallel_allocating = parallel_part(_nrt=True)  # for loops with row buffers of their own
 _inline = numba.njit(cache=True, inline="always")
 # FMA contraction only, for the bilateral filter: its weights are float32 approximations anyway
 # (1-2 ulp), and contraction makes the polynomial exp a third cheaper. Functions inlined by numba
-# compile with their caller's flags, so the prange loop that inlines them carries the flag too.
+# compile with their caller's flags, so the loop that inlines them carries the flag too.
 _inline_fma = numba.njit(cache=True, inline="always", fastmath={"contract"})
-_parallel_fma = numba.njit(parallel=True, cache=True, fastmath={"contract"})
+_parallel_fma = parallel_part(fastmath={"contract"}, _nrt=True)  # its chunks' sums allocate
 
 
 @intrinsic
@@ -116,7 +122,7 @@ PARALLEL_MIN = 40_000
 
 
 def _run(loop, pixels: int, *args) -> None:
-    """Call a prange loop, on the calling thread alone below PARALLEL_MIN pixels."""
+    """run_parallel a loop, on the calling thread alone below PARALLEL_MIN pixels."""
     run_parallel_above(PARALLEL_MIN, loop, pixels, *args)
 
 
@@ -167,20 +173,22 @@ def _bilateral_finish_row(depth, sum_w, sum_wd, extra_w, extra_wd, out):
 
 
 @_parallel_fma
-def _bilateral_rows(work, depth, spatial, radius, inv_two_sigma2, chunk_rows, head, tail, out):
+def _bilateral_rows(
+    claims, parts, work, depth, spatial, radius, inv_two_sigma2, chunk_rows, head, tail, out
+):
     """The bilateral filter with each pixel pair weighed once.
 
     The weight of a pixel pair is symmetric, w(p, q) = w(q, p), so every pair with q after p
     (a later row, or the same row to the right) is weighed once and added to both: w (D(q) -
     D(p)) to p's sums and w (D(p) - D(q)) to q's, half the exp() of a per-pixel window. Rows
-    are cut into chunks, one prange iteration each; a chunk keeps the sums of radius + 1 rows in
+    are cut into chunks, one part each; a chunk keeps the sums of radius + 1 rows in
     a ring (row v is complete once the pairs starting on it are added) and writes finished rows
     at once. Its first `radius` rows also get pairs from the chunk before: their sums go to
     `head`, the ones it adds below its last row to `tail`, and _bilateral_seams adds the two."""
     height, width = work.shape
     slots = radius + 1
     zeros = np.zeros(width, np.float32)
-    for chunk in prange(head.shape[0]):
+    for chunk in claimed_items(claims, head.shape[0], parts):
         first = chunk * chunk_rows
         last = min(height, first + chunk_rows)
         ring_w = np.zeros((slots, width), np.float32)
@@ -257,12 +265,12 @@ def _bilateral_seams_loop(depth, chunk_rows, head, tail, out):
 
 
 @_parallel
-def _split_columns(image, even, odd):
+def _split_columns(claims, parts, image, even, odd):
     """even[v, i] = image[v, 2i], odd[v, i] = image[v, 2i + 1]: the 5x5 taps of a half-size
     pixel u are then contiguous runs (columns 2u + dx: even[u - 1], odd[u - 1], even[u], odd[u],
     even[u + 1]), which vectorise; stride-2 loads do not."""
     pairs = odd.shape[1]
-    for v in prange(image.shape[0]):
+    for v in claimed_items(claims, image.shape[0], parts):
         row = image[v]
         row_even = even[v]
         row_odd = odd[v]
@@ -292,13 +300,13 @@ def _pyrdown_depth_taps(centre, neighbour, cutoff, w, total, weights):
         weights[i] += w if use else 0.0
 
 
-@_parallel
-def _pyrdown_depth_rows(even, odd, width, cutoff, out):
+@_parallel_allocating
+def _pyrdown_depth_rows(claims, parts, even, odd, width, cutoff, out):
     """pyramid_down_depth: taps summed in the reference's order (dy, then dx) in float64, so
     the result is the reference's to the bit."""
     height = even.shape[0]
     out_height, out_width = out.shape
-    for v in prange(out_height):
+    for v in claimed_items(claims, out_height, parts):
         total = np.zeros(out_width)
         weights = np.zeros(out_width)
         centre = even[2 * v]
@@ -328,12 +336,12 @@ def _pyrdown_intensity_taps(neighbour, w, total, weights):
         weights[i] += w
 
 
-@_parallel
-def _pyrdown_intensity_rows(even, odd, width, out):
+@_parallel_allocating
+def _pyrdown_intensity_rows(claims, parts, even, odd, width, out):
     """pyramid_down_intensity: 5x5 Gaussian renormalised over the taps inside the image."""
     height = even.shape[0]
     out_height, out_width = out.shape
-    for v in prange(out_height):
+    for v in claimed_items(claims, out_height, parts):
         total = np.zeros(out_width)
         weights = np.zeros(out_width)
         for dy in range(-2, 3):
@@ -364,10 +372,10 @@ def _vertex_row(depth, v, camera, out):
 
 
 @_parallel
-def _vertex_rows(depth, camera, out):
+def _vertex_rows(claims, parts, depth, camera, out):
     height, width = depth.shape
     flat = out.reshape((height, 3 * width))
-    for v in prange(height):
+    for v in claimed_items(claims, height, parts):
         _vertex_row(depth[v], v, camera, flat[v])
 
 
@@ -393,12 +401,12 @@ def _normal_row(here, below, out):
 
 
 @_parallel
-def _normal_rows(vertices, out):
+def _normal_rows(claims, parts, vertices, out):
     """normal_map; float32 throughout, as the reference's np.cross/norm."""
     height, width = vertices.shape[0], vertices.shape[1]
     flat = vertices.reshape((height, 3 * width))
     flat_out = out.reshape((height, 3 * width))
-    for v in prange(height):
+    for v in claimed_items(claims, height, parts):
         row = flat_out[v]
         if v + 1 < height and width > 0:
             _normal_row(flat[v], flat[v + 1], row)
@@ -409,10 +417,10 @@ def _normal_rows(vertices, out):
 
 
 @_parallel
-def _intensity_rows(colour, out):
+def _intensity_rows(claims, parts, colour, out):
     height, width = out.shape
     flat = colour.reshape((height, 3 * width))
-    for v in prange(height):
+    for v in claimed_items(claims, height, parts):
         row = flat[v]
         for u in range(width):
             out[v, u] = intensity_pixel(row[3 * u], row[3 * u + 1], row[3 * u + 2])
@@ -442,15 +450,15 @@ def _correlate_row(image, v, kernel, out):
 
 
 @_parallel
-def _blur_rows(intensity, blur, blurred):
-    for v in prange(intensity.shape[0]):
+def _blur_rows(claims, parts, intensity, blur, blurred):
+    for v in claimed_items(claims, intensity.shape[0], parts):
         _correlate_row(intensity, v, blur, blurred[v])
 
 
-@_parallel
-def _sobel_rows(blurred, sobel_x, sobel_y, dx, dy):
+@_parallel_allocating
+def _sobel_rows(claims, parts, blurred, sobel_x, sobel_y, dx, dy):
     width = blurred.shape[1]
-    for v in prange(blurred.shape[0]):
+    for v in claimed_items(claims, blurred.shape[0], parts):
         row = np.empty(width)
         _correlate_row(blurred, v, sobel_x, row)
         for u in range(width):
@@ -467,10 +475,10 @@ def _count_jumps(centre, neighbour, jump, bad):
         bad[i] += np.int32(is_depth_jump(centre[i], neighbour[i], jump))
 
 
-@_parallel
-def _discontinuity_rows(depth, radius, jump, max_bad, out):
+@_parallel_allocating
+def _discontinuity_rows(claims, parts, depth, radius, jump, max_bad, out):
     height, width = depth.shape
-    for v in prange(height):
+    for v in claimed_items(claims, height, parts):
         bad = np.zeros(width, np.int32)
         centre = depth[v]
         for dy in range(-radius, radius + 1):
@@ -490,8 +498,8 @@ def _discontinuity_rows(depth, radius, jump, max_bad, out):
 
 
 @_parallel
-def _metric_depth_rows(raw, integer, depth_scale, max_depth, out):
-    for v in prange(raw.shape[0]):
+def _metric_depth_rows(claims, parts, raw, integer, depth_scale, max_depth, out):
+    for v in claimed_items(claims, raw.shape[0], parts):
         for u in range(raw.shape[1]):
             out[v, u] = metric_value(raw[v, u], integer, depth_scale, max_depth)
 
@@ -538,9 +546,8 @@ def bilateral_filter(
     chunks = -(-height // chunk_rows)
     head = np.empty((chunks, 2, radius, width), np.float32)
     tail = np.empty((chunks, 2, radius, width), np.float32)
-    _run(
+    run_parallel(
         _bilateral_rows,
-        depth.size,
         work,
         depth,
         spatial,
@@ -550,6 +557,7 @@ def bilateral_filter(
         head,
         tail,
         out,
+        parts=chunks,
     )
     _bilateral_seams_loop(depth, chunk_rows, head, tail, out)
     return out

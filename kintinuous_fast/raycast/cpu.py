@@ -1,5 +1,5 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
-"""kintinuous_ref.raycast on the CPU: a prange loop over bands of pixel rows around
+"""kintinuous_ref.raycast on the CPU: a loop over bands of pixel rows (on all threads) around
 kintinuous_fast.raycast.ops, with the reference's exact brick empty-space skipping plus a finer
 second level inside the bricks next to a surface. Each ray starts where it first enters a fine
 brick that may hold a negative sample (near_starts: slab tests against those bricks' boxes over
@@ -22,11 +22,11 @@ from typing import Any
 
 import numba
 import numpy as np
-from numba import prange
 
 from kintinuous_fast.raycast import ops as march
 from kintinuous_fast.raycast.ops import FINE_DISTANCE_CAP
 from kintinuous_fast.targets import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
 from kintinuous_fast.tsdf import voxel as volume
 from kintinuous_fast.tsdf.cpu import negative_masks
 from kintinuous_fast.tsdf.volume import FastTsdfVolume
@@ -56,31 +56,46 @@ NEAR_BLOCK = 16  # near_starts looks for the next run of near bricks this many a
 _AT_C0, _AT_B0_C0 = np.uint8(0b01010101), np.uint8(0b00010001)
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
-def _brick_maps_loop(masks, rows, planes, near, negative):
-    """From the fine masks (M, M, M): near[f] = any marked voxel among voxels 2f .. 2f + 2 on
-    every axis, the corners of the samples whose lower corner lies in fine brick f, and
-    negative[b] = any marked voxel in 8^3 brick b (kintinuous_ref.raycast._empty_space's).
-    near comes from three separable passes: along k then j, a brick's voxels and the next
-    brick's first fold into its bits at c = 0 (`rows`), then at b = c = 0 (`planes`); along i,
-    the same decides `near`. Bytes are combined with | and &, so the loops have no branches
-    and vectorise (each pass writes a fresh array: folding in place kept LLVM from
-    vectorising, 13x slower)."""
+# The maps of _brick_maps from the fine masks (M, M, M): near[f] = any marked voxel among
+# voxels 2f .. 2f + 2 on every axis, the corners of the samples whose lower corner lies in fine
+# brick f, and negative[b] = any marked voxel in 8^3 brick b (kintinuous_ref.raycast.
+# _empty_space's). near comes from three separable passes: along k then j, a brick's voxels and
+# the next brick's first fold into its bits at c = 0 (`rows`), then at b = c = 0 (`planes`);
+# along i, the same decides `near`. Bytes are combined with | and &, so the loops have no
+# branches and vectorise (each pass writes a fresh array: folding in place kept LLVM from
+# vectorising, 13x slower).
+
+
+@parallel_part(error_model="numpy")
+def _fold_rows_and_planes(claims, parts, masks, rows, planes):
+    """rows and planes of the slabs f0 of this part."""
     m = masks.shape[0]
-    for f0 in prange(m):
+    for f0 in claimed_items(claims, m, parts):
         for f1 in range(m):
             row = masks[f0, f1]
             _fold(row[: m - 1], row[1:], _AT_C0, 1, rows[f0, f1, : m - 1])
             _fold(row[m - 1 :], row[m - 1 :], _AT_C0, 1, rows[f0, f1, m - 1 :])  # no next
         for f1 in range(m):  # the last has no next: folding it with itself adds nothing
             _fold(rows[f0, f1], rows[f0, min(f1 + 1, m - 1)], _AT_B0_C0, 2, planes[f0, f1])
-    for f0 in prange(m):
+
+
+@parallel_part(error_model="numpy")
+def _fold_slabs(claims, parts, planes, near):
+    """near of the slabs f0 of this part, once every slab's planes are done."""
+    m = planes.shape[0]
+    for f0 in claimed_items(claims, m, parts):
         following = planes[min(f0 + 1, m - 1)]
         for f1 in range(m):
             _or_first(planes[f0, f1], following[f1], near[f0, f1])
+
+
+@parallel_part(error_model="numpy", _nrt=True)
+def _negative_bricks(claims, parts, masks, negative):
+    """negative of the slabs of bricks b0 of this part."""
+    m = masks.shape[0]
     per_brick = BRICK // FINE
     bricks = negative.shape[0]
-    for b0 in prange(bricks):  # each thread writes its own slab of bricks
+    for b0 in claimed_items(claims, bricks, parts):
         # the slab's masks ORed over i and, per brick row, over j (vectorised); then over k
         seen = np.zeros((bricks, m), dtype=np.uint8)
         for f0 in range(b0 * per_brick, min((b0 + 1) * per_brick, m)):
@@ -137,7 +152,9 @@ def _brick_maps(volume: FastTsdfVolume) -> tuple[np.ndarray, SimpleNamespace]:
     both from the negative-voxel masks."""
     masks = negative_masks(volume)
     work = _work_arrays(masks.shape[0], -(-volume.resolution // BRICK))
-    _brick_maps_loop(masks, work.rows, work.planes, work.near, work.negative)
+    run_parallel(_fold_rows_and_planes, masks, work.rows, work.planes)
+    run_parallel(_fold_slabs, work.planes, work.near)
+    run_parallel(_negative_bricks, masks, work.negative)
     return _brick_distance(work.negative), work
 
 
@@ -157,15 +174,17 @@ def _brick_distance(negative: np.ndarray) -> np.ndarray:
 def _capped_distance(near: np.ndarray, cap: int) -> np.ndarray:
     """min(cap, chessboard distance to the nearest True of `near` (M, M, M)), uint8, cap < 255:
     a work array that the next call for the same size and cap overwrites."""
-    work = _distance_work(near.shape[0], cap)
-    _capped_distance_passes(near, cap, *work)
-    return work[0]
+    out, result, work = _distance_work(near.shape[0], cap)
+    run_parallel(_distance_along_rows, near, cap, result, work)
+    run_parallel(_distance_along_columns, cap, result, work)
+    run_parallel(_distance_along_slabs, cap, work, result, out)
+    return out
 
 
 @functools.lru_cache(maxsize=4)
 def _distance_work(m: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """_capped_distance's result and two work arrays for one size and cap, kept from frame to
-    frame; the work arrays' rows are padded by cap - 1 on both sides (_capped_distance_passes)."""
+    frame; the work arrays' rows are padded by cap - 1 on both sides (the passes below)."""
     padded = (m, m, m + 2 * (cap - 1))
     return (
         np.empty((m, m, m), dtype=np.uint8),
@@ -174,34 +193,49 @@ def _distance_work(m: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
     )
 
 
-@numba.njit(parallel=True, cache=True)
-def _capped_distance_passes(near, cap, out, result, work):
-    """out = _capped_distance(near, cap), by way of `result` and `work`, (M, M, M + 2 pad) with
-    pad = cap - 1. Separable (the chessboard metric is the max of the per-axis
-    distances, so the minimum can be taken one axis at a time): along each axis
-    d(x) = min over |k| < cap of max(k, d(x + k e)), from 0 at near entries and cap elsewhere.
-    Each pass is elementwise over whole planes of uint8, which vectorises: shifts by k entries
-    (axis 2: rows padded with cap, which never lowers a minimum, so no row reads the next), by
-    k rows (axis 1) and by k planes (axis 0). The passes may lower a pad; no entry reads one
-    after the first pass. Shifting each row of 128 on its own cost more than the shifts: the
-    fine map took 2.5 ms on one thread, 1.1 with whole-plane shifts."""
+# _capped_distance(near, cap) in three passes, by way of `result` and `work`, (M, M, M + 2 pad)
+# with pad = cap - 1. Separable (the chessboard metric is the max of the per-axis distances, so
+# the minimum can be taken one axis at a time): along each axis d(x) = min over |k| < cap of
+# max(k, d(x + k e)), from 0 at near entries and cap elsewhere. Each pass is elementwise over
+# whole planes of uint8, which vectorises: shifts by k entries (axis 2: rows padded with cap,
+# which never lowers a minimum, so no row reads the next), by k rows (axis 1) and by k planes
+# (axis 0). The passes may lower a pad; no entry reads one after the first pass. Shifting each
+# row of 128 on its own cost more than the shifts: the fine map took 2.5 ms on one thread, 1.1
+# with whole-plane shifts.
+
+
+@parallel_part()
+def _distance_along_rows(claims, parts, near, cap, result, work):
+    """Axis 2: result from `near`, through the padded rows of `work`."""
     m = near.shape[0]
     pad = cap - 1
     row = m + 2 * pad
     top = np.uint8(cap)
-    for p in prange(m):  # along axis 2
+    for p in claimed_items(claims, m, parts):
         plane = work[p]
         for f1 in range(m):
             plane[f1, :pad] = top
             plane[f1, pad + m :] = top
             _zero_at_near(near[p, f1], top, plane[f1, pad : pad + m])
         _shifted_min_max(plane.reshape(m * row), cap, result[p].reshape(m * row), 1)
-    for p in prange(m):  # along axis 1
+
+
+@parallel_part()
+def _distance_along_columns(claims, parts, cap, result, work):
+    """Axis 1: work from result."""
+    m, row = result.shape[0], result.shape[2]
+    for p in claimed_items(claims, m, parts):
         _shifted_min_max(result[p].reshape(m * row), cap, work[p].reshape(m * row), row)
-    for p in prange(m):  # along axis 0
-        f0 = np.int64(p)  # prange gives unsigned indices: signed arithmetic below
+
+
+@parallel_part()
+def _distance_along_slabs(claims, parts, cap, work, result, out):
+    """Axis 0: result from work, and its unpadded rows into out."""
+    m, row = work.shape[0], work.shape[2]
+    pad = cap - 1
+    for f0 in claimed_items(claims, m, parts):
         target = result[f0].reshape(m * row)
-        target[:] = work[f0].reshape(m * row)
+        _copy(work[f0].reshape(m * row), target)
         for k in range(1, min(cap, m)):
             for g in (f0 - k, f0 + k):
                 if 0 <= g < m:
@@ -230,7 +264,7 @@ def _shifted_min_max(source, cap, target, stride):
     """target = min over |k| < cap of max(k, source shifted by k strides), clipped at the
     ends (1-d uint8 arrays of the same length)."""
     n = source.shape[0]
-    target[:] = source
+    _copy(source, target)
     for k in range(1, cap):
         shift = k * stride
         if shift >= n:
@@ -266,9 +300,19 @@ def empty_space(volume: FastTsdfVolume) -> np.ndarray:
     return _brick_maps(volume)[0]
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
+@parallel_part(error_model="numpy", _nrt=True)
 def _near_box_starts(
-    near, camera, rotation, origin, volume_origin, voxel_size, inverse, longest, starts
+    claims,
+    parts,
+    near,
+    camera,
+    rotation,
+    origin,
+    volume_origin,
+    voxel_size,
+    inverse,
+    longest,
+    starts,
 ):
     """starts[c] = per pixel, the least ray distance at which the pixel's ray enters a box of
     the `near` fine bricks of slabs c, c + C, ... (C = starts.shape[0]), inf where it enters
@@ -289,7 +333,7 @@ def _near_box_starts(
         )
         for axis in range(3):
             steps[axis, r] = rotation[axis, r] * size
-    for c in prange(chunks):
+    for c in claimed_items(claims, chunks, parts):
         starts[c] = np.inf
         for i in range(c, m, chunks):  # slabs dealt round-robin: surfaces spread over them
             for j in range(m):
@@ -416,9 +460,9 @@ def _enter_row(low, sides, inverse0, inverse1, inverse2, line):
         line[u] = min(line[u], bound if enter <= leave else np.float32(np.inf))
 
 
-@numba.njit(parallel=True, cache=True)
-def _least_over_chunks(starts, out):
-    for v in prange(out.shape[0]):
+@parallel_part()
+def _least_over_chunks(claims, parts, starts, out):
+    for v in claimed_items(claims, out.shape[0], parts):
         for u in range(out.shape[1]):
             least = starts[0, v, u]
             for c in range(1, starts.shape[0]):
@@ -438,12 +482,12 @@ def _view_constants(volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics
     )
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
-def _inverse_directions(camera, rotation, out):
+@parallel_part(error_model="numpy")
+def _inverse_directions(claims, parts, camera, rotation, out):
     """out[:, v, u] = 1 / the unit direction of pixel (u, v)'s ray (raycast.ops.ray_direction),
     1e30 for a component within 1e-30 of zero (its slab then bounds nothing, or everything, as
     it should; float32 holds it)."""
-    for v in prange(out.shape[1]):
+    for v in claimed_items(claims, out.shape[1], parts):
         for u in range(out.shape[2]):
             d = ray_direction(u, v, camera, rotation)
             for axis in range(3):
@@ -481,14 +525,15 @@ def near_starts(
     chunks = _chunk_starts(numba.get_num_threads(), camera.height, camera.width)
     view = _view_constants(volume, pose, camera)
     inverse = _inverse_directions_work(camera.height, camera.width)
-    _inverse_directions(view[0], view[1], inverse)
+    run_parallel(_inverse_directions, view[0], view[1], inverse)
     # A run of boxes along the line of sight projects to about one box's pixels, a run across
     # it to a long slanted one (~2x the pixels of its boxes': measured on redkitchen).
     rotation = view[1]
     along_sight = abs(rotation[2, 2]) >= max(abs(rotation[0, 2]), abs(rotation[1, 2]))
-    _near_box_starts(near, *view, inverse, near.shape[0] if along_sight else 1, chunks)
+    longest = near.shape[0] if along_sight else 1
+    run_parallel(_near_box_starts, near, *view, inverse, longest, chunks, parts=len(chunks))
     starts = np.empty((camera.height, camera.width), dtype=np.float64)
-    _least_over_chunks(chunks, starts)
+    run_parallel(_least_over_chunks, chunks, starts)
     return starts
 
 
@@ -595,7 +640,7 @@ def shade_two_pixels(
     colours: Any,
 ) -> None:
     """shade_pixel of pixels (u_a, v) and (u_b, v), `pixels` = (u_a, u_b, v) (a flat tuple:
-    numba's prange bodies take no nested ones), whose rays (directions a and b) met the surface
+    numba's prange bodies took no nested ones), whose rays (directions a and b) met the surface
     at `hits` = (t_a, t_b) (both finite), their normals taken together (gradient_normals)."""
     u_a, u_b, v = pixels
     o0, o1, o2 = offsets
@@ -734,8 +779,10 @@ def raycast_pixel_pair(
         )
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
+@parallel_part(error_model="numpy", _nrt=False)
 def _raycast_loop(
+    claims,
+    parts,
     tsdf_weight,
     colour_volume,
     has_colour,
@@ -754,14 +801,12 @@ def _raycast_loop(
     stride,
     starts,
 ):
-    # Rays cost very different amounts: bands of BAND rows cast are handed out one at a time
-    # (the caller sets the chunk size), so a thread that finishes early, or was descheduled,
-    # evens out. Every pixel cast is written once, hit or miss; with a stride, the thread that
+    # Every pixel cast is written once, hit or miss; with a stride, the thread that
     # casts a band first clears its rows (NaN, black) for the pixels left out (numpy's fill of
     # the three maps took ~2.5 ms on one thread, ~1.2 ms of a 2-thread raycast).
     height, width = vertices.shape[0], vertices.shape[1]
     span = BAND * stride
-    for band in prange(-(-height // span)):
+    for band in claimed_items(claims, -(-height // span), parts):
         rows = slice(band * span, min((band + 1) * span, height))
         if stride > 1:
             vertices[rows] = np.nan
@@ -816,20 +861,23 @@ def raycast(
     else:  # the plain march: maps of 0 skip nothing, every sample is taken
         empty = fine_distance = np.zeros((1, 1, 1), dtype=np.uint8)
         starts = np.zeros(shape, dtype=np.float64)
-    with numba.parallel_chunksize(1):  # a band of rows at a time
-        _raycast_loop(
-            volume.tsdf_weight,
-            colour_volume,
-            has_colour,
-            volume.offsets(),
-            empty,
-            fine_distance,
-            *_view_constants(volume, pose, camera),
-            STEP_FRACTION * volume.truncation,
-            vertices,
-            normals,
-            colours,
-            int(stride),
-            starts,
-        )
+    # Rays cost very different amounts: a band of rows at a time, so that a thread that
+    # finishes early, or was descheduled, evens out.
+    run_parallel(
+        _raycast_loop,
+        volume.tsdf_weight,
+        colour_volume,
+        has_colour,
+        volume.offsets(),
+        empty,
+        fine_distance,
+        *_view_constants(volume, pose, camera),
+        STEP_FRACTION * volume.truncation,
+        vertices,
+        normals,
+        colours,
+        int(stride),
+        starts,
+        parts=-(-camera.height // (BAND * int(stride))),
+    )
     return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)

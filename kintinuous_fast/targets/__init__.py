@@ -2,7 +2,7 @@
 
 Each module here has a factory `build_ops(jit)` that defines scalar functions (filter one pixel,
 update one voxel, ...) with the decorator it is given and returns them in a namespace. The CPU
-backend calls it with `numba.njit(cache=True)` and loops over pixels with `prange`; the CUDA
+backend calls it with `numba.njit(cache=True)` and loops over pixels (targets/cpu.py); the CUDA
 backend calls it with `cuda.jit(device=True)` and launches one thread per pixel. The functions
 may call each other: they are closures over the factory's scope, compiled with the same target.
 

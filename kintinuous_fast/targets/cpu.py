@@ -1,28 +1,211 @@
-"""The CPU backend: kintinuous_ref's public functions as parallel numba loops (prange over rows)
-around the scalar functions of each stage's ops.py. Used automatically where no GPU is present."""
+"""The CPU backend: kintinuous_ref's public functions as numba loops around the scalar functions
+of each stage's ops.py, run on several threads. Used automatically where no GPU is present.
 
+Each loop is a plain numba function (`parallel_part` below) that `run_parallel` calls once on
+each of several threads (the calling one and helper threads kept for the purpose), without the
+GIL; the threads claim parts of its range one at a time (`claimed_items`) until none is left.
+numba's own parallel loops (`parallel=True`, prange) would do the same, but their
+transformation and the second compilation of each loop body took about half of every kernel's
+compile time (docs/benchmarks.md). The claims and the waits are atomic operations on a small
+int64 array, so a thread that waits for another needs neither the GIL nor a wake-up.
+"""
+
+import itertools
+import threading
+import time
+from collections.abc import Callable
+from functools import lru_cache
 from typing import Any
 
 import numba
+import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
 
-def run_parallel_above(minimum: int, loop: Any, count: int, *args: Any) -> None:
-    """Call a prange `loop` with all threads for `count` >= `minimum` items, else on the calling
-    thread alone: waking the other threads costs more than a small loop, and on a busy machine a
-    parallel region waits for its slowest (descheduled) thread."""
-    if count >= minimum:
-        loop(*args)
+def parallel_part(**options: Any) -> Callable[[Any], Any]:
+    """The decorator of a loop that `run_parallel` calls: `loop(claims, parts, *args)`, whose
+    items come from `claimed_items(claims, count, parts)`. Compiled without the GIL, cached on
+    disk, and without numba's reference counting unless `_nrt=True` is given: the loops
+    allocate nothing, and the counts of their array arguments, incremented and decremented
+    around every inlined call in a ray's march, made the raycast 1.5x slower (a prange body is
+    compiled without them too). A loop that does allocate fails to compile without it."""
+    return numba.njit(**{"nogil": True, "cache": True, "_nrt": False, **options})
+
+
+# A loop's claims: an int64 array of the next part to claim, the parts done, the next slot.
+NEXT_PART, PARTS_DONE, NEXT_SLOT = 0, 1, 2
+
+
+@intrinsic
+def _fetch_add(typing_context: Any, array: Any, index: Any) -> Any:
+    """_fetch_add(array, index) in numba code: array[index] += 1 for a 1-d int64 array, as one
+    atomic operation (every thread that calls it gets a different old value), returning the
+    old value; stores made before it are seen by a thread that then loads the new one."""
+    signature = types.int64(array, index)
+
+    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        view = context.make_array(sig.args[0])(context, builder, args[0])
+        address = builder.gep(view.data, [args[1]])
+        one = context.get_constant(types.int64, 1)
+        return builder.atomic_rmw("add", address, one, "acq_rel")
+
+    return signature, codegen
+
+
+@intrinsic
+def _load(typing_context: Any, array: Any, index: Any) -> Any:
+    """_load(array, index) in numba code: array[index] of a 1-d int64 array, loaded atomically,
+    so a loop polling it sees another thread's update and LLVM cannot hoist the load."""
+    signature = types.int64(array, index)
+
+    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        view = context.make_array(sig.args[0])(context, builder, args[0])
+        address = builder.gep(view.data, [args[1]])
+        return builder.load_atomic(address, ordering="acquire", align=8)
+
+    return signature, codegen
+
+
+# Not cached on its own: a generator loaded from numba's cache is missing from the compiler's
+# table of generators, so compiling a new loop that calls it fails (KeyError). Each loop's
+# cached code holds its own copy anyway.
+@numba.njit
+def claimed_items(claims: Any, count: int, parts: int) -> Any:
+    """The items of range(count), cut into `parts` nearly equal parts in order, of the parts
+    this thread claims: one at a time, each the next not yet claimed by any thread, so a thread
+    that starts late, finishes early or is descheduled evens out. A part counts as done when
+    the loop asks for the item after its last."""
+    part = _fetch_add(claims, NEXT_PART)
+    while part < parts:
+        for item in range(count * part // parts, count * (part + 1) // parts):  # noqa: UP028
+            yield item
+        _fetch_add(claims, PARTS_DONE)
+        part = _fetch_add(claims, NEXT_PART)
+
+
+@numba.njit(cache=True)
+def claim_slot(claims: Any) -> int:
+    """A number of this thread's own among the threads running one loop, from 0: the index of
+    its row of a work array with one row per thread (`threads()`)."""
+    return _fetch_add(claims, NEXT_SLOT)
+
+
+@numba.njit(nogil=True, cache=True)
+def _spin_below(array: Any, index: int, target: int, spins: int) -> int:
+    """array[index] once it reaches `target`, or its value after `spins` loads; without the
+    GIL, so the threads it waits for can take it."""
+    value = _load(array, index)
+    for _ in range(spins):
+        if value >= target:
+            break
+        value = _load(array, index)
+    return value
+
+
+# Parts a loop is cut into per thread, by default: with a few each, a thread that starts late,
+# finishes early or is descheduled evens out.
+PARTS_PER_THREAD = 4
+# How long an idle helper thread, or the calling thread waiting for the last parts, watches for
+# work before it sleeps (atomic loads, about 0.2 ms): waking a sleeping thread takes tens of
+# microseconds, as long as many of the loops take.
+SPINS = 200_000
+
+
+def threads() -> int:
+    """The threads run_parallel runs a loop on (numba's thread count: NUMBA_NUM_THREADS or
+    numba.set_num_threads)."""
+    return numba.get_num_threads()
+
+
+def default_parts() -> int:
+    """How many parts run_parallel cuts a loop into unless told."""
+    return PARTS_PER_THREAD * threads()
+
+
+def run_parallel(loop: Any, *args: Any, parts: int | None = None) -> None:
+    """loop(claims, parts, *args) on threads() threads, the calling one among them, each calling
+    it once; returns once every part (default_parts()) is done. The loops write disjoint parts
+    of their outputs, so no result depends on the number of threads."""
+    parts = default_parts() if parts is None else parts
+    claims = np.zeros(3, dtype=np.int64)
+    helpers = min(parts, threads()) - 1
+    if helpers <= 0:
+        loop(claims, parts, *args)
         return
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        loop(*args)
-    finally:
-        numba.set_num_threads(threads)
+    job = _Job(loop, claims, parts, args, helpers)
+    _team().post(job)
+    loop(claims, parts, *args)
+    while _spin_below(claims, PARTS_DONE, parts, SPINS) < parts:
+        if job.error is not None:
+            raise job.error
+        time.sleep(20e-6)
+
+
+class _Job:
+    """One run_parallel call, for at most `helpers` helper threads to join."""
+
+    def __init__(self, loop: Any, claims: Any, parts: int, args: tuple, helpers: int) -> None:
+        self.loop, self.claims, self.parts, self.args = loop, claims, parts, args
+        self._join = itertools.count().__next__  # atomic under the GIL
+        self.helpers = helpers
+        self.error: BaseException | None = None
+
+    def help(self) -> None:
+        if self._join() < self.helpers:
+            try:
+                self.loop(self.claims, self.parts, *self.args)
+            except BaseException as error:  # raised in the calling thread
+                self.error = error
+
+
+class _Team:
+    """Helper threads that join whatever run_parallel call was posted last. After each one they
+    watch the post counter for SPINS before they sleep."""
+
+    def __init__(self, size: int) -> None:
+        self.posted = np.zeros(1, dtype=np.int64)
+        self.job: _Job | None = None
+        self.sleeping = 0
+        self.wake = threading.Condition()
+        for number in range(size):
+            name = f"kintinuous-helper-{number}"
+            threading.Thread(target=self._serve, name=name, daemon=True).start()
+
+    def post(self, job: _Job) -> None:
+        with self.wake:
+            self.job = job
+            self.posted[0] += 1
+            if self.sleeping:
+                self.wake.notify_all()
+
+    def _serve(self) -> None:
+        seen = 0
+        while True:
+            if _spin_below(self.posted, 0, seen + 1, SPINS) <= seen:
+                with self.wake:
+                    self.sleeping += 1
+                    while self.posted[0] <= seen:
+                        self.wake.wait()
+                    self.sleeping -= 1
+            seen = int(self.posted[0])
+            job = self.job
+            if job is not None:
+                job.help()
+
+
+@lru_cache(maxsize=1)
+def _team() -> _Team:
+    return _Team(max(1, numba.config.NUMBA_NUM_THREADS - 1))
+
+
+def run_parallel_above(minimum: int, loop: Any, count: int, *args: Any) -> None:
+    """run_parallel(loop, *args) for `count` >= `minimum` items, else in one part on the
+    calling thread: waking the other threads costs more than a small loop, and on a busy
+    machine a parallel loop waits for its slowest (descheduled) thread."""
+    run_parallel(loop, *args, parts=None if count >= minimum else 1)
 
 
 @intrinsic

@@ -1,5 +1,5 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels and loops: argument types come from the call)
-"""kintinuous_ref.tsdf on the CPU: integration as a prange loop over voxel slabs around
+"""kintinuous_ref.tsdf on the CPU: integration as a loop over voxel slabs (on all threads) around
 kintinuous_fast.tsdf.ops, into the 8-byte-per-voxel FastTsdfVolume (kintinuous_fast.tsdf.volume).
 """
 
@@ -9,10 +9,16 @@ import math
 
 import numba
 import numpy as np
-from numba import prange
 
 from kintinuous_fast.targets import cpu_jit_numpy_errors, pinhole
-from kintinuous_fast.targets.cpu import prefetch_cell
+from kintinuous_fast.targets.cpu import (
+    claim_slot,
+    claimed_items,
+    parallel_part,
+    prefetch_cell,
+    run_parallel,
+    threads,
+)
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel as volume
 from kintinuous_fast.tsdf.volume import (
@@ -66,7 +72,7 @@ voxel_norm = _ops.voxel_norm
 fuse_voxel = _ops.fuse_voxel
 column_start = _ops.column_start
 
-_loop = numba.njit(parallel=True, cache=True, error_model="numpy")
+_loop = parallel_part(error_model="numpy")
 _NO_MASKS = np.zeros((1, 1, 1), dtype=np.uint8)  # typed placeholder: masks not kept
 # Integration leaves out the voxels of a column that lie in bricks of CULL_BRICK voxels where
 # no voxel can be updated: every pixel the brick can project to measures a distance lambda D
@@ -80,19 +86,18 @@ DEPTH_TILE = 8  # pixels per side of the finest level of the max pyramid of lamb
 
 
 @_loop
-def _ray_distance_loop(depth, camera, out):
+def _ray_distance_loop(claims, parts, depth, camera, out):
     height, width = depth.shape
-    for v in prange(height):
+    for v in claimed_items(claims, height, parts):
         for u in range(width):
             out[v * width + u] = ray_distance_pixel(depth[v, u], u, v, camera)
-    out[height * width] = -np.inf  # the "no pixel" slot (project_voxel)
 
 
 @_loop
-def _tile_maxima(ray_distance, height, width, out):
+def _tile_maxima(claims, parts, ray_distance, height, width, out):
     """out[tv, tu] = the largest lambda D over tile (tv, tu) of DEPTH_TILE^2 pixels (-inf: no
     depth there), from the flat ray distances of _ray_distance_loop."""
-    for tv in prange(out.shape[0]):
+    for tv in claimed_items(claims, out.shape[0], parts):
         for tu in range(out.shape[1]):
             largest = np.float32(-np.inf)
             for v in range(tv * DEPTH_TILE, min((tv + 1) * DEPTH_TILE, height)):
@@ -101,12 +106,21 @@ def _tile_maxima(ray_distance, height, width, out):
             out[tv, tu] = largest
 
 
+def ray_distances(depth: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    """lambda D of every pixel of a float32 depth map, flat, and -inf in a last slot for "no
+    pixel" (project_voxel)."""
+    out = np.empty(depth.size + 1, dtype=np.float32)
+    run_parallel(_ray_distance_loop, depth, pinhole(camera), out)
+    out[-1] = -np.inf
+    return out
+
+
 def _max_pyramid(ray_distance: np.ndarray, height: int, width: int) -> np.ndarray:
     """(L, H0, W0) float32: level l holds the largest lambda D over tiles of DEPTH_TILE 2^l
     pixels per side, -inf where no pixel has depth or beyond the level's tiles; the last
     level is a single tile."""
     finest = np.empty((-(-height // DEPTH_TILE), -(-width // DEPTH_TILE)), dtype=np.float32)
-    _tile_maxima(ray_distance, height, width, finest)
+    run_parallel(_tile_maxima, ray_distance, height, width, finest)
     levels = [finest]
     while levels[-1].shape != (1, 1):
         last = levels[-1]
@@ -138,7 +152,7 @@ def _largest_over(pyramid, u0, u1, v0, v1):
 
 @_loop
 def _columns_to_visit_loop(
-    base, steps, camera_voxel, intrinsics, image_size, pyramid, box, cull, visit
+    claims, parts, base, steps, camera_voxel, intrinsics, image_size, pyramid, box, cull, visit
 ):
     """visit[I, J] = [k0, k1): the voxels along k, within the box [lo, hi) = `box`, that the
     columns of CULL_BRICK[0] x CULL_BRICK[1] bundle (I, J) visit: from the first of its bricks of
@@ -146,8 +160,8 @@ def _columns_to_visit_loop(
     last (k0 = k1 when none may). A range, not a brick map: looking bricks up inside the
     column loop made LLVM compile it worse (~5 ms a frame slower, measured)."""
     sizes = CULL_BRICK
-    lo, hi = box  # unpacked here: numba's prange bodies take flat tuples only
-    for b0 in prange(visit.shape[0]):
+    lo, hi = box
+    for b0 in claimed_items(claims, visit.shape[0], parts):
         i0, i1 = max(b0 * sizes[0], lo[0]), min((b0 + 1) * sizes[0], hi[0]) - 1
         for b1 in range(visit.shape[1]):
             j0, j1 = max(b1 * sizes[1], lo[1]), min((b1 + 1) * sizes[1], hi[1]) - 1
@@ -237,16 +251,16 @@ def _integrate_slice(
     keep_masks,
     visit,
     i,
+    columns,
 ):
     """The voxel columns of logical slice i (see _integrate_loop), software-pipelined: column
     j is projected (_project_column) and the volume lines it will update are prefetched, then
-    column j - 1, projected one step earlier, is fused; its lines have arrived meanwhile."""
+    column j - 1, projected one step earlier, is fused; its lines have arrived meanwhile.
+    `columns` = (pixels, norms, sdfs, updated): work arrays (_column_work) for two columns,
+    this one and the one before."""
     o0, o1, o2 = offsets
     n = tsdf_weight.shape[0]
-    pixels = np.empty((2, n), dtype=np.uint32)  # two columns: this one and the one before
-    norms = np.empty((2, n), dtype=np.float32)
-    sdfs = np.empty((2, n), dtype=np.float32)
-    updated = np.zeros((2, 2), dtype=np.int64)  # per column: [first, last + 1) updated
+    pixels, norms, sdfs, updated = columns
     fi = np.float32(i)
     ci = cell(i, o0, n)
     step = (float(steps[2, 0]), float(steps[2, 1]), float(steps[2, 2]))
@@ -385,6 +399,8 @@ def _fuse_column(
 
 @_loop
 def _integrate_loop(
+    claims,
+    parts,
     tsdf_weight,
     colour_volume,
     offsets,
@@ -402,14 +418,19 @@ def _integrate_loop(
     masks,
     keep_masks,
     visit,
+    work,
 ):
     """`box` = (lo, hi): the voxel index box [lo, hi); `far`: the farthest z to visit;
-    `limits`: fuse_voxel's."""
+    `limits`: fuse_voxel's; `work`: _column_work's arrays, one set per thread."""
     # Voxel columns along k: only the k-range that can project into the image (column_range)
     # is visited, so the work follows the viewing pyramid, not its bounding box. Threads take
     # whole fine bricks along i, so no two threads ever change the same brick's mask.
-    lo, hi = box  # unpacked here: numba's prange bodies take flat tuples only
-    for brick in prange(lo[0] // FINE, (hi[0] + FINE - 1) // FINE):
+    lo, hi = box
+    low_brick = lo[0] // FINE
+    slot = claim_slot(claims)
+    columns = (work[0][slot], work[1][slot], work[2][slot], work[3][slot])
+    for brick in claimed_items(claims, (hi[0] + FINE - 1) // FINE - low_brick, parts):
+        brick += low_brick
         for i in range(max(brick * FINE, lo[0]), min((brick + 1) * FINE, hi[0])):
             _integrate_slice(
                 tsdf_weight,
@@ -431,13 +452,14 @@ def _integrate_loop(
                 keep_masks,
                 visit,
                 i,
+                columns,
             )
 
 
 @_loop
-def _mask_loop(tsdf_weight, o0, o1, o2, masks):
+def _mask_loop(claims, parts, tsdf_weight, o0, o1, o2, masks):
     m = masks.shape[0]
-    for f0 in prange(m):
+    for f0 in claimed_items(claims, m, parts):
         for f1 in range(m):
             for f2 in range(m):
                 masks[f0, f1, f2] = negative_mask(tsdf_weight, o0, o1, o2, f0, f1, f2)
@@ -451,14 +473,14 @@ def negative_masks(volume: FastTsdfVolume) -> np.ndarray:
     if masks is None:
         m = -(-volume.resolution // FINE)
         masks = np.empty((m, m, m), dtype=np.uint8)
-        _mask_loop(volume.tsdf_weight, *volume.offsets(), masks)
+        run_parallel(_mask_loop, volume.tsdf_weight, *volume.offsets(), masks)
         volume.negative_masks = NegativeMasks(masks, volume.offsets())
     return masks
 
 
 @_loop
-def _sample_loop(tsdf_weight, o0, o1, o2, coordinates, out):
-    for m in prange(coordinates.shape[0]):
+def _sample_loop(claims, parts, tsdf_weight, o0, o1, o2, coordinates, out):
+    for m in claimed_items(claims, coordinates.shape[0], parts):
         out[m] = sample_tsdf_at(
             tsdf_weight, o0, o1, o2, coordinates[m, 0], coordinates[m, 1], coordinates[m, 2]
         )
@@ -495,8 +517,7 @@ def integrate(
     box = frustum_box(volume, largest, pose, camera)
     if box is None:
         return
-    ray_distance = np.empty(depth.size + 1, dtype=np.float32)  # flat (project_voxel)
-    _ray_distance_loop(depth, pinhole(camera), ray_distance)
+    ray_distance = ray_distances(depth, camera)
     fuse_colour = colour is not None and volume.colour is not None
     if fuse_colour:
         colour = np.ascontiguousarray(colour, dtype=np.uint8).reshape(-1, 3)
@@ -510,26 +531,43 @@ def integrate(
     base, steps = camera_frame_steps(volume, pose)
     visit = _columns_to_visit(volume, box, base, steps, camera, ray_distance, pose)
     masks = volume.current_negative_masks()  # kept up to date where known
-    with numba.parallel_chunksize(2):  # slabs cost different amounts: handed out dynamically
-        _integrate_loop(
-            volume.tsdf_weight,
-            colour_volume,
-            volume.offsets(),
-            index_box(box),
-            base,
-            steps,
-            projection_constants(camera),
-            image_size(camera),
-            largest + float(volume.truncation),
-            ray_distance,
-            fusion_limits(volume),
-            colour,
-            colour_weights,
-            fuse_colour,
-            _NO_MASKS if masks is None else masks,
-            masks is not None,
-            visit,
-        )
+    # Slabs cost different amounts: handed out dynamically, two fine bricks at a time.
+    lo, hi = index_box(box)
+    parts = max(1, (hi[0] - lo[0]) // (2 * FINE))
+    run_parallel(
+        _integrate_loop,
+        volume.tsdf_weight,
+        colour_volume,
+        volume.offsets(),
+        (lo, hi),
+        base,
+        steps,
+        projection_constants(camera),
+        image_size(camera),
+        largest + float(volume.truncation),
+        ray_distance,
+        fusion_limits(volume),
+        colour,
+        colour_weights,
+        fuse_colour,
+        _NO_MASKS if masks is None else masks,
+        masks is not None,
+        visit,
+        _column_work(threads(), volume.resolution),
+        parts=parts,
+    )
+
+
+def _column_work(threads: int, n: int) -> tuple[np.ndarray, ...]:
+    """_integrate_slice's work arrays for `threads` threads and n voxels a column: per thread and
+    column (this one and the one before), each voxel's pixel, distance and SDF, and the
+    range [first, last + 1) of voxels updated."""
+    return (
+        np.empty((threads, 2, n), dtype=np.uint32),
+        np.empty((threads, 2, n), dtype=np.float32),
+        np.empty((threads, 2, n), dtype=np.float32),
+        np.zeros((threads, 2, 2), dtype=np.int64),
+    )
 
 
 def _columns_to_visit(
@@ -548,7 +586,8 @@ def _columns_to_visit(
     camera_voxel = volume.world_to_voxel(pose[:3, 3][None])[0].astype(np.float64)
     lo, hi = index_box(box)
     reach = float(volume.truncation) + CULL_MARGIN
-    _columns_to_visit_loop(
+    run_parallel(
+        _columns_to_visit_loop,
         base,
         steps,
         camera_voxel,
@@ -567,5 +606,5 @@ def sample_tsdf(volume: FastTsdfVolume, coordinates: np.ndarray) -> np.ndarray:
     none of the 8 is observed or outside the grid (kintinuous_ref.tsdf.sample_tsdf)."""
     coordinates = np.ascontiguousarray(coordinates, dtype=np.float64).reshape(-1, 3)
     out = np.empty(len(coordinates), dtype=np.float64)
-    _sample_loop(volume.tsdf_weight, *volume.offsets(), coordinates, out)
+    run_parallel(_sample_loop, volume.tsdf_weight, *volume.offsets(), coordinates, out)
     return out

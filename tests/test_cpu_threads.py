@@ -1,0 +1,75 @@
+"""The cpu backend's loops on several threads (kintinuous_fast.targets.cpu): every item of a
+loop's range is done exactly once, in parts that follow the closed form, whatever the number of
+threads and parts; each thread gets a work-array row of its own; and an error in a helper thread
+reaches the caller."""
+
+import threading
+import time
+
+import numba
+import numpy as np
+import pytest
+
+from kintinuous_fast.targets.cpu import (
+    NEXT_PART,
+    PARTS_DONE,
+    claim_slot,
+    claimed_items,
+    parallel_part,
+    run_parallel,
+)
+
+THREADS = sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)})
+
+
+@parallel_part()
+def _count_items(claims, parts, seen, slots):
+    """seen[i] += 1 and slots[i] = this thread's slot, for each item i this thread claims."""
+    slot = claim_slot(claims)
+    for item in claimed_items(claims, seen.shape[0], parts):
+        seen[item] += 1
+        slots[item] = slot
+
+
+@pytest.fixture(params=THREADS, ids=lambda n: f"{n} threads")
+def threads(request):
+    before = numba.get_num_threads()
+    numba.set_num_threads(request.param)
+    yield request.param
+    numba.set_num_threads(before)
+
+
+@pytest.mark.parametrize("count", [0, 1, 7, 1000, 100_003])
+@pytest.mark.parametrize("parts", [None, 1, 3, 50])
+def test_every_item_is_done_once_with_a_slot_of_its_threads_own(threads, count, parts):
+    seen = np.zeros(count, dtype=np.int64)
+    slots = np.full(count, -1, dtype=np.int64)
+    run_parallel(_count_items, seen, slots, parts=parts)
+    np.testing.assert_array_equal(seen, np.ones(count, dtype=np.int64))
+    assert count == 0 or (slots.min() >= 0 and slots.max() < threads)
+
+
+def test_claimed_parts_are_the_closed_form_in_order():
+    # One thread claims every part: part p of P covers [count p // P, count (p + 1) // P).
+    count, parts = 10, 4
+    claims = np.zeros(3, dtype=np.int64)
+    items = list(claimed_items(claims, count, parts))
+    assert items == list(range(count))
+    assert claims[NEXT_PART] == parts + 1 and claims[PARTS_DONE] == parts
+    bounds = [count * p // parts for p in range(parts + 1)]
+    assert bounds == [0, 2, 5, 7, 10]
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs a helper thread")
+def test_an_error_in_a_helper_thread_is_raised_by_the_call(threads):
+    if threads < 2:
+        pytest.skip("needs a helper thread")
+
+    def loop(claims, parts):  # a Python loop: the helper raises inside a part it claimed
+        for _ in claimed_items(claims, 200, parts):
+            if threading.current_thread() is not threading.main_thread():
+                raise ValueError("raised in a helper thread")
+            time.sleep(0.001)
+
+    with pytest.raises(ValueError, match="helper thread"):
+        run_parallel(loop, parts=200)
