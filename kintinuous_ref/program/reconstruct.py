@@ -379,7 +379,7 @@ def prepare_kernels(backend: Backend, config: Config, odometry: str) -> None:
     tracking = odometry != GROUNDTRUTH
     if not backend.kernels_cached(tracking=tracking):
         # the cold warm-up's wall time on the 2-core machine (docs/benchmarks.md)
-        wait = "40" if tracking else "20"
+        wait = "25" if tracking else "12"
         print(
             f"compiling the {backend.name} kernels, once per installation (about {wait} s on "
             "2 cores; later runs load them in seconds)...",
