@@ -301,9 +301,9 @@ plt.show()
 # ## The same with `kintinuous_fast`
 #
 # `kintinuous_fast` compiles the same per-voxel and per-ray arithmetic with numba (CPU loops
-# on all threads here; CUDA kernels where a GPU is present) and stores 8 bytes per voxel: the TSDF as
-# int16 scaled by 32767 and the weight as int16. So the fast volume equals the reference up to
-# the rounding of each update, at most half a step of 1/32767 per fused frame.
+# on all threads here; CUDA kernels where a GPU is present) and stores 8 bytes per voxel: the
+# TSDF as int16 scaled by 32767 and the weight as int16. So the fast volume equals the reference
+# up to the rounding of each update, at most half a step of 1/32767 per fused frame.
 
 # %%
 import kintinuous_fast

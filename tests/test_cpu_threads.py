@@ -1,8 +1,10 @@
 """The cpu backend's loops on several threads (kintinuous_fast.targets.cpu): every item of a
 loop's range is done exactly once, in parts that follow the closed form, whatever the number of
-threads and parts; each thread gets a work-array row of its own; and an error in a helper thread
-reaches the caller."""
+threads and parts; each thread gets a work-array row of its own; an error in a helper thread
+reaches the caller; and a forked child runs its loops too."""
 
+import multiprocessing
+import os
 import threading
 import time
 
@@ -73,3 +75,16 @@ def test_an_error_in_a_helper_thread_is_raised_by_the_call(threads):
 
     with pytest.raises(ValueError, match="helper thread"):
         run_parallel(loop, parts=200)
+
+
+def _items_done_in_a_child(count: int) -> list[int]:
+    seen = np.zeros(count, dtype=np.int64)
+    run_parallel(_count_items, seen, np.zeros(count, dtype=np.int64))
+    return seen.tolist()
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_forked_child_runs_loops_with_threads_of_its_own():
+    run_parallel(_count_items, np.zeros(10, dtype=np.int64), np.zeros(10, dtype=np.int64))
+    with multiprocessing.get_context("fork").Pool(1) as pool:  # forked after the team started
+        assert pool.apply(_items_done_in_a_child, (5000,)) == [1] * 5000

@@ -11,6 +11,7 @@ int64 array, so a thread that waits for another needs neither the GIL nor a wake
 """
 
 import itertools
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -109,8 +110,8 @@ def _spin_below(array: Any, index: int, target: int, spins: int) -> int:
 # finishes early or is descheduled evens out.
 PARTS_PER_THREAD = 4
 # How long an idle helper thread, or the calling thread waiting for the last parts, watches for
-# work before it sleeps (atomic loads, about 0.2 ms): waking a sleeping thread takes tens of
-# microseconds, as long as many of the loops take.
+# work before it sleeps (atomic loads, a fraction of a millisecond): waking a sleeping thread
+# takes tens of microseconds, as long as many of the loops take.
 SPINS = 200_000
 
 
@@ -199,6 +200,10 @@ class _Team:
 @lru_cache(maxsize=1)
 def _team() -> _Team:
     return _Team(max(1, numba.config.NUMBA_NUM_THREADS - 1))
+
+
+# A forked child has none of its parent's threads: it starts a team of its own when it needs one.
+os.register_at_fork(after_in_child=_team.cache_clear)
 
 
 def run_parallel_above(minimum: int, loop: Any, count: int, *args: Any) -> None:
