@@ -639,9 +639,9 @@ def shade_two_pixels(
     normals: Any,
     colours: Any,
 ) -> None:
-    """shade_pixel of pixels (u_a, v) and (u_b, v), `pixels` = (u_a, u_b, v) (a flat tuple:
-    numba's prange bodies took no nested ones), whose rays (directions a and b) met the surface
-    at `hits` = (t_a, t_b) (both finite), their normals taken together (gradient_normals)."""
+    """shade_pixel of pixels (u_a, v) and (u_b, v), `pixels` = (u_a, u_b, v), whose rays
+    (directions a and b) met the surface at `hits` = (t_a, t_b) (both finite), their normals
+    taken together (gradient_normals)."""
     u_a, u_b, v = pixels
     o0, o1, o2 = offsets
     t_a, t_b = hits
@@ -779,7 +779,7 @@ def raycast_pixel_pair(
         )
 
 
-@parallel_part(error_model="numpy", _nrt=False)
+@parallel_part(error_model="numpy")
 def _raycast_loop(
     claims,
     parts,
