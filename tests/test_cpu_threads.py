@@ -88,3 +88,30 @@ def test_a_forked_child_runs_loops_with_threads_of_its_own():
     run_parallel(_count_items, np.zeros(10, dtype=np.int64), np.zeros(10, dtype=np.int64))
     with multiprocessing.get_context("fork").Pool(1) as pool:  # forked after the team started
         assert pool.apply(_items_done_in_a_child, (5000,)) == [1] * 5000
+
+
+def _desk_run_on(threads: int):
+    """The cpu pipeline over the warm-up's three 160x120 desk frames (icp+rgbd, 64^3) on
+    `threads` threads: the poses, and the volume's TSDF and weights as the host sees them."""
+    from kintinuous_fast import select_backend
+    from kintinuous_ref.config import Config
+    from kintinuous_ref.pipeline import run
+    from kintinuous_ref.program.warmup import small_config, warmup_frames
+
+    frames, camera, trajectory = warmup_frames()
+    before = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        result = run(
+            frames, camera, small_config(Config()), "icp+rgbd", trajectory, select_backend("cpu")
+        )
+    finally:
+        numba.set_num_threads(before)
+    volume = result.host_volume(result.volume)
+    return np.stack(result.poses), volume.tsdf, volume.weight
+
+
+@pytest.mark.skipif(len(THREADS) < 2, reason="needs two threads")
+def test_the_pipeline_gives_the_same_bits_on_one_and_two_threads():
+    for one, two in zip(_desk_run_on(1), _desk_run_on(2), strict=True):
+        np.testing.assert_array_equal(one, two)
