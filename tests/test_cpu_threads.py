@@ -3,6 +3,7 @@ loop's range is done exactly once, in parts that follow the closed form, whateve
 threads and parts; each thread gets a work-array row of its own; an error in a helper thread
 reaches the caller; and a forked child runs its loops too."""
 
+import _thread
 import multiprocessing
 import os
 import threading
@@ -115,3 +116,25 @@ def _desk_run_on(threads: int):
 def test_the_pipeline_gives_the_same_bits_on_one_and_two_threads():
     for one, two in zip(_desk_run_on(1), _desk_run_on(2), strict=True):
         np.testing.assert_array_equal(one, two)
+
+
+@pytest.mark.skipif(len(THREADS) < 2, reason="needs two threads")
+def test_a_signal_during_the_wait_is_raised_once_the_helpers_parts_are_done(threads):
+    if threads < 2:
+        pytest.skip("needs a helper thread")
+    written = np.zeros(2)
+
+    def loop(claims, parts):  # part 0 on the calling thread, part 1 on the helper
+        for part in claimed_items(claims, 2, parts):
+            if threading.current_thread() is threading.main_thread():
+                time.sleep(0.02)  # long enough for the helper to claim part 1
+            else:
+                while claims[PARTS_DONE] < 1:  # the caller is done with its part: it waits now
+                    time.sleep(0.001)
+                _thread.interrupt_main()  # Ctrl-C while the caller waits for this part
+                time.sleep(0.05)
+            written[part] = 1.0
+
+    with pytest.raises(KeyboardInterrupt):
+        run_parallel(loop, parts=2)
+    np.testing.assert_array_equal(written, [1.0, 1.0])  # the helper's part was finished first

@@ -139,10 +139,26 @@ def run_parallel(loop: Any, *args: Any, parts: int | None = None) -> None:
     job = _Job(loop, claims, parts, args, helpers)
     _team().post(job)
     loop(claims, parts, *args)
-    while _spin_below(claims, PARTS_DONE, parts, SPINS) < parts:
-        if job.error is not None:
-            raise job.error
-        time.sleep(20e-6)
+    _wait_for_parts(job)
+
+
+def _wait_for_parts(job: "_Job") -> None:
+    """Until every part of `job` is done, or a helper's part has raised (raised here). A signal
+    (KeyboardInterrupt, kintinuous_ref.signals.Interrupted) that interrupts the wait is raised
+    once the helpers have finished the parts they hold, so that no loop writes into its outputs
+    after the call has returned: a run that a signal ends keeps whole frames."""
+    interruption: BaseException | None = None
+    while job.error is None:
+        try:
+            if _spin_below(job.claims, PARTS_DONE, job.parts, SPINS) >= job.parts:
+                break
+            time.sleep(20e-6)
+        except KeyboardInterrupt as signal_raised:
+            interruption = signal_raised
+    if interruption is not None:
+        raise interruption
+    if job.error is not None:
+        raise job.error
 
 
 class _Job:
