@@ -526,7 +526,7 @@ def stage(array):
 
 def _run(loop, count: int, *args) -> None:
     """run_parallel a loop; below PARALLEL_MIN items on the calling thread alone. Waking the other
-    threads costs more than such a loop, and on a busy machine a parallel region waits for its
+    threads costs more than such a loop, and on a busy machine a parallel loop waits for its
     slowest (descheduled) thread: tens of milliseconds per call were measured at load 9 on two
     cores for loops of a few thousand points."""
     run_parallel_above(PARALLEL_MIN, loop, count, *args)

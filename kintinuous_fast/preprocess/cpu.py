@@ -117,7 +117,7 @@ is_depth_jump = _ops.is_depth_jump
 colour_fusable = _ops.colour_fusable
 
 # Images with fewer pixels run on the calling thread: waking the second thread costs more than
-# such a loop, and on a busy machine a parallel region waits for its slowest, descheduled thread.
+# such a loop, and on a busy machine a parallel loop waits for its slowest, descheduled thread.
 PARALLEL_MIN = 40_000
 
 
