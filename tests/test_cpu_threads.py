@@ -129,9 +129,10 @@ def test_a_signal_during_the_wait_is_raised_once_the_helpers_parts_are_done(thre
             if threading.current_thread() is threading.main_thread():
                 time.sleep(0.02)  # long enough for the helper to claim part 1
             else:
-                while claims[PARTS_DONE] < 1:  # the caller is done with its part: it waits now
+                while claims[PARTS_DONE] < 1:  # the caller is done with its part
                     time.sleep(0.001)
-                _thread.interrupt_main()  # Ctrl-C while the caller waits for this part
+                time.sleep(0.005)  # and waits for this one by now
+                _thread.interrupt_main()  # Ctrl-C while the caller waits
                 time.sleep(0.05)
             written[part] = 1.0
 
