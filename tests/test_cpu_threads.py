@@ -20,6 +20,7 @@ from kintinuous_fast.targets.cpu import (
     claimed_items,
     parallel_part,
     run_parallel,
+    run_parallel_above,
 )
 
 THREADS = sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)})
@@ -139,3 +140,13 @@ def test_a_signal_during_the_wait_is_raised_once_the_helpers_parts_are_done(thre
     with pytest.raises(KeyboardInterrupt):
         run_parallel(loop, parts=2)
     np.testing.assert_array_equal(written, [1.0, 1.0])  # the helper's part was finished first
+
+
+@pytest.mark.parametrize("count", [0, 5, 99, 100, 1000])
+def test_loops_below_the_minimum_run_in_one_part_on_the_calling_thread(threads, count):
+    seen = np.zeros(count, dtype=np.int64)
+    slots = np.full(count, -1, dtype=np.int64)
+    run_parallel_above(100, _count_items, count, seen, slots)
+    np.testing.assert_array_equal(seen, np.ones(count, dtype=np.int64))
+    if count < 100:  # one part: a single thread, slot 0, did every item
+        np.testing.assert_array_equal(slots, np.zeros(count, dtype=np.int64))

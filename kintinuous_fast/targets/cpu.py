@@ -81,7 +81,7 @@ def claimed_items(claims: Any, count: int, parts: int) -> Any:
     the loop asks for the item after its last."""
     part = _fetch_add(claims, NEXT_PART)
     while part < parts:
-        for item in range(count * part // parts, count * (part + 1) // parts):  # noqa: UP028
+        for item in range(count * part // parts, count * (part + 1) // parts):  # noqa: UP028 (numba: no yield from)
             yield item
         _fetch_add(claims, PARTS_DONE)
         part = _fetch_add(claims, NEXT_PART)
@@ -121,18 +121,14 @@ def threads() -> int:
     return numba.get_num_threads()
 
 
-def default_parts() -> int:
-    """How many parts run_parallel cuts a loop into unless told."""
-    return PARTS_PER_THREAD * threads()
-
-
 def run_parallel(loop: Any, *args: Any, parts: int | None = None) -> None:
     """loop(claims, parts, *args) on threads() threads, the calling one among them, each calling
-    it once; returns once every part (default_parts()) is done. The loops write disjoint parts
-    of their outputs, so no result depends on the number of threads."""
-    parts = default_parts() if parts is None else parts
+    it once; returns once every part (PARTS_PER_THREAD per thread unless told) is done. The
+    loops write disjoint parts of their outputs, so no result depends on the number of threads."""
+    team_size = threads()
+    parts = PARTS_PER_THREAD * team_size if parts is None else parts
     claims = np.zeros(3, dtype=np.int64)
-    helpers = min(parts, threads()) - 1
+    helpers = min(parts, team_size) - 1
     if helpers <= 0:
         loop(claims, parts, *args)
         return
