@@ -7,7 +7,10 @@ each frame then following its keyframe's correction as in the run:
 
 - the run's rule: every odometry edge with the same standard deviations (config.loop_closure);
 - an oracle: each odometry edge with its own true error as its standard deviation (translation
-  and rotation), as if the tracker's covariance were known exactly up to direction;
+  and rotation), as if the tracker's uncertainty were known exactly up to direction;
+- a directional oracle: each odometry edge with the covariance e e^T + diag(1 mm, 0.02 degrees)^2
+  of its own true error e (rotation, translation), as if a tracker's full covariance knew in
+  which direction it erred;
 - every keyframe at its true pose (the floor of the frames-follow-keyframes scheme).
 
     python benchmarks/pose_graph_oracle.py DATASET RUN_FOLDER
@@ -39,26 +42,39 @@ def keyframes(poses: np.ndarray, config: LoopClosureConfig) -> list[int]:
     return chosen
 
 
-def edge_errors(estimate: np.ndarray, truth: np.ndarray, frames: list[int]) -> list[tuple]:
-    """(translation m, rotation rad) of each consecutive keyframe pair's odometry error."""
-    errors = []
+def error_vectors(estimate: np.ndarray, truth: np.ndarray, frames: list[int]) -> np.ndarray:
+    """(K - 1, 6) each odometry edge's true error [rotation vector, translation] in the pose
+    graph's residual convention (docs of kintinuous_ref.loop_closure.pose_graph)."""
+    rows = []
     for first, second in zip(frames, frames[1:], strict=False):
         measured = pose_graph.relative_pose(estimate[first], estimate[second])
-        error = se3.inverse(pose_graph.relative_pose(truth[first], truth[second])) @ measured
-        errors.append(
-            (max(np.linalg.norm(error[:3, 3]), 1e-4), max(se3.rotation_angle(error[:3, :3]), 1e-5))
-        )
-    return errors
+        error = se3.inverse(measured) @ pose_graph.relative_pose(truth[first], truth[second])
+        rows.append(np.hstack([se3.rotation_log(error[:3, :3]), error[:3, 3]]))
+    return np.array(rows)
 
 
-def solve_graph(estimate, truth, frames, loops, sigmas, config) -> np.ndarray:  # noqa: ANN001
-    """Keyframe poses that the pose graph puts out with odometry edge `sigmas`."""
+def error_sigmas(errors: np.ndarray) -> list[tuple[float, float]]:
+    """(translation m, rotation rad) of each edge's error, as its standard deviations."""
+    return [(max(np.linalg.norm(e[3:]), 1e-4), max(np.linalg.norm(e[:3]), 1e-5)) for e in errors]
+
+
+def directional_covariances(errors: np.ndarray) -> list[np.ndarray]:
+    floor = np.diag([np.radians(0.02) ** 2] * 3 + [0.001**2] * 3)
+    return [np.outer(e, e) + floor for e in errors]
+
+
+def solve_graph(estimate, truth, frames, loops, noise, config) -> np.ndarray:  # noqa: ANN001
+    """Keyframe poses that the pose graph puts out with odometry edge `noise`: one
+    (sigma translation, sigma rotation) pair or one 6 x 6 covariance per edge."""
     graph = pose_graph.PoseGraph()
     for frame in frames:
         graph.add_node(estimate[frame])
-    for node, (translation, rotation) in enumerate(sigmas, start=1):
+    for node, edge_noise in enumerate(noise, start=1):
         measured = pose_graph.relative_pose(estimate[frames[node - 1]], estimate[frames[node]])
-        graph.add_edge(node - 1, node, measured, translation, rotation)
+        if isinstance(edge_noise, np.ndarray):
+            graph.add_edge(node - 1, node, measured, 1.0, 1.0, covariance=edge_noise)
+        else:
+            graph.add_edge(node - 1, node, measured, *edge_noise)
     for old, new in loops:
         measured = pose_graph.relative_pose(truth[old], truth[new])
         graph.add_edge(frames.index(old), frames.index(new), measured,
@@ -99,12 +115,13 @@ def main() -> None:
     loops = [(old, new) for old, new in loops if old in frames and new in frames]
     uniform = [(config.odometry_sigma_translation,
                 np.radians(config.odometry_sigma_rotation_deg))] * (len(frames) - 1)  # fmt: skip
-    oracle = edge_errors(estimate, truth, frames)
+    errors = error_vectors(estimate, truth, frames)
     print(f"{len(frames)} keyframes, {len(loops)} loops")
     print(f"uncorrected                     ATE {ate_mm(estimate, truth):7.2f} mm")
     for label, sigmas in (
         ("the same sigma on every edge", uniform),
-        ("oracle sigma per edge", oracle),
+        ("oracle sigma per edge", error_sigmas(errors)),
+        ("oracle covariance per edge", directional_covariances(errors)),
     ):
         placed = solve_graph(estimate, truth, frames, loops, sigmas, config)
         print(

@@ -4,17 +4,19 @@ Nodes are camera-to-world poses T_i. An edge (i, j) carries a measurement Z_ij o
 in i's frame (odometry between consecutive keyframes, or a verified loop). Its error is the
 motion that remains between the measurement and the estimate,
 
-    E_ij = Z_ij^-1 T_i^-1 T_j,      r_ij = [log_SO3(R(E_ij)) / sigma_r, t(E_ij) / sigma_t],
+    E_ij = Z_ij^-1 T_i^-1 T_j,      r_ij = W_ij [log_SO3(R(E_ij)), t(E_ij)],
 
-zero when the graph agrees with the edge. Each node moves by a left perturbation [omega, u] (the
-project's twist order): R' = exp(omega) R, t' = exp(omega) t + u, so the parametrisation has no
-singularity however the cameras are turned; node 0 stays fixed (the gauge). With A = R_z^T R_i^T,
-the Jacobian blocks of an edge are, for node j, d r_rot / d omega = A, d r_t / d omega =
--A [t_j]x, d r_t / d u = A, and their negatives (with +A [t_j]x) for node i, the rotation log
-taken as linear (exact at zero error, where the solver ends). Levenberg-Marquardt relinearises at
-every step and solves the sparse normal equations (6 unknowns per node) with SuperLU. scipy's
-least_squares with a finite-difference Jacobian was tried first: minutes for a 50-node graph
-with a false loop, where this takes a fraction of a second.
+zero when the graph agrees with the edge, with W_ij = diag(1 / sigma_r, 1 / sigma_t) or, for an
+edge given a full covariance C_ij = L L^T, W_ij = L^-1 (so that W^T W = C^-1). Each node moves
+by a left perturbation [omega, u] (the project's twist order): R' = exp(omega) R,
+t' = exp(omega) t + u, so the parametrisation has no singularity however the cameras are turned;
+node 0 stays fixed (the gauge). With A = R_z^T R_i^T, the Jacobian blocks of an edge (before
+W_ij) are, for node j, d r_rot / d omega = A, d r_t / d omega = -A [t_j]x, d r_t / d u = A,
+and their negatives (with +A [t_j]x) for node i, the rotation log taken as linear (exact at zero
+error, where the solver ends). Levenberg-Marquardt relinearises at every step and solves the
+sparse normal equations (6 unknowns per node) with SuperLU. scipy's least_squares with a
+finite-difference Jacobian was tried first: minutes for a 50-node graph with a false loop, where
+this takes a fraction of a second.
 
 Robust loops: one false loop must not fold the map. Every loop edge gets a switch s in [0, 1]
 (Suenderhauf and Protzel, IROS 2012) that scales its residual, s r_ij, with a prior
@@ -53,6 +55,15 @@ class Edge:
     sigma_rotation: float  # radians
     loop: bool = False  # loop edges are switchable
     consistent: bool | None = None  # a loop's consistency test (None: not tested yet)
+    covariance: np.ndarray | None = None  # (6, 6) [rotation, translation]; None: the sigmas
+
+    def whitening(self) -> np.ndarray:
+        """W with W^T W the edge's information, so that W [rotation, translation] is its
+        residual in standard deviations: diagonal from the sigmas, or L^-1 for a covariance
+        L L^T (Cholesky), which also weighs and couples the directions."""
+        if self.covariance is None:
+            return np.diag([1 / self.sigma_rotation] * 3 + [1 / self.sigma_translation] * 3)
+        return np.linalg.inv(np.linalg.cholesky(self.covariance))
 
 
 @dataclass
@@ -72,11 +83,21 @@ class PoseGraph:
         sigma_translation: float,
         sigma_rotation: float,
         loop: bool = False,
+        covariance: np.ndarray | None = None,
     ) -> Edge:
+        """An edge whose error has the standard deviations `sigma_translation` (metres) and
+        `sigma_rotation` (radians), or the full `covariance` where given (6 x 6, rotation
+        first: a tracker's uncertainty differs by direction)."""
         if not (0 <= first < len(self.poses) and 0 <= second < len(self.poses)) or first == second:
             raise ConfigError(f"pose graph edge {first}-{second} needs two different nodes")
+        if covariance is not None:
+            covariance = np.asarray(covariance, dtype=np.float64)
+            if covariance.shape != (6, 6) or np.any(np.linalg.eigvalsh(covariance) <= 0):
+                raise ConfigError(
+                    "a pose graph edge's covariance must be 6 x 6 and positive definite"
+                )
         edge = Edge(first, second, np.asarray(measurement, dtype=np.float64), sigma_translation,
-                    sigma_rotation, loop)  # fmt: skip
+                    sigma_rotation, loop, covariance=covariance)  # fmt: skip
         self.edges.append(edge)
         return edge
 
@@ -109,22 +130,20 @@ def _edge_arrays(graph: PoseGraph) -> dict[str, np.ndarray]:
         "second": np.array([e.second for e in edges], dtype=np.int64),
         "rotation_t": measurements[:, :3, :3].transpose(0, 2, 1),  # R_z^T
         "translation": measurements[:, :3, 3],
-        "scale": np.array(
-            [[1 / e.sigma_rotation] * 3 + [1 / e.sigma_translation] * 3 for e in edges]
-        ),
+        "whitening": np.array([e.whitening() for e in edges]),
         "loop": np.array([e.loop for e in edges]),
     }
 
 
 def _errors(poses: np.ndarray, edges: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(scaled residuals (E, 6), R_z^T R_i^T (E, 3, 3), t_j (E, 3)) of every edge."""
+    """(whitened residuals (E, 6), R_z^T R_i^T (E, 3, 3), t_j (E, 3)) of every edge."""
     first, second = poses[edges["first"]], poses[edges["second"]]
     a = np.einsum("eab,ecb->eac", edges["rotation_t"], first[:, :3, :3])  # R_z^T R_i^T
     error_rotation = np.einsum("eab,ebc->eac", a, second[:, :3, :3])
     rotation = Rotation.from_matrix(error_rotation).as_rotvec()
     translation = np.einsum("eab,eb->ea", a, second[:, :3, 3] - first[:, :3, 3])
     translation -= np.einsum("eab,eb->ea", edges["rotation_t"], edges["translation"])
-    residual = np.hstack([rotation, translation]) * edges["scale"]
+    residual = np.einsum("eab,eb->ea", edges["whitening"], np.hstack([rotation, translation]))
     return residual, a, second[:, :3, 3]
 
 
@@ -140,7 +159,7 @@ def _jacobian(count: int, edges: dict, a: np.ndarray, tj: np.ndarray, weight: np
     # rows: [rotation; translation], columns: [omega, u] of node j, then of node i
     block_j = np.block([[a, zero], [-a_skew, a]])
     block_i = np.block([[-a, zero], [a_skew, -a]])
-    scale = (edges["scale"] * weight[:, None])[:, :, None]
+    whitening = edges["whitening"] * weight[:, None, None]
     rows, cols, values = [], [], []
     row_index = 6 * np.arange(len(tj))[:, None, None] + np.arange(6)[None, :, None]
     for node, block in ((edges["second"], block_j), (edges["first"], block_i)):
@@ -149,7 +168,7 @@ def _jacobian(count: int, edges: dict, a: np.ndarray, tj: np.ndarray, weight: np
         shape = (int(keep.sum()), 6, 6)
         rows.append(np.broadcast_to(row_index[keep], shape).ravel())
         cols.append(np.broadcast_to(col_index[keep], shape).ravel())
-        values.append((block * scale)[keep].ravel())
+        values.append(np.einsum("eab,ebc->eac", whitening, block)[keep].ravel())
     return coo_matrix(
         (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
         shape=(6 * len(tj), 6 * (count - 1)),
