@@ -8,9 +8,10 @@ DATASET is a TUM folder (a synthetic scenario written by `kintinuous synth`, or 
 synthetic ground-truth surface) OUT/groundtruth, and, where open3d is installed, Open3D's
 frame-to-model dense SLAM on the same frames with the same voxel size (OUT/open3d, its mesh in
 OUT/open3d/mesh.ply; it closes no loops), then prints and writes OUT/summary.json: ATE of
-each trajectory (the closure run's corrected and uncorrected ones too), the loop closure
-report, and with scene.ply the mesh's mean distance to the true surface and the share of its
-vertices more than 3 cm away (a doubled surface shows there).
+each trajectory (the closure run's corrected and uncorrected ones too) and its return error
+(the last pose relative to the first against the truth's), the loop closure report, and with
+scene.ply the mesh's mean distance to the true surface and the share of its vertices more than
+3 cm away (a doubled surface shows there).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pipeline_vs_open3d  # benchmarks/, beside this file
 
-from kintinuous_ref import metrics
+from kintinuous_ref import metrics, se3
 from kintinuous_ref.config import Config, VolumeConfig, with_overrides
 from kintinuous_ref.datasets import tum
 from kintinuous_ref.program import reconstruct
@@ -31,6 +32,20 @@ from kintinuous_ref.program import reconstruct
 def ate(path: Path, truth: tum.Trajectory) -> float:
     errors = metrics.absolute_trajectory_errors(tum.read_trajectory(path), truth)
     return float(np.sqrt(np.mean(errors**2)))
+
+
+def return_error(path: Path, truth: tum.Trajectory) -> dict[str, float]:
+    """How far the last pose relative to the first is from the truth's (translation in metres,
+    rotation in degrees): for a sequence that comes back to its start, the error the loop leaves,
+    which needs no global accuracy of the ground truth, only at its two ends."""
+    poses = tum.read_trajectory(path).poses
+    estimated = se3.inverse(poses[0]) @ poses[-1]
+    true = se3.inverse(truth.poses[0]) @ truth.poses[len(poses) - 1]
+    error = se3.inverse(true) @ estimated
+    return {
+        "translation_m": float(np.linalg.norm(error[:3, 3])),
+        "rotation_deg": float(np.degrees(se3.rotation_angle(error[:3, :3]))),
+    }
 
 
 def mesh_distances(mesh: Path, scene: Path) -> dict[str, float]:
@@ -100,9 +115,12 @@ def main() -> None:
             sequence, out, config, odometry, count=args.frames, backend_name=args.backend,
             show_progress=False, overwrite=True, loop_closure=closing,
         )  # fmt: skip
-        entry: dict = {"ate_m": ate(out / "trajectory.txt", truth)}
+        trajectory = out / "trajectory.txt"
+        entry: dict = {"ate_m": ate(trajectory, truth), "return": return_error(trajectory, truth)}
         if closing:
-            entry["ate_uncorrected_m"] = ate(out / "trajectory_uncorrected.txt", truth)
+            uncorrected = out / "trajectory_uncorrected.txt"
+            entry["ate_uncorrected_m"] = ate(uncorrected, truth)
+            entry["return_uncorrected"] = return_error(uncorrected, truth)
             entry["loop_closures"] = {k: v for k, v in report["loop_closures"].items()
                                       if k != "verified"}  # fmt: skip
             entry["map_deformation"] = report.get("map_deformation")
