@@ -37,14 +37,14 @@ def there_and_back(count: int, stride: int = 2) -> list[int]:
 
 def write_folder(source: Path, out: Path, frames: int | None, stride: int = 2) -> int:
     """Write OUT as described above; the number of frames written."""
-    sequence = tum.open_sequence(source)
-    if sequence.groundtruth is None:
-        raise DatasetError(f"{source}: no groundtruth.txt, so no error could be measured")
-    truth = sequence.groundtruth_for_frames()
     if stride < 2:
         raise DatasetError(
             f"--stride must be at least 2 (the way back needs frames between), got {stride}"
         )
+    sequence = tum.open_sequence(source)
+    if sequence.groundtruth is None:
+        raise DatasetError(f"{source}: no groundtruth.txt, so no error could be measured")
+    truth = sequence.groundtruth_for_frames()
     order = there_and_back(min(frames or len(sequence), len(sequence)), stride)
     stamps = 1.0 + stride / RATE * np.arange(len(order))
     replayed = (
@@ -63,7 +63,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, help="use the first N frames of the recording")
     parser.add_argument("--stride", type=int, default=2, help="frames apart on the way out")
     args = parser.parse_args()
-    written = write_folder(args.source, args.out, args.frames, args.stride)
+    try:
+        written = write_folder(args.source, args.out, args.frames, args.stride)
+    except DatasetError as error:
+        parser.exit(2, f"there_and_back: {error}\n")
     print(f"wrote {written} frames to {args.out}")
 
 

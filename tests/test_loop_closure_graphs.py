@@ -151,13 +151,16 @@ def test_a_diagonal_covariance_is_the_same_as_its_sigmas():
     np.testing.assert_allclose(solutions[0], solutions[1], atol=1e-12)
 
 
-@pytest.mark.parametrize("covariance", [np.eye(3), -np.eye(6), np.zeros((6, 6))])
+@pytest.mark.parametrize(
+    "covariance", [np.eye(3), -np.eye(6), np.zeros((6, 6)), np.full((6, 6), np.nan)]
+)
 def test_a_covariance_must_be_six_by_six_and_positive_definite(covariance):
     graph = pose_graph.PoseGraph()
     graph.add_node(np.eye(4))
     graph.add_node(np.eye(4))
     with pytest.raises(ConfigError, match="positive definite"):
         graph.add_edge(0, 1, np.eye(4), 0.01, 0.01, covariance=covariance)
+    assert not graph.edges
 
 
 def test_an_edge_needs_two_existing_nodes():

@@ -92,7 +92,11 @@ class PoseGraph:
             raise ConfigError(f"pose graph edge {first}-{second} needs two different nodes")
         if covariance is not None:
             covariance = np.asarray(covariance, dtype=np.float64)
-            if covariance.shape != (6, 6) or np.any(np.linalg.eigvalsh(covariance) <= 0):
+            if (
+                covariance.shape != (6, 6)
+                or not np.all(np.isfinite(covariance))
+                or np.any(np.linalg.eigvalsh(covariance) <= 0)
+            ):
                 raise ConfigError(
                     "a pose graph edge's covariance must be 6 x 6 and positive definite"
                 )
