@@ -1,0 +1,97 @@
+"""What a parallel call costs on the CPU: the project's run_parallel (helper threads that call the
+loop from Python) against a numba gufunc on numba's threading layer (`guvectorize`, target
+"parallel", the outer dimension being the parts), on the same synthetic loop.
+
+    python benchmarks/parallel_call_overhead.py [--calls 400]
+
+The loop does `reps` multiply-adds on each of 64 items, cut into 8 parts. Between two calls the
+calling thread runs Python for `gap` microseconds, as the odometry does between its loops (the
+GIL held). Prints the median time of a call in microseconds: on one thread, with run_parallel
+and with the gufunc, and each one's speed-up over one thread (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+
+import numba
+import numpy as np
+from numba import guvectorize
+
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
+
+ITEMS, PARTS = 64, 8
+
+
+@numba.njit(cache=True)
+def _multiply_adds(x: float, reps: int) -> float:
+    for _ in range(reps):
+        x = x * 1.0000001 + 1e-9
+    return x
+
+
+@parallel_part()
+def _helper_loop(claims, parts, values, reps):  # noqa: ANN001, ANN202
+    for item in claimed_items(claims, values.shape[0], parts):
+        values[item] = _multiply_adds(values[item], reps)
+
+
+@guvectorize(
+    ["void(int64, int64, float64[:], int64, float64[:])"],
+    "(),(),(n),()->()",
+    target="parallel",
+    nopython=True,
+    cache=True,
+)
+def _gufunc_part(part, parts, values, reps, done):  # noqa: ANN001, ANN202
+    n = values.shape[0]
+    for item in range(n * part // parts, n * (part + 1) // parts):
+        values[item] = _multiply_adds(values[item], reps)
+    done[0] = 1.0
+
+
+def _busy(microseconds: float) -> None:
+    end = time.perf_counter() + microseconds * 1e-6
+    while time.perf_counter() < end:
+        pass
+
+
+def median_call(call: Callable[[], None], gap: float, calls: int) -> float:
+    """Median microseconds of `call`, with `gap` microseconds of Python before each."""
+    call()
+    times = []
+    for _ in range(calls):
+        _busy(gap)
+        started = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - started)
+    return 1e6 * statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--calls", type=int, default=400)
+    args = parser.parse_args()
+    values = np.ones(ITEMS)
+    parts = np.arange(PARTS, dtype=np.int64)
+    done = np.empty(PARTS)
+    print("gap us  work reps |  one thread  run_parallel (x)   gufunc (x)")
+    for gap in (0, 20, 100):
+        for reps in (200, 500, 2000, 20000):
+            one = median_call(lambda r=reps: run_parallel(_helper_loop, values, r, parts=1),
+                              gap, args.calls)  # fmt: skip
+            helpers = median_call(lambda r=reps: run_parallel(_helper_loop, values, r),
+                                  gap, args.calls)  # fmt: skip
+            gufunc = median_call(lambda r=reps: _gufunc_part(parts, PARTS, values, r, done),
+                                 gap, args.calls)  # fmt: skip
+            print(
+                f"{gap:6d} {reps:10d} | {one:10.1f} {helpers:10.1f} ({one / helpers:4.2f})"
+                f" {gufunc:10.1f} ({one / gufunc:4.2f})"
+            )
+
+
+if __name__ == "__main__":
+    main()
