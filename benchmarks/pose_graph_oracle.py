@@ -53,28 +53,31 @@ def error_vectors(estimate: np.ndarray, truth: np.ndarray, frames: list[int]) ->
     return np.array(rows)
 
 
-def error_sigmas(errors: np.ndarray) -> list[tuple[float, float]]:
-    """(translation m, rotation rad) of each edge's error, as its standard deviations."""
-    return [(max(np.linalg.norm(e[3:]), 1e-4), max(np.linalg.norm(e[:3]), 1e-5)) for e in errors]
+def sigma_covariance(translation: float, rotation: float) -> np.ndarray:
+    """The diagonal covariance of standard deviations `translation` (m) and `rotation` (rad)."""
+    return np.diag([rotation**2] * 3 + [translation**2] * 3)
+
+
+def error_sigmas(errors: np.ndarray) -> list[np.ndarray]:
+    """Each edge with the size of its own error (translation, rotation) as its sigmas."""
+    return [sigma_covariance(max(np.linalg.norm(e[3:]), 1e-4), max(np.linalg.norm(e[:3]), 1e-5))
+            for e in errors]  # fmt: skip
 
 
 def directional_covariances(errors: np.ndarray) -> list[np.ndarray]:
-    floor = np.diag([np.radians(0.02) ** 2] * 3 + [0.001**2] * 3)
+    """Each edge with its own error vector e as its direction: e e^T + (1 mm, 0.02 degrees)^2."""
+    floor = sigma_covariance(0.001, np.radians(0.02))
     return [np.outer(e, e) + floor for e in errors]
 
 
-def solve_graph(estimate, truth, frames, loops, noise, config) -> np.ndarray:  # noqa: ANN001
-    """Keyframe poses that the pose graph puts out with odometry edge `noise`: one
-    (sigma translation, sigma rotation) pair or one 6 x 6 covariance per edge."""
+def solve_graph(estimate, truth, frames, loops, covariances, config) -> np.ndarray:  # noqa: ANN001
+    """Keyframe poses that the pose graph puts out with one 6 x 6 covariance per odometry edge."""
     graph = pose_graph.PoseGraph()
     for frame in frames:
         graph.add_node(estimate[frame])
-    for node, edge_noise in enumerate(noise, start=1):
+    for node, covariance in enumerate(covariances, start=1):
         measured = pose_graph.relative_pose(estimate[frames[node - 1]], estimate[frames[node]])
-        if isinstance(edge_noise, np.ndarray):
-            graph.add_edge(node - 1, node, measured, 1.0, 1.0, covariance=edge_noise)
-        else:
-            graph.add_edge(node - 1, node, measured, *edge_noise)
+        graph.add_edge(node - 1, node, measured, 1.0, 1.0, covariance=covariance)
     for old, new in loops:
         measured = pose_graph.relative_pose(truth[old], truth[new])
         graph.add_edge(frames.index(old), frames.index(new), measured,
@@ -113,17 +116,19 @@ def main() -> None:
     frames = keyframes(estimate, config)
     loops = [tuple(c["keyframe_frames"]) for c in closures]
     loops = [(old, new) for old, new in loops if old in frames and new in frames]
-    uniform = [(config.odometry_sigma_translation,
-                np.radians(config.odometry_sigma_rotation_deg))] * (len(frames) - 1)  # fmt: skip
+    rule = sigma_covariance(
+        config.odometry_sigma_translation, np.radians(config.odometry_sigma_rotation_deg)
+    )
+    uniform = [rule] * (len(frames) - 1)
     errors = error_vectors(estimate, truth, frames)
     print(f"{len(frames)} keyframes, {len(loops)} loops")
     print(f"uncorrected                     ATE {ate_mm(estimate, truth):7.2f} mm")
-    for label, sigmas in (
+    for label, covariances in (
         ("the same sigma on every edge", uniform),
         ("oracle sigma per edge", error_sigmas(errors)),
         ("oracle covariance per edge", directional_covariances(errors)),
     ):
-        placed = solve_graph(estimate, truth, frames, loops, sigmas, config)
+        placed = solve_graph(estimate, truth, frames, loops, covariances, config)
         print(
             f"{label:31s} ATE {ate_mm(follow_keyframes(estimate, frames, placed), truth):7.2f} mm"
         )
