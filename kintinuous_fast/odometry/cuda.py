@@ -45,12 +45,13 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config, IcpConfig
 from kintinuous_ref.odometry import METHODS, Tracker, TrackingResult
 from kintinuous_ref.odometry import repeated_streams as ref_repeated_streams
-from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, joint_system
+from kintinuous_ref.odometry.combined import icp_scale
 from kintinuous_ref.odometry.icp import robust_threshold
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
-from kintinuous_ref.odometry.solve import LinearSystem, apply_increment, refine, solve
+from kintinuous_ref.odometry.solve import LinearSystem
 
 from .ops import NV, build_ops
+from .solve import CombinedProblem, apply_increment, joint_system, refine, solve
 
 __all__ = [
     "METHODS",

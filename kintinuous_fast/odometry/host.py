@@ -3,8 +3,8 @@ poses computed exactly as the reference computes them), the unpacking of the acc
 sums into a LinearSystem, input checks, and the per-frame problems and trackers written once over
 "a module with the kernels" (odometry/cpu.py or odometry/cuda.py).
 
-The Gauss-Newton loop itself (solve: 6x6 Cholesky in float64, apply_increment, refine) is the
-reference's: it runs on the host in both backends, as in the paper (section IV-A.3).
+The Gauss-Newton step (solve: 6x6 Cholesky in float64, apply_increment, the joint system) runs
+on the host in both backends, as in the paper (section IV-A.3), compiled in odometry/solve.py.
 """
 
 from __future__ import annotations

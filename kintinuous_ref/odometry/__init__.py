@@ -137,7 +137,11 @@ def _reference_systems() -> SimpleNamespace:
     from kintinuous_ref.preprocess import model_pyramid  # preprocess imports this package
 
     return SimpleNamespace(
-        IcpProblem=IcpProblem, RgbdProblem=RgbdProblem, model_pyramid=model_pyramid
+        IcpProblem=IcpProblem,
+        RgbdProblem=RgbdProblem,
+        CombinedProblem=CombinedProblem,
+        model_pyramid=model_pyramid,
+        refine=refine,
     )
 
 
@@ -147,9 +151,9 @@ class DenseTracker:
     def __init__(
         self, method: str, config: Config, camera: Intrinsics, systems: Any = None
     ) -> None:
-        """`systems` builds the ICP and RGB-D normal equations: any object with this module's
-        IcpProblem and RgbdProblem and kintinuous_ref.preprocess's model_pyramid (a fast
-        backend's odometry module); None: the reference's own."""
+        """`systems` builds and solves the normal equations: any object with this package's
+        IcpProblem, RgbdProblem, CombinedProblem and refine and kintinuous_ref.preprocess's
+        model_pyramid (a fast backend's odometry module); None: the reference's own."""
         if method not in DENSE_METHODS:
             raise ConfigError(f"unknown dense odometry {method!r}; choose from {DENSE_METHODS}")
         self.method = method
@@ -212,7 +216,7 @@ class DenseTracker:
                 self.config.rgbd.gradient,
             )
         if icp is not None and rgbd is not None:
-            return CombinedProblem.from_config(icp, rgbd, self.config.combined)
+            return self.systems.CombinedProblem.from_config(icp, rgbd, self.config.combined)
         return icp if icp is not None else rgbd
 
     def estimate(
@@ -244,7 +248,7 @@ class DenseTracker:
         if isinstance(problem, CombinedProblem) and (depth_repeated or colour_repeated):
             # One stream is stale: track on the fresh one alone for this frame.
             problem = problem.icp if colour_repeated else problem.rgbd
-        pose, reason = refine(
+        pose, reason = self.systems.refine(
             previous_pose.copy(),
             problem.system,
             self.iterations,

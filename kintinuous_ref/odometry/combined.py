@@ -273,8 +273,11 @@ class CombinedProblem:
             config.degeneracy_threshold,
         )
 
+    # The joint system of eq. 11-13 (a fast backend puts a compiled equal here).
+    combine = staticmethod(joint_system)
+
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
-        return joint_system(
+        return self.combine(
             self.icp.system(level, pose),
             self.rgbd.system(level, pose),
             self.rgbd_weight,

@@ -132,6 +132,7 @@ def refine(
     iterations: Sequence[int],
     min_count: int = 6,
     converged: float = TrackingConfig.converged_step,
+    step: tuple[Callable, Callable] | None = None,
 ) -> tuple[np.ndarray, str]:
     """Coarse-to-fine Gauss-Newton: at most `iterations[l]` steps at level l, coarsest first.
 
@@ -139,13 +140,16 @@ def refine(
     the refined pose and '' or, at the first step without a solution, the pose so far and why.
     A step shorter than `converged` (twist norm; the trackers pass tracking.converged_step) ends
     the level early: the steps after it would move the pose by less than about as much again.
+    `step` = (solve, apply_increment) as this module's (the default), or functions that compute
+    the same (a fast backend's compiled ones).
     """
+    solve_system, update = step or (solve, apply_increment)
     for level in reversed(range(len(iterations))):
         for _ in range(iterations[level]):
-            xi, reason = solve(system_at(level, pose), min_count)
+            xi, reason = solve_system(system_at(level, pose), min_count)
             if xi is None:
                 return pose, f"level {level}: {reason}"
-            pose = apply_increment(xi, pose)
+            pose = update(xi, pose)
             if float(np.linalg.norm(xi)) < converged:
                 break
     return pose, ""
