@@ -1,7 +1,7 @@
 """The whole pipeline, per stage, against Open3D's frame-to-model dense SLAM, in one run.
 
     .venv/bin/python benchmarks/pipeline_vs_open3d.py [--frames 30] [--ref-frames 4]
-        [--backends cpu,ref] [--rounds 1] [--json out.json] [--plot stages.png]
+        [--backends cpu,ref] [--rounds 1] [--threads N] [--json out.json] [--plot stages.png]
 
 Ours: `kintinuous_ref.pipeline.run` (icp+rgbd, 640x480, 256^3 over 3 m, the moving volume,
 raycast every frame) on each backend, plus the cpu backend with the "fast odometry" setting
@@ -15,7 +15,9 @@ pose; accuracy is the ATE RMSE over the frames run (rigidly aligned, kintinuous_
 Stage times are medians over frames 2..N (the first frame compiles and has nothing to track).
 Open3D runs right after our default column, and `--rounds R` repeats both (and the other
 columns but the reference) R times, pooling the frames: a noisy host then slows both sides
-alike, and the ratios of each round are printed too.
+alike, and the ratios of each round are printed too. `--threads N` runs both on N threads
+(numba's thread count, and OpenMP's, which Open3D's CPU kernels use); the default is each
+library's own (every core).
 """
 
 from __future__ import annotations
@@ -245,6 +247,20 @@ def plot_stages(table: dict[str, dict], path: Path, rounds: int = 1) -> None:
     figure.savefig(path, dpi=110)
 
 
+def set_threads(count: int | None) -> str:
+    """Run both pipelines on `count` threads (None: leave each library's default) and say how
+    many each uses. OpenMP reads its variable when Open3D loads it, which is later."""
+    import numba
+
+    if count is not None:
+        if not 1 <= count <= numba.config.NUMBA_NUM_THREADS:
+            sys.exit(f"--threads must be in 1..{numba.config.NUMBA_NUM_THREADS}, got {count}")
+        numba.set_num_threads(count)
+        os.environ["OMP_NUM_THREADS"] = str(count)
+    openmp = os.environ.get("OMP_NUM_THREADS", f"OpenMP's default ({os.cpu_count()})")
+    return f"ours {numba.get_num_threads()}, Open3D {openmp}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=30)
@@ -253,7 +269,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1, help="repeat every column but ref")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--plot", type=Path, help="write a bar chart of the stages (PNG)")
+    parser.add_argument("--threads", type=int, help="threads for both (default: every core)")
     args = parser.parse_args()
+    threads = set_threads(args.threads)
     if not REDKITCHEN.is_dir():
         sys.exit(f"{REDKITCHEN}: not found (the benchmark needs the redkitchen sequence)")
     sequence = open_sequence(REDKITCHEN)
@@ -261,7 +279,7 @@ def main() -> None:
     print(
         f"redkitchen 640x480, {args.frames} frames, icp+rgbd, 256^3 over 3 m; "
         f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"load average {os.getloadavg()[0]:.1f}"
+        f"load average {os.getloadavg()[0]:.1f}; threads: {threads}"
     )
     pooled: dict[str, dict] = {}
     rounds: list[dict[str, dict]] = []
