@@ -6,6 +6,7 @@ reaches the caller; and a forked child runs its loops too."""
 import _thread
 import multiprocessing
 import os
+import signal
 import threading
 import time
 
@@ -128,7 +129,10 @@ def test_a_signal_during_the_wait_is_raised_once_the_helpers_parts_are_done(thre
     def loop(claims, parts):  # part 0 on the calling thread, part 1 on the helper
         for part in claimed_items(claims, 2, parts):
             if threading.current_thread() is threading.main_thread():
-                time.sleep(0.02)  # long enough for the helper to claim part 1
+                # until the helper holds the other part, however loaded the machine
+                deadline = time.monotonic() + 10.0
+                while claims[NEXT_PART] < 2 and time.monotonic() < deadline:
+                    time.sleep(0.001)
             else:
                 while claims[PARTS_DONE] < 1:  # the caller is done with its part
                     time.sleep(0.001)
@@ -137,8 +141,14 @@ def test_a_signal_during_the_wait_is_raised_once_the_helpers_parts_are_done(thre
                 time.sleep(0.05)
             written[part] = 1.0
 
-    with pytest.raises(KeyboardInterrupt):
-        run_parallel(loop, parts=2)
+    # Python's own handler, which interrupt_main needs: a process started in the background
+    # by a shell without job control inherits SIGINT ignored, and Python then installs none.
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_parallel(loop, parts=2)
+    finally:
+        signal.signal(signal.SIGINT, handler)
     np.testing.assert_array_equal(written, [1.0, 1.0])  # the helper's part was finished first
 
 
