@@ -106,8 +106,7 @@ def print_loop_times(dataset: str, frames: int, run: dict) -> None:
         per_stage[name.split(".")[0]] += seconds[name]
         print(f"{1000 * seconds[name] / count:8.2f} {calls[name] / count:6.1f}  {name}")
     print("\nper stage package: loops, and the stage's median less its loops")
-    stage_of = {"preprocess": "preprocess", "odometry": "odometry", "raycast": "raycast"}
-    stage_of |= {"tsdf": "integrate", "colour": "integrate"}
+    stage_of = {"tsdf": "integrate", "colour": "integrate"}  # the others share their names
     outside = dict(medians)
     for package, total in per_stage.items():
         stage = stage_of.get(package, package)

@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 import numba
 import numpy as np
 
+from kintinuous_ref import se3
 from kintinuous_ref.config import TrackingConfig
 from kintinuous_ref.odometry import combined as ref_combined
 from kintinuous_ref.odometry import solve as ref_solve
@@ -29,7 +30,8 @@ _jit = numba.njit(cache=True)
 
 # What _scaled_solution says of a system (kintinuous_ref.odometry.solve.solve's reasons).
 SOLVED, NOT_FINITE, UNCONSTRAINED, ILL_CONDITIONED, NOT_DEFINITE = range(5)
-SMALL_ANGLE = 1e-2  # kintinuous_ref.se3._SMALL_ANGLE
+# The reference's scalar maths, compiled as it is written (one body for both).
+_so3_coefficients = _jit(se3._so3_coefficients)
 
 
 @_jit
@@ -152,18 +154,10 @@ def _skew(x: float, y: float, z: float) -> np.ndarray:
 
 @_jit
 def _exp(xi: np.ndarray) -> np.ndarray:
-    """kintinuous_ref.se3.exp (eq. 4-5): Rodrigues' rotation and the left Jacobian V, with the
-    reference's series below SMALL_ANGLE."""
+    """kintinuous_ref.se3.exp (eq. 4-5): Rodrigues' rotation and the left Jacobian V, their
+    coefficients from the reference's own function (with its series near zero)."""
     theta = math.sqrt(xi[0] * xi[0] + xi[1] * xi[1] + xi[2] * xi[2])
-    t2 = theta * theta
-    if theta < SMALL_ANGLE:
-        a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-        c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
-    else:
-        a = math.sin(theta) / theta
-        b = 2.0 * math.sin(theta / 2.0) ** 2 / t2
-        c = (theta - math.sin(theta)) / (t2 * theta)
+    a, b, c = _so3_coefficients(theta)
     wx = _skew(xi[0], xi[1], xi[2])
     wx2 = _product(wx, wx)
     pose = np.eye(4)
