@@ -73,6 +73,17 @@ def cuda_device_jit() -> Callable[[Any], Any]:
     return cuda.jit(device=True)
 
 
+def is_device(array: Any) -> bool:
+    """True for a numba device array (real or simulated), False for NumPy arrays and None."""
+    return hasattr(array, "copy_to_host") and not isinstance(array, np.ndarray)
+
+
+def to_host(array: Any) -> Any:
+    """`array` on the host: a device array copied down, a NumPy array (or None) as it is. The one
+    place where a stage downloads what a cuda kernel left on the device."""
+    return array.copy_to_host() if is_device(array) else array
+
+
 def pinhole(camera: Any) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) as floats: the intrinsics a kernel takes as one argument."""
     return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
+from kintinuous_fast.targets import is_device
+
 # Threads per block of the per-pixel kernels: 16 x 16, x along image rows (coalesced reads).
 BLOCK_2D = (16, 16)
 # Threads per block of 1-D kernels (voxel columns, lists).
@@ -35,11 +37,6 @@ def quiet_small_grids() -> None:
 quiet_small_grids()
 
 
-def is_device(array: Any) -> bool:
-    """True for a numba device array (real or simulated), False for NumPy arrays."""
-    return not isinstance(array, np.ndarray) and hasattr(array, "copy_to_host")
-
-
 def to_device(array: Any, dtype: Any = None) -> Any:
     """A device array holding `array` (no copy if it already is one of the right dtype)."""
     if is_device(array):
@@ -48,10 +45,6 @@ def to_device(array: Any, dtype: Any = None) -> Any:
         return array
     host = np.ascontiguousarray(array, dtype=dtype)
     return cuda.to_device(host)
-
-
-def to_host(array: Any) -> np.ndarray:
-    return array.copy_to_host() if is_device(array) else np.asarray(array)
 
 
 def like_input(result: Any, given: Any) -> Any:
