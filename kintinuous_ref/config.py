@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
 from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.vocabulary import FALLBACKS, GRADIENTS, PLACEMENTS, ROBUST_KERNELS, WEIGHTINGS
 
 
 @dataclass(frozen=True)
@@ -65,10 +66,9 @@ class VolumeConfig:
             raise ConfigError(f"truncation must be positive, got {self.truncation_distance} m")
         if not self.max_weight >= 1:
             raise ConfigError(f"max weight must be >= 1, got {self.max_weight}")
-        if self.placement not in ("ahead", "centred"):
-            raise ConfigError(
-                f"volume placement must be 'ahead' or 'centred', got {self.placement!r}"
-            )
+        if self.placement not in PLACEMENTS:
+            allowed = " or ".join(repr(word) for word in PLACEMENTS)
+            raise ConfigError(f"volume placement must be {allowed}, got {self.placement!r}")
 
 
 @dataclass(frozen=True)
@@ -320,19 +320,14 @@ def with_overrides(config: Any, overrides: dict[str, Any], _prefix: str = "") ->
 # least one such number; the text fields take one of a few words (CHOICES).
 
 
-def _choices() -> dict[str, tuple[str, ...]]:
-    """The words each text field accepts (imported late: the odometry modules import this one)."""
-    from kintinuous_ref.odometry import FALLBACKS
-    from kintinuous_ref.odometry.combined import WEIGHTINGS
-    from kintinuous_ref.odometry.icp import ROBUST_KERNELS
-
-    return {
-        "volume.placement": ("ahead", "centred"),
-        "rgbd.gradient": ("current", "warped"),
-        "combined.weighting": tuple(WEIGHTINGS),
-        "icp.robust_kernel": tuple(ROBUST_KERNELS),
-        "tracking.fallback": tuple(FALLBACKS),
-    }
+# The words each text field accepts (kintinuous_ref.vocabulary).
+CHOICES: dict[str, tuple[str, ...]] = {
+    "volume.placement": PLACEMENTS,
+    "rgbd.gradient": GRADIENTS,
+    "combined.weighting": WEIGHTINGS,
+    "icp.robust_kernel": ROBUST_KERNELS,
+    "tracking.fallback": FALLBACKS,
+}
 
 
 def _shown(value: Any) -> str:
@@ -376,7 +371,7 @@ def checked_value(key: str, annotation: Any, value: Any) -> Any:
     if annotation in (int, float):
         return _number(key, annotation, value)
     if annotation is str:
-        choices = _choices().get(key)
+        choices = CHOICES.get(key)
         if not isinstance(value, str) or (choices is not None and value not in choices):
             expected = f"one of {', '.join(choices)}" if choices else "a word"
             raise ConfigError(f"{key}: expected {expected}, found {_shown(value)}")

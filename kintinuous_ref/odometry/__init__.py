@@ -33,16 +33,13 @@ from kintinuous_ref.odometry.combined import CombinedProblem, icp_model_noise, i
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import implausible_motion, refine
+from kintinuous_ref.vocabulary import DEFAULT_METHOD as DEFAULT_METHOD  # importable from here
+from kintinuous_ref.vocabulary import DENSE_METHODS, FALLBACKS, METHODS
 
 if TYPE_CHECKING:
     from kintinuous_ref.odometry.fovis import FovisResult
     from kintinuous_ref.preprocess import PreprocessedFrame
     from kintinuous_ref.raycast import ModelPrediction
-
-METHODS = ("icp", "rgbd", "fovis", "fovis/icp", "fovis/rgbd", "icp+rgbd", "fovis/icp+rgbd")
-DEFAULT_METHOD = "icp+rgbd"
-DENSE_METHODS = ("icp", "rgbd", "icp+rgbd")
-FALLBACKS = ("constant-velocity", "previous")
 
 
 @dataclass

@@ -90,18 +90,10 @@ from kintinuous_ref.odometry.icp import IcpProblem, voxel_noise
 from kintinuous_ref.odometry.rgbd import RgbdProblem
 from kintinuous_ref.odometry.solve import LinearSystem
 
-WEIGHTINGS = (
-    "paper",
-    "paper-metres",
-    "original-code",
-    "elasticfusion",
-    "information",
-    "degeneracy-aware",
-    "huber",
-    "tukey",
-)
-# Weightings that are "degeneracy-aware" with a robust kernel on the ICP rows (icp.py).
-ROBUST_WEIGHTINGS = ("huber", "tukey")
+# The weightings (WEIGHTINGS) and those "degeneracy-aware" with a robust kernel on the ICP rows
+# (ROBUST_WEIGHTINGS, icp.py) are listed in kintinuous_ref.vocabulary.
+from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS, WEIGHTINGS
+
 # Floor of the ICP residual scale (metres): far below any depth sensor's noise, it only keeps a
 # perfect, noise-free alignment from dividing by zero.
 MIN_ICP_SCALE = 1e-4

@@ -63,8 +63,8 @@ from kintinuous_ref.camera import Intrinsics, axial_noise
 from kintinuous_ref.config import IcpConfig
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.odometry.solve import LinearSystem, accumulate
+from kintinuous_ref.vocabulary import ROBUST_KERNELS
 
-ROBUST_KERNELS = ("none", "huber", "tukey")
 # The kernels' thresholds in units of the residual spread sigma: 95 % asymptotic efficiency of
 # least squares when the residuals are Gaussian (Huber 1964; Beaton and Tukey 1974).
 HUBER_TUNING = 1.345
