@@ -61,8 +61,8 @@ from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.moving_volume import MovingVolume, SliceStore
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.tsdf import TsdfVolume
+from kintinuous_ref.vocabulary import GROUNDTRUTH, ODOMETRY_CHOICES
 
-GROUNDTRUTH = "groundtruth"
 STAGES = ("preprocess", "odometry", "shift", "integrate", "raycast", "total")
 
 
@@ -130,24 +130,48 @@ class PipelineResult:
         return summary
 
 
+def check_settings(
+    config: Config, odometry: str, backend: Backend | None = None, loop_closure: bool = False
+) -> None:
+    """Refuse, before any data is read, settings a run cannot succeed with (one-line
+    ConfigError): a config value, a volume too big for the memory of the backend that will hold
+    it (`backend.tsdf.check_volume_config`), an unknown odometry, loop closure on a fixed volume.
+    The one place these are checked; `check_run` adds what needs the dataset."""
+    config.validate()
+    (backend or ReferenceBackend()).tsdf.check_volume_config(config.volume)
+    if odometry not in ODOMETRY_CHOICES:
+        raise ConfigError(
+            f"unknown odometry {odometry!r}; choose one of {', '.join(ODOMETRY_CHOICES)}"
+        )
+    if loop_closure and not config.volume.moving:
+        raise ConfigError(
+            "loop closure needs the moving volume (volume.moving = true): drop --fixed-volume"
+        )
+
+
+def check_groundtruth(odometry: str, groundtruth: Trajectory | None, dataset: str = "") -> None:
+    """Refuse ground-truth odometry on a dataset without ground truth (`dataset`: its name for
+    the message)."""
+    if odometry == GROUNDTRUTH and groundtruth is None:
+        where = f"{dataset}: " if dataset else ""
+        raise ConfigError(
+            f"{where}no ground-truth poses (groundtruth.txt, or --groundtruth for a log or bag), "
+            "so --odometry groundtruth cannot run"
+        )
+
+
 def check_run(
     config: Config,
     odometry: str,
     groundtruth: Trajectory | None,
     backend: Backend | None = None,
+    loop_closure: bool = False,
+    dataset: str = "",
 ) -> None:
-    """Refuse, before any work, a run that cannot succeed (one-line KintinuousError). The volume
-    is checked against the memory of the backend that will hold it (`backend.tsdf`)."""
-    config.validate()
-    (backend or ReferenceBackend()).tsdf.check_volume_config(config.volume)
-    if odometry == GROUNDTRUTH and groundtruth is None:
-        raise ConfigError("--odometry groundtruth needs a dataset with ground-truth poses")
-    if odometry != GROUNDTRUTH:
-        from kintinuous_ref.odometry import METHODS
-
-        if odometry not in METHODS:
-            choices = ", ".join((GROUNDTRUTH, *METHODS))
-            raise ConfigError(f"unknown odometry {odometry!r}; choose one of {choices}")
+    """Refuse, before any work, a run that cannot succeed (one-line ConfigError): its settings
+    (`check_settings`) and its dataset (`check_groundtruth`)."""
+    check_settings(config, odometry, backend, loop_closure)
+    check_groundtruth(odometry, groundtruth, dataset)
 
 
 def run(
@@ -172,7 +196,7 @@ def run(
     `backend` None: the reference. `loop_closer`: close loops (step 2b), which needs the moving
     volume."""
     backend = backend or ReferenceBackend()
-    check_run(config, odometry, groundtruth, backend)
+    check_run(config, odometry, groundtruth, backend, loop_closure=loop_closer is not None)
     if predict_model is None:
         predict_model = odometry != GROUNDTRUTH
     tracker = None
@@ -181,8 +205,6 @@ def run(
     stride = getattr(tracker, "model_stride", 1)  # only the pixels the tracker reads
     result = PipelineResult(loop_closer=loop_closer)
     if loop_closer is not None:
-        if not config.volume.moving:
-            raise ConfigError("loop closure needs the moving volume (volume.moving = true)")
         result.timings_ms["loop_closure"] = []
     previous = None
     try:

@@ -252,6 +252,7 @@ def _add_reconstruct(commands: argparse._SubParsersAction) -> None:
 def _run_reconstruct(args: argparse.Namespace) -> None:
     from kintinuous_ref.backend import load_backend
     from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, fast_odometry
+    from kintinuous_ref.pipeline import check_settings
     from kintinuous_ref.program import reconstruct
 
     config = Config(
@@ -269,8 +270,9 @@ def _run_reconstruct(args: argparse.Namespace) -> None:
     config = _configured(config, args.config, args.set)
     if args.fast_odometry:
         config = fast_odometry(config)
-    # before generating or reading anything: the volume against the memory that will hold it
-    load_backend(args.backend).tsdf.check_volume_config(config.volume)
+    # before generating or reading anything: the settings, the volume against the memory that
+    # will hold it among them
+    check_settings(config, args.odometry, load_backend(args.backend), args.loop_closure)
     out = reconstruct.check_output(args.out, args.overwrite)
     sequence = reconstruct.open_dataset(
         args.dataset,

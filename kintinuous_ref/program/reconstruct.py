@@ -429,14 +429,7 @@ def reconstruct(
         except DatasetError:
             if odometry == GROUNDTRUTH:
                 raise
-    if odometry == GROUNDTRUTH and groundtruth is None:
-        raise ConfigError(
-            f"{sequence.path}: no ground truth (groundtruth.txt, or --groundtruth for a log or "
-            "bag), so --odometry groundtruth cannot run"
-        )
-    check_run(config, odometry, groundtruth, backend)
-    if loop_closure and not config.volume.moving:
-        raise ConfigError("--loop-closure needs the moving volume: drop --fixed-volume")
+    check_run(config, odometry, groundtruth, backend, loop_closure, dataset=str(sequence.path))
     out = prepare_output(out, overwrite)
     total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
     bar = None
