@@ -45,3 +45,8 @@ GRADIENTS = ("current", "warped")
 # The command line's --backend: the reference, the fast package's two, or the first that runs
 # here (backend.load_backend).
 BACKEND_CHOICES = ("ref", "cpu", "cuda", "auto")
+
+# The TUM RGB-D sequences known by name (datasets/download.py holds their archives): those of the
+# paper's Table I, then others.
+PAPER_SEQUENCES = ("fr1/desk", "fr2/desk", "fr1/room", "fr2/large_no_loop")
+OTHER_SEQUENCES = ("fr1/xyz", "fr1/360", "fr2/xyz", "fr3/long_office_household")

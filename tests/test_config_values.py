@@ -111,7 +111,7 @@ def test_table_and_benchmark_refuse_non_finite_volume_sizes(capsys, tmp_path):
 def test_good_values_are_converted_to_the_field_types(tmp_path):
     path = tmp_path / "config.json"
     path.write_text('{"icp": {"iterations": [5, 3, 2]}, "volume": {"resolution": 64.0}}')
-    config = cli._configured(Config(), path, ["volume.truncation_distance=null", "rgbd={}"])
+    config = cli.configured(Config(), path, ["volume.truncation_distance=null", "rgbd={}"])
     assert config.icp.iterations == (5, 3, 2) and config.volume.resolution == 64
     assert isinstance(config.volume.resolution, int)
     assert config.volume.truncation_distance is None
@@ -154,7 +154,7 @@ def _load(tmp_path: Path, data: bytes) -> None:
     path = tmp_path / "config.json"
     path.write_bytes(data)
     try:
-        cli._configured(Config(), path, [])
+        cli.configured(Config(), path, [])
     except KintinuousError as err:
         assert "\n" not in str(err)
 
@@ -184,7 +184,7 @@ def test_random_edits_of_a_valid_config(tmp_path, edits):
 @given(text=st.text(max_size=40))
 def test_random_set_strings(text):
     try:
-        config = cli._configured(Config(), None, [text])
+        config = cli.configured(Config(), None, [text])
     except ConfigError as err:
         assert "\n" not in str(err)
     else:

@@ -118,6 +118,7 @@ def warm_up(
                     report.stage_seconds[stage] = report.stage_seconds.get(stage, 0.0) + slowest
             if progress is not None:
                 progress(method)
+    backend.record_warm_up(tracking)
     report.seconds = time.perf_counter() - start
     compiled.update(kernels)
     report.kernel_seconds = dict(sorted(compiled.items(), key=lambda item: -item[1]))

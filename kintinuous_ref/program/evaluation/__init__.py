@@ -2,7 +2,7 @@
 
     evaluation = evaluate_methods(["desk", "/data/rgbd_dataset_freiburg1_room"], out=Path("eval"))
 
-runs each method of kintinuous_ref.odometry.METHODS through the full pipeline on each sequence
+runs each method of kintinuous_ref.vocabulary.METHODS through the full pipeline on each sequence
 (runs.run_one, in parallel processes or on a Dask cluster), measures its trajectory against the
 ground truth (metrics.evaluate) and writes to `out`:
 
@@ -43,6 +43,7 @@ from kintinuous_ref.program.evaluation.tables import (
     render_markdown,
 )
 from kintinuous_ref.strict_json import dumps as strict_dumps
+from kintinuous_ref.vocabulary import METHODS
 
 __all__ = [
     "FAILED",
@@ -144,7 +145,6 @@ def evaluate_methods(
 ) -> Evaluation:
     """Run every method on every dataset and write table.md, table.json, the figures and the run
     folders into `out` (see the module docstring). Failed runs are reported, never raised."""
-    from kintinuous_ref.odometry import METHODS
     from kintinuous_ref.program.evaluation.figures import ranking_figure, trajectory_figure
 
     methods = list(methods or METHODS)

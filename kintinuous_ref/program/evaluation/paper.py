@@ -11,8 +11,8 @@ the published eq. 16 scores of that column.
 
 from __future__ import annotations
 
-DATASETS = ("fr1/desk", "fr2/desk", "fr1/room", "fr2/large_no_loop")
-METHODS = ("icp", "rgbd", "fovis", "fovis/icp", "fovis/rgbd", "icp+rgbd", "fovis/icp+rgbd")
+from kintinuous_ref.vocabulary import METHODS
+from kintinuous_ref.vocabulary import PAPER_SEQUENCES as DATASETS
 
 # (median, max) per dataset in DATASETS order, then the (median, max) rank scores.
 _TABLE_I = {  # absolute trajectory error, metres

@@ -1,0 +1,298 @@
+"""The bodies of the `kintinuous` commands: each takes the parsed arguments (arguments.py) and
+does the work, importing the modules it needs when it runs, so that `kintinuous --help` stays
+instant. A body that did not do all that was asked returns 1 (a `table` with a failed run);
+errors are raised as one-line KintinuousErrors, which cli.main prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from kintinuous_ref import __version__
+from kintinuous_ref.errors import KintinuousError
+from kintinuous_ref.program.arguments import MIRROR_VARIABLE
+from kintinuous_ref.program.config_options import configured
+from kintinuous_ref.strict_json import dumps as strict_dumps
+
+
+def run_synth(args: argparse.Namespace) -> None:
+    from kintinuous_ref.datasets import synthetic
+
+    if args.list:
+        for name, summary in synthetic.list_scenarios().items():
+            print(f"{name:10s} {summary}")
+        return
+    if not args.scenario or not args.out:
+        raise KintinuousError("synth needs a SCENARIO and --out DIR (or --list)")
+    synthetic.write_scenario(
+        args.scenario,
+        args.out,
+        frames=args.frames,
+        width=args.width,
+        height=args.height,
+        seed=args.seed,
+        noise=not args.no_noise,
+        progress=True,
+        workers=max(1, args.workers),
+        mesh_spacing=args.mesh_spacing,
+    )
+    print(f"wrote {args.frames} frames of '{args.scenario}' to {args.out}")
+
+
+def run_evaluate(args: argparse.Namespace) -> None:
+    from kintinuous_ref import metrics
+    from kintinuous_ref.datasets import tum
+
+    errors = metrics.evaluate(
+        tum.read_trajectory(args.estimate), tum.read_trajectory(args.groundtruth)
+    )
+    if args.json:
+        print(strict_dumps(errors.as_dict()))
+    else:
+        print(errors.summary())
+
+
+def run_reconstruct(args: argparse.Namespace) -> None:
+    from kintinuous_ref.backend import load_backend
+    from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, fast_odometry
+    from kintinuous_ref.pipeline import check_settings
+    from kintinuous_ref.program import reconstruct
+
+    config = Config(
+        volume=VolumeConfig(
+            resolution=args.resolution,
+            size=args.volume_size,
+            shift_threshold=args.shift_threshold,
+            moving=not args.fixed_volume,
+        ),
+        colour=ColourConfig(
+            angle_weighting=not args.no_colour_weighting,
+            discontinuity_check=not args.no_colour_weighting,
+        ),
+    )
+    config = configured(config, args.config, args.set)
+    if args.fast_odometry:
+        config = fast_odometry(config)
+    # before generating or reading anything: the settings, the volume against the memory that
+    # will hold it among them
+    check_settings(config, args.odometry, load_backend(args.backend), args.loop_closure)
+    out = reconstruct.check_output(args.out, args.overwrite)
+    sequence = reconstruct.open_dataset(
+        args.dataset,
+        args.intrinsics,
+        progress=True,
+        size=parse_size(args.size),
+        groundtruth=args.groundtruth,
+        topics=args.topics,
+        frames_needed=args.start + args.frames if args.frames else None,
+    )
+    report = reconstruct.reconstruct(
+        sequence,
+        out,
+        config,
+        odometry=args.odometry,
+        start=args.start,
+        count=args.frames,
+        backend_name=args.backend,
+        predict_model=True if args.raycast else None,
+        overwrite=args.overwrite,
+        skip_bad_frames=args.skip_bad_frames,
+        loop_closure=args.loop_closure,
+    )
+    total = report["timing_ms"]["total"]["mean"]
+    skipped = f", skipped {report['skipped_frames']} bad" if report["skipped_frames"] else ""
+    print(
+        f"fused {report['fused_frames']} of {report['frames']} frames{skipped} "
+        f"({total:.0f} ms per frame); wrote {out}/mesh.ply with "
+        f"{report['mesh']['vertices']} vertices ({report['shifts']} volume shifts, "
+        f"{report['slices']} slices)"
+    )
+    if "loop_closures" in report:
+        loops = report["loop_closures"]
+        print(
+            f"loop closure: {loops['keyframes']} keyframes, {loops['candidates']} candidates "
+            f"verified, {len(loops['closures'])} loops closed (docs/loop_closure.md)"
+        )
+
+
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """--size WIDTHxHEIGHT as (width, height); None when not given."""
+    if not text:
+        return None
+    width, _, height = text.lower().partition("x")
+    if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+        raise KintinuousError(f"--size expects WIDTHxHEIGHT such as 320x240, got {text!r}")
+    return int(width), int(height)
+
+
+def run_convert(args: argparse.Namespace) -> None:
+    from kintinuous_ref.datasets import klg, tum
+    from kintinuous_ref.program import reconstruct
+
+    sequence = reconstruct.open_dataset(
+        args.source,
+        args.intrinsics,
+        progress=True,
+        size=parse_size(args.size),
+        groundtruth=args.groundtruth,
+        topics=args.topics,
+        need_camera=False,
+    )
+    frames = sequence.frames()
+    if args.out.suffix == ".klg":
+        if args.out.exists():
+            raise KintinuousError(f"{args.out}: already exists; choose a new output file")
+        count = klg.write_log(args.out, frames)
+        camera = sequence.camera
+        print(f"wrote {count} frames to {args.out}")
+        if camera is not None:
+            print(
+                f"read it with: --intrinsics {camera.fx:g},{camera.fy:g},{camera.cx:g},"
+                f"{camera.cy:g} --size {camera.width}x{camera.height}"
+            )
+    else:
+        truth = sequence.groundtruth
+        count = tum.write_sequence(args.out, frames, sequence.camera, truth)
+        print(f"wrote {count} frames to {args.out}")
+
+
+def run_download(args: argparse.Namespace) -> None:
+    from kintinuous_ref.datasets.download import download
+    from kintinuous_ref.program import reconstruct
+
+    if args.sha256 and len(args.targets) > 1:
+        raise KintinuousError("--sha256 checks one archive: give one NAME or URL with it")
+    root = args.dest or reconstruct.cache_folder() / "tum"
+    mirror = args.mirror or os.environ.get(MIRROR_VARIABLE) or None
+    for target in args.targets:
+        folder, digest = download(target, root, args.sha256, mirror)
+        if digest:
+            print(f"{target}: unpacked into {folder} (archive sha256 {digest})")
+        else:
+            print(f"{target}: already in {folder}")
+
+
+def run_table(args: argparse.Namespace) -> int:
+    from kintinuous_ref.config import Config, VolumeConfig
+    from kintinuous_ref.program.evaluation import evaluate_methods, method_title
+
+    size = parse_size(args.size)
+    if args.scheduler:
+        from kintinuous_ref.program.evaluation.runs import dask_client
+
+        dask_client(args.scheduler).close()  # fail early: dask missing or scheduler unreachable
+    config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
+    config = configured(config, args.config, args.set)
+
+    def done(outcome, finished: int, total: int) -> None:  # noqa: ANN001
+        if outcome.status == "ok":
+            errors = outcome.errors
+            what = (
+                f"ATE median {errors['ate_median']:.4f} m, {outcome.tracking_failures} "
+                f"tracking failures, {outcome.seconds:.0f} s"
+            )
+        else:
+            what = f"FAILED: {outcome.reason}"
+        print(f"[{finished}/{total}] {outcome.dataset} {method_title(outcome.method)}: {what}")
+        sys.stdout.flush()
+
+    header = ["# Kintinuous odometry evaluation (paper section VII)", ""]
+    header += [f"Command: `{table_command(args)}`", ""]
+    evaluation = evaluate_methods(
+        args.datasets,
+        args.out,
+        methods=args.methods,
+        config=config,
+        start=args.start,
+        frames=args.frames,
+        size=size,
+        backend=args.backend,
+        jobs=args.jobs,
+        scheduler=args.scheduler,
+        mesh=args.mesh,
+        on_done=done,
+        header=header,
+    )
+    print()
+    print(evaluation.markdown)
+    print(f"wrote {', '.join(str(path) for path in evaluation.files)}", flush=True)
+    if evaluation.failed:
+        print(
+            f"kintinuous: {len(evaluation.failed)} of {len(evaluation.outcomes)} runs failed "
+            "(reasons in table.md)",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def table_command(args: argparse.Namespace) -> str:
+    """The command line that reproduces a table (for table.md)."""
+    import shlex
+
+    words = ["kintinuous", "table", *args.datasets]
+    if args.methods:
+        words += ["--methods", *args.methods]
+    for option in ("out", "jobs", "scheduler", "frames", "start", "size", "volume_size"):
+        if getattr(args, option) is not None:
+            words += [f"--{option.replace('_', '-')}", str(getattr(args, option))]
+    words += ["--resolution", str(args.resolution), "--backend", args.backend]
+    words += ["--mesh"] if args.mesh else []
+    words += ["--config", str(args.config)] if args.config else []
+    for setting in args.set:
+        words += ["--set", setting]
+    return shlex.join(words)
+
+
+def run_benchmark(args: argparse.Namespace) -> None:
+    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
+    from kintinuous_ref.program.benchmark import benchmark, format_table
+
+    config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
+    config = configured(config, args.config, args.set)
+    if args.fast_odometry:
+        config = fast_odometry(config)
+    report = benchmark(
+        args.dataset, args.backend, args.odometry, args.frames, config, start=args.start
+    )
+    print(strict_dumps(report) if args.json else format_table(report))
+
+
+def run_warmup(args: argparse.Namespace) -> None:
+    from kintinuous_ref.backend import load_backend
+    from kintinuous_ref.program import warmup
+
+    backend = load_backend(args.backend)  # a one-line error before any work
+    if args.empty_cache:
+        report = warmup.warm_up_from_empty_cache(backend.name, args.odometry, args.serial)
+    else:
+        from tqdm import tqdm
+
+        from kintinuous_ref.config import Config
+
+        methods = warmup.methods_for(args.odometry)
+        with tqdm(total=len(methods), unit="tracker", desc="warmup", disable=args.json) as bar:
+            report = warmup.warm_up(
+                backend,
+                Config(),
+                args.odometry,
+                progress=lambda _: bar.update(1),
+                parallel=not args.serial,
+            ).as_dict()
+    print(strict_dumps(report) if args.json else warmup.format_report(report, args.kernels))
+
+
+def run_info(args: argparse.Namespace) -> None:
+    from kintinuous_ref.backend import backend_status, load_backend
+
+    notes = {"ref": "NumPy reference", "cpu": "numba parallel CPU loops", "cuda": "numba.cuda"}
+    print(f"kintinuous {__version__}")
+    for name, reason in backend_status().items():
+        if reason:
+            print(f"{name:5s} no    {reason}")
+            continue
+        note = load_backend(name).note
+        print(f"{name:5s} yes   {notes.get(name, 'a plugin')}" + (f" ({note})" if note else ""))
+    print(f"auto -> {load_backend('auto').name}")
