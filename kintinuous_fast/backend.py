@@ -48,36 +48,39 @@ class FastBackend:
     def predict_surface(
         self, volume: Any, pose: np.ndarray, camera: Intrinsics, stride: int = 1
     ) -> ModelPrediction:
-        if self.name == "cuda":  # the maps stay in device memory, where the next ICP reads them
-            return self.raycast.raycast(
-                volume, pose, camera, colour=False, stride=stride, download=False
-            )
-        return self.raycast.raycast(volume, pose, camera, colour=False, stride=stride)
+        # cuda's maps stay in device memory, where the next ICP reads them
+        return self.raycast.predict_surface(volume, pose, camera, stride=stride)
 
     def volume_view(self, volume: Any) -> TsdfVolume:
-        return self.tsdf.slab_view(volume)
+        from kintinuous_fast.tsdf.volume import slab_view
+
+        return slab_view(volume)
 
     def host_volume(self, volume: Any) -> TsdfVolume:
-        return self.tsdf.to_reference_volume(volume)
+        from kintinuous_fast.tsdf.volume import to_reference_volume
+
+        return to_reference_volume(volume)
 
     def kernels_cached(self, tracking: bool = True) -> bool:
-        """For cpu: whether numba's on-disk cache holds the slowest kernel to compile of each
-        stage the run calls (a cache written by an earlier run or warm-up). The cuda kernels are
-        compiled at their first launch in the process that launches them, so there is nothing
-        to compile ahead elsewhere: True."""
+        """For cpu: whether a warm-up from these sources recorded the kernels of each stage a
+        run calls (with `tracking`, all five; without, preprocessing, integration and colour)
+        in numba's on-disk cache (targets/cache.py). The cuda kernels are compiled at their
+        first launch in the process that launches them, so there is nothing to compile ahead
+        elsewhere: True."""
         if self.name != "cpu":
             return True
-        from kintinuous_fast.targets.cache import slowest_kernels
+        from kintinuous_fast.targets import cache
 
-        kernels = slowest_kernels()
-        mapping = ("preprocess", "tsdf", "colour")  # what a run with known poses calls
-        stages = (*mapping, "odometry", "raycast") if tracking else mapping
-        try:
-            return all(
-                os.path.exists(kernels[stage]._cache._cache_file._index_path) for stage in stages
-            )
-        except AttributeError:  # another numba's cache layout: assume a compile is due
-            return False
+        return cache.warmed_up(cache.STAGES if tracking else cache.MAPPING_STAGES)
+
+    def record_warm_up(self, tracking: bool = True) -> None:
+        """For cpu: record, beside the cached kernels, that a warm-up compiled those of each
+        stage a run calls (kernels_cached reads it)."""
+        if self.name != "cpu":
+            return
+        from kintinuous_fast.targets import cache
+
+        cache.record_warm_up(cache.STAGES if tracking else cache.MAPPING_STAGES)
 
     def __repr__(self) -> str:
         return f"FastBackend({self.name!r})"

@@ -7,7 +7,8 @@ with kintinuous_ref's public names and signatures for that stage:
     preprocess   preprocess_frame(colour, depth, camera, config) -> PreprocessedFrame
     tsdf         check_volume_config(config), make_volume(config, pose, max_colour_weight),
                  integrate(volume, depth, pose, camera, colour, colour_weights)
-    raycast      raycast(volume, pose, camera, colour=True, stride=1) -> ModelPrediction
+    raycast      raycast(volume, pose, camera, skip_empty=True, colour=True, stride=1),
+                 predict_surface(volume, pose, camera, stride=1) -> ModelPrediction
     colour       colour_weights(frame, config) -> weights per pixel
     odometry     make_tracker(method, config, camera) -> Tracker
 
@@ -86,6 +87,11 @@ class Backend(Protocol):
         into an on-disk cache for it (kintinuous_ref.program.warmup); True otherwise."""
         ...
 
+    def record_warm_up(self, tracking: bool = True) -> None:
+        """Called by the warm-up once a run (with or without `tracking`) has compiled every
+        kernel it calls: from then on kernels_cached says so, in other processes too."""
+        ...
+
 
 class ReferenceBackend:
     """The reference implements the protocol with its own modules (NumPy on the host)."""
@@ -112,7 +118,7 @@ class ReferenceBackend:
     def predict_surface(
         self, volume: TsdfVolume, pose: np.ndarray, camera: Intrinsics, stride: int = 1
     ) -> ModelPrediction:
-        return self.raycast.raycast(volume, pose, camera, colour=False, stride=stride)
+        return self.raycast.predict_surface(volume, pose, camera, stride=stride)
 
     def volume_view(self, volume: TsdfVolume) -> TsdfVolume:
         return volume
@@ -122,6 +128,9 @@ class ReferenceBackend:
 
     def kernels_cached(self, tracking: bool = True) -> bool:
         return True  # NumPy: nothing to compile
+
+    def record_warm_up(self, tracking: bool = True) -> None:
+        return None
 
     def __repr__(self) -> str:
         return "ReferenceBackend()"

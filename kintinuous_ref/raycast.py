@@ -113,7 +113,7 @@ def _refine_crossing(
     return refined
 
 
-def _empty_space(volume: TsdfVolume) -> np.ndarray:
+def empty_space(volume: TsdfVolume) -> np.ndarray:
     """Per brick of BRICK^3 voxels, the chessboard distance (in bricks) to the nearest brick
     that holds, or borders, an observed voxel with negative TSDF; 0 for those bricks.
 
@@ -134,7 +134,7 @@ def _empty_space(volume: TsdfVolume) -> np.ndarray:
     return ndimage.distance_transform_cdt(~bricks, metric="chessboard").astype(np.int64)
 
 
-def march(
+def _march(
     volume: TsdfVolume,
     origin: np.ndarray,
     directions: np.ndarray,
@@ -144,13 +144,13 @@ def march(
     NaN where there is none (see the module docstring).
 
     Samples lie on the grid t = entry + m step. With `skip_empty` a ray in empty space
-    (_empty_space) jumps to the first grid sample past the empty cube around it instead of
+    (empty_space) jumps to the first grid sample past the empty cube around it instead of
     sampling it; the samples that decide are the same, so the answer is exactly that of the plain
     march (the tests check this), only faster: most of a ray runs through free space.
     """
     entry, exit_ = _volume_entry_exit(volume, origin, directions)
     step = STEP_FRACTION * volume.truncation
-    distance = _empty_space(volume) if skip_empty else None
+    distance = empty_space(volume) if skip_empty else None
     hit_t = np.full(len(directions), np.nan)
     active = np.flatnonzero(entry < exit_)
     m = np.zeros(len(active), dtype=np.int64)  # sample number along the ray
@@ -237,7 +237,7 @@ def raycast(
     directions = rays @ pose[:3, :3].T
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     origin = pose[:3, 3].astype(np.float64)
-    hit_t = march(volume, origin, directions, skip_empty)
+    hit_t = _march(volume, origin, directions, skip_empty)
     rows, columns = np.mgrid[0:height:stride, 0:width:stride]
     cast_pixels = (rows * width + columns).ravel()  # flat index of each ray's pixel
 
@@ -261,3 +261,11 @@ def raycast(
         normals=normals.reshape(height, width, 3),
         colours=colours.reshape(height, width, 3),
     )
+
+
+def predict_surface(
+    volume: TsdfVolume, pose: np.ndarray, camera: Intrinsics, stride: int = 1
+) -> ModelPrediction:
+    """The model prediction the next frame tracks against (the pipeline's step 6): vertex and
+    normal maps from `pose`, no colour (the trackers read none), every `stride`-th pixel."""
+    return raycast(volume, pose, camera, colour=False, stride=stride)

@@ -139,7 +139,7 @@ def test_equivalence_cuda_volume_raycast(gpu_volume, size):
 
 def test_equivalence_cuda_volume_empty_space(gpu_volume):
     """The raycast's brick distance map, computed on the device, is the reference's
-    (kintinuous_ref.raycast._empty_space, scipy's distance transform) exactly: for a fused
+    (kintinuous_ref.raycast.empty_space, scipy's distance transform) exactly: for a fused
     volume, for two negative voxels far apart in a 48^3 volume (distances up to 4 bricks),
     with the cyclical buffer at rest and wrapped, and for an empty volume (2 B everywhere)."""
     from numba import cuda
@@ -157,14 +157,14 @@ def test_equivalence_cuda_volume_empty_space(gpu_volume):
     for volume in (fused, sparse):
         for offset in ((0, 0, 0), (5, 0, 27)):
             volume.offset = np.array(offset)
-            want = ref_raycast._empty_space(to_reference_volume(volume))
+            want = ref_raycast.empty_space(to_reference_volume(volume))
             np.testing.assert_array_equal(raycast.empty_space(volume).copy_to_host(), want)
     assert want.min() == 0 and want.max() == 4  # the separable passes met long distances too
     empty = tsdf.make_volume(VolumeConfig(resolution=32, size=3.0), np.eye(4))
     np.testing.assert_array_equal(raycast.empty_space(empty).copy_to_host(), np.full((4,) * 3, 8))
     # The raycast's jumps over empty bricks return the plain march's maps bit for bit.
     fused.offset = np.zeros(3, dtype=np.int64)
-    assert ref_raycast._empty_space(to_reference_volume(fused)).max() >= 1
+    assert ref_raycast.empty_space(to_reference_volume(fused)).max() >= 1
     camera, view = fe.camera_for(height, width), fe.moving_poses(2)[1]
     skipping = raycast.raycast(fused, view, camera)
     plain = raycast.raycast(fused, view, camera, skip_empty=False)
@@ -180,5 +180,5 @@ def test_equivalence_cuda_volume_stays_on_device(gpu_volume):
     height, width, resolution = VOLUME_SIZES[0]
     volume, _ = fe.fused_volumes(tsdf, height, width, resolution, 1, weighted=False)
     assert is_device(volume.tsdf_weight) and is_device(volume.colour)
-    prediction = raycast.raycast(volume, np.eye(4), fe.camera_for(height, width), download=False)
+    prediction = raycast.predict_surface(volume, np.eye(4), fe.camera_for(height, width))
     assert is_device(prediction.vertices) and is_device(prediction.normals)

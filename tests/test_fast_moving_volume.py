@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from kintinuous_fast.raycast import cpu as cpu_raycast
+from kintinuous_fast.raycast import cpu_near_starts, cpu_ops, cpu_skip_maps
 from kintinuous_fast.tsdf import cpu as cpu_tsdf
 from kintinuous_fast.tsdf.volume import (
     FastTsdfVolume,
@@ -152,7 +153,7 @@ def test_cpu_capped_distance_is_the_capped_chessboard_distance():
     for m, density in ((5, 0.05), (33, 0.002), (40, 0.0)):
         near = rng.random((m, m, m)) < density
         for cap in (1, 3, 4, 8, 9, 16, 41, 60):  # 41, 60: shifts past the grid's size
-            got = cpu_raycast._capped_distance(near, cap)
+            got = cpu_skip_maps._capped_distance(near, cap)
             if near.any():
                 want = ndimage.distance_transform_cdt(~near, metric="chessboard")
                 want = np.minimum(want, cap)
@@ -162,7 +163,7 @@ def test_cpu_capped_distance_is_the_capped_chessboard_distance():
 
 
 def test_cpu_brick_distance_is_the_references_grown_chessboard_distance():
-    """The brick map from negative bricks equals kintinuous_ref.raycast._empty_space's recipe
+    """The brick map from negative bricks equals kintinuous_ref.raycast.empty_space's recipe
     (grow by one brick with scipy, then scipy's chessboard transform; 2 B when no brick is
     negative), for sparse, dense, single-brick and empty maps."""
     from scipy import ndimage
@@ -172,7 +173,7 @@ def test_cpu_brick_distance_is_the_references_grown_chessboard_distance():
     single[0, 8, 4] = True
     maps = [rng.random((b, b, b)) < density for b, density in ((4, 0.1), (32, 0.001), (17, 0.3))]
     for negative in (*maps, single, np.zeros((6, 6, 6), dtype=bool)):
-        got = cpu_raycast._brick_distance(negative)
+        got = cpu_skip_maps._brick_distance(negative)
         grown = ndimage.binary_dilation(negative, structure=np.ones((3, 3, 3), dtype=bool))
         if grown.any():
             want = ndimage.distance_transform_cdt(~grown, metric="chessboard")
@@ -186,7 +187,7 @@ def test_cpu_negative_masks_kept_by_integration_equal_fresh_ones():
     """The per-fine-brick masks of observed negative voxels that integration keeps equal masks
     taken from scratch, before and after the moving volume shifts the buffer and clears slabs,
     and so does the `near` map built from them (against brute force: any such voxel among
-    voxels 2f .. 2f + 2 per axis); the brick map is the reference's _empty_space."""
+    voxels 2f .. 2f + 2 per axis); the brick map is the reference's empty_space."""
     camera = fe.camera_for(HEIGHT, WIDTH)
     config = VolumeConfig(resolution=N, size=3.0, shift_threshold=2, min_extract_weight=1.0)
     poses = []
@@ -208,12 +209,12 @@ def test_cpu_negative_masks_kept_by_integration_equal_fresh_ones():
         assert kept is not None and kept.any()
         recount = from_reference_volume(to_reference_volume(fast))
         recount.offset[:] = fast.offset
-        np.testing.assert_array_equal(kept, cpu_tsdf.negative_masks(recount))
+        np.testing.assert_array_equal(kept, cpu_skip_maps.negative_masks(recount))
         np.testing.assert_array_equal(
-            cpu_raycast._skip_maps_and_near(fast)[2], _near_by_brute_force(fast)
+            cpu_skip_maps.skip_maps_and_near(fast)[2], _near_by_brute_force(fast)
         )
         np.testing.assert_array_equal(
-            cpu_raycast.empty_space(fast), ref_raycast._empty_space(to_reference_volume(fast))
+            cpu_raycast.empty_space(fast), ref_raycast.empty_space(to_reference_volume(fast))
         )
     assert shifted_checked and fast.shifted
 
@@ -287,17 +288,17 @@ def test_slab_view_reads_and_clears_only_the_box():
 
 def test_cpu_near_starts_skip_only_samples_that_cannot_be_negative():
     """The cpu raycast starts each ray where it first enters a fine brick that may hold a
-    negative sample (cpu.raycast.near_starts: slab tests against the boxes of the `near` fine
-    bricks). Checked against every sample of every ray (the reference-equivalent sample_tsdf):
-    none before its pixel's start is negative; looking at the fused wall the starts skip most
-    samples before the first negative one; from behind the volume, where rays meet the wall's
-    back at once, and from inside it, they still hold. And for 300 pixels each start lies
-    between two first entries found by brute force (float64 slab tests against every near
-    box): into the boxes themselves, and into the boxes grown by twice the float32 test's
+    negative sample (raycast.cpu_near_starts.near_starts: slab tests against the boxes of the
+    `near` fine bricks). Checked against every sample of every ray (the reference-equivalent
+    sample_tsdf): none before its pixel's start is negative; looking at the fused wall the
+    starts skip most samples before the first negative one; from behind the volume, where rays
+    meet the wall's back at once, and from inside it, they still hold. And for 300 pixels each
+    start lies between two first entries found by brute force (float64 slab tests against every
+    near box): into the boxes themselves, and into the boxes grown by twice the float32 test's
     margin, less twice its slack."""
     camera = fe.camera_for(HEIGHT, WIDTH)
     fast, _ = fe.fused_volumes(cpu_tsdf, HEIGHT, WIDTH, 64, 2, weighted=False)
-    near = cpu_raycast._skip_maps_and_near(fast)[2]
+    near = cpu_skip_maps.skip_maps_and_near(fast)[2]
     inside = np.eye(4)
     inside[:3, 3] = np.asarray(fast.origin) + 0.5 * fast.resolution * fast.voxel_size
     slanted = np.eye(4)  # optical axis nearer x than z: near_starts takes boxes one by one
@@ -314,13 +315,14 @@ def test_cpu_near_starts_skip_only_samples_that_cannot_be_negative():
     )  # fmt: skip
     pixels = np.random.default_rng(5).integers(0, (WIDTH, HEIGHT), (300, 2))
     for name, pose in views:
-        start = cpu_raycast.near_starts(fast, near, pose, camera)
+        start = cpu_near_starts.near_starts(fast, near, pose, camera)
         exact = _first_near_entry(fast, near, pose, camera, pixels)
-        grown = _first_near_entry(fast, near, pose, camera, pixels, 2 * cpu_raycast.ENTRY_MARGIN)
+        margin = 2 * cpu_near_starts.ENTRY_MARGIN
+        grown = _first_near_entry(fast, near, pose, camera, pixels, margin)
         got = start[pixels[:, 1], pixels[:, 0]]
         assert np.isfinite(exact).sum() > 30, name
         assert np.all(got <= exact), name
-        assert np.all(got >= grown * (1 - 2 * cpu_raycast.ENTRY_SLACK)), name
+        assert np.all(got >= grown * (1 - 2 * cpu_near_starts.ENTRY_SLACK)), name
         t, values = _samples_of_every_ray(fast, pose, camera)
         assert not np.any(values[t < start[..., None]] < 0), name
         negative = values < 0
@@ -342,7 +344,7 @@ def _first_near_entry(volume, near, pose, camera, pixels, grow: float = 0.0) -> 
     size += 2 * grow
     entries = []
     for u, v in pixels:
-        direction = np.array(cpu_raycast._ops.ray_direction(u, v, intrinsics, rotation))
+        direction = np.array(cpu_ops.OPS.ray_direction(u, v, intrinsics, rotation))
         direction[direction == 0] = 1e-300  # parallel to a face: its slab is all or nothing
         with np.errstate(over="ignore"):
             near_face, far_face = lower / direction, (lower + size) / direction
@@ -359,11 +361,11 @@ def _samples_of_every_ray(volume, pose, camera) -> tuple[np.ndarray, np.ndarray]
     rotation, origin = np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3])
     volume_origin = np.asarray(volume.origin, dtype=np.float64)
     directions = np.array(
-        [[cpu_raycast._ops.ray_direction(u, v, intrinsics, rotation) for u in range(camera.width)]
+        [[cpu_ops.OPS.ray_direction(u, v, intrinsics, rotation) for u in range(camera.width)]
          for v in range(camera.height)]
     )  # fmt: skip
     span = np.array(
-        [[cpu_raycast._ops.ray_span(origin, tuple(d), volume_origin, volume.voxel_size,
+        [[cpu_ops.OPS.ray_span(origin, tuple(d), volume_origin, volume.voxel_size,
                                     volume.resolution) for d in row] for row in directions]
     )  # fmt: skip
     step = STEP_FRACTION * volume.truncation

@@ -108,7 +108,7 @@ def test_fast_volume_is_eight_bytes_per_voxel_and_round_trips():
 
 def test_fast_make_volume_refuses_what_cannot_fit(monkeypatch):
     with pytest.raises(ConfigError, match="needs .* GiB but only"):
-        _volume.check_volume_config(VolumeConfig(resolution=1024), available=2**30)
+        _volume.check_volume_memory(VolumeConfig(resolution=1024), available=2**30)
     monkeypatch.setattr(_volume, "available_memory_bytes", lambda: 2**30)
     with pytest.raises(ConfigError, match=r"needs 8\.0 GiB but only 1\.0 GiB"):
         cpu_tsdf.make_volume(VolumeConfig(resolution=1024), np.eye(4))

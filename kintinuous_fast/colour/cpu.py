@@ -1,7 +1,7 @@
 # ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
 """kintinuous_ref.colour's colour_weights on the CPU: one loop over rows (run on all threads) around
-kintinuous_fast.tsdf.ops.colour_weight (the reference's three whole-image NumPy passes took
-2.7 ms at 640x480, ~15 % of a frame's integration stage; this loop ~0.2 ms). Bit-identical.
+kintinuous_fast.tsdf.ops.colour_weight, in place of the reference's three whole-image NumPy
+passes (docs/benchmarks.md, "Colour weights"). Bit-identical. angle_weight is the reference's.
 """
 
 from __future__ import annotations
@@ -9,16 +9,19 @@ from __future__ import annotations
 import numpy as np
 
 from kintinuous_fast.targets import cpu_jit_numpy_errors
+from kintinuous_fast.targets.cache import register_slowest
 from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
-from kintinuous_fast.tsdf import ops as integration
+from kintinuous_fast.tsdf.ops import build_colour_weight
+from kintinuous_ref.colour import angle_weight
 from kintinuous_ref.config import ColourConfig
 from kintinuous_ref.preprocess import PreprocessedFrame
 
-__all__ = ["colour_weights"]
+__all__ = ["angle_weight", "colour_weights"]
 
-colour_weight = integration.build_ops(cpu_jit_numpy_errors).colour_weight
+colour_weight = build_colour_weight(cpu_jit_numpy_errors).colour_weight
 
 
+@register_slowest("colour")
 @parallel_part(error_model="numpy")
 def _weights_loop(claims, parts, depth, mask, normals, use_mask, use_angle, out):
     for v in claimed_items(claims, depth.shape[0], parts):

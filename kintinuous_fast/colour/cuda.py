@@ -12,13 +12,14 @@ from numba import cuda
 
 from kintinuous_fast.targets import cuda_device_jit
 from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, like_input, to_device
-from kintinuous_fast.tsdf import ops as integration
+from kintinuous_fast.tsdf.ops import build_colour_weight
+from kintinuous_ref.colour import angle_weight
 from kintinuous_ref.config import ColourConfig
 from kintinuous_ref.preprocess import PreprocessedFrame
 
-__all__ = ["colour_weights"]
+__all__ = ["angle_weight", "colour_weights"]
 
-colour_weight = integration.build_ops(cuda_device_jit()).colour_weight
+colour_weight = build_colour_weight(cuda_device_jit()).colour_weight
 
 
 @cuda.jit

@@ -12,33 +12,27 @@ written as "for each tap, for each pixel of the row", calling ops.py's per-tap a
 functions on row slices; every pixel's taps are summed in the reference's order, so the results
 are bit-identical where the reference's arithmetic is repeated (pyramids, gradients, vertices,
 normals, masks). The bilateral filter weighs each pixel pair once for both of its pixels
-(`_bilateral_rows`), with ops.py's float32 weights.
+(preprocess.cpu_bilateral), with ops.py's float32 weights.
 """
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numba
 import numpy as np
-from llvmlite import ir
-from numba import types
-from numba.extending import intrinsic
 
-from kintinuous_fast.preprocess.host import (
-    SOBEL_X,
-    SOBEL_Y,
-    gaussian3x3,
-    inverse_two_variance,
-    preprocess_frame_with,
-    spatial_exponents,
+from kintinuous_fast.preprocess.cpu_bilateral import PARALLEL_MIN, bilateral_filter
+from kintinuous_fast.preprocess.host import SOBEL_X, SOBEL_Y, gaussian3x3, preprocess_frame_with
+from kintinuous_fast.preprocess.ops import (
+    build_discontinuity,
+    build_intensity,
+    build_metric_depth,
+    build_pyramid,
+    build_vertices_and_normals,
 )
-from kintinuous_fast.preprocess.ops import build_ops
-from kintinuous_fast.targets import cpu_jit, pinhole
-from kintinuous_fast.targets.cpu import (
-    claimed_items,
-    parallel_part,
-    run_parallel,
-    run_parallel_above,
-)
+from kintinuous_fast.targets import pinhole
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel_above
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
 from kintinuous_ref.preprocess import (
@@ -52,6 +46,7 @@ __all__ = [
     "PreprocessedFrame",
     "PyramidLevel",
     "bilateral_filter",
+    "check_frame_inputs",
     "discontinuity_mask",
     "intensity_gradients",
     "intensity_image",
@@ -67,45 +62,18 @@ __all__ = [
 _parallel = parallel_part()
 _parallel_allocating = parallel_part(_nrt=True)  # for loops with row buffers of their own
 _inline = numba.njit(cache=True, inline="always")
-# FMA contraction only, for the bilateral filter: its weights are float32 approximations anyway
-# (1-2 ulp), and contraction makes the polynomial exp a third cheaper. Functions inlined by numba
-# compile with their caller's flags, so the loop that inlines them carries the flag too.
-_inline_fma = numba.njit(cache=True, inline="always", fastmath={"contract"})
-_parallel_fma = parallel_part(fastmath={"contract"}, _nrt=True)  # its chunks' sums allocate
 
-
-@intrinsic
-def _float32_from_bits(typingctx, bits):
-    """The float32 whose IEEE bit pattern is the low 32 bits of the integer `bits`."""
-    if not isinstance(bits, types.Integer):
-        return None
-
-    def codegen(context, builder, signature, args):
-        value = args[0]
-        if bits.bitwidth > 32:
-            value = builder.trunc(value, ir.IntType(32))
-        elif bits.bitwidth < 32:
-            value = builder.sext(value, ir.IntType(32))
-        return builder.bitcast(value, ir.FloatType())
-
-    return types.float32(bits), codegen
-
-
-@_inline_fma
-def _power_of_two_neg(n):
-    """2^-n as float32 by writing its exponent bits: no libm call, so the bilateral loops
-    vectorise."""
-    return _float32_from_bits((np.int32(127) - n) << 23)
-
-
-# The ops are inlined into the row loops at numba IR level: compiled as calls, they made a
-# 640x480 frame ~1 ms slower (the bilateral filter's per-pixel results above all).
-_ops = build_ops(_inline, _inline_fma, _power_of_two_neg)
+# The ops are inlined into the row loops at numba IR level (as calls, a 640x480 frame takes
+# ~1 ms longer).
+_ops = SimpleNamespace(
+    **vars(build_metric_depth(_inline)),
+    **vars(build_pyramid(_inline)),
+    **vars(build_vertices_and_normals(_inline)),
+    **vars(build_intensity(_inline)),
+    **vars(build_discontinuity(_inline)),
+)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 metric_value = _ops.metric_value
-exp_neg = _ops.exp_neg
-bilateral_weight = _ops.bilateral_weight
-bilateral_result = _ops.bilateral_result
 binomial5 = _ops.binomial5
 depth_tap_counts = _ops.depth_tap_counts
 pyrdown_depth_result = _ops.pyrdown_depth_result
@@ -116,10 +84,6 @@ correlate3x3_pixel = _ops.correlate3x3_pixel
 is_depth_jump = _ops.is_depth_jump
 colour_fusable = _ops.colour_fusable
 
-# Images with fewer pixels run on the calling thread: waking the second thread costs more than
-# such a loop, and on a busy machine a parallel loop waits for its slowest, descheduled thread.
-PARALLEL_MIN = 40_000
-
 
 def _run(loop, pixels: int, *args) -> None:
     """run_parallel a loop, on the calling thread alone below PARALLEL_MIN pixels."""
@@ -128,140 +92,6 @@ def _run(loop, pixels: int, *args) -> None:
 
 # ----------------------------------------------------------------------------------------------
 # Row kernels (one output row; slices start at the first pixel so every index is >= 0)
-
-
-@_inline_fma
-def _pair_weights(centre, neighbour, spatial, inv_two_sigma2, w, wd):
-    """For one window offset along a row: the bilateral_weight w of each pixel pair (p, q) and
-    wd = w (D(q) - D(p)). Holes hold a far sentinel (bilateral_filter's `work`), so a pair with
-    one hole weighs 0 (two holes do weigh, but only into sums of holes)."""
-    for i in range(w.shape[0]):
-        difference = neighbour[i] - centre[i]
-        weight = bilateral_weight(difference, spatial, inv_two_sigma2)
-        w[i] = weight
-        wd[i] = weight * difference
-
-
-@_inline_fma
-def _pairs_to_both(centre, neighbour, spatial, inv_two_sigma2, own_w, own_wd, other_w, other_wd):
-    """_pair_weights added straight to p's and q's sums (rows that do not overlap)."""
-    for i in range(own_w.shape[0]):
-        difference = neighbour[i] - centre[i]
-        weight = bilateral_weight(difference, spatial, inv_two_sigma2)
-        wd = weight * difference
-        own_w[i] += weight
-        own_wd[i] += wd
-        other_w[i] += weight
-        other_wd[i] -= wd
-
-
-@_inline
-def _add_pairs(sum_w, sum_wd, w, wd, sign):
-    for i in range(w.shape[0]):
-        sum_w[i] += w[i]
-        sum_wd[i] += wd[i] if sign > 0 else -wd[i]
-
-
-@_inline
-def _bilateral_finish_row(depth, sum_w, sum_wd, extra_w, extra_wd, out):
-    """bilateral_result of one row; `extra_*` are the sums another chunk added (zeros where
-    none)."""
-    for u in range(out.shape[0]):
-        w = float(sum_w[u]) + float(extra_w[u])
-        wd = float(sum_wd[u]) + float(extra_wd[u])
-        out[u] = bilateral_result(depth[u], w, wd)
-
-
-@_parallel_fma
-def _bilateral_rows(
-    claims, parts, work, depth, spatial, radius, inv_two_sigma2, chunk_rows, head, tail, out
-):
-    """The bilateral filter with each pixel pair weighed once.
-
-    The weight of a pixel pair is symmetric, w(p, q) = w(q, p), so every pair with q after p
-    (a later row, or the same row to the right) is weighed once and added to both: w (D(q) -
-    D(p)) to p's sums and w (D(p) - D(q)) to q's, half the exp() of a per-pixel window. Rows
-    are cut into chunks, one part each; a chunk keeps the sums of radius + 1 rows in
-    a ring (row v is complete once the pairs starting on it are added) and writes finished rows
-    at once. Its first `radius` rows also get pairs from the chunk before: their sums go to
-    `head`, the ones it adds below its last row to `tail`, and _bilateral_seams adds the two."""
-    height, width = work.shape
-    slots = radius + 1
-    zeros = np.zeros(width, np.float32)
-    for chunk in claimed_items(claims, head.shape[0], parts):
-        first = chunk * chunk_rows
-        last = min(height, first + chunk_rows)
-        ring_w = np.zeros((slots, width), np.float32)
-        ring_wd = np.zeros((slots, width), np.float32)
-        w = np.empty(width, np.float32)
-        wd = np.empty(width, np.float32)
-        for v in range(first, last):
-            p = v % slots
-            for dy in range(0, min(radius, height - 1 - v) + 1):
-                y = v + dy
-                q = y % slots
-                for dx in range(1 if dy == 0 else -radius, radius + 1):
-                    lo = max(0, -dx)
-                    hi = min(width, width - dx)
-                    if hi <= lo:
-                        continue
-                    if dy > 0:
-                        _pairs_to_both(
-                            work[v, lo:hi],
-                            work[y, lo + dx : hi + dx],
-                            spatial[dy + radius, dx + radius],
-                            inv_two_sigma2,
-                            ring_w[p, lo:hi],
-                            ring_wd[p, lo:hi],
-                            ring_w[q, lo + dx : hi + dx],
-                            ring_wd[q, lo + dx : hi + dx],
-                        )
-                        continue
-                    # Same row: p's and q's sums overlap, so the weights go through a buffer.
-                    count = hi - lo
-                    _pair_weights(
-                        work[v, lo:hi],
-                        work[y, lo + dx : hi + dx],
-                        spatial[dy + radius, dx + radius],
-                        inv_two_sigma2,
-                        w[:count],
-                        wd[:count],
-                    )
-                    _add_pairs(ring_w[p, lo:hi], ring_wd[p, lo:hi], w[:count], wd[:count], 1)
-                    _add_pairs(
-                        ring_w[p, lo + dx : hi + dx],
-                        ring_wd[p, lo + dx : hi + dx],
-                        w[:count],
-                        wd[:count],
-                        -1,
-                    )
-            if chunk > 0 and v - first < radius:
-                head[chunk, 0, v - first] = ring_w[p]
-                head[chunk, 1, v - first] = ring_wd[p]
-            else:
-                _bilateral_finish_row(depth[v], ring_w[p], ring_wd[p], zeros, zeros, out[v])
-            ring_w[p] = 0.0  # the slot of row v + radius + 1 from now on
-            ring_wd[p] = 0.0
-        for k in range(min(radius, height - last)):
-            tail[chunk, 0, k] = ring_w[(last + k) % slots]
-            tail[chunk, 1, k] = ring_wd[(last + k) % slots]
-
-
-@cpu_jit
-def _bilateral_seams_loop(depth, chunk_rows, head, tail, out):
-    """The first rows of every chunk but the first: their own sums plus the chunk before's."""
-    radius = head.shape[2]
-    for chunk in range(1, head.shape[0]):
-        for k in range(min(radius, depth.shape[0] - chunk * chunk_rows)):
-            v = chunk * chunk_rows + k
-            _bilateral_finish_row(
-                depth[v],
-                head[chunk, 0, k],
-                head[chunk, 1, k],
-                tail[chunk - 1, 0, k],
-                tail[chunk - 1, 1, k],
-                out[v],
-            )
 
 
 @_parallel
@@ -524,42 +354,6 @@ def metric_depth(depth: np.ndarray, max_depth: float, depth_scale: float = 5000.
         np.float32(max_depth),
         out,
     )
-    return out
-
-
-def bilateral_filter(
-    depth: np.ndarray, sigma_space: float, sigma_depth: float, radius: int
-) -> np.ndarray:
-    """Edge-preserving smoothing of a depth map; holes stay holes (see the reference)."""
-    depth = np.ascontiguousarray(depth, dtype=np.float32)
-    out = np.empty(depth.shape, dtype=np.float32)
-    radius = int(radius)
-    spatial = spatial_exponents(sigma_space, radius)
-    inv_two_sigma2 = inverse_two_variance(sigma_depth)
-    # Holes (and NaN) as a depth farther than 12.65 sigma_d from any valid one: x > 80 (weight 0).
-    hole = np.float32(-(16.0 * sigma_depth + 1.0))
-    work = np.where(depth > 0, depth, hole).astype(np.float32)
-    height, width = depth.shape
-    # A few chunks per thread; at least `radius` rows each, so only one chunk reaches into the next.
-    chunks = 1 if depth.size < PARALLEL_MIN else 4 * numba.get_num_threads()
-    chunk_rows = max(radius, -(-height // chunks), 1)
-    chunks = -(-height // chunk_rows)
-    head = np.empty((chunks, 2, radius, width), np.float32)
-    tail = np.empty((chunks, 2, radius, width), np.float32)
-    run_parallel(
-        _bilateral_rows,
-        work,
-        depth,
-        spatial,
-        radius,
-        inv_two_sigma2,
-        chunk_rows,
-        head,
-        tail,
-        out,
-        parts=chunks,
-    )
-    _bilateral_seams_loop(depth, chunk_rows, head, tail, out)
     return out
 
 

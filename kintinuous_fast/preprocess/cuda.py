@@ -24,8 +24,8 @@ from kintinuous_fast.preprocess.host import (
     spatial_exponents,
 )
 from kintinuous_fast.preprocess.ops import build_ops
-from kintinuous_fast.targets import cuda_device_jit, pinhole
-from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, is_device, like_input, to_device
+from kintinuous_fast.targets import cuda_device_jit, is_device, pinhole, to_host
+from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, like_input, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
 from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel, check_frame_inputs
@@ -35,6 +35,7 @@ __all__ = [
     "PreprocessedFrame",
     "PyramidLevel",
     "bilateral_filter",
+    "check_frame_inputs",
     "discontinuity_mask",
     "intensity_gradients",
     "intensity_image",
@@ -296,25 +297,21 @@ def preprocess_frame(
 
 def frame_to_host(frame: PreprocessedFrame, colour: np.ndarray | None = None) -> PreprocessedFrame:
     """A copy of a device-resident frame with NumPy arrays (the pipeline's explicit download)."""
-
-    def host(array: Any) -> np.ndarray:
-        return array.copy_to_host() if is_device(array) else array
-
     levels = [
         PyramidLevel(
             level.camera,
-            host(level.depth),
-            host(level.vertices),
-            host(level.normals),
-            host(level.intensity),
-            host(level.intensity_dx),
-            host(level.intensity_dy),
+            to_host(level.depth),
+            to_host(level.vertices),
+            to_host(level.normals),
+            to_host(level.intensity),
+            to_host(level.intensity_dx),
+            to_host(level.intensity_dy),
         )
         for level in frame.levels
     ]
     return PreprocessedFrame(
-        colour=host(frame.colour) if colour is None else colour,
+        colour=to_host(frame.colour) if colour is None else colour,
         depth=levels[0].depth,
         levels=levels,
-        colour_mask=host(frame.colour_mask),
+        colour_mask=to_host(frame.colour_mask),
     )

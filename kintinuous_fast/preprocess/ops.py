@@ -39,11 +39,46 @@ def build_ops(
     weight_jit: Callable[[Any], Any],
     power_of_two_neg: Callable[[Any], Any],
 ) -> SimpleNamespace:
-    """The scalar functions of preprocessing compiled with `jit` (see kintinuous_fast.targets).
+    """The scalar functions of preprocessing compiled with `jit` (see kintinuous_fast.targets),
+    in one namespace.
 
     `weight_jit` compiles the bilateral weights (the CPU contracts FMAs there and nowhere else:
     elsewhere that would change the reference's float32 rounding); `power_of_two_neg(n)` is the
     float32 2^-n for 0 <= n <= 126 compiled for the target."""
+    parts = (
+        build_metric_depth(jit),
+        build_bilateral(jit, weight_jit, power_of_two_neg),
+        build_pyramid(jit),
+        build_vertices_and_normals(jit),
+        build_intensity(jit),
+        build_discontinuity(jit),
+    )
+    return SimpleNamespace(**{name: f for part in parts for name, f in vars(part).items()})
+
+
+def build_metric_depth(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """A raw depth value in metres."""
+
+    @jit
+    def metric_value(raw: Any, integer: bool, depth_scale: Any, max_depth: Any) -> Any:
+        """float32 metres of one raw depth value, 0 where untrustworthy (ref metric_depth).
+        `depth_scale` and `max_depth` are float32, as NumPy 2 casts Python floats there."""
+        d = np.float32(raw)
+        if integer:
+            d = d / depth_scale
+        if math.isfinite(d) and d > 0 and d <= max_depth:
+            return d
+        return np.float32(0.0)
+
+    return SimpleNamespace(metric_value=metric_value)
+
+
+def build_bilateral(
+    jit: Callable[[Any], Any],
+    weight_jit: Callable[[Any], Any],
+    power_of_two_neg: Callable[[Any], Any],
+) -> SimpleNamespace:
+    """The bilateral filter's weights (`weight_jit`) and its per-pixel result."""
 
     @weight_jit
     def exp_neg(x: Any) -> Any:
@@ -78,17 +113,6 @@ def build_ops(
         return filtered if centre > np.float32(0.0) else np.float32(0.0)
 
     @jit
-    def metric_value(raw: Any, integer: bool, depth_scale: Any, max_depth: Any) -> Any:
-        """float32 metres of one raw depth value, 0 where untrustworthy (ref metric_depth).
-        `depth_scale` and `max_depth` are float32, as NumPy 2 casts Python floats there."""
-        d = np.float32(raw)
-        if integer:
-            d = d / depth_scale
-        if math.isfinite(d) and d > 0 and d <= max_depth:
-            return d
-        return np.float32(0.0)
-
-    @jit
     def bilateral_pixel(
         depth: Any, v: int, u: int, spatial: Any, radius: int, inv_two_sigma2: Any
     ) -> Any:
@@ -117,6 +141,17 @@ def build_ops(
                     sum_w += w
                     sum_wd += w * difference
         return bilateral_result(centre, float(sum_w), float(sum_wd))
+
+    return SimpleNamespace(
+        bilateral_pixel=bilateral_pixel,
+        bilateral_result=bilateral_result,
+        bilateral_weight=bilateral_weight,
+        exp_neg=exp_neg,
+    )
+
+
+def build_pyramid(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """The 5x5 Gaussian pyramids: edge-aware for depth, renormalised at the border for intensity."""
 
     @jit
     def binomial5(offset: int) -> float:
@@ -184,6 +219,18 @@ def build_ops(
                 weights += w
         return total / weights
 
+    return SimpleNamespace(
+        binomial5=binomial5,
+        depth_tap_counts=depth_tap_counts,
+        pyrdown_depth_pixel=pyrdown_depth_pixel,
+        pyrdown_depth_result=pyrdown_depth_result,
+        pyrdown_intensity_pixel=pyrdown_intensity_pixel,
+    )
+
+
+def build_vertices_and_normals(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """Vertex maps from depth, normal maps from vertices."""
+
     @jit
     def vertex_from_depth(d: float, u: int, v: int, camera: Any) -> tuple[float, float, float]:
         """D K^-1 [u, v, 1] in float64 like camera.backproject, `camera` = (fx, fy, cx, cy);
@@ -235,6 +282,17 @@ def build_ops(
             np.float32(vertices[v, u + 1, 2]) - p2,
         )
 
+    return SimpleNamespace(
+        normal_from_edges=normal_from_edges,
+        normal_pixel=normal_pixel,
+        vertex_from_depth=vertex_from_depth,
+        vertex_pixel=vertex_pixel,
+    )
+
+
+def build_intensity(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """Intensity from colour, and the 3x3 correlations of its gradients."""
+
     @jit
     def intensity_pixel(r: Any, g: Any, b: Any) -> Any:
         """I = 0.299 R + 0.587 G + 0.114 B in float32 (NumPy 2 keeps the reference in float32)."""
@@ -253,6 +311,12 @@ def build_ops(
                 x = min(max(u + dx - 1, 0), width - 1)
                 total += kernel[dy, dx] * float(image[y, x])
         return total
+
+    return SimpleNamespace(correlate3x3_pixel=correlate3x3_pixel, intensity_pixel=intensity_pixel)
+
+
+def build_discontinuity(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """The depth-discontinuity check of colour fusion (paper VI-B)."""
 
     @jit
     def is_depth_jump(centre: Any, neighbour: Any, jump: Any) -> bool:
@@ -288,23 +352,7 @@ def build_ops(
         return colour_fusable(centre, bad, max_bad)
 
     return SimpleNamespace(
-        metric_value=metric_value,
-        exp_neg=exp_neg,
-        bilateral_weight=bilateral_weight,
-        bilateral_result=bilateral_result,
-        bilateral_pixel=bilateral_pixel,
-        binomial5=binomial5,
-        depth_tap_counts=depth_tap_counts,
-        pyrdown_depth_result=pyrdown_depth_result,
-        pyrdown_depth_pixel=pyrdown_depth_pixel,
-        pyrdown_intensity_pixel=pyrdown_intensity_pixel,
-        vertex_from_depth=vertex_from_depth,
-        vertex_pixel=vertex_pixel,
-        normal_from_edges=normal_from_edges,
-        normal_pixel=normal_pixel,
-        intensity_pixel=intensity_pixel,
-        correlate3x3_pixel=correlate3x3_pixel,
-        is_depth_jump=is_depth_jump,
         colour_fusable=colour_fusable,
         discontinuity_pixel=discontinuity_pixel,
+        is_depth_jump=is_depth_jump,
     )

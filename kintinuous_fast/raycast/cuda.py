@@ -2,8 +2,8 @@
 """kintinuous_ref.raycast as a CUDA kernel: one thread per pixel marching its ray through the
 device volume around kintinuous_fast.raycast.ops, jumping over empty bricks with the reference's
 brick distance map, which three small kernels compute on the device every frame. Only the pose
-goes in; the maps are device arrays (downloaded when `download` is True, the default, for a
-ModelPrediction of NumPy arrays like the reference's)."""
+goes in. `raycast` downloads the maps (a ModelPrediction of NumPy arrays like the reference's);
+`predict_surface` leaves them on the device, where the next frame's tracking reads them."""
 
 from __future__ import annotations
 
@@ -12,19 +12,26 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.raycast import ops as march
-from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.raycast import ops as raycast_ops
+from kintinuous_fast.targets import cuda_device_jit, to_host
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
-from kintinuous_fast.tsdf import voxel as volume
+from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.volume import FastTsdfVolume
 from kintinuous_fast.tsdf.voxel import BRICK
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 
-__all__ = ["STEP_FRACTION", "ModelPrediction", "empty_space", "raycast"]
+__all__ = [
+    "STEP_FRACTION",
+    "ModelPrediction",
+    "check_stride",
+    "empty_space",
+    "predict_surface",
+    "raycast",
+]
 
-_voxels = volume.build_ops(cuda_device_jit())
-raycast_pixel = march.build_ops(cuda_device_jit(), voxels=_voxels).raycast_pixel
+_voxels = voxel.build_ops(cuda_device_jit())
+raycast_pixel = raycast_ops.build_ops(cuda_device_jit(), voxels=_voxels).raycast_pixel
 count_negative = _voxels.count_negative
 
 
@@ -44,7 +51,7 @@ def _map_that_skips_nothing() -> Any:
 
 
 def empty_space(volume: FastTsdfVolume) -> Any:
-    """kintinuous_ref.raycast._empty_space of the device volume, on the device (int64 brick
+    """kintinuous_ref.raycast.empty_space of the device volume, on the device (int64 brick
     distances): one thread per brick marks those holding an observed negative voxel, then the
     chessboard distance to them, one axis at a time (the max-norm distance is separable), less
     the one brick by which the reference grows them."""
@@ -98,7 +105,7 @@ def _axis_distance_kernel(source, target, axis):
 @cuda.jit
 def _grown_distance_kernel(distance, out):
     """The distance to the negative bricks grown by one brick: one less (not below 0); 2 B
-    everywhere when there are none (kintinuous_ref.raycast._empty_space's convention)."""
+    everywhere when there are none (kintinuous_ref.raycast.empty_space's convention)."""
     bricks = distance.shape[0]
     index = cuda.grid(1)
     if index >= bricks**3:
@@ -168,14 +175,39 @@ def raycast(
     camera: Intrinsics,
     skip_empty: bool = True,
     colour: bool = True,
-    download: bool = True,
     stride: int = 1,
 ) -> ModelPrediction:
-    """Vertex, normal and colour maps of the model surface seen from `pose` (world frame).
-    `skip_empty` jumps over bricks far from any surface with the reference's exact brick
+    """Vertex, normal and colour maps of the model surface seen from `pose` (world frame), on the
+    host. `skip_empty` jumps over bricks far from any surface with the reference's exact brick
     distance map (empty_space, computed on the device); `colour` False leaves the colour map
     black; `stride` > 1 casts only the pixels whose u and v are multiples of it
     (kintinuous_ref.raycast.raycast)."""
+    maps = _cast(volume, pose, camera, skip_empty, colour, stride)
+    return ModelPrediction(
+        pose=maps.pose,
+        vertices=to_host(maps.vertices),
+        normals=to_host(maps.normals),
+        colours=to_host(maps.colours),
+    )
+
+
+def predict_surface(
+    volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics, stride: int = 1
+) -> ModelPrediction:
+    """The model prediction the next frame tracks against, its maps left in device memory
+    (kintinuous_ref.raycast.predict_surface: vertices and normals, no colour)."""
+    return _cast(volume, pose, camera, skip_empty=True, colour=False, stride=stride)
+
+
+def _cast(
+    volume: FastTsdfVolume,
+    pose: np.ndarray,
+    camera: Intrinsics,
+    skip_empty: bool,
+    colour: bool,
+    stride: int,
+) -> ModelPrediction:
+    """raycast's maps as device arrays."""
     check_stride(stride)
     shape = (camera.height, camera.width)
     vertices = cuda.device_array((*shape, 3), dtype=np.float32)
@@ -207,13 +239,4 @@ def raycast(
         colours,
         int(stride),
     )
-    if not download:
-        return ModelPrediction(
-            pose=pose.copy(), vertices=vertices, normals=normals, colours=colours
-        )
-    return ModelPrediction(
-        pose=pose.copy(),
-        vertices=vertices.copy_to_host(),
-        normals=normals.copy_to_host(),
-        colours=colours.copy_to_host(),
-    )
+    return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)

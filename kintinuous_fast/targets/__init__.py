@@ -1,6 +1,8 @@
-"""Per-element maths written once and compiled for both targets.
+"""The targets: each one's decorators (here) and helpers (cpu.py: threads, prefetch; cuda.py:
+device arrays, grids; cache.py: numba's on-disk cache), and the one download helper, to_host.
 
-Each module here has a factory `build_ops(jit)` that defines scalar functions (filter one pixel,
+Per-element maths is written once and compiled for both targets. Each stage's ops module has a
+factory `build_ops(jit)` that defines scalar functions (filter one pixel,
 update one voxel, ...) with the decorator it is given and returns them in a namespace. The CPU
 backend calls it with `numba.njit(cache=True)` and loops over pixels (targets/cpu.py); the CUDA
 backend calls it with `cuda.jit(device=True)` and launches one thread per pixel. The functions

@@ -1,22 +1,83 @@
-"""Keeping numba's on-disk cache true to the sources.
+"""Keeping numba's on-disk cache true to the sources, and knowing when it is warm.
 
 numba keys each cached kernel to the modification time and size of the file that defines it,
 not to the files of the functions it calls or inlines. The cpu loops (`<stage>/cpu.py`) compile
 in the shared maths of `<stage>/ops.py` and `tsdf/voxel.py`, so after an edit to one of those the
 unchanged loops would still load machine code built from the old maths, and a test or benchmark
-would run code that is no longer in the files. A stamp of every source file of this package (path,
+would run code that is not in the files. A stamp of every source file of this package (path,
 size, modification time) is kept in each cache folder; where it differs, the package's cached
 kernels are dropped there and compile again on first use.
+
+Each stage registers the cpu kernel that takes it longest to compile (`register_slowest`); that
+kernel's cache folder, as numba reports it (`Dispatcher.stats.cache_path`: beside the sources,
+under NUMBA_CACHE_DIR, or in the user's cache), is the stage's. A completed warm-up leaves a
+record of the sources and numba it compiled in each folder of the stages it ran
+(`record_warm_up`), which is how a later process knows those kernels are cached
+(`warmed_up`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib
+import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 PACKAGE = Path(__file__).resolve().parents[1]
 STAMP_NAME = "kintinuous_fast_sources.stamp"
+WARM_NAME = "kintinuous_fast_warm.stamp"
+# The stage packages, by the name of their folder; each one's cpu module registers its slowest
+# kernel when imported.
+STAGES = ("preprocess", "tsdf", "raycast", "colour", "odometry")
+MAPPING_STAGES = ("preprocess", "tsdf", "colour")  # what a run with known poses calls
+
+Kernel = TypeVar("Kernel")
+_SLOWEST: dict[str, Any] = {}
+
+
+def register_slowest(stage: str) -> Callable[[Kernel], Kernel]:
+    """A decorator for `stage`'s cpu kernel that takes longest to compile (applied above the
+    numba decorator, it returns the kernel as it is): the kernel stands for the stage's cache."""
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}; the stages are {', '.join(STAGES)}")
+
+    def register(kernel: Kernel) -> Kernel:
+        _SLOWEST[stage] = kernel
+        return kernel
+
+    return register
+
+
+def slowest_kernels() -> dict[str, Any]:
+    """Per stage, its registered kernel (every stage's cpu module imported first)."""
+    for stage in STAGES:
+        importlib.import_module(f"kintinuous_fast.{stage}.cpu")
+        if stage not in _SLOWEST:
+            _register_unnamed(stage)
+    return {stage: _SLOWEST[stage] for stage in STAGES}
+
+
+def _register_unnamed(stage: str) -> None:
+    """Until a stage registers its kernel: the first cached kernel its cpu module defines (all
+    of a stage's kernels share one cache folder). Only the odometry relies on this, while its
+    loops move; it goes once `register_slowest("odometry")` is in place."""
+    module = sys.modules[f"kintinuous_fast.{stage}.cpu"]
+    for value in vars(module).values():
+        function = getattr(value, "py_func", None)
+        if getattr(function, "__module__", None) == module.__name__ and _cache_path(value):
+            _SLOWEST[stage] = value
+            return
+    raise LookupError(f"kintinuous_fast.{stage}.cpu registers no kernel (register_slowest)")
+
+
+def _cache_path(kernel: Any) -> str | None:
+    """Where numba keeps `kernel`'s cache (None for a kernel compiled without cache=True)."""
+    try:
+        return kernel.stats.cache_path
+    except AttributeError:
+        return None
 
 
 def sources_stamp(root: Path = PACKAGE) -> str:
@@ -29,38 +90,54 @@ def sources_stamp(root: Path = PACKAGE) -> str:
     return digest.hexdigest()
 
 
-def slowest_kernels() -> dict[str, Any]:
-    """Per stage package, the cpu kernel that takes longest to compile: where one is cached, a
-    warm-up compiled that stage, and its cache folder is the stage's."""
-    from kintinuous_fast.colour.cpu import _weights_loop
-    from kintinuous_fast.odometry.cpu import _icp_loop
-    from kintinuous_fast.preprocess.cpu import _bilateral_rows
-    from kintinuous_fast.raycast.cpu import _raycast_loop
-    from kintinuous_fast.tsdf.cpu import _integrate_loop
-
-    return {
-        "preprocess": _bilateral_rows,
-        "tsdf": _integrate_loop,
-        "colour": _weights_loop,
-        "odometry": _icp_loop,
-        "raycast": _raycast_loop,
-    }
+def stage_folders(stages: tuple[str, ...] = STAGES) -> dict[str, Path]:
+    """The folder numba keeps each stage's cpu kernels in."""
+    kernels = slowest_kernels()
+    return {stage: Path(kernels[stage].stats.cache_path) for stage in stages}
 
 
 def cache_folders() -> list[Path]:
-    """The folders numba keeps this package's cpu kernels in: one per stage package (beside the
-    sources, or under NUMBA_CACHE_DIR or the user's cache where numba puts them instead)."""
-    return sorted({Path(kernel._cache._cache_path) for kernel in slowest_kernels().values()})
+    """The folders numba keeps this package's cpu kernels in: one per stage package."""
+    return sorted(set(stage_folders().values()))
+
+
+def _warm_record(stamp: str) -> str:
+    """What a warm-up records: the sources and the numba and Python that compiled them."""
+    import numba
+
+    python = ".".join(str(part) for part in sys.version_info[:2])
+    return f"{stamp}\nnumba {numba.__version__}\npython {python}\n"
+
+
+def record_warm_up(stages: tuple[str, ...]) -> None:
+    """Note in each of `stages`' cache folders that a warm-up compiled their kernels from these
+    sources (a folder that cannot be written is left as it is: the next run warms up again)."""
+    record = _warm_record(sources_stamp())
+    for folder in set(stage_folders(stages).values()):
+        try:
+            (folder / WARM_NAME).write_text(record)
+        except OSError:
+            continue
+
+
+def warmed_up(stages: tuple[str, ...]) -> bool:
+    """Whether a warm-up from these sources, with this numba, recorded each of `stages`."""
+    record = _warm_record(sources_stamp())
+    for folder in set(stage_folders(stages).values()):
+        try:
+            if (folder / WARM_NAME).read_text() != record:
+                return False
+        except OSError:
+            return False
+    return True
 
 
 def drop_stale_kernels(folders: list[Path] | None = None, stamp: str | None = None) -> int:
-    """Delete the cached kernels (.nbi, .nbc) in each of `folders` (default: cache_folders())
-    whose stamp is not `stamp` (default: sources_stamp()), then stamp it; how many files went.
-    A folder that cannot be written is left as it is: numba then compiles afresh anyway."""
-    try:
-        folders = cache_folders() if folders is None else folders
-    except AttributeError:  # another numba's cache layout: nothing known to drop
-        return 0
+    """Delete the cached kernels (.nbi, .nbc) and the warm-up record in each of `folders`
+    (default: cache_folders()) whose stamp is not `stamp` (default: sources_stamp()), then stamp
+    it; how many kernel files went. A folder that cannot be written is left as it is: numba then
+    compiles afresh anyway."""
+    folders = cache_folders() if folders is None else folders
     stamp = sources_stamp() if stamp is None else stamp
     dropped = 0
     for folder in folders:
@@ -72,6 +149,7 @@ def drop_stale_kernels(folders: list[Path] | None = None, stamp: str | None = No
             for path in [*folder.glob("*.nbi"), *folder.glob("*.nbc")]:
                 path.unlink(missing_ok=True)
                 dropped += 1
+            (folder / WARM_NAME).unlink(missing_ok=True)
             record.write_text(stamp)
         except OSError:
             continue

@@ -14,44 +14,51 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import cuda_device_jit, pinhole
+from kintinuous_fast.targets import cuda_device_jit, pinhole, to_host
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
 from kintinuous_fast.tsdf import ops as integration
-from kintinuous_fast.tsdf import voxel as volume
+from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.volume import (
     FastTsdfVolume,
     camera_frame_steps,
+    check_volume_memory,
     frustum_box,
     fusion_limits,
     image_size,
     index_box,
     memory_bytes,
     projection_constants,
-    slab_view,
     to_reference_volume,
     volume_header,
 )
-from kintinuous_fast.tsdf.volume import available_memory_bytes as _host_memory_bytes
-from kintinuous_fast.tsdf.volume import check_volume_config as _check_memory
-from kintinuous_fast.tsdf.volume import from_reference_volume as _from_reference_host
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.tsdf import TsdfVolume, check_depth, volume_origin
+from kintinuous_ref.tsdf import available_memory_bytes as _host_memory_bytes
+from kintinuous_ref.tsdf import (
+    check_depth,
+    corner_weights,
+    refuse_if_too_big,
+    trilinear,
+    volume_origin,
+)
 
 __all__ = [
     "FastTsdfVolume",
     "available_memory_bytes",
+    "check_depth",
     "check_volume_config",
-    "from_reference_volume",
+    "corner_weights",
     "integrate",
     "make_volume",
     "memory_bytes",
+    "refuse_if_too_big",
     "sample_tsdf",
     "to_reference_volume",
+    "trilinear",
     "volume_origin",
 ]
 
-_voxels = volume.build_ops(cuda_device_jit())
+_voxels = voxel.build_ops(cuda_device_jit())
 _ops = integration.build_ops(cuda_device_jit(), _voxels)
 integrate_voxel = _ops.integrate_voxel
 ray_distance_pixel = _ops.ray_distance_pixel
@@ -155,7 +162,7 @@ def available_memory_bytes() -> int:
 def check_volume_config(config: VolumeConfig) -> None:
     """Refuse, in one line, a volume (8 bytes per voxel, memory_bytes) that does not fit in the
     GPU's free memory (available_memory_bytes)."""
-    _check_memory(config, available_memory_bytes())
+    check_volume_memory(config, available_memory_bytes())
 
 
 def make_volume(
@@ -169,15 +176,6 @@ def make_volume(
         colour=_zeros((n, n, n, 4), np.uint8) if config.colour else None,
         **volume_header(config, first_pose, colour_max_weight),
     )
-
-
-def from_reference_volume(volume: TsdfVolume) -> FastTsdfVolume:
-    """A device fast volume holding a reference volume's values rounded to the stored types."""
-    host = _from_reference_host(volume)
-    host.tsdf_weight = cuda.to_device(host.tsdf_weight)
-    if host.colour is not None:
-        host.colour = cuda.to_device(host.colour)
-    return host
 
 
 def integrate(
@@ -204,11 +202,7 @@ def integrate(
     if fuse_colour:
         colour = to_device(colour, np.uint8).reshape(-1, 3)
         if colour_weights is None:
-            colour_weights = (
-                (np.asarray(depth) > 0).astype(np.float32)
-                if not hasattr(depth, "copy_to_host")
-                else (depth.copy_to_host() > 0).astype(np.float32)
-            )
+            colour_weights = (np.asarray(to_host(depth)) > 0).astype(np.float32)
         colour_weights = to_device(colour_weights, np.float32).reshape(-1)
     else:
         colour = cuda.to_device(np.zeros((1, 3), np.uint8))
@@ -245,6 +239,3 @@ def sample_tsdf(volume: FastTsdfVolume, coordinates: Any) -> Any:
         volume.tsdf_weight, *volume.offsets(), d_coordinates, out
     )
     return like_input(out, coordinates)
-
-
-__all__ += ["slab_view", "to_reference_volume"]

@@ -20,9 +20,18 @@ from kintinuous_fast.tsdf.voxel import TSDF_MAX
 
 def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) -> SimpleNamespace:
     """The integration functions compiled with `jit`, on `voxels` (tsdf.voxel.build_ops(jit)
-    unless given: a caller that also samples the volume shares its functions)."""
+    unless given: a caller that also samples the volume shares its functions), in one
+    namespace."""
     voxels = voxels or voxel_ops.build_ops(jit)
-    cell, dequantise, quantise = voxels.cell, voxels.dequantise, voxels.quantise
+    projection = build_projection(jit)
+    fusion = build_fusion(jit, voxels, projection)
+    columns = build_columns(jit, voxels, projection, fusion)
+    parts = (projection, fusion, columns, build_colour_weight(jit))
+    return SimpleNamespace(**{name: f for part in parts for name, f in vars(part).items()})
+
+
+def build_projection(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """A voxel's camera-frame position, its pixel and its distance; a pixel's measured distance."""
     rint32 = build_rint(jit)[1]
 
     @jit
@@ -60,6 +69,32 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
     def voxel_norm(x: Any, y: Any, z: Any) -> Any:
         """|p_c| in float32, in the reference's order."""
         return np.float32(math.sqrt(np.float32(np.float32(x * x) + y * y) + z * z))
+
+    @jit
+    def column_start(base: Any, steps: Any, fi: Any, fj: Any) -> tuple:
+        """Camera-frame centre of voxel (i, j, 0): base + i a_x + j a_y in float32, the
+        reference's order of additions (a column then adds k a_z)."""
+        return (
+            (base[0] + fi * steps[0, 0]) + fj * steps[1, 0],
+            (base[1] + fi * steps[0, 1]) + fj * steps[1, 1],
+            (base[2] + fi * steps[0, 2]) + fj * steps[1, 2],
+        )
+
+    return SimpleNamespace(
+        column_start=column_start,
+        project_voxel=project_voxel,
+        ray_distance_pixel=ray_distance_pixel,
+        rint32=rint32,
+        voxel_norm=voxel_norm,
+    )
+
+
+def build_fusion(
+    jit: Callable[[Any], Any], voxels: SimpleNamespace, projection: SimpleNamespace
+) -> SimpleNamespace:
+    """One voxel's update from the frame: the TSDF's running average and the colour's."""
+    dequantise, quantise = voxels.dequantise, voxels.quantise
+    project_voxel, voxel_norm = projection.project_voxel, projection.voxel_norm
 
     @jit
     def update_voxel(
@@ -157,31 +192,17 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
         colour_volume[ci, cj, ck, 3] = min(max(cw_new, 1), 255)
         return change
 
-    @jit
-    def colour_weight(
-        depth: Any, fusable: bool, normal_z: Any, use_mask: bool, use_angle: bool
-    ) -> Any:
-        """kintinuous_ref.colour.colour_weights of one pixel (paper VI-B), float32: 1 where
-        there is depth, times the discontinuity mask's `fusable` when use_mask, times |n_z|
-        (0 where not finite) when use_angle. The reference's factors are 0, 1 and |n_z|: their
-        float32 product is |n_z| or 0 in any order, so the weights are bit-identical."""
-        weight = np.float32(1.0) if depth > 0 else np.float32(0.0)
-        if use_mask and not fusable:
-            weight = np.float32(0.0)
-        if use_angle:
-            nz = abs(np.float32(normal_z))
-            weight *= nz if math.isfinite(nz) else np.float32(0.0)
-        return weight
+    return SimpleNamespace(fuse_voxel=fuse_voxel, update_voxel=update_voxel)
 
-    @jit
-    def column_start(base: Any, steps: Any, fi: Any, fj: Any) -> tuple:
-        """Camera-frame centre of voxel (i, j, 0): base + i a_x + j a_y in float32, the
-        reference's order of additions (a column then adds k a_z)."""
-        return (
-            (base[0] + fi * steps[0, 0]) + fj * steps[1, 0],
-            (base[1] + fi * steps[0, 1]) + fj * steps[1, 1],
-            (base[2] + fi * steps[0, 2]) + fj * steps[1, 2],
-        )
+
+def build_columns(
+    jit: Callable[[Any], Any],
+    voxels: SimpleNamespace,
+    projection: SimpleNamespace,
+    fusion: SimpleNamespace,
+) -> SimpleNamespace:
+    """A logical voxel's update, and the range of a voxel column a frame can update."""
+    cell, column_start, update_voxel = voxels.cell, projection.column_start, fusion.update_voxel
 
     @jit
     def integrate_voxel(
@@ -264,15 +285,27 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
         return k0, max(k1, k0)
 
     return SimpleNamespace(
-        colour_weight=colour_weight,
-        column_range=column_range,
-        column_start=column_start,
-        fuse_voxel=fuse_voxel,
-        integrate_voxel=integrate_voxel,
-        limit_interval=limit_interval,
-        project_voxel=project_voxel,
-        ray_distance_pixel=ray_distance_pixel,
-        rint32=rint32,
-        update_voxel=update_voxel,
-        voxel_norm=voxel_norm,
+        column_range=column_range, integrate_voxel=integrate_voxel, limit_interval=limit_interval
     )
+
+
+def build_colour_weight(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """A pixel's colour weight (kintinuous_fast.colour's kernels)."""
+
+    @jit
+    def colour_weight(
+        depth: Any, fusable: bool, normal_z: Any, use_mask: bool, use_angle: bool
+    ) -> Any:
+        """kintinuous_ref.colour.colour_weights of one pixel (paper VI-B), float32: 1 where
+        there is depth, times the discontinuity mask's `fusable` when use_mask, times |n_z|
+        (0 where not finite) when use_angle. The reference's factors are 0, 1 and |n_z|: their
+        float32 product is |n_z| or 0 in any order, so the weights are bit-identical."""
+        weight = np.float32(1.0) if depth > 0 else np.float32(0.0)
+        if use_mask and not fusable:
+            weight = np.float32(0.0)
+        if use_angle:
+            nz = abs(np.float32(normal_z))
+            weight *= nz if math.isfinite(nz) else np.float32(0.0)
+        return weight
+
+    return SimpleNamespace(colour_weight=colour_weight)

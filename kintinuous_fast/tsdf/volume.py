@@ -1,6 +1,7 @@
 """The fast backends' TSDF + colour volume (8 bytes per voxel) and the host-side per-frame set-up
 shared by the cpu and cuda integration and raycasting (their per-voxel and per-ray maths:
-kintinuous_fast.tsdf.voxel, .integration and .march)."""
+kintinuous_fast.tsdf.voxel, tsdf.ops and raycast.ops), its conversions to and from the
+reference's TsdfVolume, and the moving volume's view of it (SlabView)."""
 
 from __future__ import annotations
 
@@ -9,15 +10,11 @@ from typing import Any
 
 import numpy as np
 
+from kintinuous_fast.targets import to_host
 from kintinuous_fast.tsdf.voxel import TSDF_SCALE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.tsdf import (
-    TsdfVolume,
-    available_memory_bytes,
-    refuse_if_too_big,
-    volume_origin,
-)
+from kintinuous_ref.tsdf import TsdfVolume, refuse_if_too_big, volume_origin
 
 BYTES_TSDF = 4  # int16 TSDF + int16 weight
 BYTES_COLOUR = 4  # uint8 R, G, B + uint8 colour weight
@@ -97,11 +94,11 @@ def memory_bytes(config: VolumeConfig) -> int:
     return (BYTES_TSDF + (BYTES_COLOUR if config.colour else 0)) * config.resolution**3
 
 
-def check_volume_config(config: VolumeConfig, available: int | None = None) -> None:
+def check_volume_memory(config: VolumeConfig, available: int) -> None:
     """Refuse, in one line, a fast volume (memory_bytes) that does not fit in `available`
-    bytes: host memory by default, the GPU's free memory where the cuda backend passes it. The
-    config's own fields were checked when it was made (VolumeConfig.__post_init__)."""
-    available = available_memory_bytes() if available is None else available
+    bytes: host memory for the cpu backend, the GPU's free memory for the cuda backend (their
+    check_volume_config). The config's own fields were checked when it was made
+    (VolumeConfig.__post_init__)."""
     # Headroom for the rest of the pipeline: the fast loops update voxels in place, where the
     # reference's NumPy integration makes slab-sized temporaries (its headroom: 1 GiB).
     refuse_if_too_big(config, memory_bytes(config), available, 256 << 20)
@@ -123,11 +120,8 @@ def volume_header(
 def to_reference_volume(volume: FastTsdfVolume) -> TsdfVolume:
     """A float32 kintinuous_ref TsdfVolume with the fast volume's (dequantised) values, on the
     host: for meshing, and for comparing a fast volume with the reference."""
-    packed = volume.tsdf_weight
-    packed = packed.copy_to_host() if hasattr(packed, "copy_to_host") else np.asarray(packed)
-    colour = volume.colour
-    if colour is not None and hasattr(colour, "copy_to_host"):
-        colour = colour.copy_to_host()
+    packed = np.asarray(to_host(volume.tsdf_weight))
+    colour = to_host(volume.colour)
     return TsdfVolume(
         tsdf=packed[..., 0].astype(np.float32) / np.float32(TSDF_SCALE),
         weight=packed[..., 1].astype(np.float32),
@@ -286,9 +280,7 @@ class _Field:
         extra = (3,) if self.name == "colour" else ()
         out = np.empty((*shape, *extra), dtype=np.float32)
         for out_index, src in _blocks(cells):
-            block = array[src]
-            block = block.copy_to_host() if hasattr(block, "copy_to_host") else block
-            out[out_index] = block[..., channel]
+            out[out_index] = to_host(array[src])[..., channel]
         if self.name == "tsdf":
             out /= np.float32(TSDF_SCALE)
         return out

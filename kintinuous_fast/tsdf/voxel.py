@@ -39,19 +39,32 @@ def build_ops(
     dequantise_table: bool = False,
 ) -> SimpleNamespace:
     """The voxel functions compiled with `jit`, but the small scalar helpers and the per-ray
-    normal and colour with `jit_called` (default `jit`). Integration passes one decorator that
-    inlines everything at numba IR level: its per-voxel loops need that to vectorise (as calls,
-    integration took twice as long). The cpu raycast passes plain calls without reference
-    counting as `jit_called`: LLVM still inlines the small helpers, so the march is as fast and
-    bit-identical, and numba no longer types them again at every call site (its raycast loop
-    compiled in 54 s, now 15). The trilinear sample and the gradient stay numba inlines there:
-    as calls that LLVM keeps, the cpu raycast took up to 1.5x as long.
+    normal and colour with `jit_called` (default `jit`), in one namespace. Integration passes one
+    decorator that inlines everything at numba IR level: its per-voxel loops need that to
+    vectorise (as calls, integration takes twice as long). The cpu raycast passes plain calls
+    without reference counting as `jit_called`: LLVM still inlines the small helpers, so the
+    march is as fast and bit-identical, and numba does not type them again at every call site
+    (which makes its raycast loop compile several times as long: docs/benchmarks.md, "Compiling
+    the raycast"). The trilinear sample and the gradient stay numba inlines there: as calls
+    that LLVM keeps, the cpu raycast takes up to 1.5x as long.
     With `dequantise_table`, dequantise reads its (equal) values from a table of all 65536
-    (256 KiB): a load instead of three conversions and a multiply made the cpu raycast ~4 %
-    faster (its samples and normals dequantise ~80 values per ray), but cpu integration, one
-    value per updated voxel, ~4 % slower: it keeps the arithmetic, and so does CUDA, whose
-    constant memory holds 64 KiB."""
+    (256 KiB): a load instead of three conversions and a multiply, which pays in the cpu
+    raycast (its samples and normals dequantise ~80 values per ray) but not in cpu integration,
+    one value per updated voxel: it keeps the arithmetic, and so does CUDA, whose constant
+    memory holds 64 KiB (docs/benchmarks.md, "The dequantising table")."""
     jit_called = jit_called or jit
+    storage = build_storage(jit_called, dequantise_table)
+    sampling = build_sampling(jit, jit_called, storage)
+    interior = build_interior_gradient(jit, jit_called, storage)
+    normals = build_normals(jit, jit_called, sampling, interior)
+    colour = build_surface_colour(jit_called, storage)
+    negatives = build_negatives(jit, storage)
+    parts = (storage, sampling, interior, normals, colour, negatives)
+    return SimpleNamespace(**{name: f for part in parts for name, f in vars(part).items()})
+
+
+def build_storage(jit_called: Callable[[Any], Any], dequantise_table: bool) -> SimpleNamespace:
+    """The stored int16 TSDF to and from floats, and the cells of the cyclical buffer."""
 
     if dequantise_table:
         # the same products as below, for every int16; numba freezes the closure's table into
@@ -88,6 +101,15 @@ def build_ops(
         index, which also keeps LLVM from vectorising)."""
         c = index + offset
         return np.uint64(c - n if c >= n else c)
+
+    return SimpleNamespace(cell=cell, dequantise=dequantise, quantise=quantise)
+
+
+def build_sampling(
+    jit: Callable[[Any], Any], jit_called: Callable[[Any], Any], storage: SimpleNamespace
+) -> SimpleNamespace:
+    """Trilinear TSDF samples: over the observed voxels (the march's), and plain (normals')."""
+    cell, dequantise = storage.cell, storage.dequantise
 
     @jit
     def sample_tsdf_at(
@@ -163,60 +185,19 @@ def build_ops(
     def clip(c: float, limit: float) -> float:
         return min(max(c, 0.0), limit)
 
-    @jit_called
-    def gradient_normal(
-        tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
-    ) -> tuple:
-        """Unit TSDF gradient by central differences one voxel apart (raycast._gradient_normals);
-        NaN when it vanishes. Inside the grid's one-voxel border the six trilinear samples
-        share their fractions, so each difference is one trilinear blend of differences of
-        stored values (interior_gradient); at the border, six clipped samples as the reference."""
-        if in_interior(cx, cy, cz, tsdf_weight.shape[0]):
-            gx, gy, gz = interior_gradient(tsdf_weight, o0, o1, o2, cx, cy, cz)
-        else:
-            gx, gy, gz = clipped_gradient(tsdf_weight, o0, o1, o2, cx, cy, cz)
-        return unit_or_nan(gx, gy, gz)
+    return SimpleNamespace(
+        clip=clip,
+        observed_corner=observed_corner,
+        sample_tsdf_at=sample_tsdf_at,
+        trilinear_tsdf=trilinear_tsdf,
+    )
 
-    @jit_called
-    def gradient_normals(
-        tsdf_weight: Any,
-        o0: int,
-        o1: int,
-        o2: int,
-        ax: float,
-        ay: float,
-        az: float,
-        bx: float,
-        by: float,
-        bz: float,
-    ) -> tuple:
-        """gradient_normal at two points (a then b, six components). When both lie inside the
-        border, their two interior gradients are one stretch of code: independent loads and
-        arithmetic that the core overlaps (~6 % of the cpu raycast, whose pairs of rays
-        take their normals here)."""
-        n = tsdf_weight.shape[0]
-        if in_interior(ax, ay, az, n) and in_interior(bx, by, bz, n):
-            ga = interior_gradient(tsdf_weight, o0, o1, o2, ax, ay, az)
-            gb = interior_gradient(tsdf_weight, o0, o1, o2, bx, by, bz)
-            na, nb = unit_or_nan(ga[0], ga[1], ga[2]), unit_or_nan(gb[0], gb[1], gb[2])
-        else:
-            na = gradient_normal(tsdf_weight, o0, o1, o2, ax, ay, az)
-            nb = gradient_normal(tsdf_weight, o0, o1, o2, bx, by, bz)
-        return na[0], na[1], na[2], nb[0], nb[1], nb[2]
 
-    @jit_called
-    def in_interior(cx: float, cy: float, cz: float, n: int) -> bool:
-        """Whether 1 <= c < N - 2 on every axis (interior_gradient's domain)."""
-        return cx >= 1 and cx < n - 2 and cy >= 1 and cy < n - 2 and cz >= 1 and cz < n - 2
-
-    @jit_called
-    def unit_or_nan(gx: float, gy: float, gz: float) -> tuple:
-        """g / |g|, NaN when g vanishes."""
-        length = math.sqrt(gx * gx + gy * gy + gz * gz)
-        if not length > 0:
-            return np.nan, np.nan, np.nan
-        scale = 1.0 / length  # one division, not three (within an ulp)
-        return gx * scale, gy * scale, gz * scale
+def build_interior_gradient(
+    jit: Callable[[Any], Any], jit_called: Callable[[Any], Any], storage: SimpleNamespace
+) -> SimpleNamespace:
+    """The TSDF gradient inside the grid's one-voxel border, from stored values."""
+    cell = storage.cell
 
     @jit
     def interior_gradient(
@@ -280,6 +261,79 @@ def build_ops(
         """Bilinear blend of values at the corners (0, 0), (0, 1), (1, 0), (1, 1)."""
         return (1.0 - f) * ((1.0 - g) * d00 + g * d01) + f * ((1.0 - g) * d10 + g * d11)
 
+    return SimpleNamespace(
+        bilinear=bilinear,
+        difference=difference,
+        four_cells=four_cells,
+        interior_gradient=interior_gradient,
+    )
+
+
+def build_normals(
+    jit: Callable[[Any], Any],
+    jit_called: Callable[[Any], Any],
+    sampling: SimpleNamespace,
+    interior: SimpleNamespace,
+) -> SimpleNamespace:
+    """Unit TSDF-gradient normals (the raycast's), at one point or two."""
+    clip, trilinear_tsdf = sampling.clip, sampling.trilinear_tsdf
+    interior_gradient = interior.interior_gradient
+
+    @jit_called
+    def gradient_normal(
+        tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
+    ) -> tuple:
+        """Unit TSDF gradient by central differences one voxel apart (raycast._gradient_normals);
+        NaN when it vanishes. Inside the grid's one-voxel border the six trilinear samples
+        share their fractions, so each difference is one trilinear blend of differences of
+        stored values (interior_gradient); at the border, six clipped samples as the reference."""
+        if in_interior(cx, cy, cz, tsdf_weight.shape[0]):
+            gx, gy, gz = interior_gradient(tsdf_weight, o0, o1, o2, cx, cy, cz)
+        else:
+            gx, gy, gz = clipped_gradient(tsdf_weight, o0, o1, o2, cx, cy, cz)
+        return unit_or_nan(gx, gy, gz)
+
+    @jit_called
+    def gradient_normals(
+        tsdf_weight: Any,
+        o0: int,
+        o1: int,
+        o2: int,
+        ax: float,
+        ay: float,
+        az: float,
+        bx: float,
+        by: float,
+        bz: float,
+    ) -> tuple:
+        """gradient_normal at two points (a then b, six components). When both lie inside the
+        border, their two interior gradients are one stretch of code: independent loads and
+        arithmetic that the core overlaps (~6 % of the cpu raycast, whose pairs of rays
+        take their normals here)."""
+        n = tsdf_weight.shape[0]
+        if in_interior(ax, ay, az, n) and in_interior(bx, by, bz, n):
+            ga = interior_gradient(tsdf_weight, o0, o1, o2, ax, ay, az)
+            gb = interior_gradient(tsdf_weight, o0, o1, o2, bx, by, bz)
+            na, nb = unit_or_nan(ga[0], ga[1], ga[2]), unit_or_nan(gb[0], gb[1], gb[2])
+        else:
+            na = gradient_normal(tsdf_weight, o0, o1, o2, ax, ay, az)
+            nb = gradient_normal(tsdf_weight, o0, o1, o2, bx, by, bz)
+        return na[0], na[1], na[2], nb[0], nb[1], nb[2]
+
+    @jit_called
+    def in_interior(cx: float, cy: float, cz: float, n: int) -> bool:
+        """Whether 1 <= c < N - 2 on every axis (interior_gradient's domain)."""
+        return cx >= 1 and cx < n - 2 and cy >= 1 and cy < n - 2 and cz >= 1 and cz < n - 2
+
+    @jit_called
+    def unit_or_nan(gx: float, gy: float, gz: float) -> tuple:
+        """g / |g|, NaN when g vanishes."""
+        length = math.sqrt(gx * gx + gy * gy + gz * gz)
+        if not length > 0:
+            return np.nan, np.nan, np.nan
+        scale = 1.0 / length  # one division, not three (within an ulp)
+        return gx * scale, gy * scale, gz * scale
+
     @jit
     def clipped_gradient(
         tsdf_weight: Any, o0: int, o1: int, o2: int, cx: float, cy: float, cz: float
@@ -299,6 +353,21 @@ def build_ops(
             t, o0, o1, o2, px, py, clip(cz - 1.0, limit)
         )
         return float(gx), float(gy), float(gz)
+
+    return SimpleNamespace(
+        clipped_gradient=clipped_gradient,
+        gradient_normal=gradient_normal,
+        gradient_normals=gradient_normals,
+        in_interior=in_interior,
+        unit_or_nan=unit_or_nan,
+    )
+
+
+def build_surface_colour(
+    jit_called: Callable[[Any], Any], storage: SimpleNamespace
+) -> SimpleNamespace:
+    """The colour volume's trilinear colour at a point."""
+    cell = storage.cell
 
     @jit_called
     def surface_colour_at(
@@ -339,6 +408,14 @@ def build_ops(
             min(max(round(g / coverage), 0), 255),
             min(max(round(b_ / coverage), 0), 255),
         )
+
+    return SimpleNamespace(surface_colour_at=surface_colour_at)
+
+
+def build_negatives(jit: Callable[[Any], Any], storage: SimpleNamespace) -> SimpleNamespace:
+    """Observed voxels with negative TSDF, counted per brick or marked per fine brick (the
+    raycast's empty-space maps)."""
+    cell = storage.cell
 
     @jit
     def count_negative(
@@ -385,25 +462,8 @@ def build_ops(
         return 1 << (((i & 1) << 2) | ((j & 1) << 1) | (k & 1))
 
     return SimpleNamespace(
-        cell=cell,
-        bilinear=bilinear,
-        clip=clip,
-        difference=difference,
-        four_cells=four_cells,
         count_negative=count_negative,
         fine_voxel_bit=fine_voxel_bit,
         negative_mask=negative_mask,
-        observed_corner=observed_corner,
         observed_negative=observed_negative,
-        dequantise=dequantise,
-        clipped_gradient=clipped_gradient,
-        gradient_normal=gradient_normal,
-        gradient_normals=gradient_normals,
-        in_interior=in_interior,
-        unit_or_nan=unit_or_nan,
-        interior_gradient=interior_gradient,
-        quantise=quantise,
-        sample_tsdf_at=sample_tsdf_at,
-        surface_colour_at=surface_colour_at,
-        trilinear_tsdf=trilinear_tsdf,
     )
