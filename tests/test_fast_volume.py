@@ -10,6 +10,7 @@ import pytest
 from kintinuous_fast.raycast import cpu as cpu_raycast
 from kintinuous_fast.targets import cpu_jit
 from kintinuous_fast.tsdf import cpu as cpu_tsdf
+from kintinuous_fast.tsdf import cpu_culling
 from kintinuous_fast.tsdf import volume as _volume
 from kintinuous_fast.tsdf import voxel as volume_ops
 from kintinuous_ref import tsdf as ref_tsdf
@@ -215,10 +216,11 @@ def test_cpu_integration_visits_every_voxel_the_reference_updates(pose_index):
     box = frustum_box(fast, float(depth.max()), pose, camera)
     ray_distance = cpu_tsdf.ray_distances(depth.astype(np.float32), camera)
     base, steps = camera_frame_steps(fast, pose)
-    visit = cpu_tsdf._columns_to_visit(fast, box, base, steps, camera, ray_distance, pose)
-    bundle = visit[updated[:, 0] // cpu_tsdf.CULL_BRICK[0], updated[:, 1] // cpu_tsdf.CULL_BRICK[1]]
+    visit = cpu_culling.columns_to_visit(fast, box, base, steps, camera, ray_distance, pose)
+    sizes = cpu_culling.CULL_BRICK
+    bundle = visit[updated[:, 0] // sizes[0], updated[:, 1] // sizes[1]]
     assert np.all((bundle[:, 0] <= updated[:, 2]) & (updated[:, 2] < bundle[:, 1]))
     i, j = np.mgrid[box[0][0] : box[1][0], box[0][1] : box[1][1]]
-    columns = visit[i // cpu_tsdf.CULL_BRICK[0], j // cpu_tsdf.CULL_BRICK[1]]
+    columns = visit[i // sizes[0], j // sizes[1]]
     visited = np.maximum(columns[..., 1] - columns[..., 0], 0).sum()
     assert visited < 0.8 * np.prod(box[1] - box[0])

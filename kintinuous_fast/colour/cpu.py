@@ -1,7 +1,8 @@
 # ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
 """kintinuous_ref.colour's colour_weights on the CPU: one loop over rows (run on all threads) around
 kintinuous_fast.tsdf.ops.colour_weight, in place of the reference's three whole-image NumPy
-passes (docs/benchmarks.md, "Colour weights"). Bit-identical. angle_weight is the reference's.
+passes (docs/benchmarks.md, "Numbers behind the fast stages"). Bit-identical. angle_weight is
+the reference's.
 """
 
 from __future__ import annotations

@@ -63,8 +63,8 @@ _parallel = parallel_part()
 _parallel_allocating = parallel_part(_nrt=True)  # for loops with row buffers of their own
 _inline = numba.njit(cache=True, inline="always")
 
-# The ops are inlined into the row loops at numba IR level (as calls, a 640x480 frame takes
-# ~1 ms longer).
+# The ops are inlined into the row loops at numba IR level: as calls, they cost a frame about a
+# millisecond more (docs/benchmarks.md, "Numbers behind the fast stages").
 _ops = SimpleNamespace(
     **vars(build_metric_depth(_inline)),
     **vars(build_pyramid(_inline)),

@@ -20,7 +20,7 @@ from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parall
 
 _inline = numba.njit(cache=True, inline="always")
 # FMA contraction only, for the bilateral filter: its weights are float32 approximations anyway
-# (1-2 ulp), and contraction makes the polynomial exp a third cheaper. Functions inlined by numba
+# (1-2 ulp), and contraction makes the polynomial exp cheaper. Functions inlined by numba
 # compile with their caller's flags, so the loop that inlines them carries the flag too.
 _inline_fma = numba.njit(cache=True, inline="always", fastmath={"contract"})
 _parallel_fma = parallel_part(fastmath={"contract"}, _nrt=True)  # its chunks' sums allocate
@@ -50,12 +50,10 @@ def _power_of_two_neg(n):
     return _float32_from_bits((np.int32(127) - n) << 23)
 
 
-# The ops are inlined into the row loops at numba IR level: compiled as calls, they made a
-
-
-# Inlined into the row loops at numba IR level (as calls, the per-pixel results cost a 640x480
-# frame ~1 ms).
+# Inlined into the row loops at numba IR level: as calls, the per-pixel results cost a frame
+# about a millisecond more (docs/benchmarks.md, "Numbers behind the fast stages").
 _ops = build_bilateral(_inline, _inline_fma, _power_of_two_neg)
+exp_neg = _ops.exp_neg
 bilateral_weight = _ops.bilateral_weight
 bilateral_result = _ops.bilateral_result
 

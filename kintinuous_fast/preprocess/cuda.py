@@ -165,7 +165,8 @@ def model_pyramid(vertices: Any, normals: Any, levels: int) -> list[tuple[Any, A
 
     Each coarser level is copied by a kernel into a contiguous array rather than taken as a
     strided view: numba builds a view of a device array with a Python loop over its elements,
-    which cost ~0.5 s a frame at 640x480 (measured on an H200)."""
+    which costs about half a second a frame at 640x480 (docs/benchmarks.md, "Numbers behind
+    the fast stages")."""
     if not is_device(vertices):
         return host_model_pyramid(vertices, normals, levels)
     pyramid = [(vertices, normals)]

@@ -98,8 +98,8 @@ def march_two_rays(
                 (m_b, previous_b, known_b),
             )
     # Both refinements after both marches: two independent chains of loads and divisions
-    # that the core overlaps (refining inside the step left one ray's chain alone at the
-    # end: ~4 % of the cpu raycast, measured).
+    # that the core overlaps (refining inside the step would leave one ray's chain alone at
+    # the end).
     hit_a = surface_at(
         tsdf_weight,
         offsets,
@@ -306,8 +306,8 @@ def _raycast_loop(
     starts,
 ):
     # Every pixel cast is written once, hit or miss; with a stride, the thread that
-    # casts a band first clears its rows (NaN, black) for the pixels left out (numpy's fill of
-    # the three maps took ~2.5 ms on one thread, ~1.2 ms of a 2-thread raycast).
+    # casts a band first clears its rows (NaN, black) for the pixels left out, so that no
+    # single-threaded fill of the three maps comes first.
     height, width = vertices.shape[0], vertices.shape[1]
     span = BAND * stride
     for band in claimed_items(claims, -(-height // span), parts):

@@ -65,7 +65,7 @@ def _near_box_starts(
         for i in range(c, m, chunks):  # slabs dealt round-robin: surfaces spread over them
             for j in range(m):
                 row = near[i, j]
-                if not _any(row, 0, m):  # most rows: scanning them byte by byte took ~1 ms
+                if not _any(row, 0, m):  # most rows: one vectorised OR, no byte-by-byte scan
                     continue
                 k = _next_near(row, 0)
                 while k < m:  # each run of near bricks along k is one box
@@ -246,15 +246,15 @@ def near_starts(
     them along the line of sight as one) is projected into the image, and the pixels of its
     projected bounds, grown by half a pixel, take where their rays enter it (a slab test in
     float32 against the box grown by ENTRY_MARGIN, less ENTRY_SLACK of the distance: both far
-    above float32's rounding of coordinates within ~100 m, far below a sample step).
-    Measured on redkitchen (frame 30): 1.70 jumps per ray after the start against
-    2.92 with the camera's distance to each box, which this replaced."""
+    above float32's rounding of coordinates within ~100 m, far below a sample step). Where a
+    ray enters a box, not the camera's distance to it, leaves the fewest jumps after the start
+    (docs/benchmarks.md, "Numbers behind the fast stages")."""
     chunks = _chunk_starts(numba.get_num_threads(), camera.height, camera.width)
     view = view_constants(volume, pose, camera)
     inverse = _inverse_directions_work(camera.height, camera.width)
     run_parallel(_inverse_directions, view[0], view[1], inverse)
     # A run of boxes along the line of sight projects to about one box's pixels, a run across
-    # it to a long slanted one (~2x the pixels of its boxes': measured on redkitchen).
+    # it to a long slanted one (about twice the pixels of its boxes).
     rotation = view[1]
     along_sight = abs(rotation[2, 2]) >= max(abs(rotation[0, 2]), abs(rotation[1, 2]))
     longest = near.shape[0] if along_sight else 1

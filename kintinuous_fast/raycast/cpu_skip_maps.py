@@ -108,7 +108,7 @@ def _or_first(planes, following, near):
 @functools.lru_cache(maxsize=2)
 def _work_arrays(fine_bricks: int, bricks: int) -> SimpleNamespace:
     """The skip maps' work arrays for one volume size, kept from frame to frame: fresh ones cost
-    page faults every frame (~2 ms at 256^3)."""
+    page faults every frame (docs/benchmarks.md, "Numbers behind the fast stages")."""
     fine_shape, shape = (fine_bricks,) * 3, (bricks,) * 3
     return SimpleNamespace(
         rows=np.empty(fine_shape, dtype=np.uint8),
@@ -134,8 +134,8 @@ def _brick_distance(negative: np.ndarray) -> np.ndarray:
     """kintinuous_ref.raycast.empty_space from its (B, B, B) map of bricks holding an observed
     negative voxel (int64). Growing by one brick and then taking the chessboard distance is the
     chessboard distance less one, floored at 0; _capped_distance gives it with a cap (B + 1)
-    that no distance inside the grid reaches (numba, ~0.1 ms at B = 32 where scipy's dilation
-    and transform took ~1.4)."""
+    that no distance inside the grid reaches (in numba: scipy's dilation and transform cost
+    an order of magnitude more, docs/benchmarks.md, "Numbers behind the fast stages")."""
     b = negative.shape[0]
     if not negative.any():
         return np.full(negative.shape, 2 * b, dtype=np.int64)  # nothing anywhere: skip it all
@@ -172,8 +172,8 @@ def _distance_work(m: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
 # whole planes of uint8, which vectorises: shifts by k entries (axis 2: rows padded with cap,
 # which never lowers a minimum, so no row reads the next), by k rows (axis 1) and by k planes
 # (axis 0). The passes may lower a pad; no entry reads one after the first pass. Shifting whole
-# planes, not each row of 128 on its own, keeps the loops long (docs/benchmarks.md, "The
-# raycast's skip maps").
+# planes, not each row of 128 on its own, keeps the loops long (docs/benchmarks.md, "Numbers
+# behind the fast stages").
 
 
 @parallel_part()
@@ -218,8 +218,8 @@ def _distance_along_slabs(claims, parts, cap, work, result, out):
 
 @numba.njit(cache=True, inline="always")
 def _copy(source, target):
-    """target = source, elementwise over 1-d arrays (numba's slice assignment took 5x longer
-    on rows of 128)."""
+    """target = source, elementwise over 1-d arrays (numba's slice assignment is several times
+    slower on rows of 128)."""
     for j in range(target.shape[0]):
         target[j] = source[j]
 

@@ -23,7 +23,7 @@ from kintinuous_fast.tsdf.voxel import BRICK, FINE
 # cube reaching at most 3 fine bricks (6 voxels) to either side. Rays start where they enter
 # the first fine brick that may hold a negative sample (raycast.cpu_near_starts), so long fine
 # jumps are rare, while each step of the cap costs the map two more passes (docs/benchmarks.md,
-# "The raycast's fine distance cap"). A step reads the fine map first (near surfaces its jumps
+# "Numbers behind the fast stages"). A step reads the fine map first (near surfaces its jumps
 # are longer than the brick map's, whose cube of radius D - 1 is a single brick at D = 1) and
 # the brick map only where the fine distance is capped, or where there is no fine map (cuda):
 # from a brick distance of FINE_LEVEL_BELOW on, it jumps by bricks.
@@ -36,12 +36,12 @@ def build_ops(
     jit_called: Callable[[Any], Any] | None = None,
     voxels: SimpleNamespace | None = None,
 ) -> SimpleNamespace:
-    """The march functions on `voxels` (tsdf.voxel.build_ops(jit, jit_called) unless given):
-    with `jit` the march's start, step and refinement and the per-pixel functions, which the cpu
-    loop needs inlined at numba IR level (as calls that LLVM keeps, its raycast takes 1.2-5x as
-    long); with `jit_called` (default `jit`) the small scalar helpers, which LLVM inlines
-    anyway, and the whole march of one ray (see tsdf.voxel.build_ops). One namespace of every
-    function of the factories below."""
+    """The march functions on `voxels` (tsdf.voxel.build_ops(jit, jit_called) unless given): with
+    `jit` the march's start, step and refinement and the per-pixel functions, which the cpu loop
+    needs inlined at numba IR level (as calls that LLVM keeps, its raycast is slower:
+    docs/benchmarks.md, "Numbers behind the fast stages"); with `jit_called` (default `jit`) the
+    small scalar helpers, which LLVM inlines anyway, and the whole march of one ray (see
+    tsdf.voxel.build_ops). One namespace of every function of the factories below."""
     jit_called = jit_called or jit
     voxels = voxels or voxel_ops.build_ops(jit, jit_called)
     ray_ops, jump_ops = build_ray(jit_called), build_jumps(jit_called)
@@ -269,7 +269,7 @@ def build_march_step(
             previous_known = False
         else:
             # (~1e-13 voxels from the reference's sample, a change in F far below its float32
-            # output; recomputing the exact coordinates cost the cpu raycast ~2.5 %)
+            # output; recomputing the exact coordinates at every sample costs more)
             value = sample_tsdf_at(tsdf_weight, offsets[0], offsets[1], offsets[2], cx, cy, cz)
             # A skipped sample is >= 0 or unknown, so after a jump the one before matters
             # only if this one is negative (a crossing, never a back face): fetched then.

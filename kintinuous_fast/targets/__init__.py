@@ -25,19 +25,19 @@ import numpy as np
 # The CPU decorator: compiled on first use and cached on disk (compile time counts in the tests).
 cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
 # The same with NumPy's error model: a float division by zero gives inf/NaN instead of a Python
-# ZeroDivisionError, so numba emits no zero test and exception path per division (2-3x faster
-# per-voxel loops). Only for code whose divisions are guarded (tsdf.voxel, tsdf.ops, raycast.ops:
-# z > 0, b != 0, ...).
+# ZeroDivisionError, so numba emits no zero test and exception path per division (the per-voxel
+# loops run several times as fast: docs/benchmarks.md, "Numbers behind the fast stages"). Only for
+# code whose divisions are guarded (tsdf.voxel, tsdf.ops, raycast.ops: z > 0, b != 0, ...).
 cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", inline="always"
 )
 # The same, called rather than inlined by numba (`jit_called` of tsdf.voxel and raycast.ops: LLVM
 # still inlines the small ones, at a fraction of the compile time), and without numba's
-# reference counting: these functions allocate nothing, but the array arguments of the
-# functions inlined into their loops were counted up and down on every step of a ray, in
+# reference counting: these functions allocate nothing, but with it the array arguments of the
+# functions inlined into their loops are counted up and down on every step of a ray, in
 # branches that numba's pruning pass cannot pair up, each an atomic operation on a count that
-# the other threads update too. Dropping them made the raycast 13-16 % faster, bit-identical
-# (measured, docs/benchmarks_archive.md). A function compiled so that does need it fails to compile.
+# the other threads update too. Without them the raycast is 13-16 % faster, bit-identical
+# (docs/benchmarks_archive.md). A function compiled so that does need it fails to compile.
 cpu_jit_numpy_errors_called: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", _nrt=False
 )

@@ -5,7 +5,7 @@ Each loop is a plain numba function (`parallel_part` below) that `run_parallel` 
 each of several threads (the calling one and helper threads kept for the purpose), without the
 GIL; the threads claim parts of its range one at a time (`claimed_items`) until none is left.
 numba's own parallel loops (`parallel=True`, prange) would do the same, but their
-transformation and the second compilation of each loop body took about half of every kernel's
+transformation and the second compilation of each loop body cost about half of every kernel's
 compile time (docs/benchmarks.md). The claims and the waits are atomic operations on a small
 int64 array, so a thread that waits for another needs neither the GIL nor a wake-up.
 """
@@ -31,7 +31,7 @@ def parallel_part(**options: Any) -> Callable[[Any], Any]:
     items come from `claimed_items(claims, count, parts)`. Compiled without the GIL, cached on
     disk, and without numba's reference counting unless `_nrt=True` is given: the loops
     allocate nothing, and the counts of their array arguments, incremented and decremented
-    around every inlined call in a ray's march, made the raycast 1.5x slower (a prange body is
+    around every inlined call in a ray's march, make the raycast 1.5x slower (a prange body is
     compiled without them too). A loop that does allocate fails to compile without it."""
     return numba.njit(**{"nogil": True, "cache": True, "_nrt": False, **options})
 

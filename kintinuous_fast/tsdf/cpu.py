@@ -184,7 +184,7 @@ def _project_column(
     distance and sdf, in two passes (the first vectorises: counted from 0 with a float32
     counter, as LLVM needs; the second is a gather). Returns the first and last k to update
     (sdf >= -mu), found by a scan from each end afterwards (tracking them inside the gather
-    loop cost more, measured)."""
+    loop costs more)."""
     k0, k1 = span
     px, py, pz = start
     fk0 = np.float32(k0)

@@ -24,7 +24,7 @@ from kintinuous_ref.camera import Intrinsics
 # no voxel can be updated: every pixel the brick can project to measures a distance lambda D
 # short of the brick's nearest point by more than mu (all behind the surface), or has no
 # depth. Most of a frame's projected voxels lie behind the surface, and these bricks hold about
-# half of them (docs/benchmarks.md, "Integration's culled bricks"). CULL_MARGIN (metres) dwarfs
+# half of them (docs/benchmarks.md, "Numbers behind the fast stages"). CULL_MARGIN (metres) dwarfs
 # float32's rounding of voxel positions and distances (~1e-6 m), so no voxel that the exact test
 # updates is left out.
 CULL_BRICK = (8, 8, 16)

@@ -38,20 +38,19 @@ def build_ops(
     jit_called: Callable[[Any], Any] | None = None,
     dequantise_table: bool = False,
 ) -> SimpleNamespace:
-    """The voxel functions compiled with `jit`, but the small scalar helpers and the per-ray
-    normal and colour with `jit_called` (default `jit`), in one namespace. Integration passes one
-    decorator that inlines everything at numba IR level: its per-voxel loops need that to
-    vectorise (as calls, integration takes twice as long). The cpu raycast passes plain calls
-    without reference counting as `jit_called`: LLVM still inlines the small helpers, so the
-    march is as fast and bit-identical, and numba does not type them again at every call site
-    (which makes its raycast loop compile several times as long: docs/benchmarks.md, "Compiling
-    the raycast"). The trilinear sample and the gradient stay numba inlines there: as calls
-    that LLVM keeps, the cpu raycast takes up to 1.5x as long.
-    With `dequantise_table`, dequantise reads its (equal) values from a table of all 65536
-    (256 KiB): a load instead of three conversions and a multiply, which pays in the cpu
-    raycast (its samples and normals dequantise ~80 values per ray) but not in cpu integration,
-    one value per updated voxel: it keeps the arithmetic, and so does CUDA, whose constant
-    memory holds 64 KiB (docs/benchmarks.md, "The dequantising table")."""
+    """The voxel functions compiled with `jit`, but the small scalar helpers and the per-ray normal
+    and colour with `jit_called` (default `jit`), in one namespace. Integration passes one decorator
+    that inlines everything at numba IR level: its per-voxel loops need that to vectorise
+    (docs/benchmarks.md, "Numbers behind the fast stages"). The cpu raycast passes plain calls
+    without reference counting as `jit_called`: LLVM still inlines the small helpers, so the march
+    is as fast and bit-identical, and numba does not type them again at every call site (which makes
+    its raycast loop compile several times as long). The trilinear sample and the gradient stay
+    numba inlines there: as calls that LLVM keeps, the cpu raycast is slower (docs/benchmarks.md,
+    "Numbers behind the fast stages"). With `dequantise_table`, dequantise reads its (equal) values
+    from a table of all 65536 (256 KiB): a load instead of three conversions and a multiply, which
+    pays in the cpu raycast (its samples and normals dequantise ~80 values per ray) but not in cpu
+    integration, one value per updated voxel: it keeps the arithmetic, and so does CUDA, whose
+    constant memory holds 64 KiB (docs/benchmarks.md, "Numbers behind the fast stages")."""
     jit_called = jit_called or jit
     storage = build_storage(jit_called, dequantise_table)
     sampling = build_sampling(jit, jit_called, storage)
@@ -132,8 +131,8 @@ def build_sampling(
         k0, k1 = cell(bz, o2, n), cell(bz + 1, o2, n)
         gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
         t = tsdf_weight
-        # Summed as trees, not in a chain of eight: the march waits on every sample, and the
-        # chain's latency made the cpu raycast ~2 % slower.
+        # Summed as trees, not in a chain of eight: the march waits on every sample, and a
+        # chain would add its latency to each.
         w000, p000 = observed_corner(t, i0, j0, k0, gx * gy * gz)
         w001, p001 = observed_corner(t, i0, j0, k1, gx * gy * fz)
         w010, p010 = observed_corner(t, i0, j1, k0, gx * fy * gz)
@@ -308,8 +307,8 @@ def build_normals(
     ) -> tuple:
         """gradient_normal at two points (a then b, six components). When both lie inside the
         border, their two interior gradients are one stretch of code: independent loads and
-        arithmetic that the core overlaps (~6 % of the cpu raycast, whose pairs of rays
-        take their normals here)."""
+        arithmetic that the core overlaps (the cpu raycast's pairs of rays take their normals
+        here)."""
         n = tsdf_weight.shape[0]
         if in_interior(ax, ay, az, n) and in_interior(bx, by, bz, n):
             ga = interior_gradient(tsdf_weight, o0, o1, o2, ax, ay, az)
