@@ -14,18 +14,18 @@ node 0 stays fixed (the gauge). With A = R_z^T R_i^T, the Jacobian blocks of an 
 W_ij) are, for node j, d r_rot / d omega = A, d r_t / d omega = -A [t_j]x, d r_t / d u = A,
 and their negatives (with +A [t_j]x) for node i, the rotation log taken as linear (exact at zero
 error, where the solver ends). Levenberg-Marquardt relinearises at every step and solves the
-sparse normal equations (6 unknowns per node) with SuperLU. scipy's least_squares with a
-finite-difference Jacobian was tried first: minutes for a 50-node graph with a false loop, where
-this takes a fraction of a second.
+sparse normal equations (6 unknowns per node) with SuperLU. The Jacobian is written out because
+finite differences over every node's unknowns (scipy's least_squares) take minutes on a graph of
+50 nodes (docs/benchmarks.md, "Choices in the reference").
 
 Robust loops: one false loop must not fold the map. Every loop edge gets a switch s in [0, 1]
 (Suenderhauf and Protzel, IROS 2012) that scales its residual, s r_ij, with a prior
 (1 - s)^2 / sigma_switch^2. A loop that agrees with the rest of the graph keeps s near 1; one that
-contradicts it costs less switched off than on. Solving for s as extra bounded unknowns made
-scipy's solver crawl towards the bound s = 0 (thousands of evaluations for a 24-node graph);
-Agarwal et al. ("Dynamic Covariance Scaling", ICRA 2013) derive the switch in closed form from
-the loop's current squared residual chi^2, s = min(1, 2 phi / (phi + chi^2)) with
-phi = 1 / sigma_switch^2, so it is recomputed at every step of the solver instead. Switches
+contradicts it costs less switched off than on. The switches are not extra unknowns of the
+solver, which would crawl towards their bound s = 0 (thousands of evaluations for a 24-node
+graph): Agarwal et al. ("Dynamic Covariance Scaling", ICRA 2013) derive each in closed form from
+its loop's current squared residual chi^2, s = min(1, 2 phi / (phi + chi^2)) with
+phi = 1 / sigma_switch^2, so it is recomputed at every step of the solver. Switches
 computed at the odometry's poses turn off a true loop that is many sigmas off there before it
 can pull, and switches computed after trusting every loop turn off the true loops too when a
 false one has folded the graph. So each new loop is first tested for consistency, trusted

@@ -52,8 +52,8 @@ __all__ = [
 ]
 
 # The algorithms multiply many small matrices (6xN systems, 3x3 rotations), for which a threaded
-# BLAS costs more in wake-ups than it gains: measured 25 ms instead of 0.15 ms per product on a
-# busy 2-core machine. Must be set before NumPy is first imported (the handlers import it lazily).
+# BLAS costs more in wake-ups than it gains (docs/benchmarks.md, "Choices in the reference").
+# Must be set before NumPy is first imported (the handlers import it lazily).
 for _variable in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # OpenMP users keep their threads
     os.environ.setdefault(_variable, "1")
 

@@ -84,11 +84,6 @@ class _TileSampler:
         return self.sample()
 
 
-def sample_tile(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of the periodic tile at texel coordinates (any shape, any values)."""
-    return _TileSampler(np.size(x))(np.ravel(x), np.ravel(y)).reshape(np.shape(x))
-
-
 @dataclass(frozen=True)
 class Material:
     """How one surface looks. Lengths in metres of the surface's (u, v) coordinates."""
