@@ -5,7 +5,9 @@ kernels they feed are checked against the reference in the equivalence tests."""
 import numpy as np
 import pytest
 
-from kintinuous_fast.odometry import host
+from kintinuous_fast.odometry import check_image, check_map
+from kintinuous_fast.odometry.icp import icp_constants, kernel_code
+from kintinuous_fast.odometry.sums import chunks_for
 from kintinuous_fast.preprocess.host import gaussian3x3, inverse_two_variance
 from kintinuous_fast.targets.cuda import grid_1d, grid_2d
 from kintinuous_fast.tsdf.cpu import make_volume
@@ -24,32 +26,32 @@ def test_launch_grids_cover_every_item_with_the_fewest_blocks():
     assert [grid_1d(n, 128) for n in (0, 1, 128, 129, 300)] == [1, 1, 1, 2, 3]
     assert grid_2d(480, 640, (16, 16)) == (40, 30)  # (blocks along x = columns, along y)
     assert grid_2d(481, 641, (16, 16)) == (41, 31)
-    assert host.chunks_for(0, 8) == 1 and host.chunks_for(5, 8) == 5 and host.chunks_for(99, 8) == 8
+    assert chunks_for(0, 8) == 1 and chunks_for(5, 8) == 5 and chunks_for(99, 8) == 8
 
 
 def test_icp_constants_are_the_reference_association_terms():
     pose = se3.exp(np.array([0.01, -0.02, 0.03, 0.1, 0.2, -0.1]))
     model_pose = se3.exp(np.array([-0.03, 0.01, 0.02, 0.0, -0.1, 0.3]))
-    got_pose, to_model, dist2, cos_min = host.icp_constants(pose, model_pose, 0.1, 20.0)
+    got_pose, to_model, dist2, cos_min = icp_constants(pose, model_pose, 0.1, 20.0)
     np.testing.assert_array_equal(got_pose, pose)
     np.testing.assert_allclose(to_model, np.linalg.inv(model_pose) @ pose, atol=1e-15)
     assert dist2 == pytest.approx(0.01) and cos_min == pytest.approx(np.cos(np.pi / 9))
 
 
 def test_robust_kernel_codes_and_the_one_line_error():
-    assert [host.kernel_code(name) for name in ROBUST_KERNELS] == list(range(len(ROBUST_KERNELS)))
+    assert [kernel_code(name) for name in ROBUST_KERNELS] == list(range(len(ROBUST_KERNELS)))
     with pytest.raises(ConfigError, match="icp.robust_kernel must be one of") as error:
-        host.kernel_code("cauchy")
+        kernel_code("cauchy")
     assert "\n" not in str(error.value)
 
 
 def test_map_and_image_checks_name_both_shapes_in_one_line():
-    host.check_map("model vertex map", np.zeros((480, 640, 3)), CAMERA)
-    host.check_image("depth", np.zeros((30, 40)), (30, 40))
+    check_map("model vertex map", np.zeros((480, 640, 3)), CAMERA)
+    check_image("depth", np.zeros((30, 40)), (30, 40))
     with pytest.raises(DatasetError, match=r"\(240, 320, 3\), expected \(480, 640, 3\)"):
-        host.check_map("model vertex map", np.zeros((240, 320, 3)), CAMERA)
+        check_map("model vertex map", np.zeros((240, 320, 3)), CAMERA)
     with pytest.raises(DatasetError, match=r"depth is \(30, 41\), expected \(30, 40\)"):
-        host.check_image("depth", np.zeros((30, 41)), (30, 40))
+        check_image("depth", np.zeros((30, 41)), (30, 40))
 
 
 def test_preprocessing_constants_match_the_reference():
@@ -70,6 +72,7 @@ def test_volume_kernel_arguments():
 
 
 def test_fovis_reads_a_host_frame_as_it_is():
+    from kintinuous_fast.odometry.cuda import fovis_images
     from kintinuous_ref.config import PreprocessConfig
     from kintinuous_ref.preprocess import preprocess_frame
 
@@ -77,4 +80,4 @@ def test_fovis_reads_a_host_frame_as_it_is():
     colour = np.zeros((30, 40, 3), np.uint8)
     camera = Intrinsics(40.0, 40.0, 19.5, 14.5, 40, 30)
     frame = preprocess_frame(colour, depth, camera, PreprocessConfig())
-    assert host.fovis_images(frame) is frame
+    assert fovis_images(frame) is frame

@@ -15,11 +15,15 @@ import test_fast_odometry_cases as cases
 import kintinuous_fast
 from kintinuous_fast import select_backend
 from kintinuous_fast.odometry import cpu
+from kintinuous_fast.odometry.icp import cpu as icp_cpu
+from kintinuous_fast.odometry.rgbd import cpu as rgbd_cpu
 from kintinuous_ref.config import Config, fast_odometry
 from kintinuous_ref.errors import ConfigError, DatasetError
+from kintinuous_ref.odometry import DenseTracker
 
 SIZES = [(80, 60), (160, 120)]
 IDS = ["80x60", "160x120"]
+CPU = cases.functions("cpu")  # the cpu modules' public functions, for the shared checks
 
 
 @pytest.mark.parametrize("size", SIZES, ids=IDS)
@@ -40,12 +44,12 @@ IDS = ["80x60", "160x120"]
     ids=lambda check: check.__name__.removeprefix("check_"),
 )
 def test_equivalence_cpu_odometry(check, size):
-    check(cpu, *size)
+    check(CPU, *size)
 
 
 @pytest.mark.parametrize("count", [1, 63, 5000])
 def test_equivalence_cpu_accumulate(count):
-    cases.check_accumulate(cpu, count)
+    cases.check_accumulate(CPU, count)
 
 
 def test_cpu_lists_keep_the_reference_order():
@@ -55,7 +59,7 @@ def test_cpu_lists_keep_the_reference_order():
     from kintinuous_ref.odometry import rgbd
 
     np.testing.assert_array_equal(
-        cpu.prepare_level(*args).indices, rgbd.prepare_level(*args).indices
+        rgbd_cpu.prepare_level(*args).indices, rgbd.prepare_level(*args).indices
     )
 
 
@@ -102,7 +106,8 @@ def test_equivalence_cpu_tracker_robust(method, overrides):
 
 
 def test_cpu_inlier_fraction_counts_the_reference_pairs():
-    # The CPU counts the pairs without the sums (cpu.icp_points_pairs): the same integers.
+    # The CPU counts the pairs without the sums (icp/cpu.py's _icp_points_pairs): the same
+    # integers.
     from kintinuous_ref.odometry.icp import IcpProblem
     from kintinuous_ref.preprocess import model_pyramid
 
@@ -156,9 +161,11 @@ def test_make_tracker_backends_and_errors():
         cpu.make_tracker("kinfu", Config(), camera)
     with pytest.raises(ConfigError, match="unknown backend 'gpu'"):
         select_backend("gpu")
-    # The backend module has the reference's make_tracker / DenseTracker signatures too.
+    # The backend module has the reference's make_tracker (its systems by default) and the
+    # reference's own DenseTracker.
     assert cpu.make_tracker("icp+rgbd", Config(), camera).systems is cpu
-    assert cpu.DenseTracker("rgbd", Config(), camera).systems is cpu
+    assert cpu.make_tracker("rgbd", Config(), camera).systems is cpu
+    assert cpu.DenseTracker is DenseTracker
     with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
         cpu.make_tracker("kinfu", Config(), camera)
     fovis = cpu.make_tracker("fovis/icp+rgbd", Config(), camera)
@@ -167,12 +174,12 @@ def test_make_tracker_backends_and_errors():
     with pytest.raises(
         DatasetError, match=r"model vertex map is \(30, 40, 3\), expected \(60, 80, 3\)"
     ):
-        cpu.icp_system(level.vertices, level.normals, np.eye(4), level.vertices[::2, ::2],
+        icp_cpu.icp_system(level.vertices, level.normals, np.eye(4), level.vertices[::2, ::2],
                        level.normals, np.eye(4), camera)  # fmt: skip
 
 
 def test_cpu_icp_helpers_are_the_reference_system_and_valid_count():
-    # icp_system_and_valid (from the maps) and icp_points_system (from the valid points,
+    # _icp_system_and_valid (from the maps) and _icp_points_system (from the valid points,
     # compacted once per level) are the halves of the CPU's icp_system that the per-frame
     # problem calls: the reference's system with Huber and depth noise weights, and the number
     # of valid current vertices the inlier fraction divides by.
@@ -187,18 +194,18 @@ def test_cpu_icp_helpers_are_the_reference_system_and_valid_count():
     limits = (camera, 0.10, 20.0)
     weights = ("huber", threshold, noise)
     maps = (level.vertices, level.normals, *model[0])
-    system, count = cpu.icp_system_and_valid(*maps, pose, previous, *limits, *weights)
+    system, count = icp_cpu._icp_system_and_valid(*maps, pose, previous, *limits, *weights)
     cases.assert_systems_close("icp_system_and_valid", system, reference)
     assert count == valid
-    points = cpu.valid_points(level.vertices, level.normals)
-    system, count = cpu.icp_points_system(
+    points = icp_cpu._valid_points(level.vertices, level.normals)
+    system, count = icp_cpu._icp_points_system(
         points, *model[0], pose, previous, *limits, None, *weights
     )
     cases.assert_systems_close("icp_points_system", system, reference)
     assert count == valid
     # Images of different sizes: a one-line DatasetError naming the one that does not fit.
     with pytest.raises(DatasetError, match=r"intensity_dy is \(120, 159\), expected \(120, 160\)"):
-        cpu.interest_points(level.intensity_dx, level.intensity_dy[:, 1:], 5.0)
+        rgbd_cpu.interest_points(level.intensity_dx, level.intensity_dy[:, 1:], 5.0)
 
 
 def test_fast_odometry_skips_the_finest_level():

@@ -26,7 +26,8 @@ Tolerances (justified once here, used below):
 from __future__ import annotations
 
 import functools
-from types import ModuleType
+import importlib
+from types import SimpleNamespace
 
 import numpy as np
 import odometry_scene as scene
@@ -72,6 +73,18 @@ def poses_to_try(previous: np.ndarray, current: np.ndarray) -> list[np.ndarray]:
     return [off] if QUICK else [previous, current, off]
 
 
+def functions(target: str) -> SimpleNamespace:
+    """The public functions of a target's odometry (kintinuous_fast.odometry's icp, rgbd and
+    solve modules of `target`, and combined), as one namespace the checks call."""
+    names = (f"icp.{target}", f"rgbd.{target}", f"solve.{target}", "combined")
+    namespace = SimpleNamespace()
+    for name in names:
+        module = importlib.import_module(f"kintinuous_fast.odometry.{name}")
+        for public in module.__all__:
+            setattr(namespace, public, getattr(module, public))
+    return namespace
+
+
 def host(array):
     return array.copy_to_host() if hasattr(array, "copy_to_host") else np.asarray(array)
 
@@ -112,7 +125,7 @@ def column_key(columns: np.ndarray) -> np.ndarray:
 # ICP
 
 
-def check_icp_system(impl: ModuleType, width: int, height: int) -> None:
+def check_icp_system(impl: SimpleNamespace, width: int, height: int) -> None:
     camera, previous, current, _, frame, model = room(width, height)
     level = frame.levels[0]
     for index, pose in enumerate(poses_to_try(previous, current)):
@@ -127,7 +140,7 @@ def check_icp_system(impl: ModuleType, width: int, height: int) -> None:
     assert_systems_close("icp_system tight", impl.icp_system(*args), ref_icp.icp_system(*args))
 
 
-def check_icp_system_robust(impl: ModuleType, width: int, height: int) -> None:
+def check_icp_system_robust(impl: SimpleNamespace, width: int, height: int) -> None:
     """Huber and Tukey rows (icp.robust_kernel) at an estimate ~1 cm off, with a 2 mm noise
     scale so that both branches of each kernel are taken by many pairs, then each kernel with
     the depth noise weights."""
@@ -165,7 +178,7 @@ def check_icp_system_robust(impl: ModuleType, width: int, height: int) -> None:
         assert_systems_close(f"icp_system {kernel} depth noise", fast, reference)
 
 
-def check_associate_and_rows(impl: ModuleType, width: int, height: int) -> None:
+def check_associate_and_rows(impl: SimpleNamespace, width: int, height: int) -> None:
     camera, previous, current, _, frame, model = room(width, height)
     level = frame.levels[0]
     points, normals = ref_icp.valid_points(level.vertices, level.normals)
@@ -184,7 +197,7 @@ def check_associate_and_rows(impl: ModuleType, width: int, height: int) -> None:
     np.testing.assert_allclose(host(residuals), ref_residuals, rtol=0, atol=ROW_ATOL)
 
 
-def check_accumulate(impl: ModuleType, count: int) -> None:
+def check_accumulate(impl: SimpleNamespace, count: int) -> None:
     rng = np.random.default_rng(count)
     jacobian = rng.normal(size=(6, count)) * [[1], [2], [3], [0.1], [10], [1]]
     residuals = rng.normal(size=count)
@@ -209,7 +222,7 @@ def level_inputs(width: int, height: int, which: str = "current", level: int = 0
     return data, camera.at_level(level)
 
 
-def check_interest_points(impl: ModuleType, width: int, height: int) -> None:
+def check_interest_points(impl: SimpleNamespace, width: int, height: int) -> None:
     data, camera = level_inputs(width, height)
     for threshold in (5.0,) if QUICK else (12.0, 3.0):
         got = np.sort(host(impl.interest_points(data.intensity_dx, data.intensity_dy, threshold)))
@@ -226,7 +239,7 @@ def check_interest_points(impl: ModuleType, width: int, height: int) -> None:
     assert list(got) == [1 * width + 2]
 
 
-def prepared(impl: ModuleType, width: int, height: int, threshold: float = 5.0):
+def prepared(impl: SimpleNamespace, width: int, height: int, threshold: float = 5.0):
     """(fast, reference) InterestPoints of the current frame's level 0, the fast one sorted."""
     data, camera = level_inputs(width, height)
     args = (
@@ -246,7 +259,7 @@ def prepared(impl: ModuleType, width: int, height: int, threshold: float = 5.0):
     return ref_rgbd.InterestPoints(indices, points, intensity, gradient), reference
 
 
-def check_prepare_level(impl: ModuleType, width: int, height: int) -> None:
+def check_prepare_level(impl: SimpleNamespace, width: int, height: int) -> None:
     fast, reference = prepared(impl, width, height)
     assert len(reference.indices) > 0.1 * width * height
     np.testing.assert_array_equal(fast.indices, reference.indices)
@@ -255,7 +268,7 @@ def check_prepare_level(impl: ModuleType, width: int, height: int) -> None:
     np.testing.assert_array_equal(fast.gradient, reference.gradient)
 
 
-def check_correspond_and_rows(impl: ModuleType, width: int, height: int) -> None:
+def check_correspond_and_rows(impl: SimpleNamespace, width: int, height: int) -> None:
     camera, previous, current, previous_frame, _, _ = room(width, height)
     points, _ = prepared(impl, width, height)
     prev = previous_frame.levels[0]
@@ -292,7 +305,7 @@ def check_correspond_and_rows(impl: ModuleType, width: int, height: int) -> None
             )
 
 
-def check_joint_system(impl: ModuleType, width: int, height: int) -> None:
+def check_joint_system(impl: SimpleNamespace, width: int, height: int) -> None:
     """The joint system of the fast ICP and RGB-D systems equals the reference chain's."""
     camera, previous, current, previous_frame, frame, model = room(width, height)
     points, ref_points = prepared(impl, width, height)
@@ -316,7 +329,7 @@ def check_joint_system(impl: ModuleType, width: int, height: int) -> None:
 # Degenerate inputs
 
 
-def check_zero_depth(impl: ModuleType, width: int, height: int) -> None:
+def check_zero_depth(impl: SimpleNamespace, width: int, height: int) -> None:
     """No depth anywhere: empty lists, empty systems, and solve refuses them."""
     camera, previous, current, previous_frame, frame, model = room(width, height)
     data = frame.levels[0]
@@ -343,7 +356,7 @@ def check_zero_depth(impl: ModuleType, width: int, height: int) -> None:
     assert system.count == 0 and not system.A.any()
 
 
-def check_empty_frustum(impl: ModuleType, width: int, height: int) -> None:
+def check_empty_frustum(impl: SimpleNamespace, width: int, height: int) -> None:
     """The current estimate turned away from everything the model / previous frame saw."""
     camera, previous, current, previous_frame, frame, model = room(width, height)
     away = current @ se3.exp(np.array([0.0, np.pi, 0.0, 0.0, 0.0, 0.0]))  # facing backwards
@@ -365,7 +378,7 @@ def border_camera(width: int, height: int) -> Intrinsics:
     return Intrinsics(64.0, 64.0, (width - 1) / 2, (height - 1) / 2, width, height)
 
 
-def check_borders(impl: ModuleType, width: int, height: int) -> None:
+def check_borders(impl: SimpleNamespace, width: int, height: int) -> None:
     """Points projecting exactly onto the image edges, half a pixel off, and just outside."""
     camera = border_camera(width, height)
     targets_u = [0.0, width - 1.0, -1e-9, width - 1 + 1e-9, -0.5, 0.5, width - 1.5, width - 0.5]

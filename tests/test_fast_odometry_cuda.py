@@ -31,9 +31,7 @@ FIXED = (1e-6, 1e-5)  # metres, radians: see test_fast_odometry.py
 
 @pytest.fixture(scope="module")
 def gpu():
-    from kintinuous_fast.odometry import cuda
-
-    return cuda
+    return cases.functions("cuda")
 
 
 @pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from kintinuous_fast.odometry import combined as fast_combined
 from kintinuous_fast.odometry import cpu
 from kintinuous_fast.odometry import solve as fast
 from kintinuous_ref import se3
@@ -103,7 +104,7 @@ def test_joint_system_equals_the_reference(
     centre = np.random.default_rng(seed).normal(size=3)
     arguments = (0.3, weighting, 10.0, centre, threshold)
     expected = ref_combined.joint_system(icp, rgbd, *arguments)
-    got = fast.joint_system(icp, rgbd, *arguments)
+    got = fast_combined.joint_system(icp, rgbd, *arguments)
     scale = np.abs(expected.A).max()
     np.testing.assert_allclose(got.A, expected.A, rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(got.b, expected.b, rtol=0, atol=1e-12 * np.abs(expected.b).max())
@@ -134,9 +135,14 @@ def test_refine_reaches_a_known_pose() -> None:
     np.testing.assert_allclose(pose, truth, atol=1e-12)
     expected, _ = ref.refine(np.eye(4), system_at, (10, 10), 6, 1e-12)
     np.testing.assert_allclose(pose, expected, atol=1e-14)
+    # `step` as the reference's: the reference's own step gives the reference's pose.
+    stepped, _ = fast.refine(
+        np.eye(4), system_at, (10, 10), 6, 1e-12, (ref.solve, ref.apply_increment)
+    )
+    np.testing.assert_array_equal(stepped, expected)
 
 
 def test_the_cpu_backend_tracks_with_the_compiled_step() -> None:
     tracker = cpu.make_tracker("icp+rgbd", Config(), None)
     assert tracker.systems.refine is fast.refine
-    assert tracker.systems.CombinedProblem.combine is fast.joint_system
+    assert tracker.systems.CombinedProblem is fast_combined.CombinedProblem

@@ -19,8 +19,9 @@ increment = inverse(previous_pose) @ current_pose.
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -29,10 +30,13 @@ from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.odometry.combined import CombinedProblem, icp_model_noise, icp_robust_kernel
-from kintinuous_ref.odometry.icp import IcpProblem
-from kintinuous_ref.odometry.rgbd import RgbdProblem
-from kintinuous_ref.odometry.solve import implausible_motion, refine
+from kintinuous_ref.odometry.combined import CombinedProblem as CombinedProblem
+from kintinuous_ref.odometry.combined import icp_model_noise, icp_robust_kernel
+from kintinuous_ref.odometry.icp import IcpProblem as IcpProblem
+from kintinuous_ref.odometry.rgbd import RgbdProblem as RgbdProblem
+from kintinuous_ref.odometry.solve import LinearSystem, implausible_motion
+from kintinuous_ref.odometry.solve import refine as refine
+from kintinuous_ref.preprocess import model_pyramid as model_pyramid
 from kintinuous_ref.vocabulary import DEFAULT_METHOD as DEFAULT_METHOD  # importable from here
 from kintinuous_ref.vocabulary import DENSE_METHODS, FALLBACKS, METHODS
 
@@ -130,27 +134,76 @@ def is_repeated_frame(previous: PreprocessedFrame | None, current: PreprocessedF
     return all(repeated_streams(previous, current))
 
 
-def _reference_systems() -> SimpleNamespace:
-    from kintinuous_ref.preprocess import model_pyramid  # preprocess imports this package
+def fovis_images(frame: PreprocessedFrame) -> PreprocessedFrame:
+    """What FOVIS reads of a frame (every level's depth and intensity) as NumPy arrays: the
+    reference's frames are on the host, so the frame itself."""
+    return frame
 
-    return SimpleNamespace(
-        IcpProblem=IcpProblem,
-        RgbdProblem=RgbdProblem,
-        CombinedProblem=CombinedProblem,
-        model_pyramid=model_pyramid,
-        refine=refine,
-    )
+
+class Systems(Protocol):
+    """What the trackers compute with: the per-frame problems of each dense estimator, the model
+    pyramid ICP reads, the coarse-to-fine solver, the stale-stream test and FOVIS's host images.
+
+    This package is the reference's own (the module kintinuous_ref.odometry has each member);
+    a fast backend's odometry module is its target's (kintinuous_fast.odometry.cpu, .cuda),
+    with the frames and maps where that target keeps them. Every member has the signature of
+    this package's namesake:
+
+    - IcpProblem(current_levels, model_levels, model_pose, ...) and RgbdProblem(previous_levels,
+      current_levels, previous_pose, ...): icp.py's and rgbd.py's; an instance has
+      system(level, pose) -> LinearSystem and inlier_fraction(pose, level=0) -> float.
+    - CombinedProblem: combined.py's, with from_config(icp, rgbd, config.combined) and the
+      `icp` and `rgbd` it sums (a tracker drops to one of them when the other's stream is
+      stale).
+    - model_pyramid(vertices, normals, levels): kintinuous_ref.preprocess's.
+    - refine(pose, system_at, iterations, min_count, converged, step): solve.py's.
+    - repeated_streams(previous, current) and fovis_images(frame): this module's.
+    """
+
+    IcpProblem: Callable[..., Any]
+    RgbdProblem: Callable[..., Any]
+    CombinedProblem: Any
+
+    def model_pyramid(self, vertices: Any, normals: Any, levels: int) -> list[tuple[Any, Any]]:
+        """The raycast maps downsampled as the current frame's pyramid (ICP's model levels)."""
+        ...
+
+    def refine(
+        self,
+        pose: np.ndarray,
+        system_at: Callable[[int, np.ndarray], LinearSystem],
+        iterations: Sequence[int],
+        min_count: int = 6,
+        converged: float = ...,
+        step: tuple[Callable, Callable] | None = None,
+    ) -> tuple[np.ndarray, str]:
+        """Coarse-to-fine Gauss-Newton (solve.refine)."""
+        ...
+
+    def repeated_streams(
+        self, previous: PreprocessedFrame | None, current: PreprocessedFrame
+    ) -> tuple[bool, bool]:
+        """(depth repeated, colour repeated), compared where the frames are kept."""
+        ...
+
+    def fovis_images(self, frame: PreprocessedFrame) -> PreprocessedFrame:
+        """The frame's depth and intensity of every level as NumPy arrays, for FOVIS."""
+        ...
+
+
+def _reference_systems() -> Systems:
+    """This package itself: its module has every member of Systems."""
+    return sys.modules[__name__]  # type: ignore[return-value]
 
 
 class DenseTracker:
     """ICP, RGB-D or ICP+RGB-D: coarse-to-fine Gauss-Newton from the previous pose."""
 
     def __init__(
-        self, method: str, config: Config, camera: Intrinsics, systems: Any = None
+        self, method: str, config: Config, camera: Intrinsics, systems: Systems | None = None
     ) -> None:
-        """`systems` builds and solves the normal equations: any object with this package's
-        IcpProblem, RgbdProblem, CombinedProblem and refine and kintinuous_ref.preprocess's
-        model_pyramid (a fast backend's odometry module); None: the reference's own."""
+        """`systems` builds and solves the normal equations (Systems: a fast backend's odometry
+        module); None: the reference's own."""
         if method not in DENSE_METHODS:
             raise ConfigError(f"unknown dense odometry {method!r}; choose from {DENSE_METHODS}")
         self.method = method
@@ -158,9 +211,6 @@ class DenseTracker:
         self.camera = camera
         self.recovery = _Recovery(config.tracking.fallback)
         self.systems = systems if systems is not None else _reference_systems()
-
-    # A method so that a fast backend compares its frames where it keeps them (on the GPU).
-    repeated_streams = staticmethod(repeated_streams)
 
     @property
     def finest_level(self) -> int:
@@ -234,7 +284,7 @@ class DenseTracker:
                     previous_pose,
                     f"{name} frame has {len(frame.levels)} pyramid levels, {levels} needed",
                 )
-        depth_repeated, colour_repeated = self.repeated_streams(previous, current)
+        depth_repeated, colour_repeated = self.systems.repeated_streams(previous, current)
         stale = stale_input(self.method, depth_repeated, colour_repeated)
         if stale:
             # Nothing new to measure the motion with: a failure (the fallback pose, the frame
@@ -242,7 +292,9 @@ class DenseTracker:
             return previous_pose.copy(), stale
         tracking = self.config.tracking
         problem = self._problem(previous, current, model, previous_pose)
-        if isinstance(problem, CombinedProblem) and (depth_repeated or colour_repeated):
+        if isinstance(problem, self.systems.CombinedProblem) and (
+            depth_repeated or colour_repeated
+        ):
             # One stream is stale: track on the fresh one alone for this frame.
             problem = problem.icp if colour_repeated else problem.rgbd
         pose, reason = self.systems.refine(
@@ -282,13 +334,20 @@ class DenseTracker:
 class FovisTracker:
     """FOVIS alone, or FOVIS switching with a dense estimator (paper V-A)."""
 
-    def __init__(self, method: str, config: Config, camera: Intrinsics) -> None:
+    def __init__(
+        self, method: str, config: Config, camera: Intrinsics, systems: Systems | None = None
+    ) -> None:
+        """`systems`: the dense half's (DenseTracker) and the host images FOVIS reads."""
         self.method = method
         self.config = config
         self.camera = camera
+        self.systems = systems if systems is not None else _reference_systems()
         other = method.partition("/")[2]
-        self.dense = DenseTracker(other, config, camera) if other else None
+        self.dense = DenseTracker(other, config, camera, self.systems) if other else None
         self.recovery = _Recovery(config.tracking.fallback)
+        # (frame, its host images) of the last two frames: each frame is downloaded once, when
+        # it is the current frame, and reused when it is the previous.
+        self._on_host: list[tuple[PreprocessedFrame, PreprocessedFrame]] = []
 
     @property
     def model_stride(self) -> int:
@@ -333,16 +392,30 @@ class FovisTracker:
         return self.recovery.success(new_pose, previous_pose, used)
 
     def sparse_motion(self, previous: PreprocessedFrame, current: PreprocessedFrame) -> FovisResult:
-        """FOVIS's estimate between the two frames (a fast backend hands it host images)."""
+        """FOVIS's estimate between the two frames, on host images (it runs on the CPU, as in
+        the paper)."""
         from kintinuous_ref.odometry import fovis
 
-        return fovis.estimate_motion(previous, current, self.camera, self.config.fovis)
+        return fovis.estimate_motion(
+            self._host_images(previous), self._host_images(current), self.camera, self.config.fovis
+        )
+
+    def _host_images(self, frame: PreprocessedFrame) -> PreprocessedFrame:
+        for known, host in self._on_host:
+            if known is frame:
+                return host
+        host = self.systems.fovis_images(frame)
+        self._on_host = [*self._on_host[-1:], (frame, host)]  # this frame and the one before
+        return host
 
 
-def make_tracker(method: str, config: Config, camera: Intrinsics) -> Tracker:
-    """The tracker for `method` (one of METHODS); `groundtruth` is the pipeline's business."""
+def make_tracker(
+    method: str, config: Config, camera: Intrinsics, systems: Systems | None = None
+) -> Tracker:
+    """The tracker for `method` (one of METHODS); `groundtruth` is the pipeline's business.
+    `systems`: what it computes with (Systems), None: this package's own."""
     if method in DENSE_METHODS:
-        return DenseTracker(method, config, camera)
+        return DenseTracker(method, config, camera, systems)
     if method in METHODS:
-        return FovisTracker(method, config, camera)
+        return FovisTracker(method, config, camera, systems)
     raise ConfigError(f"unknown odometry method {method!r}; choose from {', '.join(METHODS)}")

@@ -224,6 +224,18 @@ def joint_system(
     raise ConfigError(f"combined.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
 
 
+def check_combination(rgbd_weight: float, weighting: str, degeneracy_threshold: float) -> None:
+    """A one-line ConfigError unless the joint system's settings (CombinedProblem's) are valid."""
+    if weighting not in WEIGHTINGS:
+        raise ConfigError(f"combined.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    if not rgbd_weight >= 0:
+        raise ConfigError(f"combined.rgbd_weight must be >= 0, got {rgbd_weight}")
+    if not 0 <= degeneracy_threshold < 1:
+        raise ConfigError(
+            f"combined.degeneracy_threshold must be in [0, 1), got {degeneracy_threshold}"
+        )
+
+
 class CombinedProblem:
     """ICP against the model and RGB-D against the previous frame, summed per iteration."""
 
@@ -236,14 +248,7 @@ class CombinedProblem:
         original_code_icp_scale: float = 10.0,
         degeneracy_threshold: float = DEGENERACY_THRESHOLD,
     ) -> None:
-        if weighting not in WEIGHTINGS:
-            raise ConfigError(f"combined.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
-        if not rgbd_weight >= 0:
-            raise ConfigError(f"combined.rgbd_weight must be >= 0, got {rgbd_weight}")
-        if not 0 <= degeneracy_threshold < 1:
-            raise ConfigError(
-                f"combined.degeneracy_threshold must be in [0, 1), got {degeneracy_threshold}"
-            )
+        check_combination(rgbd_weight, weighting, degeneracy_threshold)
         self.icp = icp
         self.rgbd = rgbd
         self.rgbd_weight = rgbd_weight
@@ -265,11 +270,8 @@ class CombinedProblem:
             config.degeneracy_threshold,
         )
 
-    # The joint system of eq. 11-13 (a fast backend puts a compiled equal here).
-    combine = staticmethod(joint_system)
-
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
-        return self.combine(
+        return joint_system(
             self.icp.system(level, pose),
             self.rgbd.system(level, pose),
             self.rgbd_weight,

@@ -43,6 +43,7 @@ import numpy as np
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.odometry.solve import LinearSystem, accumulate
+from kintinuous_ref.vocabulary import GRADIENTS
 
 
 @dataclass
@@ -236,6 +237,12 @@ def photometric_residuals(
     return sample_bilinear(previous_intensity, u, v) - points.intensity[kept]
 
 
+def check_gradient(gradient: str) -> None:
+    """A one-line ConfigError unless `gradient` is one of GRADIENTS (RgbdProblem's argument)."""
+    if gradient not in GRADIENTS:
+        raise ConfigError(f"rgbd.gradient must be 'current' or 'warped', got {gradient!r}")
+
+
 class RgbdProblem:
     """RGB-D odometry for one frame pair: interest points once per level, then any pose."""
 
@@ -250,8 +257,7 @@ class RgbdProblem:
         gradient: str = "current",
     ) -> None:
         # *_levels: PyramidLevel-like (camera, depth, intensity, intensity_dx, intensity_dy).
-        if gradient not in ("current", "warped"):
-            raise ConfigError(f"rgbd.gradient must be 'current' or 'warped', got {gradient!r}")
+        check_gradient(gradient)
         self.previous_levels = previous_levels
         self.current_levels = current_levels
         self.previous_pose = previous_pose

@@ -1,0 +1,551 @@
+# ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
+"""kintinuous_ref.odometry.icp on the CPU: loops on all threads around icp/ops.py.
+
+Same public names, signatures and results as the reference module (tests/test_fast_odometry.py
+states the tolerances; the names it does not compute itself are the reference's own objects).
+The valid current points are compacted once per frame and level (`_valid_points`); each
+iteration then associates, weighs and sums them block by block in one pass, nothing stored per
+pair, into fixed-chunk partial sums (odometry/sums/cpu.py). Lists come out in the reference's
+order.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from kintinuous_fast.odometry import check_image, check_map
+from kintinuous_fast.odometry.sums import NV, chunks_for, sum_partials
+from kintinuous_fast.odometry.sums.cpu import (
+    BLOCK,
+    CHUNKS,
+    GEOMETRY,
+    INLINE,
+    add_block,
+    partials,
+    run,
+    stage,
+)
+from kintinuous_fast.targets import pinhole
+from kintinuous_fast.targets.cache import register_slowest
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import IcpConfig
+from kintinuous_ref.odometry.icp import (
+    depth_noise_scale,
+    map_columns,
+    pair_weights,
+    point_to_plane_cost,
+    robust_threshold,
+    robust_weights,
+    valid_points,
+    voxel_noise,
+)
+from kintinuous_ref.odometry.solve import LinearSystem
+
+from . import NO_WEIGHTS as _NO_WEIGHTS
+from . import _IcpProblem, icp_constants, robust_terms
+from .ops import build_ops
+
+__all__ = [
+    "IcpProblem",
+    "associate",
+    "depth_noise_scale",
+    "icp_system",
+    "map_columns",
+    "pair_weights",
+    "point_to_plane_cost",
+    "point_to_plane_rows",
+    "robust_threshold",
+    "robust_weights",
+    "valid_points",
+    "voxel_noise",
+]
+
+_ops = build_ops(INLINE, GEOMETRY)
+# Module-level names: numba resolves the scalar functions as globals of the loops below.
+_icp_match = _ops.icp_match
+_project_nearest = _ops.project_nearest
+_is_compatible = _ops.is_compatible
+_transform = GEOMETRY.transform
+_rotate = GEOMETRY.rotate
+_map_point = _ops.map_point
+_point_to_plane_row = _ops.point_to_plane_row
+_pair_weight = _ops.pair_weight
+_weighs_pairs = _ops.weighs_pairs
+
+_loop = parallel_part()
+_allocating_loop = parallel_part(_nrt=True)  # for loops with work arrays of their own
+
+
+# ----------------------------------------------------------------------------------------------
+# Loops
+
+
+@_loop
+def _valid_counts(claims, parts, vertices, normals, counts):
+    """counts[v] = the valid current points (finite vertex and normal) of row v."""
+    for v in claimed_items(claims, vertices.shape[0], parts):
+        count = 0
+        for u in range(vertices.shape[1]):
+            count += _map_point(vertices, normals, v, u)[0]
+        counts[v] = count
+
+
+@_loop
+def _compact_loop(claims, parts, vertices, normals, starts, points):
+    """The valid current points as columns (px, py, pz, nx, ny, nz) in row-major order, row v's
+    from column starts[v]."""
+    for v in claimed_items(claims, vertices.shape[0], parts):
+        k = starts[v]
+        for u in range(vertices.shape[1]):
+            ok, px, py, pz, nx, ny, nz = _map_point(vertices, normals, v, u)
+            if ok:
+                points[0, k], points[1, k], points[2, k] = px, py, pz
+                points[3, k], points[4, k], points[5, k] = nx, ny, nz
+                k += 1
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _project_block(points, start, stop, to_model, camera, size, rows, cols):
+    """_project_nearest of points[:, start:stop] into rows / cols: branch-free, so LLVM vectorises
+    it (its own function: the NumPy error model leaves the guarded division without a zero test,
+    and the loop with the data-dependent branches below would not vectorise). The rows are read
+    as 1-d slices indexed from 0: indexed points[r, k] from `start`, numba's negative-index
+    wraparound makes LLVM load them with gathers."""
+    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
+    for m in range(stop - start):
+        rows[m], cols[m] = _project_nearest(to_model, (x[m], y[m], z[m]), camera, size)
+
+
+@numba.njit(cache=True)
+def _gather_model_block(rows, cols, count, mv, mn, model):
+    """The model vertex and normal at each point's pixel (rows / cols; pixel (0, 0) for a point
+    without one, masked out later) into model[k * BLOCK + m], k = qx, qy, qz, ux, uy, uz. A loop
+    of its own: LLVM does not vectorise gathers for this CPU, and kept out of the arithmetic
+    below they leave that loop free to vectorise."""
+    for m in range(count):
+        v, u = max(rows[m], 0), max(cols[m], 0)
+        model[m], model[BLOCK + m], model[2 * BLOCK + m] = mv[v, u, 0], mv[v, u, 1], mv[v, u, 2]
+        model[3 * BLOCK + m], model[4 * BLOCK + m] = mn[v, u, 0], mn[v, u, 1]
+        model[5 * BLOCK + m] = mn[v, u, 2]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out, weighted):
+    """match_pixel and point_to_plane_row (icp/ops.py) of points[:, start:stop] and their
+    gathered model pixels, branch-free so that it vectorises: out[k * BLOCK + m] = (j0..j5, r, 1)
+    of a kept pair, zeros for any other point (which then add nothing to the sums). Where the
+    pairs have weights (`robust`: robust_terms, weighs_pairs) weighted[k * BLOCK + m] =
+    w (j0..j5, r), w = pair_weight; `limits`: is_compatible's."""
+    weighs = _weighs_pairs(robust)
+    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
+    nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
+    for m in range(stop - start):
+        qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
+        ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
+        uz = float(model[5 * BLOCK + m])
+        world = _transform(pose, x[m], y[m], z[m])
+        g = _rotate(pose, nx[m], ny[m], nz[m])
+        vertex, normal = (qx, qy, qz), (ux, uy, uz)
+        kept = (rows[m] >= 0) & _is_compatible(world, g, vertex, normal, limits)
+        j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(world, vertex, normal)
+        out[m] = j0 if kept else 0.0
+        out[BLOCK + m] = j1 if kept else 0.0
+        out[2 * BLOCK + m] = j2 if kept else 0.0
+        out[3 * BLOCK + m] = j3 if kept else 0.0
+        out[4 * BLOCK + m] = j4 if kept else 0.0
+        out[5 * BLOCK + m] = j5 if kept else 0.0
+        out[6 * BLOCK + m] = r if kept else 0.0
+        out[7 * BLOCK + m] = 1.0 if kept else 0.0
+        if weighs:
+            # Selects, not products with w = 0: a rejected point's row may hold NaN (no model
+            # surface at its pixel), and 0 * NaN would poison the sums.
+            w = _pair_weight(r, z[m], robust)
+            weighted[m] = w * j0 if kept else 0.0
+            weighted[BLOCK + m] = w * j1 if kept else 0.0
+            weighted[2 * BLOCK + m] = w * j2 if kept else 0.0
+            weighted[3 * BLOCK + m] = w * j3 if kept else 0.0
+            weighted[4 * BLOCK + m] = w * j4 if kept else 0.0
+            weighted[5 * BLOCK + m] = w * j5 if kept else 0.0
+            weighted[6 * BLOCK + m] = w * r if kept else 0.0
+
+
+@numba.njit(cache=True)
+def _pair_rows_block(points, start, stop, pose, to_model, mv, mn, camera, limits, robust, work):
+    """The ICP rows of points[:, start:stop] (_icp_rows_block's) in three loops: projection,
+    gathers, rows. All but the gathers vectorise, which one loop matching and summing pair by
+    pair, with branches, would not. `camera` = (fx, fy, cx, cy), `limits` = (squared distance,
+    cos angle), `robust` = robust_terms, `work` = _block_work()."""
+    rows, cols, model, pair_rows, weighted_rows = work
+    _project_block(points, start, stop, to_model, camera, (mv.shape[1], mv.shape[0]), rows, cols)
+    _gather_model_block(rows, cols, stop - start, mv, mn, model)
+    _icp_rows_block(
+        points, start, stop, pose, rows, model, limits, robust, pair_rows, weighted_rows
+    )
+
+
+@numba.njit(cache=True)
+def _block_work(dtype):
+    """Work arrays of _pair_rows_block: pixel rows and columns, gathered model values (of the
+    model maps' dtype), pair rows, robustly weighted pair rows."""
+    return (
+        np.empty(BLOCK, dtype=np.int64),
+        np.empty(BLOCK, dtype=np.int64),
+        np.empty(6 * BLOCK, dtype=dtype),
+        np.empty(8 * BLOCK),
+        np.empty(7 * BLOCK),
+    )
+
+
+@register_slowest("odometry")
+@_allocating_loop
+def _icp_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, robust, out):
+    """Association + point-to-plane row + accumulation over the valid current points (6, n);
+    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). `robust` =
+    robust_terms: the weights of the rows."""
+    n = points.shape[1]
+    chunks = out.shape[0]
+    for c in claimed_items(claims, chunks, parts):
+        acc = np.zeros(NV)
+        work = _block_work(mv.dtype)
+        pair_matrix = work[3].reshape((8, BLOCK))
+        # Least squares weighs every row by 1: its rows are their own weighted rows.
+        weighs = _weighs_pairs(robust)
+        weighted_matrix = work[4].reshape((7, BLOCK)) if weighs else pair_matrix
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        acc[NV - 1] += stop - start
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _pair_rows_block(
+                points, block, end, pose, to_model, mv, mn, camera, limits, robust, work
+            )
+            add_block(acc, weighted_matrix, pair_matrix, end - block)
+        out[c] = acc
+
+
+@_allocating_loop
+def _icp_pairs_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, out):
+    """out[c] = (valid current points, ICP pairs) of chunk c: the counts of _icp_loop without
+    its sums."""
+    n = points.shape[1]
+    chunks = out.shape[0]
+    for c in claimed_items(claims, chunks, parts):
+        work = _block_work(mv.dtype)
+        kept = work[3][7 * BLOCK :]
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        pairs = 0.0
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _pair_rows_block(
+                points, block, end, pose, to_model, mv, mn, camera, limits, _NO_WEIGHTS, work
+            )
+            pairs += kept[: end - block].sum()
+        out[c, 0] = stop - start
+        out[c, 1] = pairs
+
+
+@_loop
+def _associate_loop(
+    claims, parts, points, normals, pose, to_model, mv, mn, camera, limits, keep, out
+):
+    for k in claimed_items(claims, points.shape[1], parts):
+        point = (points[0, k], points[1, k], points[2, k])
+        normal = (normals[0, k], normals[1, k], normals[2, k])
+        kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = _icp_match(
+            point, normal, pose, to_model, mv, mn, camera, limits
+        )
+        keep[k] = kept
+        out[0, k], out[1, k], out[2, k] = wx, wy, wz
+        out[3, k], out[4, k], out[5, k] = qx, qy, qz
+        out[6, k], out[7, k], out[8, k] = ux, uy, uz
+
+
+@_loop
+def _point_to_plane_loop(claims, parts, world, mv, mn, jacobian, residuals):
+    for k in claimed_items(claims, world.shape[1], parts):
+        j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(
+            (world[0, k], world[1, k], world[2, k]),
+            (mv[0, k], mv[1, k], mv[2, k]),
+            (mn[0, k], mn[1, k], mn[2, k]),
+        )
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+        residuals[k] = r
+
+
+# ----------------------------------------------------------------------------------------------
+# Host side
+
+
+def _valid_points(vertices, normals) -> np.ndarray:
+    """The valid current points (finite vertex and normal) as (6, n) columns (px, py, pz, nx, ny,
+    nz) in the reference's row-major order (ref `valid_points`), in the maps' own precision: the
+    loops turn each value into float64 as they read it, as the reference does once for all, and
+    float32 columns halve what every ICP iteration reads (level 0: ~13 -> ~6.5 MB). Depends on
+    the frame only: the ICP problem computes it once per level, not per iteration."""
+    counts = np.empty(vertices.shape[0], dtype=np.int64)
+    run(_valid_counts, vertices.shape[0] * vertices.shape[1], vertices, normals, counts)
+    starts = np.zeros_like(counts)
+    np.cumsum(counts[:-1], out=starts[1:])
+    points = np.empty((6, int(counts.sum())), dtype=np.result_type(vertices, normals))
+    run(_compact_loop, vertices.shape[0] * vertices.shape[1], vertices, normals, starts, points)
+    return points
+
+
+def _run_on_points(
+    loop,
+    out,
+    points,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    model_inverse,
+    *robust,
+) -> None:
+    """Run an ICP loop over the valid current points into `out` (its per-chunk rows); `robust`:
+    robust_terms for the loops that weigh their rows."""
+    check_map("model vertex map", model_vertices, camera)
+    check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
+    )
+    intrinsics = pinhole(camera)
+    arguments = (pose, to_model, model_vertices, model_normals, intrinsics, (dist2, cos_min))
+    run(loop, points.shape[1], points, *arguments, *robust, out)
+
+
+def _icp_points_system(
+    points,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    model_inverse=None,
+    robust_kernel="none",
+    robust_threshold=0.0,
+    model_noise=None,
+) -> tuple[LinearSystem, int]:
+    """icp_system of the valid current points (`_valid_points`) and their number (for the inlier
+    fraction); `model_inverse` as in icp_constants; `robust_threshold` the kernel's k or c
+    in metres (ref icp.robust_threshold); `model_noise` as ref icp.pair_weights'."""
+    out = partials(points.shape[1])
+    _run_on_points(
+        _icp_loop,
+        out,
+        points,
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        model_inverse,
+        robust_terms(robust_kernel, robust_threshold, model_noise),
+    )
+    return sum_partials(out)
+
+
+def _icp_points_pairs(
+    points,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    model_inverse=None,
+    robust_kernel="none",
+    robust_threshold=0.0,
+    model_noise=None,
+) -> tuple[int, int]:
+    """icp_pairs of the valid current points (`_valid_points`)."""
+    out = np.zeros((chunks_for(points.shape[1], CHUNKS), 2))
+    _run_on_points(
+        _icp_pairs_loop,
+        out,
+        points,
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        model_inverse,
+    )
+    valid, pairs = out.sum(axis=0)
+    return int(pairs), int(valid)
+
+
+def _icp_system_and_valid(
+    vertices,
+    normals,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    robust_kernel="none",
+    robust_threshold=0.0,
+    model_noise=None,
+) -> tuple[LinearSystem, int]:
+    """icp_system and the number of valid current points (for the inlier fraction)."""
+    check_map("current vertex map", vertices, camera)
+    check_map("current normal map", normals, camera)
+    return _icp_points_system(
+        _valid_points(vertices, normals),
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        None,
+        robust_kernel,
+        robust_threshold,
+        model_noise,
+    )
+
+
+def icp_system(
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    pose: np.ndarray,
+    model_vertices: np.ndarray,
+    model_normals: np.ndarray,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float = 0.10,
+    angle_threshold_deg: float = 20.0,
+    robust_kernel: str = "none",
+    robust_noise: float = IcpConfig.robust_noise,
+    model_noise: float | None = None,
+) -> LinearSystem:
+    """The 6x6 point-to-plane normal equations of one ICP iteration at one level: association,
+    rows and sums in one pass over the current maps (nothing is stored per pair)."""
+    return _icp_system_and_valid(
+        stage(vertices),
+        stage(normals),
+        stage(model_vertices),
+        stage(model_normals),
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        robust_kernel,
+        robust_threshold(robust_kernel, robust_noise),
+        model_noise,
+    )[0]
+
+
+def associate(
+    points: np.ndarray,
+    point_normals: np.ndarray,
+    pose: np.ndarray,
+    model_vertices: np.ndarray,
+    model_normals: np.ndarray,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float,
+    angle_threshold_deg: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projective data association: (world point, model vertex, model normal) as (3, M) columns,
+    in the reference's order. Model maps as (3, h*w) columns (ref map_columns)."""
+    shape = (camera.height, camera.width, 3)
+    check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
+    check_image("model normal columns", model_normals, (3, camera.height * camera.width))
+    pose, to_model, dist2, cos_min = icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    point_normals = np.ascontiguousarray(point_normals, dtype=np.float64)
+    keep = np.empty(points.shape[1], dtype=np.bool_)
+    out = np.empty((9, points.shape[1]))
+    run(
+        _associate_loop,
+        points.shape[1],
+        points,
+        point_normals,
+        pose,
+        to_model,
+        np.ascontiguousarray(np.asarray(model_vertices).T.reshape(shape)),
+        np.ascontiguousarray(np.asarray(model_normals).T.reshape(shape)),
+        pinhole(camera),
+        (dist2, cos_min),
+        keep,
+        out,
+    )
+    kept = np.compress(keep, out, axis=1)
+    return kept[0:3], kept[3:6], kept[6:9]
+
+
+def point_to_plane_rows(
+    world: np.ndarray, model_vertices: np.ndarray, model_normals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobian (6, N) and residuals (N,) of the point-to-plane cost at xi = 0 (eq. 9)."""
+    n = world.shape[1]
+    jacobian = np.empty((6, n))
+    residuals = np.empty(n)
+    run(
+        _point_to_plane_loop,
+        n,
+        np.ascontiguousarray(world, dtype=np.float64),
+        np.ascontiguousarray(model_vertices, dtype=np.float64),
+        np.ascontiguousarray(model_normals, dtype=np.float64),
+        jacobian,
+        residuals,
+    )
+    return jacobian, residuals
+
+
+class IcpProblem(_IcpProblem):
+    """kintinuous_ref.odometry.icp.IcpProblem with the CPU loops underneath; each level's valid
+    current points are compacted once, on first use, for all of its iterations."""
+
+    _stage = staticmethod(stage)
+
+    def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
+        return self._on_points(_icp_points_system, level, pose)
+
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """As the base class, from the pair count alone (_icp_points_pairs): no sums for this
+        one look."""
+        pairs, valid = self._on_points(_icp_points_pairs, level, pose)
+        return pairs / valid if valid else 0.0
+
+    def _on_points(self, function, level: int, pose: np.ndarray):  # noqa: ANN001, ANN202
+        """function(level's valid current points, model maps, pose, ...)."""
+        vertices, normals, model_vertices, model_normals = self.maps(level)
+        camera = self.current_levels[level].camera
+        if level not in self._points:
+            check_map("current vertex map", vertices, camera)
+            check_map("current normal map", normals, camera)
+            self._points[level] = _valid_points(vertices, normals)
+        return function(
+            self._points[level],
+            model_vertices,
+            model_normals,
+            pose,
+            self.model_pose,
+            camera,
+            self.distance_threshold,
+            self.angle_threshold_deg,
+            self.model_inverse,
+            self.robust_kernel,
+            self.robust_threshold,
+            self.model_noise,
+        )

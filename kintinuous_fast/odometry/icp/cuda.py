@@ -1,0 +1,288 @@
+# ruff: noqa: ANN001, ANN201  (numba kernels: argument types come from the call)
+"""kintinuous_ref.odometry.icp as CUDA kernels around icp/ops.py: one thread per pixel (a
+grid-stride loop) associates, weighs and adds its rows into a local vector, and the block
+reduces the vectors by a tree in shared memory (odometry/sums/cuda.py), one partial per block
+for the host to add.
+
+Same public names, signatures and results as the reference module (the names it does not
+compute itself are the reference's own objects), except that lists come out in atomic order:
+compare associated pairs as sets. Arrays stay where they are given (kintinuous_fast.targets.cuda):
+device arrays in, device arrays out; NumPy in, NumPy out. Runs on numba's CUDA simulator too.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import cuda, float64
+
+from kintinuous_fast.odometry import check_image, check_map
+from kintinuous_fast.odometry.sums import NV, sum_partials
+from kintinuous_fast.odometry.sums.cuda import (
+    BLOCK,
+    DEVICE,
+    GEOMETRY,
+    add_row,
+    block_reduce,
+    counter,
+    f64,
+    reduction_blocks,
+    scratch,
+    stage,
+    upload,
+    zero,
+)
+from kintinuous_fast.targets import pinhole, to_host
+from kintinuous_fast.targets.cuda import grid_1d, like_input, to_device
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.config import IcpConfig
+from kintinuous_ref.odometry.icp import (
+    depth_noise_scale,
+    map_columns,
+    pair_weights,
+    point_to_plane_cost,
+    robust_threshold,
+    robust_weights,
+    valid_points,
+    voxel_noise,
+)
+from kintinuous_ref.odometry.solve import LinearSystem
+
+from . import _IcpProblem, icp_constants, robust_terms
+from .ops import build_ops
+
+__all__ = [
+    "IcpProblem",
+    "associate",
+    "depth_noise_scale",
+    "icp_system",
+    "map_columns",
+    "pair_weights",
+    "point_to_plane_cost",
+    "point_to_plane_rows",
+    "robust_threshold",
+    "robust_weights",
+    "valid_points",
+    "voxel_noise",
+]
+
+_ops = build_ops(DEVICE, GEOMETRY)
+# Module-level names: numba resolves the device functions as globals of the kernels below.
+_icp_match = _ops.icp_match
+_map_point = _ops.map_point
+_point_to_plane_row = _ops.point_to_plane_row
+_pair_weight = _ops.pair_weight
+
+
+# ----------------------------------------------------------------------------------------------
+# Kernels
+
+
+@cuda.jit
+def _icp_kernel(vertices, normals, poses, mv, mn, camera, limits, robust, out):
+    # `poses` = (pose, current camera to model camera) stacked, `camera` = (fx, fy, cx, cy),
+    # `limits` = (squared distance, cos angle), `robust` = robust_terms
+    pose, to_model = poses[0], poses[1]
+    shared = cuda.shared.array((NV, BLOCK), float64)
+    acc = cuda.local.array(NV, float64)
+    zero(acc)
+    width = vertices.shape[1]
+    n = vertices.shape[0] * width
+    for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+        v = i // width
+        u = i - v * width
+        ok, px, py, pz, nx, ny, nz = _map_point(vertices, normals, v, u)
+        if ok:
+            acc[NV - 1] += 1.0
+            kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = _icp_match(
+                (px, py, pz), (nx, ny, nz), pose, to_model, mv, mn, camera, limits
+            )
+            if kept:
+                j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(
+                    (wx, wy, wz), (qx, qy, qz), (ux, uy, uz)
+                )
+                w = _pair_weight(r, pz, robust)
+                add_row(acc, (j0, j1, j2, j3, j4, j5), r, w)
+    block_reduce(acc, shared, out)
+
+
+@cuda.jit
+def _associate_kernel(points, normals, poses, mv, mn, camera, limits, count, out):
+    pose, to_model = poses[0], poses[1]
+    k = cuda.grid(1)
+    if k < points.shape[1]:
+        point = (points[0, k], points[1, k], points[2, k])
+        normal = (normals[0, k], normals[1, k], normals[2, k])
+        kept, wx, wy, wz, qx, qy, qz, ux, uy, uz = _icp_match(
+            point, normal, pose, to_model, mv, mn, camera, limits
+        )
+        if kept:
+            slot = cuda.atomic.add(count, 0, 1)
+            out[0, slot], out[1, slot], out[2, slot] = wx, wy, wz
+            out[3, slot], out[4, slot], out[5, slot] = qx, qy, qz
+            out[6, slot], out[7, slot], out[8, slot] = ux, uy, uz
+
+
+@cuda.jit
+def _point_to_plane_kernel(world, mv, mn, jacobian, residuals):
+    k = cuda.grid(1)
+    if k < world.shape[1]:
+        j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(
+            (world[0, k], world[1, k], world[2, k]),
+            (mv[0, k], mv[1, k], mv[2, k]),
+            (mn[0, k], mn[1, k], mn[2, k]),
+        )
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+        residuals[k] = r
+
+
+# ----------------------------------------------------------------------------------------------
+# Host side
+
+
+def _icp_system_and_valid(
+    vertices,
+    normals,
+    model_vertices,
+    model_normals,
+    pose,
+    model_pose,
+    camera,
+    distance_threshold,
+    angle_threshold_deg,
+    robust_kernel="none",
+    robust_threshold=0.0,
+    model_noise=None,
+) -> tuple[LinearSystem, int]:
+    """icp_system and the number of valid current points (for the inlier fraction);
+    `robust_threshold` the kernel's k or c in metres (ref icp.robust_threshold), `model_noise`
+    as ref icp.pair_weights'."""
+    check_map("current vertex map", vertices, camera)
+    check_map("current normal map", normals, camera)
+    check_map("model vertex map", model_vertices, camera)
+    check_map("model normal map", model_normals, camera)
+    pose, to_model, dist2, cos_min = icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    blocks = reduction_blocks(camera.height * camera.width)
+    out = scratch("icp partials", (blocks, NV))
+    _icp_kernel[blocks, BLOCK](
+        stage(vertices),
+        stage(normals),
+        upload("icp poses", np.stack((pose, to_model))),
+        stage(model_vertices),
+        stage(model_normals),
+        pinhole(camera),
+        (dist2, cos_min),
+        robust_terms(robust_kernel, robust_threshold, model_noise),
+        out,
+    )
+    return sum_partials(to_host(out))
+
+
+def icp_system(
+    vertices,
+    normals,
+    pose: np.ndarray,
+    model_vertices,
+    model_normals,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float = 0.10,
+    angle_threshold_deg: float = 20.0,
+    robust_kernel: str = "none",
+    robust_noise: float = IcpConfig.robust_noise,
+    model_noise: float | None = None,
+) -> LinearSystem:
+    """The 6x6 point-to-plane normal equations of one ICP iteration at one level: one thread per
+    pixel(s), block tree reductions, partials added on the host."""
+    return _icp_system_and_valid(
+        vertices,
+        normals,
+        model_vertices,
+        model_normals,
+        pose,
+        model_pose,
+        camera,
+        distance_threshold,
+        angle_threshold_deg,
+        robust_kernel,
+        robust_threshold(robust_kernel, robust_noise),
+        model_noise,
+    )[0]
+
+
+def associate(
+    points,
+    point_normals,
+    pose: np.ndarray,
+    model_vertices,
+    model_normals,
+    model_pose: np.ndarray,
+    camera: Intrinsics,
+    distance_threshold: float,
+    angle_threshold_deg: float,
+) -> tuple:
+    """Projective data association: (world point, model vertex, model normal) as (3, M) columns
+    in atomic order. Model maps as (3, h*w) columns (ref map_columns)."""
+    shape = (camera.height, camera.width, 3)
+    check_image("model vertex columns", model_vertices, (3, camera.height * camera.width))
+    check_image("model normal columns", model_normals, (3, camera.height * camera.width))
+    pose, to_model, dist2, cos_min = icp_constants(
+        pose, model_pose, distance_threshold, angle_threshold_deg
+    )
+    n = points.shape[1]
+    if n == 0:
+        empty = np.empty((3, 0))
+        return empty, empty.copy(), empty.copy()
+    count = counter()
+    out = cuda.device_array((9, n), dtype=np.float64)
+    model_v = to_device(np.asarray(model_vertices).T.reshape(shape))
+    model_n = to_device(np.asarray(model_normals).T.reshape(shape))
+    _associate_kernel[grid_1d(n, BLOCK), BLOCK](
+        f64(points),
+        f64(point_normals),
+        upload("icp poses", np.stack((pose, to_model))),
+        model_v,
+        model_n,
+        pinhole(camera),
+        (dist2, cos_min),
+        count,
+        out,
+    )
+    kept = int(to_host(count)[0])
+    pairs = like_input(out[:, :kept], points)
+    return pairs[0:3], pairs[3:6], pairs[6:9]
+
+
+def point_to_plane_rows(world, model_vertices, model_normals) -> tuple:
+    """Jacobian (6, N) and residuals (N,) of the point-to-plane cost at xi = 0 (eq. 9)."""
+    n = world.shape[1]
+    if n == 0:
+        return np.empty((6, 0)), np.empty(0)
+    jacobian = cuda.device_array((6, n), dtype=np.float64)
+    residuals = cuda.device_array(n, dtype=np.float64)
+    _point_to_plane_kernel[grid_1d(n, BLOCK), BLOCK](
+        f64(world), f64(model_vertices), f64(model_normals), jacobian, residuals
+    )
+    return like_input(jacobian, world), like_input(residuals, world)
+
+
+class IcpProblem(_IcpProblem):
+    """kintinuous_ref.odometry.icp.IcpProblem with the CUDA kernels underneath (maps uploaded
+    once per frame and level)."""
+
+    _stage = staticmethod(stage)
+
+    def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
+        return _icp_system_and_valid(
+            *self.maps(level),
+            pose,
+            self.model_pose,
+            self.current_levels[level].camera,
+            self.distance_threshold,
+            self.angle_threshold_deg,
+            self.robust_kernel,
+            self.robust_threshold,
+            self.model_noise,
+        )

@@ -1,0 +1,423 @@
+# ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
+"""kintinuous_ref.odometry.rgbd on the CPU: loops on all threads around rgbd/ops.py.
+
+Same public names, signatures and results as the reference module (tests/test_fast_odometry.py
+states the tolerances; the names it does not compute itself are the reference's own objects).
+An iteration's system takes two passes over the interest points: the correspondences and their
+sum of r^2 (sigma'), then the robustly weighted rows summed block by block into fixed-chunk
+partial sums (odometry/sums/cpu.py). Lists come out in the reference's order.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from kintinuous_fast.odometry import check_image
+from kintinuous_fast.odometry.sums import NV, chunks_for, sum_partials
+from kintinuous_fast.odometry.sums.cpu import (
+    BLOCK,
+    CHUNKS,
+    GEOMETRY,
+    INLINE,
+    add_block,
+    partials,
+    run,
+    stage,
+)
+from kintinuous_fast.targets import pinhole
+from kintinuous_fast.targets.cpu import claim_slot, claimed_items, parallel_part, threads
+from kintinuous_ref.camera import Intrinsics
+from kintinuous_ref.odometry.rgbd import (
+    Correspondences,
+    InterestPoints,
+    check_gradient,
+    photometric_residuals,
+    robust_row_weights,
+    sample_bilinear,
+)
+from kintinuous_ref.odometry.solve import LinearSystem
+
+from . import _RgbdProblem, relative_pose
+from .ops import build_ops
+
+__all__ = [
+    "Correspondences",
+    "InterestPoints",
+    "RgbdProblem",
+    "check_gradient",
+    "correspond",
+    "interest_points",
+    "photometric_residuals",
+    "photometric_rows",
+    "prepare_level",
+    "rgbd_system",
+    "robust_row_weights",
+    "sample_bilinear",
+]
+
+_ops = build_ops(INLINE, GEOMETRY)
+# Module-level names: numba resolves the scalar functions as globals of the loops below.
+_is_interest = _ops.is_interest
+_has_depth = _ops.has_depth
+_backproject = _ops.backproject
+_warp_project = _ops.warp_project
+_warp_sample = _ops.warp_sample
+_photometric_row = _ops.photometric_row
+_robust_weight = _ops.robust_weight
+
+_loop = parallel_part()
+_allocating_loop = parallel_part(_nrt=True)  # for loops with work arrays of their own
+
+
+# ----------------------------------------------------------------------------------------------
+# Loops
+
+
+@_loop
+def _interest_mask_loop(claims, parts, dx, dy, depth, g2, use_depth, max_depth, mask):
+    for v in claimed_items(claims, dx.shape[0], parts):
+        for u in range(dx.shape[1]):
+            keep = _is_interest(dx, dy, v, u, g2)
+            if keep and use_depth:
+                keep = _has_depth(depth, v, u, max_depth)
+            mask[v, u] = keep
+
+
+@_loop
+def _interest_data_loop(
+    claims, parts, indices, depth, intensity, dx, dy, camera, points, values, grad
+):
+    width = depth.shape[1]
+    for k in claimed_items(claims, indices.shape[0], parts):
+        i = indices[k]
+        v = i // width
+        u = i - v * width
+        points[0, k], points[1, k], points[2, k] = _backproject(u, v, float(depth[v, u]), camera)
+        values[k] = float(intensity[v, u])
+        grad[0, k] = float(dx[v, u])
+        grad[1, k] = float(dy[v, u])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _warp_block(points, start, stop, relative, camera, warp):
+    """_warp_project of points start:stop into warp's columns (x, y, z, u, v): branch-free, so
+    it vectorises (divisions 8 at a time; rows read as slices, see icp/cpu.py's _project_block)."""
+    px, py, pz = points[0, start:stop], points[1, start:stop], points[2, start:stop]
+    for i in range(stop - start):
+        x, y, z, u, v = _warp_project(relative, (px[i], py[i], pz[i]), camera)
+        warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i] = x, y, z, u, v
+
+
+@_loop
+def _correspond_loop(
+    claims,
+    parts,
+    points,
+    intensity,
+    gradient,
+    relative,
+    pose,
+    previous,
+    warped,
+    camera,
+    max_change,
+    pairs,
+    sums,
+    warps,
+):
+    """Algorithm 2 per interest point k: pairs[:, k] = (residual, NaN = not kept; world point;
+    warped point; gradient), what J needs; sums[c] = (sum r^2, count) of chunk c for sigma'.
+    Each block's warps first, in a loop that vectorises. `previous` = (depth, intensity, dx,
+    dy) images of the previous frame; `warps` (threads, 5, BLOCK): each thread's work array."""
+    depth, prev_i, prev_dx, prev_dy = previous
+    n = pairs.shape[1]
+    chunks = sums.shape[0]
+    warp = warps[claim_slot(claims)]
+    for c in claimed_items(claims, chunks, parts):
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _warp_block(points, block, end, relative, camera, warp)
+            for k in range(block, end):
+                i = k - block
+                sample = (warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i])
+                ok, r, wx, wy, wz, x, y, z, gx, gy = _warp_sample(
+                    points,
+                    intensity,
+                    gradient,
+                    k,
+                    sample,
+                    pose,
+                    depth,
+                    prev_i,
+                    prev_dx,
+                    prev_dy,
+                    warped,
+                    max_change,
+                )
+                pairs[0, k], pairs[1, k], pairs[2, k], pairs[3, k] = r, wx, wy, wz
+                pairs[4, k], pairs[5, k], pairs[6, k] = x, y, z
+                pairs[7, k], pairs[8, k] = gx, gy
+                if ok:
+                    sums[c, 0] += r * r
+                    sums[c, 1] += 1.0
+
+
+@_loop
+def _photometric_loop(
+    claims, parts, world, warped_points, gradient, previous_pose, focal, jacobian
+):
+    for k in claimed_items(claims, world.shape[1], parts):
+        j0, j1, j2, j3, j4, j5 = _photometric_row(
+            (world[0, k], world[1, k], world[2, k]),
+            (warped_points[0, k], warped_points[1, k], warped_points[2, k]),
+            (gradient[0, k], gradient[1, k]),
+            previous_pose,
+            focal,
+        )
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _weighted_rows_block(pairs, start, stop, previous_pose, focal, sigma, rows):
+    """_photometric_row and the squared robust weight w of pairs[:, start:stop] (_correspond_loop's
+    columns), branch-free so that it vectorises: rows[k * BLOCK + m] = (j0..j5, r, 1) for
+    k = 0..7 and (w j0..w j5, w r) for k = 8..14 of a kept pair, zeros for a pair not kept (NaN
+    r). rows is flat: with constant offsets LLVM sees one output region (a (7, BLOCK) array's 7
+    rows are too many overlap checks for it)."""
+    # the rows as slices indexed from 0 (see icp/cpu.py's _project_block)
+    r, wx, wy = pairs[0, start:stop], pairs[1, start:stop], pairs[2, start:stop]
+    wz, x, y = pairs[3, start:stop], pairs[4, start:stop], pairs[5, start:stop]
+    z, gx, gy = pairs[6, start:stop], pairs[7, start:stop], pairs[8, start:stop]
+    for i in range(stop - start):
+        j0, j1, j2, j3, j4, j5 = _photometric_row(
+            (wx[i], wy[i], wz[i]), (x[i], y[i], z[i]), (gx[i], gy[i]), previous_pose, focal
+        )
+        kept = not np.isnan(r[i])
+        w = _robust_weight(r[i], sigma)
+        w = w * w
+        residual = r[i] if kept else 0.0
+        j0, j1, j2 = (j0, j1, j2) if kept else (0.0, 0.0, 0.0)
+        j3, j4, j5 = (j3, j4, j5) if kept else (0.0, 0.0, 0.0)
+        rows[i], rows[BLOCK + i], rows[2 * BLOCK + i] = j0, j1, j2
+        rows[3 * BLOCK + i], rows[4 * BLOCK + i], rows[5 * BLOCK + i] = j3, j4, j5
+        rows[6 * BLOCK + i], rows[7 * BLOCK + i] = residual, 1.0 if kept else 0.0
+        rows[8 * BLOCK + i], rows[9 * BLOCK + i], rows[10 * BLOCK + i] = w * j0, w * j1, w * j2
+        rows[11 * BLOCK + i], rows[12 * BLOCK + i] = w * j3, w * j4
+        rows[13 * BLOCK + i], rows[14 * BLOCK + i] = w * j5, w * residual
+
+
+@_allocating_loop
+def _rgbd_rows_loop(claims, parts, pairs, previous_pose, focal, sigma, out):
+    """Robustly weighted photometric rows of the kept pairs, summed per chunk (block by block:
+    the rows, then their sums, each in a loop that vectorises)."""
+    n = pairs.shape[1]
+    chunks = out.shape[0]
+    for c in claimed_items(claims, chunks, parts):
+        acc = np.zeros(NV)
+        rows = np.empty(15 * BLOCK)
+        matrix = rows.reshape((15, BLOCK))
+        start, stop = c * n // chunks, (c + 1) * n // chunks
+        for block in range(start, stop, BLOCK):
+            end = min(block + BLOCK, stop)
+            _weighted_rows_block(pairs, block, end, previous_pose, focal, sigma, rows)
+            add_block(acc, matrix[8:], matrix[:8], end - block)
+        out[c] = acc
+
+
+# ----------------------------------------------------------------------------------------------
+# Host side
+
+
+def _interest_mask(dx, dy, depth, min_gradient, max_depth) -> np.ndarray:
+    mask = np.empty(dx.shape, dtype=np.bool_)
+    use_depth = depth is not None
+    run(
+        _interest_mask_loop,
+        dx.size,
+        dx,
+        dy,
+        depth if use_depth else dx,
+        float(min_gradient) ** 2,
+        use_depth,
+        float(max_depth),
+        mask,
+    )
+    return mask
+
+
+def interest_points(
+    intensity_dx: np.ndarray, intensity_dy: np.ndarray, min_gradient: float
+) -> np.ndarray:
+    """Algorithm 1: flat indices (ascending) of the pixels with dx^2 + dy^2 >= g^2."""
+    dx, dy = stage(intensity_dx), stage(intensity_dy)
+    check_image("intensity_dy", dy, dx.shape)
+    return np.flatnonzero(_interest_mask(dx, dy, None, min_gradient, 0.0))
+
+
+def prepare_level(
+    depth: np.ndarray,
+    intensity: np.ndarray,
+    intensity_dx: np.ndarray,
+    intensity_dy: np.ndarray,
+    camera: Intrinsics,
+    min_gradient: float,
+    max_depth: float,
+) -> InterestPoints:
+    """Interest points with valid depth and their 3D points, intensities and gradients."""
+    depth, intensity = stage(depth), stage(intensity)
+    dx, dy = stage(intensity_dx), stage(intensity_dy)
+    shape = (camera.height, camera.width)
+    for name, image in (("depth", depth), ("intensity", intensity), ("dx", dx), ("dy", dy)):
+        check_image(f"current {name} image", image, shape)
+    indices = np.flatnonzero(_interest_mask(dx, dy, depth, min_gradient, max_depth))
+    n = len(indices)
+    points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
+    images = (indices, depth, intensity, dx, dy)
+    run(_interest_data_loop, n, *images, pinhole(camera), points, values, gradient)
+    return InterestPoints(indices, points, values, gradient)
+
+
+def _correspond_all(
+    points,
+    pose,
+    previous_pose,
+    previous_depth,
+    previous_intensity,
+    camera,
+    max_depth_change,
+    previous_dx,
+    previous_dy,
+):
+    """Per interest point: ((9, n) pairs as _correspond_loop writes them, (sum r^2, count))."""
+    previous_depth, previous_intensity = stage(previous_depth), stage(previous_intensity)
+    shape = (camera.height, camera.width)
+    check_image("previous depth image", previous_depth, shape)
+    check_image("previous intensity image", previous_intensity, shape)
+    warped = previous_dx is not None and previous_dy is not None
+    prev_dx = stage(previous_dx) if warped else previous_intensity
+    prev_dy = stage(previous_dy) if warped else previous_intensity
+    n = points.points.shape[1]
+    pairs = np.empty((9, n))
+    sums = np.zeros((chunks_for(n, CHUNKS), 2))
+    run(
+        _correspond_loop,
+        n,
+        np.ascontiguousarray(points.points, dtype=np.float64),
+        np.ascontiguousarray(points.intensity, dtype=np.float64),
+        np.ascontiguousarray(points.gradient, dtype=np.float64),
+        relative_pose(pose, previous_pose),
+        np.ascontiguousarray(pose, dtype=np.float64),
+        (previous_depth, previous_intensity, prev_dx, prev_dy),
+        warped,
+        pinhole(camera),
+        float(max_depth_change),
+        pairs,
+        sums,
+        np.empty((threads(), 5, BLOCK)),
+    )
+    return pairs, sums.sum(axis=0)
+
+
+def correspond(
+    points: InterestPoints,
+    pose: np.ndarray,
+    previous_pose: np.ndarray,
+    previous_depth: np.ndarray,
+    previous_intensity: np.ndarray,
+    camera: Intrinsics,
+    max_depth_change: float,
+    previous_dx: np.ndarray | None = None,
+    previous_dy: np.ndarray | None = None,
+) -> Correspondences:
+    """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
+    image and d_s tests, in the reference's order."""
+    pairs, _ = _correspond_all(
+        points,
+        pose,
+        previous_pose,
+        previous_depth,
+        previous_intensity,
+        camera,
+        max_depth_change,
+        previous_dx,
+        previous_dy,
+    )
+    kept = np.flatnonzero(~np.isnan(pairs[0]))
+    columns = np.take(pairs, kept, axis=1)
+    return Correspondences(
+        np.ascontiguousarray(columns[1:4]),
+        np.ascontiguousarray(columns[4:7]),
+        columns[0].copy(),
+        np.ascontiguousarray(columns[7:9]),
+        kept,
+    )
+
+
+def photometric_rows(
+    correspondences: Correspondences, previous_pose: np.ndarray, camera: Intrinsics
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unweighted Jacobian (6, N) and residuals (N,) of the intensity differences at xi = 0."""
+    n = correspondences.world.shape[1]
+    jacobian = np.empty((6, n))
+    run(
+        _photometric_loop,
+        n,
+        np.ascontiguousarray(correspondences.world, dtype=np.float64),
+        np.ascontiguousarray(correspondences.warped, dtype=np.float64),
+        np.ascontiguousarray(correspondences.gradient, dtype=np.float64),
+        np.ascontiguousarray(previous_pose, dtype=np.float64),
+        (float(camera.fx), float(camera.fy)),
+        jacobian,
+    )
+    return jacobian, correspondences.residuals
+
+
+def rgbd_system(
+    points: InterestPoints,
+    pose: np.ndarray,
+    previous_pose: np.ndarray,
+    previous_depth: np.ndarray,
+    previous_intensity: np.ndarray,
+    camera: Intrinsics,
+    max_depth_change: float = 0.07,
+    previous_dx: np.ndarray | None = None,
+    previous_dy: np.ndarray | None = None,
+) -> LinearSystem:
+    """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted: pass 1
+    finds the pairs and sum r^2 (sigma'), pass 2 sums the weighted rows."""
+    pairs, (squares, count) = _correspond_all(
+        points,
+        pose,
+        previous_pose,
+        previous_depth,
+        previous_intensity,
+        camera,
+        max_depth_change,
+        previous_dx,
+        previous_dy,
+    )
+    if count == 0:
+        return LinearSystem.empty()
+    sigma = float(np.sqrt(squares / count))
+    out = partials(pairs.shape[1])
+    run(
+        _rgbd_rows_loop,
+        pairs.shape[1],
+        pairs,
+        np.ascontiguousarray(previous_pose, dtype=np.float64),
+        (float(camera.fx), float(camera.fy)),
+        sigma,
+        out,
+    )
+    return sum_partials(out)[0]
+
+
+class RgbdProblem(_RgbdProblem):
+    """kintinuous_ref.odometry.rgbd.RgbdProblem with the CPU loops underneath."""
+
+    _stage = staticmethod(stage)
+    _prepare_level = staticmethod(prepare_level)
+    _rgbd_system = staticmethod(rgbd_system)

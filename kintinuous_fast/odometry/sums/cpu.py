@@ -1,0 +1,118 @@
+"""The normal equations summed on the CPU, and what both estimators' loops share there.
+
+Sums never race and never depend on the thread count: each loop is split into a FIXED number of
+chunks (CHUNKS), every chunk sums its rows into its own float64 row of partials (`partials`),
+and the host adds the partials (sums.sum_partials). Results are therefore the same on any number
+of threads, run after run. Inside a chunk the rows go through blocks of BLOCK (`add_block`).
+
+The per-element ops both estimators call (odometry/ops.py's geometry, sums/ops.py's add_row) are
+compiled here once for the CPU, inlined into the loops at numba IR level (INLINE): compiled
+separately, LLVM does not inline the larger ops (icp_match and warp_point take 4-8 arrays, i.e.
+dozens of scalar arguments), and a call per pixel costs several times the arithmetic it wraps.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+
+from kintinuous_fast.odometry import ops as geometry_ops
+from kintinuous_fast.targets import to_host
+from kintinuous_fast.targets.cpu import run_parallel_above
+
+from . import NV, SLOT_B, SLOT_COST, SLOT_COUNT, chunks_for
+from .ops import build_ops
+
+__all__ = [
+    "BLOCK",
+    "CHUNKS",
+    "GEOMETRY",
+    "INLINE",
+    "PARALLEL_MIN",
+    "add_block",
+    "add_row",
+    "partials",
+    "run",
+    "stage",
+]
+
+# Chunks per reduction loop: enough to keep every core busy, few enough that the partials cost
+# nothing to add up. Fixed, so that the order of summation never depends on the thread count.
+CHUNKS = 64
+# Loops over fewer items than this run on the calling thread only (see `run`). At 10 000 the
+# RGB-D systems (~35 000 interest points at level 0) and the coarse levels run on every core
+# (docs/benchmarks.md).
+PARALLEL_MIN = 10_000
+# Points per block of the ICP and RGB-D loops: a block's projections are computed first, in a
+# loop that vectorises (divisions and roundings 8 at a time), into a buffer that stays in L1.
+BLOCK = 128
+
+# The decorator of every per-element op on the CPU (module docstring).
+INLINE = numba.njit(cache=True, inline="always")
+GEOMETRY = geometry_ops.build_ops(INLINE)
+# A module-level name: numba resolves the scalar functions as globals of the loops that call
+# them.
+add_row = build_ops(INLINE).add_row
+
+
+@numba.njit(cache=True, fastmath={"reassoc"})
+def add_block(acc, weighted, rows, count):  # noqa: ANN001, ANN201
+    """add_row of a block's first `count` rows, as sums over the block entry by entry so that
+    each vectorises: rows = (j0..j5, r, 1 or 0 for a row to count), weighted = (w j0..w j5, w r)
+    (the ICP passes its rows as both). Reassociated within the block: the order of the
+    additions still depends on BLOCK only, never on the thread count."""
+    slot = 0
+    for i in range(6):
+        a = weighted[i]
+        for j in range(i, 7):
+            b = rows[j]
+            total = 0.0
+            for m in range(count):
+                total += a[m] * b[m]
+            acc[SLOT_B + i if j == 6 else slot] += total
+            slot += j < 6
+    for target, a, b in ((SLOT_COST, weighted[6], rows[6]), (SLOT_COUNT, rows[7], rows[7])):
+        total = 0.0
+        for m in range(count):
+            total += a[m] * b[m]
+        acc[target] += total
+
+
+@numba.njit(cache=True)
+def _copy_maps(source, target):  # noqa: ANN001, ANN202
+    """target[...] = source for (h, w, 3) maps: NumPy copies a strided map 3 values at a time,
+    this unrolled loop whole pixels."""
+    for v in range(source.shape[0]):
+        for u in range(source.shape[1]):
+            target[v, u, 0] = source[v, u, 0]
+            target[v, u, 1] = source[v, u, 1]
+            target[v, u, 2] = source[v, u, 2]
+
+
+def stage(array: Any) -> Any:
+    """Arrays as the loops take them: C-contiguous NumPy (device arrays are downloaded). One
+    layout means one compiled specialisation per loop (the model pyramid's strided levels are
+    copied once per frame)."""
+    if array is None:
+        return None
+    array = to_host(array)
+    if array.ndim == 3 and array.shape[2] == 3 and not array.flags.c_contiguous:
+        copy = np.empty(array.shape, dtype=array.dtype)
+        _copy_maps(array, copy)
+        return copy
+    return np.ascontiguousarray(array)
+
+
+def run(loop: Any, count: int, *args: Any) -> None:
+    """run_parallel a loop; below PARALLEL_MIN items on the calling thread alone. Waking the other
+    threads costs more than such a loop, and on a busy machine a parallel loop waits for its
+    slowest (descheduled) thread: tens of milliseconds per call on two loaded cores for loops of
+    a few thousand points."""
+    run_parallel_above(PARALLEL_MIN, loop, count, *args)
+
+
+def partials(count: int) -> np.ndarray:
+    """Zeroed per-chunk partial sums for a loop over `count` rows."""
+    return np.zeros((chunks_for(count, CHUNKS), NV))
