@@ -48,15 +48,14 @@ def benchmark(
     {mean, median, max}}, fps (1000 / median total ms)} over frames 2..N."""
     from kintinuous_ref import pipeline
     from kintinuous_ref.backend import load_backend
-    from kintinuous_ref.program.reconstruct import open_dataset
+    from kintinuous_ref.program.reconstruct import check_start, open_dataset
 
     if frames < 2:
         raise ConfigError(f"--frames must be at least 2 (the first is a warm-up), got {frames}")
     config = config or Config()
     chosen = load_backend(backend)
     sequence = open_dataset(dataset, frames_needed=start + frames)
-    if not 0 <= start < len(sequence):
-        raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
+    check_start(start, sequence)
     groundtruth = None
     if sequence.groundtruth is not None:
         groundtruth = sequence.groundtruth_for_frames()

@@ -143,6 +143,12 @@ RESULT_NAMES = (
 )
 
 
+def check_start(start: int, sequence: FrameSequence) -> None:
+    """Refuse a first frame outside the sequence (ConfigError naming --start and its range)."""
+    if not 0 <= start < len(sequence):
+        raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
+
+
 def check_output(out: str | Path, overwrite: bool = False) -> Path:
     """The output folder `out`, refused (ConfigError) when empty, a file, or holding an earlier
     result without `overwrite`. Changes nothing on disk."""
@@ -418,8 +424,7 @@ def reconstruct(
     closes loops and deforms the map (docs/loop_closure.md).
     """
     backend = load_backend(backend_name)  # ConfigError when it cannot run here
-    if not 0 <= start < len(sequence):
-        raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
+    check_start(start, sequence)
     if count is not None and count <= 0:
         raise ConfigError(f"--frames must be positive, got {count}")
     groundtruth = None

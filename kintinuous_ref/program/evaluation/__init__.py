@@ -30,6 +30,7 @@ from kintinuous_ref.program.evaluation.runs import (
     OK,
     RunOutcome,
     RunSpec,
+    check_jobs,
     execute,
     run_folder_name,
     run_one,
@@ -155,8 +156,7 @@ def evaluate_methods(
         raise ConfigError(f"a method is named twice in {methods}")
     if not datasets:
         raise ConfigError("name at least one dataset")
-    if jobs < 1:
-        raise ConfigError(f"--jobs must be at least 1, got {jobs}")
+    check_jobs(jobs)
     if start < 0 or (frames is not None and frames < 2):
         raise ConfigError(f"--start must be >= 0 and --frames >= 2, got {start} and {frames}")
     load_backend(backend)  # a clear error before any run

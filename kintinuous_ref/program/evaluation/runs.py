@@ -103,12 +103,12 @@ def run_one(spec: RunSpec) -> RunOutcome:
 def _run(spec: RunSpec) -> RunOutcome:
     from kintinuous_ref import metrics, pipeline
     from kintinuous_ref.datasets import tum
+    from kintinuous_ref.program.reconstruct import check_start
 
     sequence = tum.open_sequence(Path(spec.path))
     if sequence.groundtruth is None:
         raise ConfigError(f"{spec.path}: no groundtruth.txt, so no error can be measured")
-    if not 0 <= spec.start < len(sequence):
-        raise ConfigError(f"--start {spec.start} outside the frames 0..{len(sequence) - 1}")
+    check_start(spec.start, sequence)
     groundtruth = sequence.groundtruth_for_frames()
     camera, frames = sequence.camera, sequence.frames(spec.start, spec.frames)
     if spec.size is not None:
@@ -204,6 +204,12 @@ def _one_line(text: str) -> str:
 # Executors: the same run_one on local processes or on a Dask cluster.
 
 
+def check_jobs(jobs: int) -> None:
+    """Refuse fewer than one process (ConfigError naming --jobs)."""
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be at least 1, got {jobs}")
+
+
 def execute(
     specs: list[RunSpec],
     jobs: int = 1,
@@ -218,8 +224,7 @@ def execute(
     and output folder (relative ones are made absolute here first). `on_done(outcome, finished,
     total)` is called as each run finishes.
     """
-    if jobs < 1:
-        raise ConfigError(f"--jobs must be at least 1, got {jobs}")
+    check_jobs(jobs)
     if scheduler is not None:
         finished = _on_dask(specs, scheduler)
     elif jobs == 1 or len(specs) <= 1:
