@@ -25,6 +25,8 @@ import numpy as np
 
 from kintinuous_fast import select_backend
 from kintinuous_fast.odometry import cpu as cpu_odometry
+from kintinuous_fast.odometry.icp import cpu as cpu_icp
+from kintinuous_fast.odometry.rgbd import cpu as cpu_rgbd
 from kintinuous_fast.preprocess import cpu as cpu_preprocess
 from kintinuous_ref import metrics
 from kintinuous_ref.config import Config, fast_odometry
@@ -98,17 +100,17 @@ def speed(scene: str, count: int, config: Config) -> dict[str, tuple[float, floa
         )
         prepare = (level.depth, level.intensity, level.intensity_dx, level.intensity_dy, camera)
         ref_points = ref_rgbd.prepare_level(*prepare, config.rgbd.min_gradient[0], 6.0)
-        cpu_points = cpu_odometry.prepare_level(*prepare, config.rgbd.min_gradient[0], 6.0)
+        cpu_points = cpu_rgbd.prepare_level(*prepare, config.rgbd.min_gradient[0], 6.0)
         prev = previous.levels[0]
         rgbd_args = (pose, pose, prev.depth, prev.intensity, camera)
         samples = {
             "icp_system (level 0)": (
                 milliseconds(ref_icp.icp_system, *icp_args)[0],
-                milliseconds(cpu_odometry.icp_system, *icp_args)[0],
+                milliseconds(cpu_icp.icp_system, *icp_args)[0],
             ),
             "rgbd_system (level 0)": (
                 milliseconds(ref_rgbd.rgbd_system, ref_points, *rgbd_args)[0],
-                milliseconds(cpu_odometry.rgbd_system, cpu_points, *rgbd_args)[0],
+                milliseconds(cpu_rgbd.rgbd_system, cpu_points, *rgbd_args)[0],
             ),
         }
         for method, (ref_tracker, cpu_tracker) in trackers.items():

@@ -394,8 +394,9 @@ assert across[-1] <= across[0], "on this corridor RGB-D costs nothing across it 
 # ## The same with `kintinuous_fast`
 #
 # The fast ICP and RGB-D kernels produce the same 6x6 systems (float64 sums in another order:
-# 1e-10 of the largest entry); the joint system (eq. 13) and the Gauss-Newton loop are the
-# reference's. One pair's joint system and one tracked pair, both ways, and the speed-up of a
+# 1e-10 of the largest entry); the fast tracker solves them with compiled equals of the joint
+# system (eq. 13) and the Gauss-Newton step inside the reference's own coarse-to-fine loop and
+# tracker. One pair's joint system and one tracked pair, both ways, and the speed-up of a
 # whole ICP+RGB-D track: median and interquartile range of 7 runs after an untimed one (the
 # first run in a fresh environment compiles the numba kernels, one to two minutes, once), with
 # the machine and numba's thread count.

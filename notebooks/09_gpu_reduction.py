@@ -18,7 +18,7 @@
 # $(J_k, r_k)$ per pixel or pair, summed into the 6x6 normal equations $J^\top J$ and
 # $J^\top r$ (eq. 10 and 13). On the GPU the paper does this "using a tree reduction on the GPU
 # followed by Cholesky factorization of the linear system on the CPU" (IV-A.3). This lesson
-# reads the package's CUDA kernel for ICP (`kintinuous_fast.odometry.cuda`), runs it **without
+# reads the package's CUDA kernel for ICP (`kintinuous_fast.odometry.icp.cuda`), runs it **without
 # a GPU** under numba's CUDA simulator (each CUDA thread becomes a Python thread) on a tiny
 # 80x60 frame, and checks it against the NumPy reference of notebook 5.
 #
@@ -41,7 +41,8 @@ import inspect
 import matplotlib.pyplot as plt
 import numpy as np
 
-from kintinuous_fast.odometry import cuda as gpu
+from kintinuous_fast.odometry.icp import cuda as gpu
+from kintinuous_fast.odometry.sums import cuda as reduction
 from kintinuous_ref import preprocess
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.synthetic import make_scenario
@@ -65,17 +66,18 @@ camera, poses = scene.camera, scene.trajectory.poses
 #    r^2, 1]$ into a private accumulator of 30 float64 numbers (`add_row`).
 #
 # Then the block's threads reduce their accumulators by a **tree** in shared memory
-# (`_block_reduce`), and thread 0 writes the block's partial sums to global memory. The host adds
+# (`block_reduce`, shared by every odometry kernel in `kintinuous_fast.odometry.sums.cuda`), and
+# thread 0 writes the block's partial sums to global memory. The host adds
 # the few hundred partials in float64 and solves the 6x6 system by Cholesky, as in the paper.
 
 # %%
-for function in (gpu._icp_kernel, gpu._block_reduce, gpu.point_to_plane_row):
+for function in (gpu._icp_kernel, reduction.block_reduce, gpu._point_to_plane_row):
     print(inspect.getsource(function.py_func))
 
 # %% [markdown]
 # ## The tree, in plain Python
 #
-# With $B$ threads in a block (a power of two; here `gpu.BLOCK`), step $s$ lets the first
+# With $B$ threads in a block (a power of two; here `reduction.BLOCK`), step $s$ lets the first
 # $B/2^s$ threads add the value of the thread $B/2^s$ places further on; after $\log_2 B$ steps
 # thread 0 holds the block's sum. Each step is followed by `syncthreads()`, so no thread reads a
 # value before it is written. The same schedule on a NumPy vector, step by step:
@@ -94,16 +96,16 @@ def tree_sum(values: np.ndarray) -> tuple[float, list[int]]:
 
 
 rng = np.random.default_rng(0)
-values = rng.normal(size=gpu.BLOCK)
+values = rng.normal(size=reduction.BLOCK)
 total, active = tree_sum(values)
-print(f"block of {gpu.BLOCK} threads: {len(active)} steps, active threads per step {active}")
+print(f"block of {reduction.BLOCK} threads: {len(active)} steps, active threads per step {active}")
 np.testing.assert_allclose(total, values.sum(), rtol=1e-14)
 
 fig, ax = plt.subplots(figsize=(6.5, 3))
 ax.bar(range(1, len(active) + 1), active)
 ax.set_xlabel("tree step")
 ax.set_ylabel("threads adding")
-ax.set_title(f"tree reduction of a {gpu.BLOCK}-thread block: log2(B) steps")
+ax.set_title(f"tree reduction of a {reduction.BLOCK}-thread block: log2(B) steps")
 plt.show()
 
 # %% [markdown]
@@ -150,9 +152,9 @@ np.testing.assert_allclose(simulated.b, reference.b, rtol=0, atol=1e-10 * np.abs
 # pairs per block on the host shows how evenly the work is spread).
 
 # %%
-blocks = gpu._reduction_blocks(HEIGHT * WIDTH)
-grid = blocks * gpu.BLOCK
-pixel_block = ((np.arange(HEIGHT * WIDTH) % grid) // gpu.BLOCK).reshape(HEIGHT, WIDTH)
+blocks = reduction.reduction_blocks(HEIGHT * WIDTH)
+grid = blocks * reduction.BLOCK
+pixel_block = ((np.arange(HEIGHT * WIDTH) % grid) // reduction.BLOCK).reshape(HEIGHT, WIDTH)
 points, point_normals = icp.valid_points(current.vertices, current.normals)
 valid = (np.isfinite(current.vertices).all(-1) & np.isfinite(current.normals).all(-1)).ravel()
 world, matched, _ = icp.associate(
@@ -166,7 +168,7 @@ world, matched, _ = icp.associate(
     20.0,
 )
 per_block_valid = np.bincount(pixel_block.ravel()[valid], minlength=blocks)
-_, kernel_valid = gpu.icp_system_and_valid(
+_, kernel_valid = gpu._icp_system_and_valid(
     current.vertices,
     current.normals,
     model_vertices,
@@ -180,7 +182,7 @@ _, kernel_valid = gpu.icp_system_and_valid(
 
 fig, axes = plt.subplots(1, 2, figsize=(12, 3.4))
 shown = axes[0].imshow(pixel_block, cmap="tab20", interpolation="nearest")
-axes[0].set_title(f"block of each pixel ({blocks} blocks x {gpu.BLOCK} threads)")
+axes[0].set_title(f"block of each pixel ({blocks} blocks x {reduction.BLOCK} threads)")
 axes[0].axis("off")
 axes[1].bar(range(blocks), per_block_valid)
 axes[1].set_xlabel("block")
@@ -188,7 +190,7 @@ axes[1].set_ylabel("valid pixels summed")
 axes[1].set_title("work per block")
 plt.show()
 print(
-    f"{blocks} blocks of {gpu.BLOCK} threads for {HEIGHT * WIDTH} pixels; valid pixels "
+    f"{blocks} blocks of {reduction.BLOCK} threads for {HEIGHT * WIDTH} pixels; valid pixels "
     f"{valid.sum()} (the kernels' summed counters: {kernel_valid}), pairs {world.shape[1]}"
 )
 assert world.shape[1] == reference.count and kernel_valid == valid.sum()
@@ -207,21 +209,21 @@ assert world.shape[1] == reference.count and kernel_valid == valid.sum()
 # ## Exercises
 #
 # 1. **Block size.** With $B$ = 64 instead of 128, how many tree steps does a block take, and
-#    how many blocks does an 80x60 frame need (`gpu._reduction_blocks` caps them at
-#    `gpu.MAX_BLOCKS`)? Check: `check_exercise_1(steps, blocks)`.
+#    how many blocks does an 80x60 frame need (`reduction.reduction_blocks` caps them at
+#    `reduction.MAX_BLOCKS`)? Check: `check_exercise_1(steps, blocks)`.
 # 2. **A missing sync.** In `tree_sum`, the NumPy slice adds all pairs "at once". Emulate a
 #    missing `syncthreads()` by adding the pairs one thread at a time in *descending* thread
 #    order within a step: does the sum change? What about ascending order? (Think about which
 #    values a thread reads that another thread of the same step writes.)
 # 3. **Your own kernel.** Write a `@numba.cuda.jit` kernel that counts the pixels whose depth is
-#    valid, with a block tree like `_block_reduce`, launch it on `current.depth` under the
+#    valid, with a block tree like `block_reduce`, launch it on `current.depth` under the
 #    simulator, and compare with `(current.depth > 0).sum()`.
 
 
 # %%
 def check_exercise_1(steps: int, block_count: int) -> None:
     assert steps == int(np.log2(64)), "one step per halving of the block"
-    expected = min(-(-HEIGHT * WIDTH // 64), gpu.MAX_BLOCKS)
+    expected = min(-(-HEIGHT * WIDTH // 64), reduction.MAX_BLOCKS)
     assert block_count == expected, f"ceil({HEIGHT * WIDTH} / 64) blocks"
     print("exercise 1 correct")
 

@@ -145,8 +145,8 @@ class Systems(Protocol):
     pyramid ICP reads, the coarse-to-fine solver, the stale-stream test and FOVIS's host images.
 
     This package is the reference's own (the module kintinuous_ref.odometry has each member);
-    a fast backend's odometry module is its target's (kintinuous_fast.odometry.cpu, .cuda),
-    with the frames and maps where that target keeps them. Every member has the signature of
+    a fast backend's odometry stage module is its own, with the frames and maps where that
+    backend keeps them (make_tracker there passes it here). Every member has the signature of
     this package's namesake:
 
     - IcpProblem(current_levels, model_levels, model_pose, ...) and RgbdProblem(previous_levels,

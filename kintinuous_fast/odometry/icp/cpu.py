@@ -11,7 +11,6 @@ order.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from kintinuous_fast.odometry import check_image, check_map
@@ -19,8 +18,6 @@ from kintinuous_fast.odometry.sums import NV, chunks_for, sum_partials
 from kintinuous_fast.odometry.sums.cpu import (
     BLOCK,
     CHUNKS,
-    GEOMETRY,
-    INLINE,
     add_block,
     partials,
     run,
@@ -45,7 +42,8 @@ from kintinuous_ref.odometry.solve import LinearSystem
 
 from . import NO_WEIGHTS as _NO_WEIGHTS
 from . import _IcpProblem, icp_constants, robust_terms
-from .ops import build_ops
+from .cpu_block import OPS as _OPS
+from .cpu_block import _block_work, _pair_rows_block
 
 __all__ = [
     "IcpProblem",
@@ -62,17 +60,11 @@ __all__ = [
     "voxel_noise",
 ]
 
-_ops = build_ops(INLINE, GEOMETRY)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
-_icp_match = _ops.icp_match
-_project_nearest = _ops.project_nearest
-_is_compatible = _ops.is_compatible
-_transform = GEOMETRY.transform
-_rotate = GEOMETRY.rotate
-_map_point = _ops.map_point
-_point_to_plane_row = _ops.point_to_plane_row
-_pair_weight = _ops.pair_weight
-_weighs_pairs = _ops.weighs_pairs
+_icp_match = _OPS.icp_match
+_map_point = _OPS.map_point
+_point_to_plane_row = _OPS.point_to_plane_row
+_weighs_pairs = _OPS.weighs_pairs
 
 _loop = parallel_part()
 _allocating_loop = parallel_part(_nrt=True)  # for loops with work arrays of their own
@@ -104,98 +96,6 @@ def _compact_loop(claims, parts, vertices, normals, starts, points):
                 points[0, k], points[1, k], points[2, k] = px, py, pz
                 points[3, k], points[4, k], points[5, k] = nx, ny, nz
                 k += 1
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _project_block(points, start, stop, to_model, camera, size, rows, cols):
-    """_project_nearest of points[:, start:stop] into rows / cols: branch-free, so LLVM vectorises
-    it (its own function: the NumPy error model leaves the guarded division without a zero test,
-    and the loop with the data-dependent branches below would not vectorise). The rows are read
-    as 1-d slices indexed from 0: indexed points[r, k] from `start`, numba's negative-index
-    wraparound makes LLVM load them with gathers."""
-    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
-    for m in range(stop - start):
-        rows[m], cols[m] = _project_nearest(to_model, (x[m], y[m], z[m]), camera, size)
-
-
-@numba.njit(cache=True)
-def _gather_model_block(rows, cols, count, mv, mn, model):
-    """The model vertex and normal at each point's pixel (rows / cols; pixel (0, 0) for a point
-    without one, masked out later) into model[k * BLOCK + m], k = qx, qy, qz, ux, uy, uz. A loop
-    of its own: LLVM does not vectorise gathers for this CPU, and kept out of the arithmetic
-    below they leave that loop free to vectorise."""
-    for m in range(count):
-        v, u = max(rows[m], 0), max(cols[m], 0)
-        model[m], model[BLOCK + m], model[2 * BLOCK + m] = mv[v, u, 0], mv[v, u, 1], mv[v, u, 2]
-        model[3 * BLOCK + m], model[4 * BLOCK + m] = mn[v, u, 0], mn[v, u, 1]
-        model[5 * BLOCK + m] = mn[v, u, 2]
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out, weighted):
-    """match_pixel and point_to_plane_row (icp/ops.py) of points[:, start:stop] and their
-    gathered model pixels, branch-free so that it vectorises: out[k * BLOCK + m] = (j0..j5, r, 1)
-    of a kept pair, zeros for any other point (which then add nothing to the sums). Where the
-    pairs have weights (`robust`: robust_terms, weighs_pairs) weighted[k * BLOCK + m] =
-    w (j0..j5, r), w = pair_weight; `limits`: is_compatible's."""
-    weighs = _weighs_pairs(robust)
-    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
-    nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
-    for m in range(stop - start):
-        qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
-        ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
-        uz = float(model[5 * BLOCK + m])
-        world = _transform(pose, x[m], y[m], z[m])
-        g = _rotate(pose, nx[m], ny[m], nz[m])
-        vertex, normal = (qx, qy, qz), (ux, uy, uz)
-        kept = (rows[m] >= 0) & _is_compatible(world, g, vertex, normal, limits)
-        j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(world, vertex, normal)
-        out[m] = j0 if kept else 0.0
-        out[BLOCK + m] = j1 if kept else 0.0
-        out[2 * BLOCK + m] = j2 if kept else 0.0
-        out[3 * BLOCK + m] = j3 if kept else 0.0
-        out[4 * BLOCK + m] = j4 if kept else 0.0
-        out[5 * BLOCK + m] = j5 if kept else 0.0
-        out[6 * BLOCK + m] = r if kept else 0.0
-        out[7 * BLOCK + m] = 1.0 if kept else 0.0
-        if weighs:
-            # Selects, not products with w = 0: a rejected point's row may hold NaN (no model
-            # surface at its pixel), and 0 * NaN would poison the sums.
-            w = _pair_weight(r, z[m], robust)
-            weighted[m] = w * j0 if kept else 0.0
-            weighted[BLOCK + m] = w * j1 if kept else 0.0
-            weighted[2 * BLOCK + m] = w * j2 if kept else 0.0
-            weighted[3 * BLOCK + m] = w * j3 if kept else 0.0
-            weighted[4 * BLOCK + m] = w * j4 if kept else 0.0
-            weighted[5 * BLOCK + m] = w * j5 if kept else 0.0
-            weighted[6 * BLOCK + m] = w * r if kept else 0.0
-
-
-@numba.njit(cache=True)
-def _pair_rows_block(points, start, stop, pose, to_model, mv, mn, camera, limits, robust, work):
-    """The ICP rows of points[:, start:stop] (_icp_rows_block's) in three loops: projection,
-    gathers, rows. All but the gathers vectorise, which one loop matching and summing pair by
-    pair, with branches, would not. `camera` = (fx, fy, cx, cy), `limits` = (squared distance,
-    cos angle), `robust` = robust_terms, `work` = _block_work()."""
-    rows, cols, model, pair_rows, weighted_rows = work
-    _project_block(points, start, stop, to_model, camera, (mv.shape[1], mv.shape[0]), rows, cols)
-    _gather_model_block(rows, cols, stop - start, mv, mn, model)
-    _icp_rows_block(
-        points, start, stop, pose, rows, model, limits, robust, pair_rows, weighted_rows
-    )
-
-
-@numba.njit(cache=True)
-def _block_work(dtype):
-    """Work arrays of _pair_rows_block: pixel rows and columns, gathered model values (of the
-    model maps' dtype), pair rows, robustly weighted pair rows."""
-    return (
-        np.empty(BLOCK, dtype=np.int64),
-        np.empty(BLOCK, dtype=np.int64),
-        np.empty(6 * BLOCK, dtype=dtype),
-        np.empty(8 * BLOCK),
-        np.empty(7 * BLOCK),
-    )
 
 
 @register_slowest("odometry")

@@ -25,6 +25,11 @@ KERNEL_NONE, KERNEL_HUBER, KERNEL_TUKEY = (ROBUST_KERNELS.index(name) for name i
 def build_ops(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNamespace:
     """The scalar functions of one ICP pair compiled with `jit`, over `geometry`'s rint,
     transform and rotate (compiled with the same `jit`)."""
+    return SimpleNamespace(**vars(_association(jit, geometry)), **vars(_rows(jit)))
+
+
+def _association(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNamespace:
+    """Projective association of one current point with the model (ref `associate`)."""
 
     rint, transform, rotate = geometry.rint, geometry.transform, geometry.rotate
 
@@ -126,6 +131,18 @@ def build_ops(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNam
         )
         return ok, px, py, pz, nx, ny, nz
 
+    return SimpleNamespace(
+        project_nearest=project_nearest,
+        is_compatible=is_compatible,
+        match_pixel=match_pixel,
+        icp_match=icp_match,
+        map_point=map_point,
+    )
+
+
+def _rows(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """One pair's point-to-plane row and its weight (ref point_to_plane_rows, pair_weights)."""
+
     @jit
     def point_to_plane_row(
         world: tuple, vertex: tuple, normal: tuple
@@ -171,13 +188,8 @@ def build_ops(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNam
         return robust_icp_weight(scale * r, kernel, threshold) * (scale * scale)
 
     return SimpleNamespace(
-        project_nearest=project_nearest,
-        match_pixel=match_pixel,
-        is_compatible=is_compatible,
-        icp_match=icp_match,
-        map_point=map_point,
         point_to_plane_row=point_to_plane_row,
         robust_icp_weight=robust_icp_weight,
-        pair_weight=pair_weight,
         weighs_pairs=weighs_pairs,
+        pair_weight=pair_weight,
     )

@@ -21,8 +21,13 @@ from kintinuous_ref.odometry.rgbd import BORDER_SLACK
 def build_ops(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNamespace:
     """The scalar functions of one RGB-D interest point compiled with `jit`, over `geometry`'s
     rint, transform and rotate (compiled with the same `jit`)."""
+    return SimpleNamespace(
+        **vars(_interest(jit)), **vars(_warps(jit, geometry)), **vars(_rows(jit, geometry))
+    )
 
-    rint, transform, rotate = geometry.rint, geometry.transform, geometry.rotate
+
+def _interest(jit: Callable[[Any], Any]) -> SimpleNamespace:
+    """Algorithm 1's tests and the 3D point of an interest point (ref prepare_level)."""
 
     @jit
     def is_interest(dx: Any, dy: Any, v: int, u: int, g2: float) -> bool:
@@ -42,6 +47,14 @@ def build_ops(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNam
         """X = z K^-1 (u, v, 1) as prepare_level computes it, `camera` = (fx, fy, cx, cy)."""
         fx, fy, cx, cy = camera
         return (u - cx) * z / fx, (v - cy) * z / fy, z
+
+    return SimpleNamespace(is_interest=is_interest, has_depth=has_depth, backproject=backproject)
+
+
+def _warps(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNamespace:
+    """Algorithm 2 for one interest point (ref `correspond`)."""
+
+    rint, transform = geometry.rint, geometry.transform
 
     @jit
     def sample_bilinear(image: Any, u: float, v: float) -> float:
@@ -144,6 +157,19 @@ def build_ops(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNam
             max_depth_change,
         )
 
+    return SimpleNamespace(
+        sample_bilinear=sample_bilinear,
+        warp_project=warp_project,
+        warp_sample=warp_sample,
+        warp_point=warp_point,
+    )
+
+
+def _rows(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNamespace:
+    """One pair's photometric row and robust weight (ref photometric_rows, robust_row_weights)."""
+
+    rotate = geometry.rotate
+
     @jit
     def photometric_row(
         world: tuple, warped: tuple, gradient: tuple, previous_pose: Any, focal: tuple
@@ -168,14 +194,4 @@ def build_ops(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> SimpleNam
         safe = denominator if denominator > 1e-12 else 1.0  # a select: the CPU's loop vectorises
         return 1.0 / safe
 
-    return SimpleNamespace(
-        is_interest=is_interest,
-        has_depth=has_depth,
-        backproject=backproject,
-        sample_bilinear=sample_bilinear,
-        warp_project=warp_project,
-        warp_sample=warp_sample,
-        warp_point=warp_point,
-        photometric_row=photometric_row,
-        robust_weight=robust_weight,
-    )
+    return SimpleNamespace(photometric_row=photometric_row, robust_weight=robust_weight)

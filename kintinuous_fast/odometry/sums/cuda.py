@@ -50,21 +50,20 @@ BLOCK = BLOCK_1D  # threads per block of every odometry kernel (a power of two: 
 # The decorator of every per-element op on CUDA; the ops both estimators call, compiled once.
 DEVICE = cuda_device_jit()
 GEOMETRY = geometry_ops.build_ops(DEVICE)
-# A module-level name: numba resolves the scalar functions as globals of the kernels.
-add_row = build_ops(DEVICE).add_row
-
-
-@cuda.jit(device=True)
-def zero(acc):
-    """acc[:] = 0 for a thread's NV sums."""
-    for s in range(NV):
-        acc[s] = 0.0
+# Module-level names: numba resolves the device functions as globals of the kernels.
+_ops = build_ops(DEVICE)
+zero = _ops.zero
+add_row = _ops.add_row
 
 
 @cuda.jit(device=True)
 def block_reduce(acc, shared, partials):
-    """Tree reduction of every thread's NV sums in shared memory; thread 0 writes the block's."""
+    """Tree reduction of every thread's NV sums in shared memory; thread 0 writes the block's.
+    The block index is read before the first barrier: numba's simulator swaps this module's
+    `cuda` for its kernel context while a thread is inside, and the thread that swapped it may
+    leave first and swap it back (the kernels that call this live in other modules)."""
     t = cuda.threadIdx.x
+    block = cuda.blockIdx.x
     for s in range(NV):
         shared[s, t] = acc[s]
     cuda.syncthreads()
@@ -77,7 +76,7 @@ def block_reduce(acc, shared, partials):
         half //= 2
     if t == 0:
         for s in range(NV):
-            partials[cuda.blockIdx.x, s] = shared[s, 0]
+            partials[block, s] = shared[s, 0]
 
 
 def reduction_blocks(count: int) -> int:

@@ -1,4 +1,4 @@
-"""One row added to the accumulated normal equations (odometry/sums), written once for the CPU
+"""The accumulated normal equations (odometry/sums) element by element, written once for the CPU
 and CUDA targets: `build_ops(jit)` as in kintinuous_fast.targets."""
 
 from __future__ import annotations
@@ -7,9 +7,17 @@ from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
 
+from . import NV
+
 
 def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
-    """add_row compiled with `jit`."""
+    """zero and add_row compiled with `jit`."""
+
+    @jit
+    def zero(acc: Any) -> None:
+        """acc[:] = 0 for a thread's NV sums."""
+        for s in range(NV):
+            acc[s] = 0.0
 
     @jit
     def add_row(acc: Any, jacobian: tuple, r: float, w: float) -> None:
@@ -52,4 +60,4 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         acc[27] += w * r * r
         acc[28] += 1.0
 
-    return SimpleNamespace(add_row=add_row)
+    return SimpleNamespace(zero=zero, add_row=add_row)
