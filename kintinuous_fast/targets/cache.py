@@ -23,6 +23,7 @@ import importlib
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, TypeVar
 
 PACKAGE = Path(__file__).resolve().parents[1]
@@ -73,7 +74,11 @@ def _register_unnamed(stage: str) -> None:
 
 
 def _cache_path(kernel: Any) -> str | None:
-    """Where numba keeps `kernel`'s cache (None for a kernel compiled without cache=True)."""
+    """Where numba keeps `kernel`'s cache: None for anything but a kernel of this package
+    compiled with cache=True."""
+    function = getattr(kernel, "py_func", None)
+    if not getattr(function, "__module__", "").startswith("kintinuous_fast."):
+        return None
     try:
         return kernel.stats.cache_path
     except AttributeError:
@@ -97,8 +102,17 @@ def stage_folders(stages: tuple[str, ...] = STAGES) -> dict[str, Path]:
 
 
 def cache_folders() -> list[Path]:
-    """The folders numba keeps this package's cpu kernels in: one per stage package."""
-    return sorted(set(stage_folders().values()))
+    """The folders numba keeps this package's cpu kernels in: each stage's, and those of any
+    other cached kernel its loaded modules hold (a stage's subpackages, the targets' helpers),
+    at module level or in a namespace of ops."""
+    folders = set(stage_folders().values())
+    for name, module in list(sys.modules.items()):
+        if not name.startswith("kintinuous_fast.") or module is None:
+            continue
+        for value in list(vars(module).values()):
+            held = vars(value).values() if isinstance(value, SimpleNamespace) else (value,)
+            folders.update(Path(path) for path in map(_cache_path, held) if path)
+    return sorted(folders)
 
 
 def _warm_record(stamp: str) -> str:

@@ -333,7 +333,7 @@ def _sample_loop(claims, parts, tsdf_weight, o0, o1, o2, coordinates, out):
 
 def check_volume_config(config: VolumeConfig) -> None:
     """Refuse, in one line, a volume (memory_bytes) that does not fit in host memory."""
-    check_volume_memory(config, available_memory_bytes())
+    check_volume_memory(config)
 
 
 def make_volume(

@@ -14,7 +14,12 @@ from kintinuous_fast.targets import to_host
 from kintinuous_fast.tsdf.voxel import TSDF_SCALE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.tsdf import TsdfVolume, refuse_if_too_big, volume_origin
+from kintinuous_ref.tsdf import (
+    TsdfVolume,
+    available_memory_bytes,
+    refuse_if_too_big,
+    volume_origin,
+)
 
 BYTES_TSDF = 4  # int16 TSDF + int16 weight
 BYTES_COLOUR = 4  # uint8 R, G, B + uint8 colour weight
@@ -94,11 +99,12 @@ def memory_bytes(config: VolumeConfig) -> int:
     return (BYTES_TSDF + (BYTES_COLOUR if config.colour else 0)) * config.resolution**3
 
 
-def check_volume_memory(config: VolumeConfig, available: int) -> None:
+def check_volume_memory(config: VolumeConfig, available: int | None = None) -> None:
     """Refuse, in one line, a fast volume (memory_bytes) that does not fit in `available`
-    bytes: host memory for the cpu backend, the GPU's free memory for the cuda backend (their
-    check_volume_config). The config's own fields were checked when it was made
-    (VolumeConfig.__post_init__)."""
+    bytes: host memory by default (the cpu backend's check_volume_config), the GPU's free
+    memory where the cuda backend passes it. The config's own fields were checked when it was
+    made (VolumeConfig.__post_init__)."""
+    available = available_memory_bytes() if available is None else available
     # Headroom for the rest of the pipeline: the fast loops update voxels in place, where the
     # reference's NumPy integration makes slab-sized temporaries (its headroom: 1 GiB).
     refuse_if_too_big(config, memory_bytes(config), available, 256 << 20)

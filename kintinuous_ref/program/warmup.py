@@ -102,7 +102,8 @@ def warm_up(
     """Run each method of `methods_for(odometry)` over the warm-up frames on `backend` and
     return how long each stage and each compiled kernel took. `progress(method)` is called after
     each method. With `parallel` and a cpu backend on two or more cores, two child processes
-    compile first (see the module docstring); their kernels' times are in the report."""
+    compile first (see the module docstring); their kernels' times are in the report. At the
+    end the backend records the warm-up, so that its kernels_cached says so from then on."""
     report = WarmupReport(backend.name, methods=methods_for(odometry))
     start = time.perf_counter()
     compiled: dict[str, float] = {}
