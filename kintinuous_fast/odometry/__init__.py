@@ -3,15 +3,17 @@
 The NumPy specification is ``kintinuous_ref.odometry``; this package mirrors it one estimator
 per package or module, each with the reference module's public names and signatures:
 
-    icp/        ops.py (one pair's maths, both targets), cpu.py, cuda.py; __init__: host side
-    rgbd/       the same for the RGB-D odometry
+    icp/        ops.py (one pair's maths, both targets), cpu.py (cpu_block.py: one block of
+                pairs in vectorised loops), cuda.py; __init__: the host side of both
+    rgbd/       ops.py, cpu.py, cuda.py, __init__ the same for the RGB-D odometry
     combined.py the joint system of both, compiled for the host (both targets)
     solve/      the Gauss-Newton step compiled for the host (__init__); cpu.py and cuda.py add
                 each target's `accumulate`
     sums/       the normal equations as both targets sum them: the accumulated vector's slots
                 and its unpacking (__init__), one row added (ops.py), the fixed-chunk sums of
                 the CPU (cpu.py), the shared-memory block trees of CUDA (cuda.py)
-    ops.py      the rigid transforms both estimators' ops use
+    ops.py      the rigid transforms both estimators' ops use (each target compiles it and
+                sums/ops.py once, in sums/cpu.py and sums/cuda.py)
     cpu.py      the backends' stage modules: this target's systems (the per-frame problems, the
     cuda.py     model pyramid, the solver, the stale-stream test, FOVIS's host images) and
                 make_tracker, the reference's trackers over them

@@ -42,8 +42,8 @@ __all__ = [
 # nothing to add up. Fixed, so that the order of summation never depends on the thread count.
 CHUNKS = 64
 # Loops over fewer items than this run on the calling thread only (see `run`). At 10 000 the
-# RGB-D systems (~35 000 interest points at level 0) and the coarse levels run on every core
-# (docs/benchmarks.md).
+# RGB-D systems (~35 000 interest points at level 0) and the coarse levels run on every core,
+# while the small loops of the coarsest levels do not wait for woken threads.
 PARALLEL_MIN = 10_000
 # Points per block of the ICP and RGB-D loops: a block's projections are computed first, in a
 # loop that vectorises (divisions and roundings 8 at a time), into a buffer that stays in L1.
@@ -108,8 +108,8 @@ def stage(array: Any) -> Any:
 def run(loop: Any, count: int, *args: Any) -> None:
     """run_parallel a loop; below PARALLEL_MIN items on the calling thread alone. Waking the other
     threads costs more than such a loop, and on a busy machine a parallel loop waits for its
-    slowest (descheduled) thread: tens of milliseconds per call on two loaded cores for loops of
-    a few thousand points."""
+    slowest (descheduled) thread, which costs a loop of a few thousand points many times its
+    own time."""
     run_parallel_above(PARALLEL_MIN, loop, count, *args)
 
 
