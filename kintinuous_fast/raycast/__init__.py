@@ -7,4 +7,6 @@
                       compiles; cpu_skip_maps.py: its empty-space maps; cpu_near_starts.py:
                       where each ray starts
     cuda.py           one thread per pixel, the brick map computed on the device
+
+Each module's docstring says what it holds and why.
 """
