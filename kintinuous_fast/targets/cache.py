@@ -56,20 +56,8 @@ def slowest_kernels() -> dict[str, Any]:
     for stage in STAGES:
         importlib.import_module(f"kintinuous_fast.{stage}.cpu")
         if stage not in _SLOWEST:
-            _register_unnamed(stage)
+            raise LookupError(f"kintinuous_fast.{stage}.cpu registers no kernel (register_slowest)")
     return {stage: _SLOWEST[stage] for stage in STAGES}
-
-
-def _register_unnamed(stage: str) -> None:
-    """Until a stage registers its kernel: the first cached kernel its cpu module defines, else
-    the first of this package it holds. Only the odometry relies on this, while its loops move;
-    it goes once `register_slowest("odometry")` is in place."""
-    module = sys.modules[f"kintinuous_fast.{stage}.cpu"]
-    held = [value for value in vars(module).values() if _cache_path(value)]
-    own = [value for value in held if value.py_func.__module__ == module.__name__]
-    if not held:
-        raise LookupError(f"{module.__name__} registers no kernel (register_slowest)")
-    _SLOWEST[stage] = (own or held)[0]
 
 
 def _cache_path(kernel: Any) -> str | None:
