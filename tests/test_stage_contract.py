@@ -28,10 +28,36 @@ MIRRORS: dict[str, tuple[str, ...]] = {
     "kintinuous_ref.tsdf": tuple(f"kintinuous_fast.tsdf.{t}" for t in TARGETS),
     "kintinuous_ref.raycast": tuple(f"kintinuous_fast.raycast.{t}" for t in TARGETS),
     "kintinuous_ref.colour": tuple(f"kintinuous_fast.colour.{t}" for t in TARGETS),
+    # The odometry: the trackers (the stage module), then one estimator each.
+    "kintinuous_ref.odometry": tuple(f"kintinuous_fast.odometry.{t}" for t in TARGETS),
+    "kintinuous_ref.odometry.icp": tuple(f"kintinuous_fast.odometry.icp.{t}" for t in TARGETS),
+    "kintinuous_ref.odometry.rgbd": tuple(f"kintinuous_fast.odometry.rgbd.{t}" for t in TARGETS),
+    "kintinuous_ref.odometry.solve": tuple(
+        f"kintinuous_fast.odometry.solve.{t}" for t in TARGETS
+    ),
+    # Host code compiled once for both targets.
+    "kintinuous_ref.odometry.combined": ("kintinuous_fast.odometry.combined",),
 }
 
 # (fast module, name) -> why it differs from the reference. The one place for exceptions.
-DELIBERATE: dict[tuple[str, str], str] = {}
+_FAST_VOLUME = (
+    "the fast volume type (int16 TSDF and weight, packed colour: 8 bytes a voxel; in device "
+    "memory for cuda), which make_volume returns and every fast function takes"
+)
+_REFERENCE_VIEW = (
+    "the fast volume as the reference's TsdfVolume on the host, for meshing and output "
+    "(Backend.host_volume)"
+)
+_NO_HOST_COLOUR = (
+    "the fast raycast reads the colour volume inside its kernel (tsdf/voxel.py); host code "
+    "reads colours from Backend.host_volume, the reference's TsdfVolume"
+)
+DELIBERATE: dict[tuple[str, str], str] = {
+    **{(f"kintinuous_fast.tsdf.{t}", "FastTsdfVolume"): _FAST_VOLUME for t in TARGETS},
+    **{(f"kintinuous_fast.tsdf.{t}", "TsdfVolume"): _FAST_VOLUME for t in TARGETS},
+    **{(f"kintinuous_fast.tsdf.{t}", "to_reference_volume"): _REFERENCE_VIEW for t in TARGETS},
+    **{(f"kintinuous_fast.colour.{t}", "surface_colour"): _NO_HOST_COLOUR for t in TARGETS},
+}
 
 
 def reference_names(module: types.ModuleType) -> set[str]:
