@@ -357,18 +357,7 @@ np.testing.assert_allclose([median, p99], 0.0, atol=1e-3)
 
 
 # %%
-from kintinuous_ref.program.benchmark import machine_line, timed
-
-
-def speed_line(name: str, reference: np.ndarray, fast: np.ndarray) -> str:
-    """Medians and interquartile ranges [25th-75th percentile] in ms, and the speed-up's range."""
-    r25, r50, r75 = 1000 * np.percentile(reference, [25, 50, 75])
-    f25, f50, f75 = 1000 * np.percentile(fast, [25, 50, 75])
-    return (
-        f"{name}: reference {r50:.1f} ms [{r25:.1f}-{r75:.1f}], fast (cpu) {f50:.1f} ms "
-        f"[{f25:.1f}-{f75:.1f}], speed-up {r50 / f50:.1f}x [{r25 / f75:.1f}-{r75 / f25:.1f}]"
-    )
-
+from kintinuous_ref.program.benchmark import machine_line, speed_line, timed
 
 frame = frames[fused_indices[-1]]
 pose = poses[fused_indices[-1]]

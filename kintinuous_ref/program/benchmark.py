@@ -138,3 +138,15 @@ def timed(function: Callable[[], Any], repeats: int = 7) -> np.ndarray:
         function()
         times[repeat] = time.perf_counter() - started
     return times
+
+
+def speed_line(name: str, reference: np.ndarray, fast: np.ndarray) -> str:
+    """One line comparing two sets of timings in seconds (`timed`): medians and interquartile
+    ranges [25th-75th percentile] in ms, and the range of the speed-up of `fast` (the cpu
+    backend) over `reference`."""
+    r25, r50, r75 = 1000 * np.percentile(reference, [25, 50, 75])
+    f25, f50, f75 = 1000 * np.percentile(fast, [25, 50, 75])
+    return (
+        f"{name}: reference {r50:.1f} ms [{r25:.1f}-{r75:.1f}], fast (cpu) {f50:.1f} ms "
+        f"[{f25:.1f}-{f75:.1f}], speed-up {r50 / f50:.1f}x [{r25 / f75:.1f}-{r75 / f25:.1f}]"
+    )
