@@ -245,14 +245,14 @@ def test_command_line_offers_every_method_and_config_overrides(tmp_path):
     assert args.odometry == "fovis/icp+rgbd"
     config_file = tmp_path / "config.json"
     config_file.write_text('{"icp": {"iterations": [5, 3, 2]}, "combined.rgbd_weight": 0.5}')
-    config = cli._configured(
+    config = cli.configured(
         Config(), config_file, ["combined.weighting=original-code", "combined.rgbd_weight=0.2"]
     )
     assert config.icp.iterations == (5, 3, 2)
     assert config.combined.weighting == "original-code"
     assert config.combined.rgbd_weight == 0.2  # --set wins over the file
     with pytest.raises(ConfigError, match="unknown configuration key"):
-        cli._configured(Config(), None, ["icp.nonsense=1"])
+        cli.configured(Config(), None, ["icp.nonsense=1"])
 
 
 @pytest.mark.parametrize("method", ["icp", "rgbd", "icp+rgbd"])

@@ -35,7 +35,6 @@ from kintinuous_ref.program.arguments import (
     TUM_BASE_URL,
 )
 from kintinuous_ref.program.config_options import configured
-from kintinuous_ref.program.config_options import configured as _configured  # test_trackers.py
 
 __all__ = [
     "DEFAULT_ODOMETRY",
@@ -45,7 +44,6 @@ __all__ = [
     "OTHER_SEQUENCES",
     "PAPER_SEQUENCES",
     "TUM_BASE_URL",
-    "_configured",
     "build_parser",
     "configured",
     "main",
