@@ -132,21 +132,24 @@ def render_preview(
     if len(mesh.triangles):
         plotter.add_mesh(mesh.to_pyvista(), scalars="rgb", rgb=True, lighting=False)
         if view_pose is not None:
-            # Look at the mesh's centre along the first camera's direction, from a little above,
-            # then back off until the whole mesh fits.
-            centre = mesh.points.mean(axis=0)
-            direction = view_pose[:3, 2] + 0.3 * view_pose[:3, 1]
-            plotter.camera_position = [
-                tuple(centre - direction),
-                tuple(centre),
-                tuple(-view_pose[:3, 1]),
-            ]
-            plotter.reset_camera()
-            plotter.camera.zoom(1.2)
+            look_as_camera(plotter, mesh.points, view_pose, zoom=1.2)
         else:
             plotter.view_isometric()
     plotter.screenshot(str(path))
     plotter.close()
+
+
+def look_as_camera(
+    plotter: pyvista.Plotter, points: np.ndarray, view_pose: np.ndarray, zoom: float
+) -> None:
+    """Point `plotter` at the centre of `points` along the camera `view_pose`'s direction
+    (camera-to-world), from a little above it, backed off until all of them fit, then zoomed in
+    by `zoom`: a picture that resembles that camera's view."""
+    centre = points.mean(axis=0)
+    direction = view_pose[:3, 2] + 0.3 * view_pose[:3, 1]
+    plotter.camera_position = [tuple(centre - direction), tuple(centre), tuple(-view_pose[:3, 1])]
+    plotter.reset_camera()
+    plotter.camera.zoom(zoom)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -280,11 +280,7 @@ def render_mesh(surface: mesh.Mesh, view_pose: np.ndarray) -> np.ndarray:
     plotter = pv.Plotter(off_screen=True, window_size=(800, 600))
     plotter.set_background("white")
     plotter.add_mesh(surface.to_pyvista(), scalars="rgb", rgb=True, lighting=False)
-    centre = surface.points.mean(axis=0)
-    direction = view_pose[:3, 2] + 0.3 * view_pose[:3, 1]
-    plotter.camera_position = [tuple(centre - direction), tuple(centre), tuple(-view_pose[:3, 1])]
-    plotter.reset_camera()
-    plotter.camera.zoom(1.6)
+    mesh.look_as_camera(plotter, surface.points, view_pose, zoom=1.6)
     picture = plotter.screenshot(return_img=True)
     plotter.close()
     return picture

@@ -236,12 +236,7 @@ def render(surface: mesh.Mesh, scalars: np.ndarray | None = None) -> np.ndarray:
             shape, scalars="error", cmap="inferno", clim=(0, 100), lighting=False,
             nan_color="lightgrey", show_scalar_bar=False,
         )  # fmt: skip
-    view = poses[0]
-    centre = surface.points.mean(axis=0)
-    direction = view[:3, 2] + 0.3 * view[:3, 1]
-    plotter.camera_position = [tuple(centre - direction), tuple(centre), tuple(-view[:3, 1])]
-    plotter.reset_camera()
-    plotter.camera.zoom(1.7)
+    mesh.look_as_camera(plotter, surface.points, poses[0], zoom=1.7)
     picture = plotter.screenshot(return_img=True)
     plotter.close()
     return picture

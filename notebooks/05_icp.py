@@ -142,7 +142,7 @@ def rejection_map(pose: np.ndarray, distance: float, angle_deg: float) -> np.nda
 
 
 labels = rejection_map(previous_pose, 0.10, 20.0)
-kept_count = icp.associate(
+world, matched, matched_normals = icp.associate(
     points,
     point_normals,
     previous_pose,
@@ -152,7 +152,8 @@ kept_count = icp.associate(
     camera,
     0.10,
     20.0,
-)[0].shape[1]
+)
+kept_count = world.shape[1]
 assert kept_count == (labels == 4).sum()  # the picture's test is the package's test
 names = ["no depth", "no model", "> 10 cm", "> 20 deg", "kept"]
 fig, ax = plt.subplots(figsize=(6, 3.6))
@@ -205,17 +206,7 @@ print(inspect.getsource(icp.point_to_plane_rows))
 # of eq. 6 (`icp.point_to_plane_cost` applies $\exp(\hat\xi)$ exactly, no linearisation).
 
 # %%
-world, matched, matched_normals = icp.associate(
-    points,
-    point_normals,
-    previous_pose,
-    model_vertices,
-    model_normals,
-    previous_pose,
-    camera,
-    0.10,
-    20.0,
-)
+# (`world`, `matched`, `matched_normals`: the pairs associated above, at the previous pose)
 
 
 def rows_inline(p: np.ndarray, vm: np.ndarray, nm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
