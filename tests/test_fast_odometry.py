@@ -106,7 +106,7 @@ def test_equivalence_cpu_tracker_robust(method, overrides):
 
 
 def test_cpu_inlier_fraction_counts_the_reference_pairs():
-    # The CPU counts the pairs without the sums (icp/cpu.py's _icp_points_pairs): the same
+    # The CPU counts the pairs without the sums (icp/cpu.py's _points_pairs): the same
     # integers.
     from kintinuous_ref.odometry.icp import IcpProblem
     from kintinuous_ref.preprocess import model_pyramid
@@ -120,7 +120,7 @@ def test_cpu_inlier_fraction_counts_the_reference_pairs():
         for pose in cases.poses_to_try(previous, current):
             assert fast.inlier_fraction(pose) == reference.inlier_fraction(pose)
     for level in range(1, 3):  # staged strided maps equal NumPy's copies
-        for fast_map, reference_map in zip(fast.maps(level)[2:], model[level], strict=True):
+        for fast_map, reference_map in zip(fast.model(level), model[level], strict=True):
             assert fast_map.flags.c_contiguous
             np.testing.assert_array_equal(fast_map, reference_map)
 
@@ -179,10 +179,13 @@ def test_make_tracker_backends_and_errors():
 
 
 def test_cpu_icp_helpers_are_the_reference_system_and_valid_count():
-    # _icp_system_and_valid (from the maps) and _icp_points_system (from the valid points,
-    # compacted once per level) are the halves of the CPU's icp_system that the per-frame
-    # problem calls: the reference's system with Huber and depth noise weights, and the number
-    # of valid current vertices the inlier fraction divides by.
+    # _current_points (the valid current points, compacted once per level) and _points_system
+    # (their sums) are the halves of the CPU's icp_system that the per-frame problem calls: the
+    # reference's system with Huber and depth noise weights, and the number of valid current
+    # vertices the inlier fraction divides by; the per-frame problem passes the inverse model
+    # pose it computes once.
+    from kintinuous_fast.odometry.icp import icp_constants, robust_terms
+    from kintinuous_ref import se3
     from kintinuous_ref.odometry import icp as ref_icp
 
     camera, previous, current, _, frame, model = cases.room(160, 120)
@@ -191,18 +194,16 @@ def test_cpu_icp_helpers_are_the_reference_system_and_valid_count():
     reference = ref_icp.icp_system(level.vertices, level.normals, pose, *model[0], previous,
                                    camera, 0.10, 20.0, "huber", 0.005, noise)  # fmt: skip
     valid = ref_icp.valid_points(level.vertices, level.normals)[0].shape[1]
-    limits = (camera, 0.10, 20.0)
-    weights = ("huber", threshold, noise)
-    maps = (level.vertices, level.normals, *model[0])
-    system, count = icp_cpu._icp_system_and_valid(*maps, pose, previous, *limits, *weights)
-    cases.assert_systems_close("icp_system_and_valid", system, reference)
-    assert count == valid
-    points = icp_cpu._valid_points(level.vertices, level.normals)
-    system, count = icp_cpu._icp_points_system(
-        points, *model[0], pose, previous, *limits, None, *weights
-    )
-    cases.assert_systems_close("icp_points_system", system, reference)
-    assert count == valid
+    weights = robust_terms("huber", threshold, noise)
+    points = icp_cpu._current_points(level.vertices, level.normals, camera)
+    for name, inverse in (
+        ("icp_system_and_valid", None),
+        ("icp_points_system", se3.inverse(previous)),
+    ):
+        constants = icp_constants(pose, previous, 0.10, 20.0, inverse)
+        system, count = icp_cpu._points_system(points, model[0], camera, constants, weights)
+        cases.assert_systems_close(name, system, reference)
+        assert count == valid
     # Images of different sizes: a one-line DatasetError naming the one that does not fit.
     with pytest.raises(DatasetError, match=r"intensity_dy is \(120, 159\), expected \(120, 160\)"):
         rgbd_cpu.interest_points(level.intensity_dx, level.intensity_dy[:, 1:], 5.0)

@@ -37,6 +37,17 @@ from typing import Any
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.errors import DatasetError
 
+# kintinuous_ref.odometry's names that both stage modules (cpu.py, cuda.py) export as they are:
+# the trackers, their results and seams (Systems), and the stale-stream rule.
+TRACKER_NAMES = [
+    "DenseTracker",
+    "FovisTracker",
+    "Systems",
+    "Tracker",
+    "TrackingResult",
+    "stale_input",
+]
+
 
 def check_map(name: str, array: Any, camera: Intrinsics) -> None:
     """A (h, w, 3) map of the camera's size, else a one-line DatasetError."""

@@ -1,19 +1,17 @@
 """kintinuous_ref.odometry.combined with the joint system compiled for the host (both backends
 solve on the host, paper IV-A.3): the "degeneracy-aware" weightings (the default among them)
-as one compiled function, the others a scaling and a sum of LinearSystems as in the reference.
+as one compiled function, the others (a scaling and a sum of LinearSystems) the reference's.
 The per-frame CombinedProblem sums a fast backend's ICP and RGB-D problems (either target).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numba
 import numpy as np
 
-from kintinuous_ref.config import CombinedConfig
-from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.odometry import combined as reference
 from kintinuous_ref.odometry.combined import (
     DEGENERACY_THRESHOLD,
     about_camera,
@@ -26,7 +24,7 @@ from kintinuous_ref.odometry.combined import (
     rgbd_scale,
 )
 from kintinuous_ref.odometry.solve import LinearSystem
-from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS, WEIGHTINGS
+from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS
 
 from .solve.matrices import column, product, skew, transposed
 
@@ -123,82 +121,30 @@ def joint_system(
     camera_position: np.ndarray | None = None,
     degeneracy_threshold: float = DEGENERACY_THRESHOLD,
 ) -> LinearSystem:
-    """kintinuous_ref.odometry.combined.joint_system: the same weightings (see there), the
-    degeneracy-aware ones compiled."""
-    if weighting == "degeneracy-aware" or weighting in ROBUST_WEIGHTINGS:
-        centre = np.zeros(3) if camera_position is None else camera_position
-        icp_weight = 1.0 / icp_scale(icp) ** 2
-        a, b = _discounted_joint(
-            icp.A,
-            icp.b,
-            icp.count,
-            icp_weight,
-            rgbd.A,
-            rgbd.b,
-            float(rgbd_weight),
-            np.ascontiguousarray(centre, dtype=np.float64),
-            float(degeneracy_threshold),
-        )
-        cost = icp.cost * icp_weight + rgbd.cost * rgbd_weight
-        return LinearSystem(a, b, icp.count + rgbd.count, cost)
-    if weighting == "paper":
-        return icp.scaled(1.0 / icp_scale(icp) ** 2) + rgbd.scaled(rgbd_weight)
-    if weighting == "paper-metres":
-        return icp + rgbd.scaled(rgbd_weight)
-    if weighting == "information":
-        return icp.scaled(1.0 / icp_scale(icp) ** 2) + rgbd.scaled(
-            rgbd_weight / rgbd_scale(rgbd) ** 2
-        )
-    if weighting in ("original-code", "elasticfusion"):
-        s = original_code_icp_scale
-        return rgbd + icp.scaled(s * s, s)
-    raise ConfigError(f"combined.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    """kintinuous_ref.odometry.combined.joint_system: the degeneracy-aware weightings compiled,
+    the others (a scaling and a sum of LinearSystems) the reference's own."""
+    if weighting != "degeneracy-aware" and weighting not in ROBUST_WEIGHTINGS:
+        return reference.joint_system(icp, rgbd, rgbd_weight, weighting, original_code_icp_scale)
+    centre = np.zeros(3) if camera_position is None else camera_position
+    icp_weight = 1.0 / icp_scale(icp) ** 2
+    a, b = _discounted_joint(
+        icp.A,
+        icp.b,
+        icp.count,
+        icp_weight,
+        rgbd.A,
+        rgbd.b,
+        float(rgbd_weight),
+        np.ascontiguousarray(centre, dtype=np.float64),
+        float(degeneracy_threshold),
+    )
+    cost = icp.cost * icp_weight + rgbd.cost * rgbd_weight
+    return LinearSystem(a, b, icp.count + rgbd.count, cost)
 
 
-class CombinedProblem:
-    """kintinuous_ref.odometry.combined.CombinedProblem (same arguments and checks) over a
-    fast backend's ICP and RGB-D problems, with the compiled joint system."""
+class CombinedProblem(reference.CombinedProblem):
+    """kintinuous_ref.odometry.combined.CombinedProblem (its arguments, checks, from_config and
+    inlier fraction) over a fast backend's ICP and RGB-D problems (either target), summed by
+    the compiled joint system."""
 
-    def __init__(
-        self,
-        icp: Any,
-        rgbd: Any,
-        rgbd_weight: float = 1.0,
-        weighting: str = "paper",
-        original_code_icp_scale: float = 10.0,
-        degeneracy_threshold: float = DEGENERACY_THRESHOLD,
-    ) -> None:
-        check_combination(rgbd_weight, weighting, degeneracy_threshold)
-        self.icp = icp
-        self.rgbd = rgbd
-        self.rgbd_weight = rgbd_weight
-        self.weighting = weighting
-        self.original_code_icp_scale = original_code_icp_scale
-        self.degeneracy_threshold = degeneracy_threshold
-
-    @classmethod
-    def from_config(cls, icp: Any, rgbd: Any, config: CombinedConfig) -> CombinedProblem:
-        """The problem with the weighting of `config.combined` (config.CombinedConfig)."""
-        return cls(
-            icp,
-            rgbd,
-            config.rgbd_weight,
-            config.weighting,
-            config.original_code_icp_scale,
-            config.degeneracy_threshold,
-        )
-
-    def system(self, level: int, pose: np.ndarray) -> LinearSystem:
-        return joint_system(
-            self.icp.system(level, pose),
-            self.rgbd.system(level, pose),
-            self.rgbd_weight,
-            self.weighting,
-            self.original_code_icp_scale,
-            pose[:3, 3],
-            self.degeneracy_threshold,
-        )
-
-    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
-        """The larger of the two terms' fractions (the reference's rule)."""
-        return max(self.icp.inlier_fraction(pose, level), self.rgbd.inlier_fraction(pose, level))
+    _joint_system = staticmethod(joint_system)

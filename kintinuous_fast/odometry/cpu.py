@@ -10,20 +10,21 @@ from __future__ import annotations
 
 import sys
 
+from kintinuous_fast.odometry import TRACKER_NAMES
 from kintinuous_ref import odometry as _reference
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
+from kintinuous_ref.odometry import DenseTracker as DenseTracker
+from kintinuous_ref.odometry import FovisTracker as FovisTracker
 from kintinuous_ref.odometry import (
-    DenseTracker,
-    FovisTracker,
     Systems,
     Tracker,
-    TrackingResult,
     fovis_images,
     is_repeated_frame,
     repeated_streams,
-    stale_input,
 )
+from kintinuous_ref.odometry import TrackingResult as TrackingResult
+from kintinuous_ref.odometry import stale_input as stale_input
 from kintinuous_ref.preprocess import model_pyramid as model_pyramid
 
 from .combined import CombinedProblem as CombinedProblem
@@ -31,21 +32,11 @@ from .icp.cpu import IcpProblem as IcpProblem
 from .rgbd.cpu import RgbdProblem as RgbdProblem
 from .solve import refine as refine
 
-# Beside __all__, the members of Systems (kintinuous_ref.odometry.Systems) that
+# __all__: the reference's objects both targets export (TRACKER_NAMES) and this module's
+# functions. Beside them, the members of Systems (kintinuous_ref.odometry.Systems) that
 # kintinuous_ref.odometry imports rather than defines are imported here too: IcpProblem,
 # RgbdProblem, CombinedProblem, model_pyramid and refine.
-__all__ = [
-    "DenseTracker",
-    "FovisTracker",
-    "Systems",
-    "Tracker",
-    "TrackingResult",
-    "fovis_images",
-    "is_repeated_frame",
-    "make_tracker",
-    "repeated_streams",
-    "stale_input",
-]
+__all__ = [*TRACKER_NAMES, "fovis_images", "is_repeated_frame", "make_tracker", "repeated_streams"]
 
 
 def make_tracker(

@@ -15,6 +15,7 @@ import sys
 import numpy as np
 from numba import cuda
 
+from kintinuous_fast.odometry import TRACKER_NAMES
 from kintinuous_fast.odometry.sums.cuda import stage
 from kintinuous_fast.preprocess.cuda import model_pyramid as model_pyramid
 from kintinuous_fast.targets import is_device, to_host
@@ -22,14 +23,11 @@ from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d
 from kintinuous_ref import odometry as _reference
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
-from kintinuous_ref.odometry import (
-    DenseTracker,
-    FovisTracker,
-    Systems,
-    Tracker,
-    TrackingResult,
-    stale_input,
-)
+from kintinuous_ref.odometry import DenseTracker as DenseTracker
+from kintinuous_ref.odometry import FovisTracker as FovisTracker
+from kintinuous_ref.odometry import Systems, Tracker
+from kintinuous_ref.odometry import TrackingResult as TrackingResult
+from kintinuous_ref.odometry import stale_input as stale_input
 from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel
 
 from .combined import CombinedProblem as CombinedProblem
@@ -37,21 +35,11 @@ from .icp.cuda import IcpProblem as IcpProblem
 from .rgbd.cuda import RgbdProblem as RgbdProblem
 from .solve import refine as refine
 
-# Beside __all__, the members of Systems (kintinuous_ref.odometry.Systems) that
+# __all__: the reference's objects both targets export (TRACKER_NAMES) and this module's
+# functions. Beside them, the members of Systems (kintinuous_ref.odometry.Systems) that
 # kintinuous_ref.odometry imports rather than defines are imported here too: IcpProblem,
 # RgbdProblem, CombinedProblem, model_pyramid and refine.
-__all__ = [
-    "DenseTracker",
-    "FovisTracker",
-    "Systems",
-    "Tracker",
-    "TrackingResult",
-    "fovis_images",
-    "is_repeated_frame",
-    "make_tracker",
-    "repeated_streams",
-    "stale_input",
-]
+__all__ = [*TRACKER_NAMES, "fovis_images", "is_repeated_frame", "make_tracker", "repeated_streams"]
 
 
 @cuda.jit

@@ -6,18 +6,38 @@ problem written once over either target's systems."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
+from kintinuous_fast.odometry import check_map
 from kintinuous_ref import se3
-from kintinuous_ref.camera import axial_noise
-from kintinuous_ref.config import IcpConfig
+from kintinuous_ref.camera import Intrinsics, axial_noise
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.odometry.icp import REFERENCE_DEPTH, robust_threshold
+from kintinuous_ref.odometry.icp import REFERENCE_DEPTH, IcpProblem
 from kintinuous_ref.odometry.solve import LinearSystem
 from kintinuous_ref.vocabulary import ROBUST_KERNELS
+
+# kintinuous_ref.odometry.icp's names that both targets export as they are (host code: checks,
+# weights and the NumPy truth for tests).
+REFERENCE_NAMES = [
+    "depth_noise_scale",
+    "map_columns",
+    "pair_weights",
+    "point_to_plane_cost",
+    "robust_threshold",
+    "robust_weights",
+    "valid_points",
+    "voxel_noise",
+]
+
+
+def check_maps(kind: str, vertices: Any, normals: Any, camera: Intrinsics) -> None:
+    """The `kind` ("current", "model") vertex and normal maps of the camera's size, else a
+    one-line DatasetError naming the one that is not."""
+    check_map(f"{kind} vertex map", vertices, camera)
+    check_map(f"{kind} normal map", normals, camera)
 
 
 def icp_constants(
@@ -65,57 +85,44 @@ def robust_terms(robust_kernel: str, threshold: float, model_noise: float | None
     return kernel_code(robust_kernel), float(threshold), variance, reference
 
 
-class _IcpProblem:
-    """kintinuous_ref.odometry.icp.IcpProblem (the same arguments and checks) over a target's
-    systems: a subclass says how arrays are staged for its kernels (`_stage`) and computes a
-    level's system with the number of valid current points (`system_and_valid`)."""
-
-    def __init__(
-        self,
-        current_levels: Sequence,
-        model_levels: Sequence[tuple[Any, Any]],
-        model_pose: np.ndarray,
-        distance_threshold: float = 0.10,
-        angle_threshold_deg: float = 20.0,
-        robust_kernel: str = "none",
-        robust_noise: float = IcpConfig.robust_noise,
-        model_noise: float | None = None,
-    ) -> None:
-        self.current_levels = current_levels
-        self.model_levels = model_levels
-        self.model_pose = model_pose
-        self.distance_threshold = distance_threshold
-        self.angle_threshold_deg = angle_threshold_deg
-        self.robust_kernel = robust_kernel
-        self.robust_threshold = robust_threshold(robust_kernel, robust_noise)
-        self.model_noise = model_noise
-        self._maps: dict[int, tuple[Any, Any, Any, Any]] = {}
-        self._points: dict[int, Any] = {}  # per level, for targets that compact the valid points
-        self._model_inverse: np.ndarray | None = None
+class _IcpProblem(IcpProblem):
+    """kintinuous_ref.odometry.icp.IcpProblem (its arguments, checks and per-level caches) over a
+    target's systems: `points(level)` and `model(level)` hold what the target's loops or kernels
+    read, staged once per frame and level, and a subclass computes a level's system with the
+    number of valid current points (`system_and_valid`)."""
 
     @staticmethod
     def _stage(array: Any) -> Any:
+        """An array as the target's loops or kernels take it."""
         raise NotImplementedError
 
-    @property
+    @cached_property
     def model_inverse(self) -> np.ndarray:
         """se3.inverse(model_pose), computed (and the pose checked) once per frame."""
-        if self._model_inverse is None:
-            self._model_inverse = se3.inverse(self.model_pose)
-        return self._model_inverse
+        return se3.inverse(self.model_pose)
 
-    def maps(self, level: int) -> tuple[Any, Any, Any, Any]:
-        """The level's current and model maps as the kernels take them, staged once."""
-        if level not in self._maps:
-            current = self.current_levels[level]
-            model_vertices, model_normals = self.model_levels[level]
-            self._maps[level] = (
-                self._stage(current.vertices),
-                self._stage(current.normals),
-                self._stage(model_vertices),
-                self._stage(model_normals),
-            )
-        return self._maps[level]
+    @cached_property
+    def robust(self) -> tuple:
+        """The pairs' weights as the ops take them (robust_terms)."""
+        return robust_terms(self.robust_kernel, self.robust_threshold, self.model_noise)
+
+    def constants(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """icp_constants at `pose`, from the inverse model pose computed once."""
+        return icp_constants(
+            pose,
+            self.model_pose,
+            self.distance_threshold,
+            self.angle_threshold_deg,
+            self.model_inverse,
+        )
+
+    def model(self, level: int) -> tuple[Any, Any]:
+        """The level's model vertex and normal maps, checked and staged once."""
+        if level not in self._model:
+            vertices, normals = self.model_levels[level]
+            check_maps("model", vertices, normals, self.current_levels[level].camera)
+            self._model[level] = (self._stage(vertices), self._stage(normals))
+        return self._model[level]
 
     def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
         """The level's system at `pose` and the number of valid current points."""

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kintinuous_fast.odometry import check_image, check_map
+from kintinuous_fast.odometry import check_image
 from kintinuous_fast.odometry.sums import NV, chunks_for, sum_partials
 from kintinuous_fast.odometry.sums.cpu import (
     BLOCK,
@@ -28,37 +28,22 @@ from kintinuous_fast.targets.cache import register_slowest
 from kintinuous_fast.targets.cpu import claimed_items, parallel_part
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import IcpConfig
-from kintinuous_ref.odometry.icp import (
-    depth_noise_scale,
-    map_columns,
-    pair_weights,
-    point_to_plane_cost,
-    robust_threshold,
-    robust_weights,
-    valid_points,
-    voxel_noise,
-)
+from kintinuous_ref.odometry.icp import depth_noise_scale as depth_noise_scale
+from kintinuous_ref.odometry.icp import map_columns as map_columns
+from kintinuous_ref.odometry.icp import pair_weights as pair_weights
+from kintinuous_ref.odometry.icp import point_to_plane_cost as point_to_plane_cost
+from kintinuous_ref.odometry.icp import robust_threshold
+from kintinuous_ref.odometry.icp import robust_weights as robust_weights
+from kintinuous_ref.odometry.icp import valid_points as valid_points
+from kintinuous_ref.odometry.icp import voxel_noise as voxel_noise
 from kintinuous_ref.odometry.solve import LinearSystem
 
 from . import NO_WEIGHTS as _NO_WEIGHTS
-from . import _IcpProblem, icp_constants, robust_terms
+from . import REFERENCE_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
 from .cpu_block import OPS as _OPS
 from .cpu_block import _block_work, _pair_rows_block
 
-__all__ = [
-    "IcpProblem",
-    "associate",
-    "depth_noise_scale",
-    "icp_system",
-    "map_columns",
-    "pair_weights",
-    "point_to_plane_cost",
-    "point_to_plane_rows",
-    "robust_threshold",
-    "robust_weights",
-    "valid_points",
-    "voxel_noise",
-]
+__all__ = [*REFERENCE_NAMES, "IcpProblem", "associate", "icp_system", "point_to_plane_rows"]
 
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 _icp_match = _OPS.icp_match
@@ -193,131 +178,34 @@ def _valid_points(vertices, normals) -> np.ndarray:
     return points
 
 
-def _run_on_points(
-    loop,
-    out,
-    points,
-    model_vertices,
-    model_normals,
-    pose,
-    model_pose,
-    camera,
-    distance_threshold,
-    angle_threshold_deg,
-    model_inverse,
-    *robust,
-) -> None:
-    """Run an ICP loop over the valid current points into `out` (its per-chunk rows); `robust`:
-    robust_terms for the loops that weigh their rows."""
-    check_map("model vertex map", model_vertices, camera)
-    check_map("model normal map", model_normals, camera)
-    pose, to_model, dist2, cos_min = icp_constants(
-        pose, model_pose, distance_threshold, angle_threshold_deg, model_inverse
-    )
-    intrinsics = pinhole(camera)
-    arguments = (pose, to_model, model_vertices, model_normals, intrinsics, (dist2, cos_min))
-    run(loop, points.shape[1], points, *arguments, *robust, out)
+def _current_points(vertices, normals, camera) -> np.ndarray:
+    """_valid_points of the current maps, checked against the camera."""
+    check_maps("current", vertices, normals, camera)
+    return _valid_points(vertices, normals)
 
 
-def _icp_points_system(
-    points,
-    model_vertices,
-    model_normals,
-    pose,
-    model_pose,
-    camera,
-    distance_threshold,
-    angle_threshold_deg,
-    model_inverse=None,
-    robust_kernel="none",
-    robust_threshold=0.0,
-    model_noise=None,
-) -> tuple[LinearSystem, int]:
-    """icp_system of the valid current points (`_valid_points`) and their number (for the inlier
-    fraction); `model_inverse` as in icp_constants; `robust_threshold` the kernel's k or c
-    in metres (ref icp.robust_threshold); `model_noise` as ref icp.pair_weights'."""
+def _loop_arguments(model, camera, constants) -> tuple:
+    """What every ICP loop takes after the points: (pose, current camera to model camera, model
+    vertex and normal maps, (fx, fy, cx, cy), (squared distance, cos angle)); `constants` =
+    icp_constants."""
+    pose, to_model, dist2, cos_min = constants
+    return (pose, to_model, *model, pinhole(camera), (dist2, cos_min))
+
+
+def _points_system(points, model, camera, constants, robust) -> tuple[LinearSystem, int]:
+    """icp_system of the valid current points (`_valid_points`) against the staged `model` maps,
+    and their number (for the inlier fraction); `robust` = robust_terms."""
     out = partials(points.shape[1])
-    _run_on_points(
-        _icp_loop,
-        out,
-        points,
-        model_vertices,
-        model_normals,
-        pose,
-        model_pose,
-        camera,
-        distance_threshold,
-        angle_threshold_deg,
-        model_inverse,
-        robust_terms(robust_kernel, robust_threshold, model_noise),
-    )
+    run(_icp_loop, points.shape[1], points, *_loop_arguments(model, camera, constants), robust, out)
     return sum_partials(out)
 
 
-def _icp_points_pairs(
-    points,
-    model_vertices,
-    model_normals,
-    pose,
-    model_pose,
-    camera,
-    distance_threshold,
-    angle_threshold_deg,
-    model_inverse=None,
-    robust_kernel="none",
-    robust_threshold=0.0,
-    model_noise=None,
-) -> tuple[int, int]:
-    """icp_pairs of the valid current points (`_valid_points`)."""
+def _points_pairs(points, model, camera, constants) -> tuple[int, int]:
+    """(ICP pairs, valid current points) of _points_system, counted without its sums."""
     out = np.zeros((chunks_for(points.shape[1], CHUNKS), 2))
-    _run_on_points(
-        _icp_pairs_loop,
-        out,
-        points,
-        model_vertices,
-        model_normals,
-        pose,
-        model_pose,
-        camera,
-        distance_threshold,
-        angle_threshold_deg,
-        model_inverse,
-    )
+    run(_icp_pairs_loop, points.shape[1], points, *_loop_arguments(model, camera, constants), out)
     valid, pairs = out.sum(axis=0)
     return int(pairs), int(valid)
-
-
-def _icp_system_and_valid(
-    vertices,
-    normals,
-    model_vertices,
-    model_normals,
-    pose,
-    model_pose,
-    camera,
-    distance_threshold,
-    angle_threshold_deg,
-    robust_kernel="none",
-    robust_threshold=0.0,
-    model_noise=None,
-) -> tuple[LinearSystem, int]:
-    """icp_system and the number of valid current points (for the inlier fraction)."""
-    check_map("current vertex map", vertices, camera)
-    check_map("current normal map", normals, camera)
-    return _icp_points_system(
-        _valid_points(vertices, normals),
-        model_vertices,
-        model_normals,
-        pose,
-        model_pose,
-        camera,
-        distance_threshold,
-        angle_threshold_deg,
-        None,
-        robust_kernel,
-        robust_threshold,
-        model_noise,
-    )
 
 
 def icp_system(
@@ -336,20 +224,12 @@ def icp_system(
 ) -> LinearSystem:
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: association,
     rows and sums in one pass over the current maps (nothing is stored per pair)."""
-    return _icp_system_and_valid(
-        stage(vertices),
-        stage(normals),
-        stage(model_vertices),
-        stage(model_normals),
-        pose,
-        model_pose,
-        camera,
-        distance_threshold,
-        angle_threshold_deg,
-        robust_kernel,
-        robust_threshold(robust_kernel, robust_noise),
-        model_noise,
-    )[0]
+    robust = robust_terms(robust_kernel, robust_threshold(robust_kernel, robust_noise), model_noise)
+    points = _current_points(stage(vertices), stage(normals), camera)
+    model = (stage(model_vertices), stage(model_normals))
+    check_maps("model", *model, camera)
+    constants = icp_constants(pose, model_pose, distance_threshold, angle_threshold_deg)
+    return _points_system(points, model, camera, constants, robust)[0]
 
 
 def associate(
@@ -418,34 +298,25 @@ class IcpProblem(_IcpProblem):
 
     _stage = staticmethod(stage)
 
+    def points(self, level: int) -> np.ndarray:
+        """The level's valid current points as (6, n) columns (_valid_points), computed once."""
+        if level not in self._points:
+            current = self.current_levels[level]
+            vertices, normals = stage(current.vertices), stage(current.normals)
+            self._points[level] = _current_points(vertices, normals, current.camera)
+        return self._points[level]
+
     def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
-        return self._on_points(_icp_points_system, level, pose)
+        camera = self.current_levels[level].camera
+        return _points_system(
+            self.points(level), self.model(level), camera, self.constants(pose), self.robust
+        )
 
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
-        """As the base class, from the pair count alone (_icp_points_pairs): no sums for this
-        one look."""
-        pairs, valid = self._on_points(_icp_points_pairs, level, pose)
-        return pairs / valid if valid else 0.0
-
-    def _on_points(self, function, level: int, pose: np.ndarray):  # noqa: ANN001, ANN202
-        """function(level's valid current points, model maps, pose, ...)."""
-        vertices, normals, model_vertices, model_normals = self.maps(level)
+        """As the base class, from the pair count alone (_points_pairs): no sums for this one
+        look."""
         camera = self.current_levels[level].camera
-        if level not in self._points:
-            check_map("current vertex map", vertices, camera)
-            check_map("current normal map", normals, camera)
-            self._points[level] = _valid_points(vertices, normals)
-        return function(
-            self._points[level],
-            model_vertices,
-            model_normals,
-            pose,
-            self.model_pose,
-            camera,
-            self.distance_threshold,
-            self.angle_threshold_deg,
-            self.model_inverse,
-            self.robust_kernel,
-            self.robust_threshold,
-            self.model_noise,
+        pairs, valid = _points_pairs(
+            self.points(level), self.model(level), camera, self.constants(pose)
         )
+        return pairs / valid if valid else 0.0

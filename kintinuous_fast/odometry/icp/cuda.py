@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import cuda, float64
 
-from kintinuous_fast.odometry import check_image, check_map
+from kintinuous_fast.odometry import check_image
 from kintinuous_fast.odometry.sums import NV, sum_partials
 from kintinuous_fast.odometry.sums.cuda import (
     BLOCK,
@@ -35,35 +35,20 @@ from kintinuous_fast.targets import pinhole, to_host
 from kintinuous_fast.targets.cuda import grid_1d, like_input, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import IcpConfig
-from kintinuous_ref.odometry.icp import (
-    depth_noise_scale,
-    map_columns,
-    pair_weights,
-    point_to_plane_cost,
-    robust_threshold,
-    robust_weights,
-    valid_points,
-    voxel_noise,
-)
+from kintinuous_ref.odometry.icp import depth_noise_scale as depth_noise_scale
+from kintinuous_ref.odometry.icp import map_columns as map_columns
+from kintinuous_ref.odometry.icp import pair_weights as pair_weights
+from kintinuous_ref.odometry.icp import point_to_plane_cost as point_to_plane_cost
+from kintinuous_ref.odometry.icp import robust_threshold
+from kintinuous_ref.odometry.icp import robust_weights as robust_weights
+from kintinuous_ref.odometry.icp import valid_points as valid_points
+from kintinuous_ref.odometry.icp import voxel_noise as voxel_noise
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import _IcpProblem, icp_constants, robust_terms
+from . import NO_WEIGHTS, REFERENCE_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
 from .ops import build_ops
 
-__all__ = [
-    "IcpProblem",
-    "associate",
-    "depth_noise_scale",
-    "icp_system",
-    "map_columns",
-    "pair_weights",
-    "point_to_plane_cost",
-    "point_to_plane_rows",
-    "robust_threshold",
-    "robust_weights",
-    "valid_points",
-    "voxel_noise",
-]
+__all__ = [*REFERENCE_NAMES, "IcpProblem", "associate", "icp_system", "point_to_plane_rows"]
 
 _ops = build_ops(DEVICE, GEOMETRY)
 # Module-level names: numba resolves the device functions as globals of the kernels below.
@@ -140,6 +125,25 @@ def _point_to_plane_kernel(world, mv, mn, jacobian, residuals):
 # Host side
 
 
+def _icp_sums(current, model, camera, constants, robust) -> tuple[LinearSystem, int]:
+    """icp_system of the staged current and model (vertex, normal) maps and the number of valid
+    current points (for the inlier fraction); `constants` = icp_constants, `robust` =
+    robust_terms."""
+    pose, to_model, dist2, cos_min = constants
+    blocks = reduction_blocks(camera.height * camera.width)
+    out = scratch("icp partials", (blocks, NV))
+    _icp_kernel[blocks, BLOCK](
+        *current,
+        upload("icp poses", np.stack((pose, to_model))),
+        *model,
+        pinhole(camera),
+        (dist2, cos_min),
+        robust,
+        out,
+    )
+    return sum_partials(to_host(out))
+
+
 def _icp_system_and_valid(
     vertices,
     normals,
@@ -150,34 +154,18 @@ def _icp_system_and_valid(
     camera,
     distance_threshold,
     angle_threshold_deg,
-    robust_kernel="none",
-    robust_threshold=0.0,
-    model_noise=None,
+    robust=NO_WEIGHTS,
 ) -> tuple[LinearSystem, int]:
-    """icp_system and the number of valid current points (for the inlier fraction);
-    `robust_threshold` the kernel's k or c in metres (ref icp.robust_threshold), `model_noise`
-    as ref icp.pair_weights'."""
-    check_map("current vertex map", vertices, camera)
-    check_map("current normal map", normals, camera)
-    check_map("model vertex map", model_vertices, camera)
-    check_map("model normal map", model_normals, camera)
-    pose, to_model, dist2, cos_min = icp_constants(
-        pose, model_pose, distance_threshold, angle_threshold_deg
+    """icp_system (its pairs weighted by `robust` = robust_terms) and the number of valid
+    current points, from the maps as given (NumPy or device arrays)."""
+    check_maps("current", vertices, normals, camera)
+    check_maps("model", model_vertices, model_normals, camera)
+    constants = icp_constants(pose, model_pose, distance_threshold, angle_threshold_deg)
+    current, model = (
+        (stage(vertices), stage(normals)),
+        (stage(model_vertices), stage(model_normals)),
     )
-    blocks = reduction_blocks(camera.height * camera.width)
-    out = scratch("icp partials", (blocks, NV))
-    _icp_kernel[blocks, BLOCK](
-        stage(vertices),
-        stage(normals),
-        upload("icp poses", np.stack((pose, to_model))),
-        stage(model_vertices),
-        stage(model_normals),
-        pinhole(camera),
-        (dist2, cos_min),
-        robust_terms(robust_kernel, robust_threshold, model_noise),
-        out,
-    )
-    return sum_partials(to_host(out))
+    return _icp_sums(current, model, camera, constants, robust)
 
 
 def icp_system(
@@ -196,20 +184,10 @@ def icp_system(
 ) -> LinearSystem:
     """The 6x6 point-to-plane normal equations of one ICP iteration at one level: one thread per
     pixel(s), block tree reductions, partials added on the host."""
-    return _icp_system_and_valid(
-        vertices,
-        normals,
-        model_vertices,
-        model_normals,
-        pose,
-        model_pose,
-        camera,
-        distance_threshold,
-        angle_threshold_deg,
-        robust_kernel,
-        robust_threshold(robust_kernel, robust_noise),
-        model_noise,
-    )[0]
+    robust = robust_terms(robust_kernel, robust_threshold(robust_kernel, robust_noise), model_noise)
+    maps = (vertices, normals, model_vertices, model_normals)
+    limits = (distance_threshold, angle_threshold_deg)
+    return _icp_system_and_valid(*maps, pose, model_pose, camera, *limits, robust)[0]
 
 
 def associate(
@@ -274,15 +252,17 @@ class IcpProblem(_IcpProblem):
 
     _stage = staticmethod(stage)
 
+    def points(self, level: int) -> tuple:
+        """The level's current vertex and normal maps, checked and uploaded once (the kernel
+        tests each pixel for a valid point itself)."""
+        if level not in self._points:
+            current = self.current_levels[level]
+            check_maps("current", current.vertices, current.normals, current.camera)
+            self._points[level] = (stage(current.vertices), stage(current.normals))
+        return self._points[level]
+
     def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
-        return _icp_system_and_valid(
-            *self.maps(level),
-            pose,
-            self.model_pose,
-            self.current_levels[level].camera,
-            self.distance_threshold,
-            self.angle_threshold_deg,
-            self.robust_kernel,
-            self.robust_threshold,
-            self.model_noise,
+        camera = self.current_levels[level].camera
+        return _icp_sums(
+            self.points(level), self.model(level), camera, self.constants(pose), self.robust
         )
