@@ -9,12 +9,16 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from kintinuous_ref import __version__
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.program.arguments import MIRROR_VARIABLE
 from kintinuous_ref.program.config_options import configured
 from kintinuous_ref.strict_json import dumps as strict_dumps
+
+if TYPE_CHECKING:
+    from kintinuous_ref.datasets.tum import FrameSequence
 
 
 def run_synth(args: argparse.Namespace) -> None:
@@ -79,15 +83,8 @@ def run_reconstruct(args: argparse.Namespace) -> None:
     # will hold it among them
     check_settings(config, args.odometry, load_backend(args.backend), args.loop_closure)
     out = reconstruct.check_output(args.out, args.overwrite)
-    sequence = reconstruct.open_dataset(
-        args.dataset,
-        args.intrinsics,
-        progress=True,
-        size=parse_size(args.size),
-        groundtruth=args.groundtruth,
-        topics=args.topics,
-        frames_needed=args.start + args.frames if args.frames else None,
-    )
+    frames_needed = args.start + args.frames if args.frames else None
+    sequence = open_from_options(args.dataset, args, frames_needed=frames_needed)
     report = reconstruct.reconstruct(
         sequence,
         out,
@@ -127,19 +124,29 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     return int(width), int(height)
 
 
-def run_convert(args: argparse.Namespace) -> None:
-    from kintinuous_ref.datasets import klg, tum
+def open_from_options(
+    dataset: str | None, args: argparse.Namespace, **options: object
+) -> FrameSequence:
+    """The sequence `dataset` read with the input options reconstruct and convert share
+    (--intrinsics, --size, --groundtruth, --topics), with a progress bar; `options` go on to
+    reconstruct.open_dataset."""
     from kintinuous_ref.program import reconstruct
 
-    sequence = reconstruct.open_dataset(
-        args.source,
+    return reconstruct.open_dataset(
+        dataset,
         args.intrinsics,
         progress=True,
         size=parse_size(args.size),
         groundtruth=args.groundtruth,
         topics=args.topics,
-        need_camera=False,
+        **options,
     )
+
+
+def run_convert(args: argparse.Namespace) -> None:
+    from kintinuous_ref.datasets import klg, tum
+
+    sequence = open_from_options(args.source, args, need_camera=False)
     frames = sequence.frames()
     if args.out.suffix == ".klg":
         if args.out.exists():
