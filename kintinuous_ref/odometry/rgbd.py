@@ -246,6 +246,16 @@ def check_gradient(gradient: str) -> None:
 class RgbdProblem:
     """RGB-D odometry for one frame pair: interest points once per level, then any pose."""
 
+    # What the problem computes with. A fast backend's subclass names its own functions, and its
+    # `_stage` puts each image where they read it (once per frame and level); here the arrays
+    # stay as they are.
+    _prepare_level = staticmethod(prepare_level)
+    _rgbd_system = staticmethod(rgbd_system)
+
+    @staticmethod
+    def _stage(image: np.ndarray | None) -> np.ndarray | None:
+        return image
+
     def __init__(
         self,
         previous_levels: Sequence,
@@ -266,36 +276,52 @@ class RgbdProblem:
         self.max_depth = max_depth
         self.gradient = gradient
         self._points: dict[int, InterestPoints] = {}
+        self._previous: dict[int, tuple] = {}
 
     def points(self, level: int) -> InterestPoints:
         """Algorithm 1 for a level of the current frame, computed on first use."""
         if level not in self._points:
             current = self.current_levels[level]
+            stage = self._stage
             threshold = self.min_gradient[min(level, len(self.min_gradient) - 1)]
-            self._points[level] = prepare_level(
-                current.depth,
-                current.intensity,
-                current.intensity_dx,
-                current.intensity_dy,
+            self._points[level] = self._prepare_level(
+                stage(current.depth),
+                stage(current.intensity),
+                stage(current.intensity_dx),
+                stage(current.intensity_dy),
                 current.camera,
                 threshold,
                 self.max_depth,
             )
         return self._points[level]
 
+    def previous(self, level: int) -> tuple:
+        """The previous frame's images of a level that rgbd_system reads: depth, intensity and,
+        in "warped" mode, the gradients (else None)."""
+        if level not in self._previous:
+            previous = self.previous_levels[level]
+            stage = self._stage
+            warped = self.gradient == "warped"
+            self._previous[level] = (
+                stage(previous.depth),
+                stage(previous.intensity),
+                stage(previous.intensity_dx) if warped else None,
+                stage(previous.intensity_dy) if warped else None,
+            )
+        return self._previous[level]
+
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
-        previous = self.previous_levels[level]
-        warped = self.gradient == "warped"
-        return rgbd_system(
+        depth, intensity, dx, dy = self.previous(level)
+        return self._rgbd_system(
             self.points(level),
             pose,
             self.previous_pose,
-            previous.depth,
-            previous.intensity,
-            previous.camera,
+            depth,
+            intensity,
+            self.previous_levels[level].camera,
             self.max_depth_change,
-            previous.intensity_dx if warped else None,
-            previous.intensity_dy if warped else None,
+            dx,
+            dy,
         )
 
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:

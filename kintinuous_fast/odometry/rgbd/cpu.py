@@ -28,32 +28,25 @@ from kintinuous_fast.odometry.sums.cpu import (
 from kintinuous_fast.targets import pinhole
 from kintinuous_fast.targets.cpu import claim_slot, claimed_items, parallel_part, threads
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.odometry.rgbd import (
-    Correspondences,
-    InterestPoints,
-    check_gradient,
-    photometric_residuals,
-    robust_row_weights,
-    sample_bilinear,
-)
+from kintinuous_ref.odometry import rgbd as reference
+from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
+from kintinuous_ref.odometry.rgbd import check_gradient as check_gradient
+from kintinuous_ref.odometry.rgbd import photometric_residuals as photometric_residuals
+from kintinuous_ref.odometry.rgbd import robust_row_weights as robust_row_weights
+from kintinuous_ref.odometry.rgbd import sample_bilinear as sample_bilinear
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import _RgbdProblem, relative_pose
+from . import REFERENCE_NAMES, check_images, relative_pose
 from .ops import build_ops
 
 __all__ = [
-    "Correspondences",
-    "InterestPoints",
+    *REFERENCE_NAMES,
     "RgbdProblem",
-    "check_gradient",
     "correspond",
     "interest_points",
-    "photometric_residuals",
     "photometric_rows",
     "prepare_level",
     "rgbd_system",
-    "robust_row_weights",
-    "sample_bilinear",
 ]
 
 _ops = build_ops(INLINE, GEOMETRY)
@@ -269,9 +262,7 @@ def prepare_level(
     """Interest points with valid depth and their 3D points, intensities and gradients."""
     depth, intensity = stage(depth), stage(intensity)
     dx, dy = stage(intensity_dx), stage(intensity_dy)
-    shape = (camera.height, camera.width)
-    for name, image in (("depth", depth), ("intensity", intensity), ("dx", dx), ("dy", dy)):
-        check_image(f"current {name} image", image, shape)
+    check_images("current", camera, depth=depth, intensity=intensity, dx=dx, dy=dy)
     indices = np.flatnonzero(_interest_mask(dx, dy, depth, min_gradient, max_depth))
     n = len(indices)
     points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
@@ -280,25 +271,23 @@ def prepare_level(
     return InterestPoints(indices, points, values, gradient)
 
 
-def _correspond_all(
-    points,
-    pose,
-    previous_pose,
-    previous_depth,
-    previous_intensity,
-    camera,
-    max_depth_change,
-    previous_dx,
-    previous_dy,
-):
-    """Per interest point: ((9, n) pairs as _correspond_loop writes them, (sum r^2, count))."""
-    previous_depth, previous_intensity = stage(previous_depth), stage(previous_intensity)
-    shape = (camera.height, camera.width)
-    check_image("previous depth image", previous_depth, shape)
-    check_image("previous intensity image", previous_intensity, shape)
-    warped = previous_dx is not None and previous_dy is not None
-    prev_dx = stage(previous_dx) if warped else previous_intensity
-    prev_dy = stage(previous_dy) if warped else previous_intensity
+def _previous_images(depth, intensity, dx, dy, camera) -> tuple[tuple, bool]:
+    """The previous frame's (depth, intensity, dx, dy) as _correspond_loop reads them, checked,
+    and whether the gradients are the previous image's ("warped" mode; without them the
+    intensity stands in for dx and dy, unread)."""
+    depth, intensity = stage(depth), stage(intensity)
+    check_images("previous", camera, depth=depth, intensity=intensity)
+    warped = dx is not None and dy is not None
+    dx = stage(dx) if warped else intensity
+    dy = stage(dy) if warped else intensity
+    return (depth, intensity, dx, dy), warped
+
+
+def _correspond_all(points, pose, previous_pose, previous, camera, max_depth_change):
+    """Per interest point: ((9, n) pairs as _correspond_loop writes them, (sum r^2, count));
+    `previous` = the previous frame's (depth, intensity, dx, dy), dx and dy None but in
+    "warped" mode."""
+    images, warped = _previous_images(*previous, camera)
     n = points.points.shape[1]
     pairs = np.empty((9, n))
     sums = np.zeros((chunks_for(n, CHUNKS), 2))
@@ -310,7 +299,7 @@ def _correspond_all(
         np.ascontiguousarray(points.gradient, dtype=np.float64),
         relative_pose(pose, previous_pose),
         np.ascontiguousarray(pose, dtype=np.float64),
-        (previous_depth, previous_intensity, prev_dx, prev_dy),
+        images,
         warped,
         pinhole(camera),
         float(max_depth_change),
@@ -334,17 +323,8 @@ def correspond(
 ) -> Correspondences:
     """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
     image and d_s tests, in the reference's order."""
-    pairs, _ = _correspond_all(
-        points,
-        pose,
-        previous_pose,
-        previous_depth,
-        previous_intensity,
-        camera,
-        max_depth_change,
-        previous_dx,
-        previous_dy,
-    )
+    previous = (previous_depth, previous_intensity, previous_dx, previous_dy)
+    pairs, _ = _correspond_all(points, pose, previous_pose, previous, camera, max_depth_change)
     kept = np.flatnonzero(~np.isnan(pairs[0]))
     columns = np.take(pairs, kept, axis=1)
     return Correspondences(
@@ -388,17 +368,9 @@ def rgbd_system(
 ) -> LinearSystem:
     """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted: pass 1
     finds the pairs and sum r^2 (sigma'), pass 2 sums the weighted rows."""
-    pairs, (squares, count) = _correspond_all(
-        points,
-        pose,
-        previous_pose,
-        previous_depth,
-        previous_intensity,
-        camera,
-        max_depth_change,
-        previous_dx,
-        previous_dy,
-    )
+    previous = (previous_depth, previous_intensity, previous_dx, previous_dy)
+    arguments = (points, pose, previous_pose, previous, camera, max_depth_change)
+    pairs, (squares, count) = _correspond_all(*arguments)
     if count == 0:
         return LinearSystem.empty()
     sigma = float(np.sqrt(squares / count))
@@ -415,7 +387,7 @@ def rgbd_system(
     return sum_partials(out)[0]
 
 
-class RgbdProblem(_RgbdProblem):
+class RgbdProblem(reference.RgbdProblem):
     """kintinuous_ref.odometry.rgbd.RgbdProblem with the CPU loops underneath."""
 
     _stage = staticmethod(stage)

@@ -45,32 +45,25 @@ from kintinuous_fast.odometry.sums.cuda import (
 from kintinuous_fast.targets import is_device, pinhole, to_host
 from kintinuous_fast.targets.cuda import grid_1d, like_input
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.odometry.rgbd import (
-    Correspondences,
-    InterestPoints,
-    check_gradient,
-    photometric_residuals,
-    robust_row_weights,
-    sample_bilinear,
-)
+from kintinuous_ref.odometry import rgbd as reference
+from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
+from kintinuous_ref.odometry.rgbd import check_gradient as check_gradient
+from kintinuous_ref.odometry.rgbd import photometric_residuals as photometric_residuals
+from kintinuous_ref.odometry.rgbd import robust_row_weights as robust_row_weights
+from kintinuous_ref.odometry.rgbd import sample_bilinear as sample_bilinear
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import _RgbdProblem, relative_pose
+from . import REFERENCE_NAMES, check_images, relative_pose
 from .ops import build_ops
 
 __all__ = [
-    "Correspondences",
-    "InterestPoints",
+    *REFERENCE_NAMES,
     "RgbdProblem",
-    "check_gradient",
     "correspond",
     "interest_points",
-    "photometric_residuals",
     "photometric_rows",
     "prepare_level",
     "rgbd_system",
-    "robust_row_weights",
-    "sample_bilinear",
 ]
 
 _ops = build_ops(DEVICE, GEOMETRY)
@@ -341,14 +334,8 @@ def prepare_level(
 ) -> InterestPoints:
     """Interest points with valid depth and their 3D points, intensities and gradients (on the
     device when `depth` is a device array)."""
-    shape = (camera.height, camera.width)
-    for name, image in (
-        ("depth", depth),
-        ("intensity", intensity),
-        ("dx", intensity_dx),
-        ("dy", intensity_dy),
-    ):
-        check_image(f"current {name} image", image, shape)
+    images = {"depth": depth, "intensity": intensity, "dx": intensity_dx, "dy": intensity_dy}
+    check_images("current", camera, **images)
     d_depth, d_dx, d_dy = stage(depth), stage(intensity_dx), stage(intensity_dy)
     indices, n = _interest_list(d_dx, d_dy, d_depth, min_gradient, max_depth)
     size = max(n, 1)
@@ -367,22 +354,12 @@ def prepare_level(
     return InterestPoints(*result)
 
 
-def _pair_arguments(
-    points,
-    pose,
-    previous_pose,
-    previous_depth,
-    previous_intensity,
-    camera,
-    max_depth_change,
-    previous_dx,
-    previous_dy,
-) -> tuple:
-    """The arguments _warp_point needs, on the device, in the kernels' order; the three poses
-    (relative, current, previous) go up as one array, one copy per iteration."""
-    shape = (camera.height, camera.width)
-    check_image("previous depth image", previous_depth, shape)
-    check_image("previous intensity image", previous_intensity, shape)
+def _pair_arguments(points, pose, previous_pose, previous, camera, max_depth_change) -> tuple:
+    """The arguments _warp_point needs, on the device, in the kernels' order; `previous` = the
+    previous frame's (depth, intensity, dx, dy), dx and dy None but in "warped" mode. The three
+    poses (relative, current, previous) go up as one array, one copy per iteration."""
+    previous_depth, previous_intensity, previous_dx, previous_dy = previous
+    check_images("previous", camera, depth=previous_depth, intensity=previous_intensity)
     prev_i = stage(previous_intensity)
     warped = previous_dx is not None and previous_dy is not None
     poses = (relative_pose(pose, previous_pose), pose, previous_pose)
@@ -425,17 +402,8 @@ def correspond(
 ) -> Correspondences:
     """Algorithm 2: the interest points warped into the previous frame (eq. 2) that pass the
     image and d_s tests, in atomic order (`kept` says which interest point each pair is)."""
-    arguments = _pair_arguments(
-        points,
-        pose,
-        previous_pose,
-        previous_depth,
-        previous_intensity,
-        camera,
-        max_depth_change,
-        previous_dx,
-        previous_dy,
-    )
+    previous = (previous_depth, previous_intensity, previous_dx, previous_dy)
+    arguments = _pair_arguments(points, pose, previous_pose, previous, camera, max_depth_change)
     n = points.points.shape[1]
     pairs, tally = _pair_list(arguments, n)
     kept = int(to_host(tally)[0])
@@ -491,17 +459,8 @@ def rgbd_system(
     """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted:
     Algorithm 2 (list + sum r^2 by atomics), then sigma' and the weighted rows of the listed
     pairs tree-reduced per block; the host waits only for the block partials."""
-    arguments = _pair_arguments(
-        points,
-        pose,
-        previous_pose,
-        previous_depth,
-        previous_intensity,
-        camera,
-        max_depth_change,
-        previous_dx,
-        previous_dy,
-    )
+    previous = (previous_depth, previous_intensity, previous_dx, previous_dy)
+    arguments = _pair_arguments(points, pose, previous_pose, previous, camera, max_depth_change)
     n = points.points.shape[1]
     if n == 0:
         return LinearSystem.empty()
@@ -514,9 +473,10 @@ def rgbd_system(
     return sum_partials(to_host(out))[0]
 
 
-class RgbdProblem(_RgbdProblem):
-    """kintinuous_ref.odometry.rgbd.RgbdProblem with the CUDA kernels underneath (interest points
-    stay on the device for all iterations)."""
+class RgbdProblem(reference.RgbdProblem):
+    """kintinuous_ref.odometry.rgbd.RgbdProblem with the CUDA kernels underneath (the images are
+    uploaded once per frame and level, and the interest points stay on the device for all
+    iterations)."""
 
     _stage = staticmethod(stage)
     _prepare_level = staticmethod(prepare_level)
