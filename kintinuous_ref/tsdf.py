@@ -42,8 +42,29 @@ _BYTES_COLOUR = 16
 _SLAB_VOXELS = 1 << 20
 
 
+class VoxelGrid:
+    """Where a volume's voxels lie, for every volume type (TsdfVolume here, the fast backends'
+    FastTsdfVolume): what reads only its `resolution`, `origin` (the world position of voxel
+    (0, 0, 0)'s centre), `voxel_size` and `offset` (the cyclical buffer's)."""
+
+    @property
+    def shifted(self) -> bool:
+        return bool(np.any(self.offset))
+
+    @property
+    def size(self) -> float:
+        return self.resolution * self.voxel_size
+
+    def world_to_voxel(self, points: np.ndarray) -> np.ndarray:
+        """Continuous voxel coordinates (..., 3) of world points (..., 3)."""
+        return (points - self.origin) / self.voxel_size
+
+    def voxel_to_world(self, coordinates: np.ndarray) -> np.ndarray:
+        return self.origin + coordinates * self.voxel_size
+
+
 @dataclass
-class TsdfVolume:
+class TsdfVolume(VoxelGrid):
     tsdf: np.ndarray  # (N, N, N) float32, indexed [x, y, z]
     weight: np.ndarray  # (N, N, N) float32
     colour: np.ndarray | None  # (N, N, N, 3) float32 RGB 0..255, or None without colour
@@ -59,10 +80,6 @@ class TsdfVolume:
     @property
     def resolution(self) -> int:
         return self.tsdf.shape[0]
-
-    @property
-    def shifted(self) -> bool:
-        return bool(np.any(self.offset))
 
     def logical(self, array: np.ndarray) -> np.ndarray:
         """One of the volume's arrays in logical order (index = logical voxel): the array itself
@@ -82,17 +99,6 @@ class TsdfVolume:
         return np.ix_(
             *((np.arange(a, b) + o) % n for a, b, o in zip(start, stop, self.offset, strict=True))
         )
-
-    @property
-    def size(self) -> float:
-        return self.resolution * self.voxel_size
-
-    def world_to_voxel(self, points: np.ndarray) -> np.ndarray:
-        """Continuous voxel coordinates (..., 3) of world points (..., 3)."""
-        return (points - self.origin) / self.voxel_size
-
-    def voxel_to_world(self, coordinates: np.ndarray) -> np.ndarray:
-        return self.origin + coordinates * self.voxel_size
 
 
 # ----------------------------------------------------------------------------------------------

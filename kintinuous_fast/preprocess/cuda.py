@@ -99,20 +99,14 @@ def _pyrdown_intensity_kernel(image, out):
 def _vertex_kernel(depth, camera, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
-        x, y, z = vertex_pixel(depth, v, u, camera)
-        out[v, u, 0] = x
-        out[v, u, 1] = y
-        out[v, u, 2] = z
+        out[v, u, 0], out[v, u, 1], out[v, u, 2] = vertex_pixel(depth, v, u, camera)
 
 
 @cuda.jit
 def _normal_kernel(vertices, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
-        x, y, z = normal_pixel(vertices, v, u)
-        out[v, u, 0] = x
-        out[v, u, 1] = y
-        out[v, u, 2] = z
+        out[v, u, 0], out[v, u, 1], out[v, u, 2] = normal_pixel(vertices, v, u)
 
 
 @cuda.jit

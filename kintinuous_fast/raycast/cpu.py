@@ -14,13 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from kintinuous_fast.raycast.cpu_near_starts import near_starts, view_constants
+from kintinuous_fast.raycast.cpu_near_starts import near_starts
 from kintinuous_fast.raycast.cpu_ops import OPS, VOXELS
 from kintinuous_fast.raycast.cpu_skip_maps import empty_space, skip_maps_and_near
 from kintinuous_fast.targets import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called
 from kintinuous_fast.targets.cache import register_slowest
 from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
-from kintinuous_fast.tsdf.volume import FastTsdfVolume
+from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
 

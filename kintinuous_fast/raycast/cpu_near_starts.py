@@ -15,7 +15,7 @@ import numpy as np
 
 from kintinuous_fast.raycast.cpu_ops import OPS
 from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
-from kintinuous_fast.tsdf.volume import FastTsdfVolume
+from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_fast.tsdf.voxel import FINE
 from kintinuous_ref.camera import Intrinsics
 
@@ -195,18 +195,6 @@ def _least_over_chunks(claims, parts, starts, out):
             for c in range(1, starts.shape[0]):
                 least = min(least, starts[c, v, u])
             out[v, u] = least
-
-
-def view_constants(volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics) -> tuple:
-    """(camera as float64 fx, fy, cx, cy; rotation; origin; volume origin; voxel size): the
-    view's arguments of the raycast's loops."""
-    return (
-        np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
-        np.ascontiguousarray(pose[:3, :3], dtype=np.float64),
-        np.ascontiguousarray(pose[:3, 3], dtype=np.float64),
-        np.asarray(volume.origin, dtype=np.float64),
-        float(volume.voxel_size),
-    )
 
 
 @parallel_part(error_model="numpy")

@@ -16,7 +16,7 @@ from kintinuous_fast.raycast import ops as raycast_ops
 from kintinuous_fast.targets import cuda_device_jit, to_host
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
 from kintinuous_fast.tsdf import voxel
-from kintinuous_fast.tsdf.volume import FastTsdfVolume
+from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_fast.tsdf.voxel import BRICK
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
@@ -220,6 +220,8 @@ def _cast(
         volume.colour if has_colour else cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
     )
     pose = np.asarray(pose, dtype=np.float64)
+    # the view's arrays (camera, rotation, origin, volume origin) go up; its voxel size as it is
+    *view_arrays, voxel_size = view_constants(volume, pose, camera)
     cast_grid = grid_2d(-(-shape[0] // stride), -(-shape[1] // stride))
     _raycast_kernel[cast_grid, BLOCK_2D](
         volume.tsdf_weight,
@@ -228,11 +230,8 @@ def _cast(
         volume.offsets(),
         empty_space(volume) if skip_empty else _map_that_skips_nothing(),
         _map_that_skips_nothing(),  # no finer level
-        cuda.to_device(np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)),
-        cuda.to_device(np.ascontiguousarray(pose[:3, :3])),
-        cuda.to_device(np.ascontiguousarray(pose[:3, 3])),
-        cuda.to_device(np.asarray(volume.origin, dtype=np.float64)),
-        float(volume.voxel_size),
+        *(cuda.to_device(array) for array in view_arrays),
+        voxel_size,
         STEP_FRACTION * volume.truncation,
         vertices,
         normals,

@@ -26,6 +26,7 @@ from kintinuous_fast.tsdf.volume import (
     NegativeMasks,
     camera_frame_steps,
     check_volume_memory,
+    colour_inputs,
     frustum_box,
     fusion_limits,
     image_size,
@@ -39,6 +40,7 @@ from kintinuous_fast.tsdf.voxel import FINE
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.tsdf import (
+    VoxelGrid,
     available_memory_bytes,
     check_depth,
     corner_weights,
@@ -49,6 +51,7 @@ from kintinuous_ref.tsdf import (
 
 __all__ = [
     "FastTsdfVolume",
+    "VoxelGrid",
     "available_memory_bytes",
     "check_depth",
     "check_volume_config",
@@ -368,16 +371,9 @@ def integrate(
     if box is None:
         return
     ray_distance = ray_distances(depth, camera)
-    fuse_colour = colour is not None and volume.colour is not None
-    if fuse_colour:
-        colour = np.ascontiguousarray(colour, dtype=np.uint8).reshape(-1, 3)
-        if colour_weights is None:
-            colour_weights = (depth > 0).astype(np.float32)
-        colour_weights = np.ascontiguousarray(colour_weights, dtype=np.float32).reshape(-1)
-    else:  # typed placeholders: the loop never reads them
-        colour = np.zeros((1, 3), np.uint8)
-        colour_weights = np.zeros(1, np.float32)
-    colour_volume = volume.colour if volume.colour is not None else np.zeros((1, 1, 1, 4), np.uint8)
+    fuse_colour, colour, colour_weights, colour_volume = colour_inputs(
+        volume, depth, colour, colour_weights, np.ascontiguousarray
+    )
     base, steps = camera_frame_steps(volume, pose)
     visit = columns_to_visit(volume, box, base, steps, camera, ray_distance, pose)
     masks = volume.current_negative_masks()  # kept up to date where known

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import cuda_device_jit, pinhole, to_host
+from kintinuous_fast.targets import cuda_device_jit, pinhole
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel
@@ -22,6 +22,7 @@ from kintinuous_fast.tsdf.volume import (
     FastTsdfVolume,
     camera_frame_steps,
     check_volume_memory,
+    colour_inputs,
     frustum_box,
     fusion_limits,
     image_size,
@@ -33,17 +34,19 @@ from kintinuous_fast.tsdf.volume import (
 )
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.tsdf import available_memory_bytes as _host_memory_bytes
 from kintinuous_ref.tsdf import (
+    VoxelGrid,
     check_depth,
     corner_weights,
     refuse_if_too_big,
     trilinear,
     volume_origin,
 )
+from kintinuous_ref.tsdf import available_memory_bytes as _host_memory_bytes
 
 __all__ = [
     "FastTsdfVolume",
+    "VoxelGrid",
     "available_memory_bytes",
     "check_depth",
     "check_volume_config",
@@ -198,18 +201,9 @@ def integrate(
         return
     ray_distance = cuda.device_array(camera.height * camera.width + 1, dtype=np.float32)
     _ray_distance_kernel[grid, BLOCK_2D](d_depth, pinhole(camera), ray_distance)
-    fuse_colour = colour is not None and volume.colour is not None
-    if fuse_colour:
-        colour = to_device(colour, np.uint8).reshape(-1, 3)
-        if colour_weights is None:
-            colour_weights = (np.asarray(to_host(depth)) > 0).astype(np.float32)
-        colour_weights = to_device(colour_weights, np.float32).reshape(-1)
-    else:
-        colour = cuda.to_device(np.zeros((1, 3), np.uint8))
-        colour_weights = cuda.to_device(np.zeros(1, np.float32))
-    colour_volume = volume.colour
-    if colour_volume is None:
-        colour_volume = cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
+    fuse_colour, colour, colour_weights, colour_volume = colour_inputs(
+        volume, depth, colour, colour_weights, to_device
+    )
     base, steps = camera_frame_steps(volume, pose)
     lo, hi = index_box(box)
     threads = grid_2d(hi[1] - lo[1], hi[2] - lo[2])  # x: k (contiguous in memory), y: j

@@ -24,7 +24,7 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
     namespace."""
     voxels = voxels or voxel_ops.build_ops(jit)
     projection = build_projection(jit)
-    fusion = build_fusion(jit, voxels, projection)
+    fusion = build_fusion(jit, voxels)
     columns = build_columns(jit, voxels, projection, fusion)
     parts = (projection, fusion, columns, build_colour_weight(jit))
     return SimpleNamespace(**{name: f for part in parts for name, f in vars(part).items()})
@@ -89,45 +89,9 @@ def build_projection(jit: Callable[[Any], Any]) -> SimpleNamespace:
     )
 
 
-def build_fusion(
-    jit: Callable[[Any], Any], voxels: SimpleNamespace, projection: SimpleNamespace
-) -> SimpleNamespace:
+def build_fusion(jit: Callable[[Any], Any], voxels: SimpleNamespace) -> SimpleNamespace:
     """One voxel's update from the frame: the TSDF's running average and the colour's."""
     dequantise, quantise = voxels.dequantise, voxels.quantise
-    project_voxel, voxel_norm = projection.project_voxel, projection.voxel_norm
-
-    @jit
-    def update_voxel(
-        tsdf_weight: Any,
-        colour_volume: Any,
-        voxel: tuple,
-        point: tuple,
-        intrinsics: Any,
-        image_size: tuple,
-        ray_distance: Any,
-        limits: tuple,
-        colour: Any,
-        colour_weights: Any,
-        fuse_colour: bool,
-    ) -> int:
-        """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place: the voxel in
-        array cell `voxel` = (ci, cj, ck) whose camera-frame centre is `point` = (x, y, z)
-        (float32): project_voxel, its sdf, then fuse_voxel. Returns fuse_voxel's change of the
-        negative count."""
-        x, y, z = point
-        pixel = project_voxel(x, y, z, intrinsics, image_size)
-        sdf = ray_distance[pixel] - voxel_norm(x, y, z)
-        return fuse_voxel(
-            tsdf_weight,
-            colour_volume,
-            voxel,
-            pixel,
-            sdf,
-            limits,
-            colour,
-            colour_weights,
-            fuse_colour,
-        )
 
     @jit
     def fuse_voxel(
@@ -192,7 +156,7 @@ def build_fusion(
         colour_volume[ci, cj, ck, 3] = min(max(cw_new, 1), 255)
         return change
 
-    return SimpleNamespace(fuse_voxel=fuse_voxel, update_voxel=update_voxel)
+    return SimpleNamespace(fuse_voxel=fuse_voxel)
 
 
 def build_columns(
@@ -202,7 +166,8 @@ def build_columns(
     fusion: SimpleNamespace,
 ) -> SimpleNamespace:
     """A logical voxel's update, and the range of a voxel column a frame can update."""
-    cell, column_start, update_voxel = voxels.cell, projection.column_start, fusion.update_voxel
+    cell, column_start, fuse_voxel = voxels.cell, projection.column_start, fusion.fuse_voxel
+    project_voxel, voxel_norm = projection.project_voxel, projection.voxel_norm
 
     @jit
     def integrate_voxel(
@@ -220,24 +185,25 @@ def build_columns(
         colour_weights: Any,
         fuse_colour: bool,
     ) -> None:
-        """Logical voxel `index` = (i, j, k): p_c = base + i a_x + j a_y + k a_z (float32, the
-        reference's order of additions), then update_voxel on its array cell (the buffer's
-        `offsets` = (o0, o1, o2))."""
+        """One voxel of kintinuous_ref.tsdf.integrate (paper III, VI-A), in place: logical voxel
+        `index` = (i, j, k) at p_c = base + i a_x + j a_y + k a_z (float32, the reference's
+        order of additions), projected (project_voxel), its sdf, then fuse_voxel on its array
+        cell (the buffer's `offsets` = (o0, o1, o2))."""
         i, j, k = index
         o0, o1, o2 = offsets
         px, py, pz = column_start(base, steps, np.float32(i), np.float32(j))
         fk = np.float32(k)
-        point = (px + fk * steps[2, 0], py + fk * steps[2, 1], pz + fk * steps[2, 2])
+        x, y, z = px + fk * steps[2, 0], py + fk * steps[2, 1], pz + fk * steps[2, 2]
         n = tsdf_weight.shape[0]
         voxel = (cell(i, o0, n), cell(j, o1, n), cell(k, o2, n))
-        update_voxel(
+        pixel = project_voxel(x, y, z, intrinsics, image_size)
+        sdf = ray_distance[pixel] - voxel_norm(x, y, z)
+        fuse_voxel(
             tsdf_weight,
             colour_volume,
             voxel,
-            point,
-            intrinsics,
-            image_size,
-            ray_distance,
+            pixel,
+            sdf,
             limits,
             colour,
             colour_weights,
@@ -259,13 +225,13 @@ def build_columns(
     def column_range(
         start: tuple, step: tuple, intrinsics: Any, image_size: tuple, far: float, n: int
     ) -> tuple:
-        """[k0, k1) holding every k of the voxel column p_c(k) = p + k a that update_voxel can
-        change: 0 < z <= far (the largest depth + mu bounds z, as |p_c| <= lambda D + mu) and
+        """[k0, k1) holding every k of the voxel column p_c(k) = p + k a that the frame can
+        update: 0 < z <= far (the largest depth + mu bounds z, as |p_c| <= lambda D + mu) and
         the projection within half a pixel of the image (u in [-1, W], v in [-1, H], i.e.
         fx x + (cx + 1) z >= 0 and (W - cx) z - fx x >= 0 for z > 0, linear in k). A margin of
-        one voxel at each end covers float32 rounding of the voxel positions; update_voxel
-        still makes the exact decision, so only voxels it would skip are left out. `start` = p
-        and `step` = a (float64), `image_size` = (W, H)."""
+        one voxel at each end covers float32 rounding of the voxel positions; fuse_voxel's
+        sdf test still makes the exact decision, so only voxels it would skip are left out.
+        `start` = p and `step` = a (float64), `image_size` = (W, H)."""
         px, py, pz = start
         ax, ay, az = step
         width, height = image_size

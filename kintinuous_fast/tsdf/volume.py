@@ -5,6 +5,7 @@ reference's TsdfVolume, and the moving volume's view of it (SlabView)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +17,7 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.tsdf import (
     TsdfVolume,
+    VoxelGrid,
     available_memory_bytes,
     refuse_if_too_big,
     volume_origin,
@@ -38,7 +40,7 @@ class NegativeMasks:
 
 
 @dataclass
-class FastTsdfVolume:
+class FastTsdfVolume(VoxelGrid):
     """kintinuous_ref.tsdf.TsdfVolume in 8 bytes per voxel, on the host (cpu) or device (cuda).
 
     tsdf_weight[..., 0] = round(F * 32767), tsdf_weight[..., 1] = W; colour[..., :3] = RGB,
@@ -64,10 +66,6 @@ class FastTsdfVolume:
     def resolution(self) -> int:
         return self.tsdf_weight.shape[0]
 
-    @property
-    def shifted(self) -> bool:
-        return bool(np.any(self.offset))
-
     def offsets(self) -> tuple[int, int, int]:
         """The offset as three Python ints (o0, o1, o2), as the kernels take it."""
         o = np.asarray(self.offset, dtype=np.int64) % self.resolution
@@ -82,16 +80,6 @@ class FastTsdfVolume:
 
     def forget_negative_masks(self) -> None:
         self.negative_masks = None
-
-    @property
-    def size(self) -> float:
-        return self.resolution * self.voxel_size
-
-    def world_to_voxel(self, points: np.ndarray) -> np.ndarray:
-        return (points - self.origin) / self.voxel_size
-
-    def voxel_to_world(self, coordinates: np.ndarray) -> np.ndarray:
-        return self.origin + coordinates * self.voxel_size
 
 
 def memory_bytes(config: VolumeConfig) -> int:
@@ -178,6 +166,33 @@ def camera_frame_steps(volume: FastTsdfVolume, pose: np.ndarray) -> tuple[np.nda
     return base, steps
 
 
+def colour_inputs(
+    volume: FastTsdfVolume,
+    depth: Any,
+    colour: Any,
+    colour_weights: Any,
+    convert: Callable[[Any, Any], Any],
+) -> tuple[bool, Any, Any, Any]:
+    """(fuse_colour, colour (H W, 3) uint8, colour weights (H W) float32, colour volume): the
+    integration kernels' colour arguments, each made the target's array by `convert(array,
+    dtype)` (np.ascontiguousarray on the cpu, targets.cuda.to_device on cuda). Colour weights
+    default to 1 where there is depth. Without colour to fuse, or without a colour volume,
+    typed placeholders that the kernels never read stand in."""
+    fuse_colour = colour is not None and volume.colour is not None
+    if fuse_colour:
+        colour = convert(colour, np.uint8).reshape(-1, 3)
+        if colour_weights is None:
+            colour_weights = (np.asarray(to_host(depth)) > 0).astype(np.float32)
+        colour_weights = convert(colour_weights, np.float32).reshape(-1)
+    else:
+        colour = convert(np.zeros((1, 3), np.uint8), np.uint8)
+        colour_weights = convert(np.zeros(1, np.float32), np.float32)
+    colour_volume = volume.colour
+    if colour_volume is None:
+        colour_volume = convert(np.zeros((1, 1, 1, 4), np.uint8), np.uint8)
+    return fuse_colour, colour, colour_weights, colour_volume
+
+
 def projection_constants(camera: Intrinsics) -> np.ndarray:
     """fx, fy, cx, cy as float32: NumPy 2 evaluates the reference's fx * x / z + cx in float32."""
     return np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float32)
@@ -200,6 +215,18 @@ def fusion_limits(volume: FastTsdfVolume) -> tuple[np.float32, np.float32, np.fl
         np.float32(volume.truncation),
         np.float32(volume.max_weight),
         np.float32(volume.colour_max_weight),
+    )
+
+
+def view_constants(volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics) -> tuple:
+    """(camera as float64 fx, fy, cx, cy; rotation; origin; volume origin; voxel size): the
+    view's arguments of the raycast's loops and kernel, on the host."""
+    return (
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64),
+        np.ascontiguousarray(pose[:3, :3], dtype=np.float64),
+        np.ascontiguousarray(pose[:3, 3], dtype=np.float64),
+        np.asarray(volume.origin, dtype=np.float64),
+        float(volume.voxel_size),
     )
 
 
