@@ -27,22 +27,7 @@ CPU = cases.functions("cpu")  # the cpu modules' public functions, for the share
 
 
 @pytest.mark.parametrize("size", SIZES, ids=IDS)
-@pytest.mark.parametrize(
-    "check",
-    [
-        cases.check_icp_system,
-        cases.check_icp_system_robust,
-        cases.check_associate_and_rows,
-        cases.check_interest_points,
-        cases.check_prepare_level,
-        cases.check_correspond_and_rows,
-        cases.check_joint_system,
-        cases.check_zero_depth,
-        cases.check_empty_frustum,
-        cases.check_borders,
-    ],
-    ids=lambda check: check.__name__.removeprefix("check_"),
-)
+@pytest.mark.parametrize("check", cases.LEVEL_CHECKS, ids=cases.check_id)
 def test_equivalence_cpu_odometry(check, size):
     check(CPU, *size)
 

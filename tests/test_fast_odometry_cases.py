@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
@@ -436,6 +437,26 @@ class Model:
 
     def __init__(self, pose: np.ndarray, vertices: np.ndarray, normals: np.ndarray) -> None:
         self.pose, self.vertices, self.normals = pose, vertices, normals
+
+
+# The checks of one pyramid level that both targets' tests run at each of their sizes.
+LEVEL_CHECKS = [
+    check_icp_system,
+    check_icp_system_robust,
+    check_associate_and_rows,
+    check_interest_points,
+    check_prepare_level,
+    check_correspond_and_rows,
+    check_joint_system,
+    check_zero_depth,
+    check_empty_frustum,
+    check_borders,
+]
+
+
+def check_id(check: Callable) -> str:
+    """A check's test id: its name without "check_"."""
+    return check.__name__.removeprefix("check_")
 
 
 def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

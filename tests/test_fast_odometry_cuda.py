@@ -34,23 +34,12 @@ def gpu():
     return cases.functions("cuda")
 
 
+# joint_system is host code, the same as the cpu's: the simulator leaves it out.
+CHECKS = [c for c in cases.LEVEL_CHECKS if not (SIMULATED and c is cases.check_joint_system)]
+
+
 @pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
-@pytest.mark.parametrize(
-    "check",
-    [
-        cases.check_icp_system,
-        cases.check_icp_system_robust,
-        cases.check_associate_and_rows,
-        cases.check_interest_points,
-        cases.check_prepare_level,
-        cases.check_correspond_and_rows,
-        *([] if SIMULATED else [cases.check_joint_system]),  # host code, same as the cpu's
-        cases.check_zero_depth,
-        cases.check_empty_frustum,
-        cases.check_borders,
-    ],
-    ids=lambda check: check.__name__.removeprefix("check_"),
-)
+@pytest.mark.parametrize("check", CHECKS, ids=cases.check_id)
 def test_equivalence_cuda_odometry(gpu, check, size):
     check(gpu, *size)
 

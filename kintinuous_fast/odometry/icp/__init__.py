@@ -31,6 +31,8 @@ REFERENCE_NAMES = [
     "valid_points",
     "voxel_noise",
 ]
+# The names each target computes itself (cpu.py with its loops, cuda.py with its kernels).
+TARGET_NAMES = ["IcpProblem", "associate", "icp_system", "point_to_plane_rows"]
 
 
 def check_maps(kind: str, vertices: Any, normals: Any, camera: Intrinsics) -> None:

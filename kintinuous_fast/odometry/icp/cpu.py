@@ -16,8 +16,10 @@ import numpy as np
 from kintinuous_fast.odometry import check_image
 from kintinuous_fast.odometry.sums import NV, chunks_for, sum_partials
 from kintinuous_fast.odometry.sums.cpu import (
+    ALLOCATING_LOOP,
     BLOCK,
     CHUNKS,
+    LOOP,
     add_block,
     partials,
     run,
@@ -25,7 +27,7 @@ from kintinuous_fast.odometry.sums.cpu import (
 )
 from kintinuous_fast.targets import pinhole
 from kintinuous_fast.targets.cache import register_slowest
-from kintinuous_fast.targets.cpu import claimed_items, parallel_part
+from kintinuous_fast.targets.cpu import claimed_items
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import IcpConfig
 from kintinuous_ref.odometry.icp import depth_noise_scale as depth_noise_scale
@@ -39,11 +41,13 @@ from kintinuous_ref.odometry.icp import voxel_noise as voxel_noise
 from kintinuous_ref.odometry.solve import LinearSystem
 
 from . import NO_WEIGHTS as _NO_WEIGHTS
-from . import REFERENCE_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
+from . import REFERENCE_NAMES, TARGET_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
 from .cpu_block import OPS as _OPS
 from .cpu_block import _block_work, _pair_rows_block
 
-__all__ = [*REFERENCE_NAMES, "IcpProblem", "associate", "icp_system", "point_to_plane_rows"]
+# The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
+# listed in icp/__init__.py.
+__all__ = [*REFERENCE_NAMES, *TARGET_NAMES]
 
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 _icp_match = _OPS.icp_match
@@ -51,15 +55,12 @@ _map_point = _OPS.map_point
 _point_to_plane_row = _OPS.point_to_plane_row
 _weighs_pairs = _OPS.weighs_pairs
 
-_loop = parallel_part()
-_allocating_loop = parallel_part(_nrt=True)  # for loops with work arrays of their own
-
 
 # ----------------------------------------------------------------------------------------------
 # Loops
 
 
-@_loop
+@LOOP
 def _valid_counts(claims, parts, vertices, normals, counts):
     """counts[v] = the valid current points (finite vertex and normal) of row v."""
     for v in claimed_items(claims, vertices.shape[0], parts):
@@ -69,7 +70,7 @@ def _valid_counts(claims, parts, vertices, normals, counts):
         counts[v] = count
 
 
-@_loop
+@LOOP
 def _compact_loop(claims, parts, vertices, normals, starts, points):
     """The valid current points as columns (px, py, pz, nx, ny, nz) in row-major order, row v's
     from column starts[v]."""
@@ -84,7 +85,7 @@ def _compact_loop(claims, parts, vertices, normals, starts, points):
 
 
 @register_slowest("odometry")
-@_allocating_loop
+@ALLOCATING_LOOP
 def _icp_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, robust, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
     out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). `robust` =
@@ -109,7 +110,7 @@ def _icp_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, rob
         out[c] = acc
 
 
-@_allocating_loop
+@ALLOCATING_LOOP
 def _icp_pairs_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, out):
     """out[c] = (valid current points, ICP pairs) of chunk c: the counts of _icp_loop without
     its sums."""
@@ -130,7 +131,7 @@ def _icp_pairs_loop(claims, parts, points, pose, to_model, mv, mn, camera, limit
         out[c, 1] = pairs
 
 
-@_loop
+@LOOP
 def _associate_loop(
     claims, parts, points, normals, pose, to_model, mv, mn, camera, limits, keep, out
 ):
@@ -146,7 +147,7 @@ def _associate_loop(
         out[6, k], out[7, k], out[8, k] = ux, uy, uz
 
 
-@_loop
+@LOOP
 def _point_to_plane_loop(claims, parts, world, mv, mn, jacobian, residuals):
     for k in claimed_items(claims, world.shape[1], parts):
         j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(

@@ -45,10 +45,20 @@ from kintinuous_ref.odometry.icp import valid_points as valid_points
 from kintinuous_ref.odometry.icp import voxel_noise as voxel_noise
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import NO_WEIGHTS, REFERENCE_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
+from . import (
+    NO_WEIGHTS,
+    REFERENCE_NAMES,
+    TARGET_NAMES,
+    _IcpProblem,
+    check_maps,
+    icp_constants,
+    robust_terms,
+)
 from .ops import build_ops
 
-__all__ = [*REFERENCE_NAMES, "IcpProblem", "associate", "icp_system", "point_to_plane_rows"]
+# The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
+# listed in icp/__init__.py.
+__all__ = [*REFERENCE_NAMES, *TARGET_NAMES]
 
 _ops = build_ops(DEVICE, GEOMETRY)
 # Module-level names: numba resolves the device functions as globals of the kernels below.

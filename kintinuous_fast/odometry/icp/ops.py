@@ -34,6 +34,19 @@ def _association(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> Simple
     rint, transform, rotate = geometry.rint, geometry.transform, geometry.rotate
 
     @jit
+    def read_pixel(vertices: Any, normals: Any, v: int, u: int) -> tuple[float, ...]:
+        """(x, y, z, nx, ny, nz): the vertex and normal at pixel (v, u) of two maps, in
+        float64."""
+        return (
+            float(vertices[v, u, 0]),
+            float(vertices[v, u, 1]),
+            float(vertices[v, u, 2]),
+            float(normals[v, u, 0]),
+            float(normals[v, u, 1]),
+            float(normals[v, u, 2]),
+        )
+
+    @jit
     def project_nearest(m: Any, point: tuple, camera: tuple, size: tuple) -> tuple[int, int]:
         """(row, column) of the pixel nearest to m `point` in a camera `camera` = (fx, fy, cx,
         cy) of `size` = (width, height), (-1, -1) behind the camera or outside the image (ref
@@ -79,12 +92,7 @@ def _association(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> Simple
         `limits`)."""
         iv, iu = pixel
         wx, wy, wz = transform(pose, point[0], point[1], point[2])
-        qx = float(model_vertices[iv, iu, 0])
-        qy = float(model_vertices[iv, iu, 1])
-        qz = float(model_vertices[iv, iu, 2])
-        ux = float(model_normals[iv, iu, 0])
-        uy = float(model_normals[iv, iu, 1])
-        uz = float(model_normals[iv, iu, 2])
+        qx, qy, qz, ux, uy, uz = read_pixel(model_vertices, model_normals, iv, iu)
         g = rotate(pose, normal[0], normal[1], normal[2])
         if is_compatible((wx, wy, wz), g, (qx, qy, qz), (ux, uy, uz), limits):
             return True, wx, wy, wz, qx, qy, qz, ux, uy, uz
@@ -115,12 +123,7 @@ def _association(jit: Callable[[Any], Any], geometry: SimpleNamespace) -> Simple
     def map_point(vertices: Any, normals: Any, v: int, u: int) -> tuple[bool, float, ...]:
         """The current vertex and normal at (v, u) in float64; False where any is NaN/inf
         (ref `valid_points`)."""
-        px = float(vertices[v, u, 0])
-        py = float(vertices[v, u, 1])
-        pz = float(vertices[v, u, 2])
-        nx = float(normals[v, u, 0])
-        ny = float(normals[v, u, 1])
-        nz = float(normals[v, u, 2])
+        px, py, pz, nx, ny, nz = read_pixel(vertices, normals, v, u)
         ok = (  # & (not `and`): one branch per point instead of six
             math.isfinite(px)
             & math.isfinite(py)

@@ -23,6 +23,15 @@ REFERENCE_NAMES = [
     "robust_row_weights",
     "sample_bilinear",
 ]
+# The names each target computes itself (cpu.py with its loops, cuda.py with its kernels).
+TARGET_NAMES = [
+    "RgbdProblem",
+    "correspond",
+    "interest_points",
+    "photometric_rows",
+    "prepare_level",
+    "rgbd_system",
+]
 
 
 def check_images(kind: str, camera: Intrinsics, **images: Any) -> None:

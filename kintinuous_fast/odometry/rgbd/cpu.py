@@ -16,17 +16,19 @@ import numpy as np
 from kintinuous_fast.odometry import check_image
 from kintinuous_fast.odometry.sums import NV, chunks_for, sum_partials
 from kintinuous_fast.odometry.sums.cpu import (
+    ALLOCATING_LOOP,
     BLOCK,
     CHUNKS,
     GEOMETRY,
     INLINE,
+    LOOP,
     add_block,
     partials,
     run,
     stage,
 )
 from kintinuous_fast.targets import pinhole
-from kintinuous_fast.targets.cpu import claim_slot, claimed_items, parallel_part, threads
+from kintinuous_fast.targets.cpu import claim_slot, claimed_items, threads
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.odometry import rgbd as reference
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
@@ -36,18 +38,12 @@ from kintinuous_ref.odometry.rgbd import robust_row_weights as robust_row_weight
 from kintinuous_ref.odometry.rgbd import sample_bilinear as sample_bilinear
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import REFERENCE_NAMES, check_images, relative_pose
+from . import REFERENCE_NAMES, TARGET_NAMES, check_images, relative_pose
 from .ops import build_ops
 
-__all__ = [
-    *REFERENCE_NAMES,
-    "RgbdProblem",
-    "correspond",
-    "interest_points",
-    "photometric_rows",
-    "prepare_level",
-    "rgbd_system",
-]
+# The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
+# listed in rgbd/__init__.py.
+__all__ = [*REFERENCE_NAMES, *TARGET_NAMES]
 
 _ops = build_ops(INLINE, GEOMETRY)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
@@ -59,15 +55,12 @@ _warp_sample = _ops.warp_sample
 _photometric_row = _ops.photometric_row
 _robust_weight = _ops.robust_weight
 
-_loop = parallel_part()
-_allocating_loop = parallel_part(_nrt=True)  # for loops with work arrays of their own
-
 
 # ----------------------------------------------------------------------------------------------
 # Loops
 
 
-@_loop
+@LOOP
 def _interest_mask_loop(claims, parts, dx, dy, depth, g2, use_depth, max_depth, mask):
     for v in claimed_items(claims, dx.shape[0], parts):
         for u in range(dx.shape[1]):
@@ -77,7 +70,7 @@ def _interest_mask_loop(claims, parts, dx, dy, depth, g2, use_depth, max_depth, 
             mask[v, u] = keep
 
 
-@_loop
+@LOOP
 def _interest_data_loop(
     claims, parts, indices, depth, intensity, dx, dy, camera, points, values, grad
 ):
@@ -102,7 +95,7 @@ def _warp_block(points, start, stop, relative, camera, warp):
         warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i] = x, y, z, u, v
 
 
-@_loop
+@LOOP
 def _correspond_loop(
     claims,
     parts,
@@ -157,7 +150,7 @@ def _correspond_loop(
                     sums[c, 1] += 1.0
 
 
-@_loop
+@LOOP
 def _photometric_loop(
     claims, parts, world, warped_points, gradient, previous_pose, focal, jacobian
 ):
@@ -202,7 +195,7 @@ def _weighted_rows_block(pairs, start, stop, previous_pose, focal, sigma, rows):
         rows[13 * BLOCK + i], rows[14 * BLOCK + i] = w * j5, w * residual
 
 
-@_allocating_loop
+@ALLOCATING_LOOP
 def _rgbd_rows_loop(claims, parts, pairs, previous_pose, focal, sigma, out):
     """Robustly weighted photometric rows of the kept pairs, summed per chunk (block by block:
     the rows, then their sums, each in a loop that vectorises)."""

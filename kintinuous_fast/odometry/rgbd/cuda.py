@@ -53,18 +53,12 @@ from kintinuous_ref.odometry.rgbd import robust_row_weights as robust_row_weight
 from kintinuous_ref.odometry.rgbd import sample_bilinear as sample_bilinear
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import REFERENCE_NAMES, check_images, relative_pose
+from . import REFERENCE_NAMES, TARGET_NAMES, check_images, relative_pose
 from .ops import build_ops
 
-__all__ = [
-    *REFERENCE_NAMES,
-    "RgbdProblem",
-    "correspond",
-    "interest_points",
-    "photometric_rows",
-    "prepare_level",
-    "rgbd_system",
-]
+# The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
+# listed in rgbd/__init__.py.
+__all__ = [*REFERENCE_NAMES, *TARGET_NAMES]
 
 _ops = build_ops(DEVICE, GEOMETRY)
 # Module-level names: numba resolves the device functions as globals of the kernels below.

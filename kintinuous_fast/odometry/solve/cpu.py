@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from kintinuous_fast.odometry.sums import sum_partials
-from kintinuous_fast.odometry.sums.cpu import add_row, partials, run
-from kintinuous_fast.targets.cpu import claimed_items, parallel_part
+from kintinuous_fast.odometry.sums.cpu import LOOP, add_column, partials, run
+from kintinuous_fast.targets.cpu import claimed_items
 from kintinuous_ref.odometry.solve import LinearSystem, implausible_motion
 
 from . import apply_increment, refine, solve
@@ -24,7 +24,7 @@ __all__ = [
 ]
 
 
-@parallel_part()
+@LOOP
 def _accumulate_loop(claims, parts, jacobian, residuals, weights, weighted, out):
     n = residuals.shape[0]
     chunks = out.shape[0]
@@ -32,15 +32,7 @@ def _accumulate_loop(claims, parts, jacobian, residuals, weights, weighted, out)
         acc = out[c]
         for k in range(c * n // chunks, (c + 1) * n // chunks):
             w = weights[k] if weighted else 1.0
-            row = (
-                jacobian[0, k],
-                jacobian[1, k],
-                jacobian[2, k],
-                jacobian[3, k],
-                jacobian[4, k],
-                jacobian[5, k],
-            )
-            add_row(acc, row, residuals[k], w)
+            add_column(acc, jacobian, k, residuals[k], w)
 
 
 def accumulate(

@@ -12,7 +12,7 @@ from numba import cuda, float64
 from kintinuous_fast.odometry.sums import NV, sum_partials
 from kintinuous_fast.odometry.sums.cuda import (
     BLOCK,
-    add_row,
+    add_column,
     block_reduce,
     f64,
     reduction_blocks,
@@ -40,15 +40,7 @@ def _accumulate_kernel(jacobian, residuals, weights, weighted, out):
     zero(acc)
     for k in range(cuda.grid(1), residuals.shape[0], cuda.gridsize(1)):
         w = weights[k] if weighted else 1.0
-        row = (
-            jacobian[0, k],
-            jacobian[1, k],
-            jacobian[2, k],
-            jacobian[3, k],
-            jacobian[4, k],
-            jacobian[5, k],
-        )
-        add_row(acc, row, residuals[k], w)
+        add_column(acc, jacobian, k, residuals[k], w)
     block_reduce(acc, shared, out)
 
 

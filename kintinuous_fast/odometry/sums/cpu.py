@@ -20,18 +20,21 @@ import numpy as np
 
 from kintinuous_fast.odometry import ops as geometry_ops
 from kintinuous_fast.targets import to_host
-from kintinuous_fast.targets.cpu import run_parallel_above
+from kintinuous_fast.targets.cpu import parallel_part, run_parallel_above
 
 from . import NV, SLOT_B, SLOT_COST, SLOT_COUNT, chunks_for
 from .ops import build_ops
 
 __all__ = [
+    "ALLOCATING_LOOP",
     "BLOCK",
     "CHUNKS",
     "GEOMETRY",
     "INLINE",
+    "LOOP",
     "PARALLEL_MIN",
     "add_block",
+    "add_column",
     "add_row",
     "partials",
     "run",
@@ -52,9 +55,16 @@ BLOCK = 128
 # The decorator of every per-element op on the CPU (module docstring).
 INLINE = numba.njit(cache=True, inline="always")
 GEOMETRY = geometry_ops.build_ops(INLINE)
-# A module-level name: numba resolves the scalar functions as globals of the loops that call
+# Module-level names: numba resolves the scalar functions as globals of the loops that call
 # them.
-add_row = build_ops(INLINE).add_row
+_ops = build_ops(INLINE)
+add_row = _ops.add_row
+add_column = _ops.add_column
+
+# The decorators of the odometry's CPU loops (run by `run`): LOOP for those that allocate
+# nothing, ALLOCATING_LOOP for those with work arrays of their own.
+LOOP = parallel_part()
+ALLOCATING_LOOP = parallel_part(_nrt=True)
 
 
 @numba.njit(cache=True, fastmath={"reassoc"})

@@ -30,6 +30,7 @@ __all__ = [
     "DEVICE",
     "GEOMETRY",
     "MAX_BLOCKS",
+    "add_column",
     "add_row",
     "block_reduce",
     "counter",
@@ -54,6 +55,7 @@ GEOMETRY = geometry_ops.build_ops(DEVICE)
 _ops = build_ops(DEVICE)
 zero = _ops.zero
 add_row = _ops.add_row
+add_column = _ops.add_column
 
 
 @cuda.jit(device=True)

@@ -11,7 +11,7 @@ from . import NV
 
 
 def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
-    """zero and add_row compiled with `jit`."""
+    """zero, add_row and add_column compiled with `jit`."""
 
     @jit
     def zero(acc: Any) -> None:
@@ -60,4 +60,18 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         acc[27] += w * r * r
         acc[28] += 1.0
 
-    return SimpleNamespace(zero=zero, add_row=add_row)
+    @jit
+    def add_column(acc: Any, jacobian: Any, k: int, r: float, w: float) -> None:
+        """add_row of the row stored as column k of a (6, N) `jacobian` (ref accumulate's
+        layout)."""
+        row = (
+            jacobian[0, k],
+            jacobian[1, k],
+            jacobian[2, k],
+            jacobian[3, k],
+            jacobian[4, k],
+            jacobian[5, k],
+        )
+        add_row(acc, row, r, w)
+
+    return SimpleNamespace(zero=zero, add_row=add_row, add_column=add_column)
