@@ -23,17 +23,9 @@ from kintinuous_ref.odometry.rgbd import RgbdProblem, correspond, photometric_ro
 from kintinuous_ref.odometry.solve import accumulate, refine, solve
 
 
-def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    difference = se3.inverse(truth) @ estimate
-    return 1000 * float(np.linalg.norm(difference[:3, 3])), float(
-        np.degrees(se3.rotation_angle(difference[:3, :3]))
-    )
-
-
 @pytest.fixture(scope="module")
 def room():
-    previous = scene.look_pose([0.1, -0.1, 0.2], 5, -10)
-    current = previous @ se3.exp(np.array([0.01, -0.02, 0.015, 0.02, -0.01, 0.03]))
+    previous, current = scene.room_poses()
     previous_frame, current_frame = scene.frame(previous, levels=3), scene.frame(current, levels=3)
     icp = IcpProblem(current_frame.levels, scene.model(previous), previous)
     rgbd = RgbdProblem(previous_frame.levels, current_frame.levels, previous)
@@ -99,7 +91,7 @@ def test_known_motion_is_recovered(room):
     previous, current, icp, rgbd = room
     estimate, reason = refine(previous.copy(), CombinedProblem(icp, rgbd).system, (10, 5, 4))
     assert reason == ""
-    translation_mm, rotation_deg = pose_error(estimate, current)
+    translation_mm, rotation_deg = scene.pose_error(estimate, current)
     assert translation_mm < 1.0 and rotation_deg < 0.1  # noise-free: 1 mm / 0.1 degree
 
 
@@ -117,7 +109,7 @@ def test_corridor_icp_is_singular_and_joint_holds():
     rgbd = RgbdProblem(previous_frame.levels, current_frame.levels, previous)
     estimate, reason = refine(previous.copy(), CombinedProblem(icp, rgbd).system, (10, 5, 4))
     assert reason == ""
-    translation_mm, rotation_deg = pose_error(estimate, current)
+    translation_mm, rotation_deg = scene.pose_error(estimate, current)
     assert translation_mm < 1.0 and rotation_deg < 0.1
 
 

@@ -9,7 +9,6 @@ import numpy as np
 import odometry_scene as scene
 import pytest
 
-from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.odometry.icp import (
     IcpProblem,
@@ -25,20 +24,9 @@ from kintinuous_ref.odometry.icp import (
 from kintinuous_ref.odometry.solve import LinearSystem, accumulate, refine, solve
 
 
-def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    """Translation (mm) and rotation (deg) of estimate relative to truth."""
-    difference = se3.inverse(truth) @ estimate
-    return 1000 * float(np.linalg.norm(difference[:3, 3])), float(
-        np.degrees(se3.rotation_angle(difference[:3, :3]))
-    )
-
-
 @pytest.fixture(scope="module")
 def room_pair():
-    previous = scene.look_pose([0.1, -0.1, 0.2], 5, -10)
-    # About 3 cm and 1.5 degrees: a brisk hand-held frame-to-frame motion at 30 Hz.
-    motion = se3.exp(np.array([0.01, -0.02, 0.015, 0.02, -0.01, 0.03]))
-    current = previous @ motion
+    previous, current = scene.room_poses()
     return previous, current, scene.frame(current, levels=3), scene.model(previous)
 
 
@@ -47,7 +35,7 @@ def test_known_motion_is_recovered(room_pair):
     problem = IcpProblem(frame.levels, model, previous)
     estimate, reason = refine(previous.copy(), problem.system, (10, 5, 4))
     assert reason == ""
-    translation_mm, rotation_deg = pose_error(estimate, current)
+    translation_mm, rotation_deg = scene.pose_error(estimate, current)
     # Noise-free exact geometry: the brief's 1 mm / 0.1 degree, with a wide margin in practice.
     assert translation_mm < 1.0
     assert rotation_deg < 0.1
@@ -170,21 +158,10 @@ def test_nan_model_pixels_are_never_matched(room_pair):
     for vertices, normals in holed:
         vertices[:, : vertices.shape[1] // 2] = np.nan
         normals[:, : normals.shape[1] // 2] = np.nan
-    full = icp_system(
-        frame.levels[0].vertices,
-        frame.levels[0].normals,
-        current,
-        *model[0],
-        previous,
-        frame.levels[0].camera,
-    )
-    half = icp_system(
-        frame.levels[0].vertices,
-        frame.levels[0].normals,
-        current,
-        *holed[0],
-        previous,
-        frame.levels[0].camera,
+    level = frame.levels[0]
+    full, half = (
+        icp_system(level.vertices, level.normals, current, *maps, previous, level.camera)
+        for maps in (model[0], holed[0])
     )
     assert np.isfinite(half.A).all() and np.isfinite(half.b).all()
     # About half the image loses its model: between 30% and 70% of the pairs remain.
@@ -283,7 +260,7 @@ def test_robust_kernels_ignore_a_foreground_object(room_pair):
         problem = IcpProblem(levels, model, previous, robust_kernel=kernel)
         estimate, reason = refine(previous.copy(), problem.system, (10, 5, 4))
         assert reason == ""
-        errors[kernel] = pose_error(estimate, current)[0]
+        errors[kernel] = scene.pose_error(estimate, current)[0]
     # Least squares lands ~3 cm off; Huber bounds each outlier's pull (~8 mm); Tukey's c = 23 mm
     # gives the 5 cm pairs weight 0 at the truth, which is then an exact fixed point.
     assert errors["none"] > 20.0, errors

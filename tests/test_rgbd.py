@@ -24,18 +24,9 @@ from kintinuous_ref.odometry.rgbd import (
 from kintinuous_ref.odometry.solve import refine
 
 
-def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    difference = se3.inverse(truth) @ estimate
-    return 1000 * float(np.linalg.norm(difference[:3, 3])), float(
-        np.degrees(se3.rotation_angle(difference[:3, :3]))
-    )
-
-
 @pytest.fixture(scope="module")
 def room_pair():
-    previous = scene.look_pose([0.1, -0.1, 0.2], 5, -10)
-    motion = se3.exp(np.array([0.01, -0.02, 0.015, 0.02, -0.01, 0.03]))
-    current = previous @ motion
+    previous, current = scene.room_poses()
     return previous, current, scene.frame(previous), scene.frame(current)
 
 
@@ -45,7 +36,7 @@ def test_known_motion_is_recovered(room_pair, gradient):
     problem = RgbdProblem(previous_frame.levels, current_frame.levels, previous, gradient=gradient)
     estimate, reason = refine(previous.copy(), problem.system, (10, 7, 7, 7))
     assert reason == ""
-    translation_mm, rotation_deg = pose_error(estimate, current)
+    translation_mm, rotation_deg = scene.pose_error(estimate, current)
     # Noise-free: the brief's 1 mm / 0.1 degree (we observe ~0.05 mm / 0.001 degree; what is
     # left comes from the Sobel derivatives of the sampled texture).
     assert translation_mm < 1.0

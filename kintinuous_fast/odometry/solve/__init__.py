@@ -26,6 +26,9 @@ from kintinuous_ref.odometry.solve import MAX_CONDITION, LinearSystem
 from .matrices import product, skew
 
 __all__ = ["apply_increment", "refine", "solve"]
+# What each target's module (solve/cpu.py, solve/cuda.py) exports: kintinuous_ref.odometry.solve's
+# own LinearSystem and plausibility test, this module's compiled step and its own `accumulate`.
+TARGET_ALL = ["LinearSystem", "accumulate", *__all__, "implausible_motion"]
 
 _jit = numba.njit(cache=True)
 

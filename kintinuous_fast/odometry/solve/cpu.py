@@ -10,18 +10,15 @@ import numpy as np
 from kintinuous_fast.odometry.sums import sum_partials
 from kintinuous_fast.odometry.sums.cpu import LOOP, add_column, partials, run
 from kintinuous_fast.targets.cpu import claimed_items
-from kintinuous_ref.odometry.solve import LinearSystem, implausible_motion
+from kintinuous_ref.odometry.solve import LinearSystem
+from kintinuous_ref.odometry.solve import implausible_motion as implausible_motion
 
-from . import apply_increment, refine, solve
+from . import TARGET_ALL
+from . import apply_increment as apply_increment
+from . import refine as refine
+from . import solve as solve
 
-__all__ = [
-    "LinearSystem",
-    "accumulate",
-    "apply_increment",
-    "implausible_motion",
-    "refine",
-    "solve",
-]
+__all__ = TARGET_ALL
 
 
 @LOOP

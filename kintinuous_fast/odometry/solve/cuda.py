@@ -19,18 +19,15 @@ from kintinuous_fast.odometry.sums.cuda import (
     zero,
 )
 from kintinuous_fast.targets import to_host
-from kintinuous_ref.odometry.solve import LinearSystem, implausible_motion
+from kintinuous_ref.odometry.solve import LinearSystem
+from kintinuous_ref.odometry.solve import implausible_motion as implausible_motion
 
-from . import apply_increment, refine, solve
+from . import TARGET_ALL
+from . import apply_increment as apply_increment
+from . import refine as refine
+from . import solve as solve
 
-__all__ = [
-    "LinearSystem",
-    "accumulate",
-    "apply_increment",
-    "implausible_motion",
-    "refine",
-    "solve",
-]
+__all__ = TARGET_ALL
 
 
 @cuda.jit
