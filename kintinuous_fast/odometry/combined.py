@@ -147,4 +147,4 @@ class CombinedProblem(reference.CombinedProblem):
     inlier fraction) over a fast backend's ICP and RGB-D problems (either target), summed by
     the compiled joint system."""
 
-    _joint_system = staticmethod(joint_system)
+    joint_system = staticmethod(joint_system)

@@ -155,6 +155,10 @@ class Systems(Protocol):
     - CombinedProblem: combined.py's, with from_config(icp, rgbd, config.combined) and the
       `icp` and `rgbd` it sums (a tracker drops to one of them when the other's stream is
       stale).
+    - A fast backend's problems are these classes over its own functions, which they name as
+      class attributes: RgbdProblem's prepare_level, rgbd_system and stage (where an image goes
+      before they read it), CombinedProblem's joint_system; its IcpProblem keeps the
+      reference's arguments, checks and caches and computes each level's system itself.
     - model_pyramid(vertices, normals, levels): kintinuous_ref.preprocess's.
     - refine(pose, system_at, iterations, min_count, converged, step): solve.py's.
     - repeated_streams(previous, current) and fovis_images(frame): this module's.

@@ -239,8 +239,9 @@ def check_combination(rgbd_weight: float, weighting: str, degeneracy_threshold: 
 class CombinedProblem:
     """ICP against the model and RGB-D against the previous frame, summed per iteration."""
 
-    # The function that sums the two systems: a fast backend's subclass gives its compiled one.
-    _joint_system = staticmethod(joint_system)
+    # The function that sums the two systems (eq. 11-13): the seam of a fast backend, whose
+    # CombinedProblem is this class over its compiled joint_system.
+    joint_system = staticmethod(joint_system)
 
     def __init__(
         self,
@@ -274,7 +275,7 @@ class CombinedProblem:
         )
 
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
-        return self._joint_system(
+        return self.joint_system(
             self.icp.system(level, pose),
             self.rgbd.system(level, pose),
             self.rgbd_weight,

@@ -246,14 +246,15 @@ def check_gradient(gradient: str) -> None:
 class RgbdProblem:
     """RGB-D odometry for one frame pair: interest points once per level, then any pose."""
 
-    # What the problem computes with. A fast backend's subclass names its own functions, and its
-    # `_stage` puts each image where they read it (once per frame and level); here the arrays
-    # stay as they are.
-    _prepare_level = staticmethod(prepare_level)
-    _rgbd_system = staticmethod(rgbd_system)
+    # What the problem computes with: Algorithm 1 per level, the system of a pose, and `stage`,
+    # which puts an image where those two read it (once per frame and level). This is the seam
+    # of a fast backend, whose RgbdProblem is this class over its own loops or kernels; here
+    # the NumPy arrays are read where they are.
+    prepare_level = staticmethod(prepare_level)
+    rgbd_system = staticmethod(rgbd_system)
 
     @staticmethod
-    def _stage(image: np.ndarray | None) -> np.ndarray | None:
+    def stage(image: np.ndarray | None) -> np.ndarray | None:
         return image
 
     def __init__(
@@ -282,9 +283,9 @@ class RgbdProblem:
         """Algorithm 1 for a level of the current frame, computed on first use."""
         if level not in self._points:
             current = self.current_levels[level]
-            stage = self._stage
+            stage = self.stage
             threshold = self.min_gradient[min(level, len(self.min_gradient) - 1)]
-            self._points[level] = self._prepare_level(
+            self._points[level] = self.prepare_level(
                 stage(current.depth),
                 stage(current.intensity),
                 stage(current.intensity_dx),
@@ -300,7 +301,7 @@ class RgbdProblem:
         in "warped" mode, the gradients (else None)."""
         if level not in self._previous:
             previous = self.previous_levels[level]
-            stage = self._stage
+            stage = self.stage
             warped = self.gradient == "warped"
             self._previous[level] = (
                 stage(previous.depth),
@@ -312,7 +313,7 @@ class RgbdProblem:
 
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
         depth, intensity, dx, dy = self.previous(level)
-        return self._rgbd_system(
+        return self.rgbd_system(
             self.points(level),
             pose,
             self.previous_pose,

@@ -6,6 +6,7 @@ problem written once over either target's systems."""
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from functools import cached_property
 from typing import Any
 
@@ -87,16 +88,16 @@ def robust_terms(robust_kernel: str, threshold: float, model_noise: float | None
     return kernel_code(robust_kernel), float(threshold), variance, reference
 
 
-class _IcpProblem(IcpProblem):
+class _IcpProblem(IcpProblem, ABC):
     """kintinuous_ref.odometry.icp.IcpProblem (its arguments, checks and per-level caches) over a
     target's systems: `points(level)` and `model(level)` hold what the target's loops or kernels
     read, staged once per frame and level, and a subclass computes a level's system with the
     number of valid current points (`system_and_valid`)."""
 
     @staticmethod
-    def _stage(array: Any) -> Any:
+    @abstractmethod
+    def stage(array: Any) -> Any:
         """An array as the target's loops or kernels take it."""
-        raise NotImplementedError
 
     @cached_property
     def model_inverse(self) -> np.ndarray:
@@ -123,12 +124,12 @@ class _IcpProblem(IcpProblem):
         if level not in self._model:
             vertices, normals = self.model_levels[level]
             check_maps("model", vertices, normals, self.current_levels[level].camera)
-            self._model[level] = (self._stage(vertices), self._stage(normals))
+            self._model[level] = (self.stage(vertices), self.stage(normals))
         return self._model[level]
 
+    @abstractmethod
     def system_and_valid(self, level: int, pose: np.ndarray) -> tuple[LinearSystem, int]:
         """The level's system at `pose` and the number of valid current points."""
-        raise NotImplementedError
 
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
         return self.system_and_valid(level, pose)[0]

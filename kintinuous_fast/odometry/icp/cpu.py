@@ -297,7 +297,7 @@ class IcpProblem(_IcpProblem):
     """kintinuous_ref.odometry.icp.IcpProblem with the CPU loops underneath; each level's valid
     current points are compacted once, on first use, for all of its iterations."""
 
-    _stage = staticmethod(stage)
+    stage = staticmethod(stage)
 
     def points(self, level: int) -> np.ndarray:
         """The level's valid current points as (6, n) columns (_valid_points), computed once."""

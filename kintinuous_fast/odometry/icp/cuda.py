@@ -260,7 +260,7 @@ class IcpProblem(_IcpProblem):
     """kintinuous_ref.odometry.icp.IcpProblem with the CUDA kernels underneath (maps uploaded
     once per frame and level)."""
 
-    _stage = staticmethod(stage)
+    stage = staticmethod(stage)
 
     def points(self, level: int) -> tuple:
         """The level's current vertex and normal maps, checked and uploaded once (the kernel

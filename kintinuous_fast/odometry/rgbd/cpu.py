@@ -383,6 +383,6 @@ def rgbd_system(
 class RgbdProblem(reference.RgbdProblem):
     """kintinuous_ref.odometry.rgbd.RgbdProblem with the CPU loops underneath."""
 
-    _stage = staticmethod(stage)
-    _prepare_level = staticmethod(prepare_level)
-    _rgbd_system = staticmethod(rgbd_system)
+    stage = staticmethod(stage)
+    prepare_level = staticmethod(prepare_level)
+    rgbd_system = staticmethod(rgbd_system)

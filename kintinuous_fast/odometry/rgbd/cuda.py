@@ -472,6 +472,6 @@ class RgbdProblem(reference.RgbdProblem):
     uploaded once per frame and level, and the interest points stay on the device for all
     iterations)."""
 
-    _stage = staticmethod(stage)
-    _prepare_level = staticmethod(prepare_level)
-    _rgbd_system = staticmethod(rgbd_system)
+    stage = staticmethod(stage)
+    prepare_level = staticmethod(prepare_level)
+    rgbd_system = staticmethod(rgbd_system)
