@@ -38,7 +38,7 @@ def pair_systems(dataset: str, size: tuple[int, int], pairs: list[int], config: 
     sequence = open_dataset(dataset)
     truth = sequence.groundtruth_for_frames().poses
     camera = sequence.camera.resized(*size)
-    fast = kintinuous_fast.select_backend("cpu")
+    fast = kintinuous_fast.load_backend("cpu")
     volume = fast.tsdf.make_volume(config.volume, truth[0])
     frames, models = [], {}
     for index, frame in enumerate(sequence.frames(0, max(pairs) + 2)):

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from kintinuous_fast import select_backend
+from kintinuous_fast import load_backend
 from kintinuous_fast.odometry import cpu as cpu_odometry
 from kintinuous_fast.odometry.icp import cpu as cpu_icp
 from kintinuous_fast.odometry.rgbd import cpu as cpu_rgbd
@@ -79,8 +79,8 @@ def speed(scene: str, count: int, config: Config) -> dict[str, tuple[float, floa
     timings: dict[str, list[tuple[float, float]]] = {}
     trackers = {
         method: (
-            select_backend("ref").odometry.make_tracker(method, config, camera),
-            select_backend("cpu").odometry.make_tracker(method, config, camera),
+            load_backend("ref").odometry.make_tracker(method, config, camera),
+            load_backend("cpu").odometry.make_tracker(method, config, camera),
         )
         for method in ("icp", "rgbd", "icp+rgbd")
     }

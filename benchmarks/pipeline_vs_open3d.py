@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from kintinuous_fast import select_backend  # noqa: E402
+from kintinuous_fast import load_backend  # noqa: E402
 from kintinuous_ref import metrics, pipeline  # noqa: E402
 from kintinuous_ref.config import Config, fast_odometry  # noqa: E402
 from kintinuous_ref.datasets import data_folder  # noqa: E402
@@ -78,7 +78,7 @@ def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # no
         config,
         "icp+rgbd",
         groundtruth,
-        backend=select_backend(backend),
+        backend=load_backend(backend),
         predict_model=True,
     )
     row = {stage: list(result.timings_ms[stage][1:]) for stage in STAGES}

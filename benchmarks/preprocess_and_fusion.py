@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from kintinuous_fast import select_backend  # noqa: E402
+from kintinuous_fast import load_backend  # noqa: E402
 from kintinuous_fast.tsdf.volume import to_reference_volume  # noqa: E402
 from kintinuous_ref.colour import colour_weights  # noqa: E402
 from kintinuous_ref.config import Config, VolumeConfig  # noqa: E402
@@ -65,7 +65,7 @@ def median_ms(function, runs: int) -> float:  # noqa: ANN001
 
 def bench_backend(name: str, data: tuple, config: Config, runs: int) -> dict[str, float]:
     colours, depths, poses, camera, _ = data
-    backend = select_backend(name)
+    backend = load_backend(name)
     pp, cfg = backend.preprocess, config.preprocess
     results = {}
     raw = pp.metric_depth(depths[0], cfg.max_depth, camera.depth_scale)

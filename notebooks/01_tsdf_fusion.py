@@ -304,7 +304,7 @@ plt.show()
 # %%
 import kintinuous_fast
 
-fast = kintinuous_fast.select_backend("cpu")
+fast = kintinuous_fast.load_backend("cpu")
 fast_volume = fast.tsdf.make_volume(config.volume, poses[0])
 for index in fused_indices:
     frame = frames[index]

@@ -427,9 +427,9 @@ assert np.isfinite(errors[0]) and not np.isfinite(errors[-1])
 # so the fast backend's lead is modest; notebook 1's size sweep shows how it grows with size.
 
 # %%
-from kintinuous_fast import select_backend
+from kintinuous_fast import load_backend
 
-fast = select_backend("cpu").odometry
+fast = load_backend("cpu").odometry
 fast_problem = fast.RgbdProblem(
     previous.levels, current.levels, previous_pose, config.rgbd.min_gradient
 )

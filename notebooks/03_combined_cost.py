@@ -144,7 +144,7 @@ plt.show()
 # the same volume as the reference: notebook 1), the systems at the true pose.
 
 # %%
-fast = kintinuous_fast.select_backend("cpu")
+fast = kintinuous_fast.load_backend("cpu")
 volume = fast.tsdf.make_volume(config.volume, truth[0])
 models = []
 for i in range(PAIRS):

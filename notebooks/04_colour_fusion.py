@@ -274,7 +274,7 @@ plt.show()
 # %%
 import kintinuous_fast
 
-fast = kintinuous_fast.select_backend("cpu")
+fast = kintinuous_fast.load_backend("cpu")
 fast_settings = {name: settings[name] for name in ("plain", "artifact reduction")}
 fast_volumes = {name: fast.tsdf.make_volume(config.volume, poses[0]) for name in fast_settings}
 for index in fused_indices:

@@ -96,7 +96,7 @@ def test_a_forked_child_runs_loops_with_threads_of_its_own():
 def _desk_run_on(threads: int):
     """The cpu pipeline over the warm-up's three 160x120 desk frames (icp+rgbd, 64^3) on
     `threads` threads: the poses, and the volume's TSDF and weights as the host sees them."""
-    from kintinuous_fast import select_backend
+    from kintinuous_fast import load_backend
     from kintinuous_ref.config import Config
     from kintinuous_ref.pipeline import run
     from kintinuous_ref.program.warmup import small_config, warmup_frames
@@ -106,7 +106,7 @@ def _desk_run_on(threads: int):
     numba.set_num_threads(threads)
     try:
         result = run(
-            frames, camera, small_config(Config()), "icp+rgbd", trajectory, select_backend("cpu")
+            frames, camera, small_config(Config()), "icp+rgbd", trajectory, load_backend("cpu")
         )
     finally:
         numba.set_num_threads(before)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 import kintinuous_fast
-from kintinuous_fast import backend_status, select_backend
+from kintinuous_fast import backend_status, load_backend
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.program import cli
 
@@ -37,24 +37,24 @@ def test_only_the_small_grid_warning_is_silenced():
     assert len(caught) == 1 and "Host array used in CUDA kernel" in str(caught[0].message)
 
 
-def test_select_backend_modules_and_auto():
+def test_load_backend_modules_and_auto():
     import kintinuous_fast.preprocess.cpu
     import kintinuous_ref.preprocess
 
-    assert select_backend("ref").preprocess is kintinuous_ref.preprocess
-    assert select_backend("cpu").preprocess is kintinuous_fast.preprocess.cpu
-    auto = select_backend("auto")
+    assert load_backend("ref").preprocess is kintinuous_ref.preprocess
+    assert load_backend("cpu").preprocess is kintinuous_fast.preprocess.cpu
+    auto = load_backend("auto")
     assert auto.name == ("cuda" if backend_status()["cuda"] == "" else "cpu")
     with pytest.raises(AttributeError):
-        select_backend("cpu").odometry_nonsense  # noqa: B018
+        load_backend("cpu").odometry_nonsense  # noqa: B018
 
 
-def test_select_backend_errors_are_one_line():
+def test_load_backend_errors_are_one_line():
     with pytest.raises(ConfigError, match="unknown backend 'gpu'; choose one of ref, cpu, cuda"):
-        select_backend("gpu")
+        load_backend("gpu")
     if backend_status()["cuda"]:
         with pytest.raises(ConfigError, match="backend 'cuda' does not work on this machine"):
-            select_backend("cuda")
+            load_backend("cuda")
 
 
 def test_info_command_lists_the_backends(capsys):
@@ -81,7 +81,7 @@ def test_cuda_backend_runs_on_the_gpu_here():
 
     from kintinuous_fast.tsdf import cuda as cuda_tsdf
 
-    assert select_backend("auto").name == "cuda"
+    assert load_backend("auto").name == "cuda"
 
     @cuda.jit
     def add_one(values):

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kintinuous_fast import cuda_is_simulated, cuda_status, select_backend
+from kintinuous_fast import cuda_is_simulated, cuda_status, load_backend
 from kintinuous_ref import pipeline, se3
 from kintinuous_ref.colour import colour_weights as ref_colour_weights
 from kintinuous_ref.config import (
@@ -300,7 +300,7 @@ def test_cuda_pipeline_keeps_state_on_device(monkeypatch):
 
     desk, frames = desk_frames()
     want = pipeline.run(
-        frames, desk.camera, CONFIG, "icp+rgbd", desk.trajectory, backend=select_backend("ref")
+        frames, desk.camera, CONFIG, "icp+rgbd", desk.trajectory, backend=load_backend("ref")
     )
     crossings = Crossings(monkeypatch)
     frame_starts: list[int] = []
@@ -310,7 +310,7 @@ def test_cuda_pipeline_keeps_state_on_device(monkeypatch):
         CONFIG,
         "icp+rgbd",
         desk.trajectory,
-        backend=select_backend("cuda"),
+        backend=load_backend("cuda"),
         progress=lambda _: frame_starts.append(len(crossings.log)),
     )
     # (a) tracked, and as the reference tracked

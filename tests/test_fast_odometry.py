@@ -13,7 +13,7 @@ import pytest
 import test_fast_odometry_cases as cases
 
 import kintinuous_fast
-from kintinuous_fast import select_backend
+from kintinuous_fast import load_backend
 from kintinuous_fast.odometry import cpu
 from kintinuous_fast.odometry.icp import cpu as icp_cpu
 from kintinuous_fast.odometry.rgbd import cpu as rgbd_cpu
@@ -140,12 +140,12 @@ def test_equivalence_cpu_tracker_failure():
 
 def test_make_tracker_backends_and_errors():
     camera = cases.room(80, 60)[0]
-    assert select_backend("cpu").odometry is cpu
-    assert select_backend("ref").odometry.__name__ == "kintinuous_ref.odometry"
+    assert load_backend("cpu").odometry is cpu
+    assert load_backend("ref").odometry.__name__ == "kintinuous_ref.odometry"
     with pytest.raises(ConfigError, match="unknown odometry method 'kinfu'"):
         cpu.make_tracker("kinfu", Config(), camera)
     with pytest.raises(ConfigError, match="unknown backend 'gpu'"):
-        select_backend("gpu")
+        load_backend("gpu")
     # The backend module has the reference's make_tracker (its systems by default) and the
     # reference's own DenseTracker.
     assert cpu.make_tracker("icp+rgbd", Config(), camera).systems is cpu

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from kintinuous_fast import select_backend
+from kintinuous_fast import load_backend
 from kintinuous_ref import pipeline, se3
 from kintinuous_ref.config import Config, VolumeConfig
 from kintinuous_ref.datasets.synthetic import make_scenario
@@ -37,7 +37,7 @@ def run(desk, odometry: str, backend: str) -> pipeline.PipelineResult:
         config,
         odometry,
         desk.trajectory,
-        backend=select_backend(backend),
+        backend=load_backend(backend),
         predict_model=True,
     )
 

@@ -26,7 +26,7 @@ per block (Algorithm 1), the correspondence list and the intensity-difference su
 summed on the host in float64 and the 6x6 system solved there by Cholesky. CUDA lists come out
 in atomic order (compare them as sets).
 
-    tracker = select_backend("cpu").odometry.make_tracker("icp+rgbd", config, camera)
+    tracker = load_backend("cpu").odometry.make_tracker("icp+rgbd", config, camera)
     result = tracker.track(previous_frame, current_frame, model_prediction, previous_pose)
 """
 

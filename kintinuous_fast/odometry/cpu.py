@@ -3,7 +3,7 @@ systems - icp/cpu.py's and rgbd/cpu.py's per-frame problems, combined.py's joint
 compiled Gauss-Newton step, the reference's model pyramid, stale-stream test and FOVIS images
 (the frames are NumPy arrays here) - and make_tracker, the reference's trackers over them.
 
-    tracker = select_backend("cpu").odometry.make_tracker("icp+rgbd", config, camera)
+    tracker = load_backend("cpu").odometry.make_tracker("icp+rgbd", config, camera)
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ the compiled Gauss-Newton step on the host, the model pyramid of device maps, th
 test on the device and FOVIS's host images downloaded once per frame - and make_tracker, the
 reference's trackers over them.
 
-    tracker = select_backend("cuda").odometry.make_tracker("icp+rgbd", config, camera)
+    tracker = load_backend("cuda").odometry.make_tracker("icp+rgbd", config, camera)
 """
 
 from __future__ import annotations
