@@ -36,6 +36,7 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.errors import ConfigError
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.tsdf import TsdfVolume
+from kintinuous_ref.vocabulary import BACKENDS
 
 ENTRY_POINT_GROUP = "kintinuous.backends"
 REFERENCE = "ref"
@@ -44,7 +45,7 @@ AUTO = "auto"
 AUTO_ORDER = ("cuda", "cpu")
 # The backends the project itself ships (kintinuous_fast's are named even when not installed,
 # so `kintinuous info` can say why they are missing).
-KNOWN = (REFERENCE, "cpu", "cuda")
+KNOWN = BACKENDS
 
 
 class BackendUnavailable(ConfigError):

@@ -31,7 +31,7 @@ from kintinuous_ref.colour import surface_colour
 from kintinuous_ref.tsdf import TsdfVolume, sample_tsdf, trilinear
 
 STEP_FRACTION = 0.8  # of the truncation distance (docs/parameters.md)
-BRICK = 8  # voxels per side of the blocks used to skip empty space
+BRICK = 8  # voxels per side of the blocks that empty-space skipping steps over
 
 
 def check_stride(stride: int) -> None:

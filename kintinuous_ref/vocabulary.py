@@ -44,7 +44,8 @@ GRADIENTS = ("current", "warped")
 
 # The command line's --backend: the reference, the fast package's two, or the first that runs
 # here (backend.load_backend).
-BACKEND_CHOICES = ("ref", "cpu", "cuda", "auto")
+BACKENDS = ("ref", "cpu", "cuda")  # the project's own, named even where one is not installed
+BACKEND_CHOICES = (*BACKENDS, "auto")
 
 # The TUM RGB-D sequences known by name (datasets/download.py holds their archives): those of the
 # paper's Table I, then others.
