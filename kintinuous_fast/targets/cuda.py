@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import is_device
+from kintinuous_fast.targets import is_device, to_host
 
 # Threads per block of the per-pixel kernels: 16 x 16, x along image rows (coalesced reads).
 BLOCK_2D = (16, 16)
@@ -49,7 +49,7 @@ def to_device(array: Any, dtype: Any = None) -> Any:
 
 def like_input(result: Any, given: Any) -> Any:
     """`result` (a device array) back on the host when the caller gave a host array."""
-    return result if is_device(given) else result.copy_to_host()
+    return result if is_device(given) else to_host(result)
 
 
 def grid_2d(height: int, width: int, block: tuple[int, int] = BLOCK_2D) -> tuple[int, int]:

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import cuda_device_jit, pinhole
+from kintinuous_fast.targets import cuda_device_jit, pinhole, to_host
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel
@@ -196,7 +196,7 @@ def integrate(
     grid = grid_2d(camera.height, camera.width)
     largest = cuda.to_device(np.zeros(1, dtype=np.float32))
     _max_depth_kernel[grid, BLOCK_2D](d_depth, largest)
-    box = frustum_box(volume, float(largest.copy_to_host()[0]), pose, camera)
+    box = frustum_box(volume, float(to_host(largest)[0]), pose, camera)
     if box is None:
         return
     ray_distance = cuda.device_array(camera.height * camera.width + 1, dtype=np.float32)
