@@ -254,7 +254,7 @@ def fast_odometry(config: Config) -> Config:
     """`config` with the finest pyramid level skipped by every dense estimator (0 iterations
     there; the inlier check looks at the next level, and the pipeline raycasts only the quarter
     of the pixels that level reads): the original code's "fast odometry" option, for CPUs
-    (docs/benchmarks.md and docs/benchmarks_archive.md measure its accuracy cost)."""
+    (docs/benchmarks.md and the archive it links to measure its accuracy cost)."""
 
     def skip_finest(iterations: tuple[int, ...]) -> tuple[int, ...]:
         return (0, *iterations[1:])

@@ -37,7 +37,8 @@ cpu_jit_numpy_errors: Callable[[Any], Any] = numba.njit(
 # functions inlined into their loops are counted up and down on every step of a ray, in
 # branches that numba's pruning pass cannot pair up, each an atomic operation on a count that
 # the other threads update too. Without them the raycast is 13-16 % faster, bit-identical
-# (docs/benchmarks_archive.md). A function compiled so that does need it fails to compile.
+# (docs/benchmarks_archive_2026-11-21_24.md, 2026-11-22). A function compiled so that does need
+# it fails to compile.
 cpu_jit_numpy_errors_called: Callable[[Any], Any] = numba.njit(
     cache=True, error_model="numpy", _nrt=False
 )
