@@ -45,10 +45,10 @@ def build_ops(
     jit_called = jit_called or jit
     voxels = voxels or voxel_ops.build_ops(jit, jit_called)
     ray_ops, jump_ops = build_ray(jit_called), build_jumps(jit_called)
-    crossing_ops = build_crossing(jit, voxels, ray_ops)
-    step_ops = build_march_step(jit, voxels, ray_ops, jump_ops, crossing_ops)
-    start_ops = build_march_start(jit, ray_ops)
-    march_ops = build_march(jit_called, start_ops, step_ops, crossing_ops)
+    crossing_ops = _build_crossing(jit, voxels, ray_ops)
+    step_ops = _build_march_step(jit, voxels, ray_ops, jump_ops, crossing_ops)
+    start_ops = _build_march_start(jit, ray_ops)
+    march_ops = _build_march(jit_called, start_ops, step_ops, crossing_ops)
     shading_ops = build_shading(jit, voxels, ray_ops)
     pixel_ops = build_pixel(jit, ray_ops, march_ops, shading_ops)
     parts = (ray_ops, jump_ops, crossing_ops, step_ops, start_ops, march_ops, shading_ops)
@@ -56,7 +56,7 @@ def build_ops(
     return SimpleNamespace(**{name: f for part in parts for name, f in vars(part).items()})
 
 
-def build_crossing(
+def _build_crossing(
     jit: Callable[[Any], Any], voxels: SimpleNamespace, ray_ops: SimpleNamespace
 ) -> SimpleNamespace:
     """A sample along a ray, and the refined surface between the two samples of a crossing."""
@@ -137,7 +137,7 @@ def build_crossing(
     )
 
 
-def build_march_start(jit: Callable[[Any], Any], ray_ops: SimpleNamespace) -> SimpleNamespace:
+def _build_march_start(jit: Callable[[Any], Any], ray_ops: SimpleNamespace) -> SimpleNamespace:
     """The set-up of one ray's skipping march."""
     ray_span, voxel_coordinates = ray_ops.ray_span, ray_ops.voxel_coordinates
     inverse_or_zero = ray_ops.inverse_or_zero
@@ -190,7 +190,7 @@ def build_march_start(jit: Callable[[Any], Any], ray_ops: SimpleNamespace) -> Si
     return SimpleNamespace(march_start=march_start)
 
 
-def build_march_step(
+def _build_march_step(
     jit: Callable[[Any], Any],
     voxels: SimpleNamespace,
     ray_ops: SimpleNamespace,
@@ -296,7 +296,7 @@ def build_march_step(
     return SimpleNamespace(march_step=march_step)
 
 
-def build_march(
+def _build_march(
     jit_called: Callable[[Any], Any],
     start_ops: SimpleNamespace,
     step_ops: SimpleNamespace,

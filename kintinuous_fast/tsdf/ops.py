@@ -24,8 +24,8 @@ def build_ops(jit: Callable[[Any], Any], voxels: SimpleNamespace | None = None) 
     namespace."""
     voxels = voxels or voxel_ops.build_ops(jit)
     projection = build_projection(jit)
-    fusion = build_fusion(jit, voxels)
-    columns = build_columns(jit, voxels, projection, fusion)
+    fusion = _build_fusion(jit, voxels)
+    columns = _build_columns(jit, voxels, projection, fusion)
     parts = (projection, fusion, columns, build_colour_weight(jit))
     return SimpleNamespace(**{name: f for part in parts for name, f in vars(part).items()})
 
@@ -89,7 +89,7 @@ def build_projection(jit: Callable[[Any], Any]) -> SimpleNamespace:
     )
 
 
-def build_fusion(jit: Callable[[Any], Any], voxels: SimpleNamespace) -> SimpleNamespace:
+def _build_fusion(jit: Callable[[Any], Any], voxels: SimpleNamespace) -> SimpleNamespace:
     """One voxel's update from the frame: the TSDF's running average and the colour's."""
     dequantise, quantise = voxels.dequantise, voxels.quantise
 
@@ -159,7 +159,7 @@ def build_fusion(jit: Callable[[Any], Any], voxels: SimpleNamespace) -> SimpleNa
     return SimpleNamespace(fuse_voxel=fuse_voxel)
 
 
-def build_columns(
+def _build_columns(
     jit: Callable[[Any], Any],
     voxels: SimpleNamespace,
     projection: SimpleNamespace,

@@ -54,7 +54,7 @@ def build_ops(
     jit_called = jit_called or jit
     storage = build_storage(jit_called, dequantise_table)
     sampling = build_sampling(jit, jit_called, storage)
-    interior = build_interior_gradient(jit, jit_called, storage)
+    interior = _build_interior_gradient(jit, jit_called, storage)
     normals = build_normals(jit, jit_called, sampling, interior)
     colour = build_surface_colour(jit_called, storage)
     negatives = build_negatives(jit, storage)
@@ -192,7 +192,7 @@ def build_sampling(
     )
 
 
-def build_interior_gradient(
+def _build_interior_gradient(
     jit: Callable[[Any], Any], jit_called: Callable[[Any], Any], storage: SimpleNamespace
 ) -> SimpleNamespace:
     """The TSDF gradient inside the grid's one-voxel border, from stored values."""
