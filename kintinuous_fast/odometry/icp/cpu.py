@@ -52,7 +52,7 @@ __all__ = [*REFERENCE_NAMES, *TARGET_NAMES]
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
 _icp_match = _OPS.icp_match
 _map_point = _OPS.map_point
-_point_to_plane_row = _OPS.point_to_plane_row
+_store_point_to_plane = _OPS.store_point_to_plane
 _weighs_pairs = _OPS.weighs_pairs
 
 
@@ -150,14 +150,7 @@ def _associate_loop(
 @LOOP
 def _point_to_plane_loop(claims, parts, world, mv, mn, jacobian, residuals):
     for k in claimed_items(claims, world.shape[1], parts):
-        j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(
-            (world[0, k], world[1, k], world[2, k]),
-            (mv[0, k], mv[1, k], mv[2, k]),
-            (mn[0, k], mn[1, k], mn[2, k]),
-        )
-        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
-        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
-        residuals[k] = r
+        _store_point_to_plane(world, mv, mn, k, jacobian, residuals)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -65,6 +65,7 @@ _ops = build_ops(DEVICE, GEOMETRY)
 _icp_match = _ops.icp_match
 _map_point = _ops.map_point
 _point_to_plane_row = _ops.point_to_plane_row
+_store_point_to_plane = _ops.store_point_to_plane
 _pair_weight = _ops.pair_weight
 
 
@@ -121,14 +122,7 @@ def _associate_kernel(points, normals, poses, mv, mn, camera, limits, count, out
 def _point_to_plane_kernel(world, mv, mn, jacobian, residuals):
     k = cuda.grid(1)
     if k < world.shape[1]:
-        j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(
-            (world[0, k], world[1, k], world[2, k]),
-            (mv[0, k], mv[1, k], mv[2, k]),
-            (mn[0, k], mn[1, k], mn[2, k]),
-        )
-        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
-        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
-        residuals[k] = r
+        _store_point_to_plane(world, mv, mn, k, jacobian, residuals)
 
 
 # ----------------------------------------------------------------------------------------------

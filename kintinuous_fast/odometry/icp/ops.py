@@ -159,6 +159,19 @@ def _rows(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return wy * uz - wz * uy, wz * ux - wx * uz, wx * uy - wy * ux, ux, uy, uz, r
 
     @jit
+    def store_point_to_plane(world: Any, mv: Any, mn: Any, k: int, jacobian: Any, residuals: Any):  # noqa: ANN202
+        """Pair k's row (point_to_plane_row of column k of each (3, n) array) into column k of
+        `jacobian` (6, n) and `residuals` (n,): one element of ref point_to_plane_rows."""
+        j0, j1, j2, j3, j4, j5, r = point_to_plane_row(
+            (world[0, k], world[1, k], world[2, k]),
+            (mv[0, k], mv[1, k], mv[2, k]),
+            (mn[0, k], mn[1, k], mn[2, k]),
+        )
+        jacobian[0, k], jacobian[1, k], jacobian[2, k] = j0, j1, j2
+        jacobian[3, k], jacobian[4, k], jacobian[5, k] = j3, j4, j5
+        residuals[k] = r
+
+    @jit
     def robust_icp_weight(r: float, kernel: int, threshold: float) -> float:
         """The IRLS weight of a point-to-plane residual (ref icp.robust_weights): 1 for
         KERNEL_NONE; Huber: 1 inside k = threshold, k / |r| beyond; Tukey: (1 - (r / c)^2)^2
@@ -192,6 +205,7 @@ def _rows(jit: Callable[[Any], Any]) -> SimpleNamespace:
 
     return SimpleNamespace(
         point_to_plane_row=point_to_plane_row,
+        store_point_to_plane=store_point_to_plane,
         robust_icp_weight=robust_icp_weight,
         weighs_pairs=weighs_pairs,
         pair_weight=pair_weight,
