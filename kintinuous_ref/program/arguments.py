@@ -270,7 +270,17 @@ def add_table(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
         metavar="METHOD",
         help=f"odometry methods: {', '.join(ODOMETRY_CHOICES[1:])} (default: all seven)",
     )
-    parser.add_argument("--out", type=Path, default=Path("evaluation"), help="output folder")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("evaluation"),
+        help="output folder (new, empty, or holding an earlier table with --overwrite)",
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the earlier table in --out, its runs included (removed before the runs)",
+    )
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (processes)")
     parser.add_argument(
         "--scheduler",
@@ -312,9 +322,7 @@ def add_warmup(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
         help="compile a backend's kernels now (numba does it once per installation) and say "
         "how long each took",
     )
-    parser.add_argument(
-        "--backend", choices=BACKEND_CHOICES, default="auto", help="default auto"
-    )
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default="auto", help="default auto")
     parser.add_argument(
         "--odometry",
         default="all",

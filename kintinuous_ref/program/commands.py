@@ -15,6 +15,7 @@ from kintinuous_ref import __version__
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.program.arguments import MIRROR_VARIABLE
 from kintinuous_ref.program.config_options import configured
+from kintinuous_ref.program.output_folder import locked
 from kintinuous_ref.strict_json import dumps as strict_dumps
 
 if TYPE_CHECKING:
@@ -82,22 +83,24 @@ def run_reconstruct(args: argparse.Namespace) -> None:
     # before generating or reading anything: the settings, the volume against the memory that
     # will hold it among them
     check_settings(config, args.odometry, load_backend(args.backend), args.loop_closure)
-    out = reconstruct.check_output(args.out, args.overwrite)
-    frames_needed = args.start + args.frames if args.frames else None
-    sequence = open_from_options(args.dataset, args, frames_needed=frames_needed)
-    report = reconstruct.reconstruct(
-        sequence,
-        out,
-        config,
-        odometry=args.odometry,
-        start=args.start,
-        count=args.frames,
-        backend_name=args.backend,
-        predict_model=True if args.raycast else None,
-        overwrite=args.overwrite,
-        skip_bad_frames=args.skip_bad_frames,
-        loop_closure=args.loop_closure,
-    )
+    # held from before the dataset is read: a second run into the folder is refused at once
+    with locked(args.out) as out:
+        reconstruct.check_output(out, args.overwrite)
+        frames_needed = args.start + args.frames if args.frames else None
+        sequence = open_from_options(args.dataset, args, frames_needed=frames_needed)
+        report = reconstruct.reconstruct(
+            sequence,
+            out,
+            config,
+            odometry=args.odometry,
+            start=args.start,
+            count=args.frames,
+            backend_name=args.backend,
+            predict_model=True if args.raycast else None,
+            overwrite=args.overwrite,
+            skip_bad_frames=args.skip_bad_frames,
+            loop_closure=args.loop_closure,
+        )
     total = report["timing_ms"]["total"]["mean"]
     skipped = f", skipped {report['skipped_frames']} bad" if report["skipped_frames"] else ""
     print(
@@ -221,6 +224,7 @@ def run_table(args: argparse.Namespace) -> int:
         mesh=args.mesh,
         on_done=done,
         header=header,
+        overwrite=args.overwrite,
     )
     print()
     print(evaluation.markdown)
@@ -247,6 +251,7 @@ def table_command(args: argparse.Namespace) -> str:
             words += [f"--{option.replace('_', '-')}", str(getattr(args, option))]
     words += ["--resolution", str(args.resolution), "--backend", args.backend]
     words += ["--mesh"] if args.mesh else []
+    words += ["--overwrite"] if args.overwrite else []
     words += ["--config", str(args.config)] if args.config else []
     for setting in args.set:
         words += ["--set", setting]

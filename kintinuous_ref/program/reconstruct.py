@@ -9,9 +9,7 @@ ended in report.json's "status": "completed", "interrupted" or "failed".
 
 from __future__ import annotations
 
-import contextlib
 import os
-import shutil
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -25,6 +23,15 @@ from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
 from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.pipeline import GROUNDTRUTH, PipelineResult, check_run, error_reason, run
+from kintinuous_ref.program.output_folder import (
+    atomic,
+    check_folder_path,
+    locked,
+    refuse_earlier,
+    remove,
+    waiting_lock,
+    write_text_atomic,
+)
 from kintinuous_ref.program.warmup import warm_up
 from kintinuous_ref.signals import Interrupted
 from kintinuous_ref.strict_json import dumps as strict_dumps
@@ -109,10 +116,12 @@ def open_dataset(
     needed = (
         SCENARIO_FRAMES if frames_needed is None else min(max(frames_needed, 1), SCENARIO_FRAMES)
     )
-    if rendered_frames(folder) < needed:
-        synthetic.write_scenario(
-            dataset, folder, frames=SCENARIO_FRAMES, progress=progress, render=needed
-        )
+    # Runs started together render it once: the others wait, then find it rendered.
+    with waiting_lock(folder.with_name(f".{folder.name}.lock")):
+        if rendered_frames(folder) < needed:
+            synthetic.write_scenario(
+                dataset, folder, frames=SCENARIO_FRAMES, progress=progress, render=needed
+            )
     return tum.open_sequence(folder, intrinsics)
 
 
@@ -151,36 +160,34 @@ def check_start(start: int, sequence: FrameSequence) -> None:
 
 def check_output(out: str | Path, overwrite: bool = False) -> Path:
     """The output folder `out`, refused (ConfigError) when empty, a file, or holding an earlier
-    result without `overwrite`. Changes nothing on disk."""
-    if not str(out).strip():
-        raise ConfigError("--out is empty: name an output folder")
-    path = Path(out)
-    if path.exists() and not path.is_dir():
-        raise ConfigError(f"{path}: exists and is not a folder; --out names a folder")
+    result without `overwrite`. An empty slices/ folder (or one holding only unfinished .part
+    slices), which a killed run leaves, is no result: prepare_output removes it. Changes
+    nothing on disk."""
+    path = check_folder_path(out)
     if path.is_dir() and not overwrite:
-        earlier = [name for name in RESULT_NAMES if (path / name).exists()]
+        earlier = [name for name in RESULT_NAMES if _holds_result(path / name)]
         if earlier:
-            raise ConfigError(
-                f"{path}: holds an earlier result ({', '.join(earlier)}); pass --overwrite to "
-                "replace it, or choose another --out"
-            )
+            raise refuse_earlier(path, earlier)
     return path
 
 
+def _holds_result(path: Path) -> bool:
+    """Whether `path`, one of RESULT_NAMES, is an earlier run's output."""
+    if path.name == "slices" and path.is_dir() and not path.is_symlink():
+        return any(not entry.name.endswith(".part") for entry in path.iterdir())
+    return path.exists()
+
+
 def prepare_output(out: str | Path, overwrite: bool = False) -> Path:
-    """`check_output`, then the earlier result removed (with `overwrite`) and the folder made
-    and shown to be writable, before a run starts: a run never mixes with an older one."""
+    """`check_output`, then the earlier result removed (with `overwrite`), a killed run's
+    leftovers removed (an empty slices/, temporaries), and the folder made and shown to be
+    writable, before a run starts: a run never mixes with an older one. Called under
+    `locked(out)`, so that no live run owns what it removes."""
     path = check_output(out, overwrite)
     try:
-        if path.is_dir():
-            for name in RESULT_NAMES:
-                old = path / name
-                if old.is_dir() and not old.is_symlink():
-                    shutil.rmtree(old)
-                elif old.exists() or old.is_symlink():
-                    old.unlink()
         path.mkdir(parents=True, exist_ok=True)
-        with _atomic(path / ".write-test"):
+        remove(path, RESULT_NAMES)  # without overwrite only leftovers remain among them
+        with atomic(path / ".write-test"):
             pass
         (path / ".write-test").unlink()
     except OSError as err:
@@ -188,28 +195,6 @@ def prepare_output(out: str | Path, overwrite: bool = False) -> Path:
             f"{path}: cannot write the output folder ({err.strerror or err})"
         ) from None
     return path
-
-
-@contextlib.contextmanager
-def _atomic(path: Path) -> Iterator[Path]:
-    """A temporary name beside `path` (same suffix) to write to; renamed to `path` when the
-    block ends, removed when it raises: no reader ever sees half a file."""
-    temporary = path.with_name(f".{path.stem}.partial{path.suffix}")
-    try:
-        yield temporary
-        if not temporary.exists():  # the writer wrote nothing (an empty block)
-            temporary.touch()
-        os.replace(temporary, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            temporary.unlink()
-        raise
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """`text` into `path`, written under a temporary name and renamed."""
-    with _atomic(Path(path)) as temporary:
-        temporary.write_text(text)
 
 
 def write_outputs(
@@ -235,7 +220,7 @@ def write_outputs(
 
     def attempt(name: str, write: Callable[[Path], Any]) -> Any:
         try:
-            with _atomic(out / name) as temporary:
+            with atomic(out / name) as temporary:
                 value = write(temporary)
         except Exception as err:  # kept in the report; the next file is still tried
             not_saved[name] = error_reason(err)
@@ -416,7 +401,9 @@ def reconstruct(
     """Run the pipeline over frames start.. of a sequence and write the outputs into `out`.
 
     Everything that can be checked is checked before the first frame is read; `out` must not
-    hold an earlier result unless `overwrite` (which removes it first). However the run ends,
+    hold an earlier result unless `overwrite` (which removes it first), and is held by this run
+    (output_folder.locked): a second run into it is refused while this one lives. However the
+    run ends,
     what was done is saved (write_outputs) with its status; then an interrupted run raises
     Interrupted, a failed one a one-line KintinuousError (InternalError for a bug, whose
     traceback goes to crash.log in `out`). An unreadable frame ends the run, or with
@@ -435,80 +422,81 @@ def reconstruct(
             if odometry == GROUNDTRUTH:
                 raise
     check_run(config, odometry, groundtruth, backend, loop_closure, dataset=str(sequence.path))
-    out = prepare_output(out, overwrite)
-    total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
-    bar = None
-    if show_progress:
-        from tqdm import tqdm
+    with locked(out):  # a second run into `out` is refused until this one ends
+        out = prepare_output(out, overwrite)
+        total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
+        bar = None
+        if show_progress:
+            from tqdm import tqdm
 
-        prepare_kernels(backend, config, odometry)
+            prepare_kernels(backend, config, odometry)
 
-        bar = tqdm(total=total, unit="frame", desc="reconstruct")
-    skipped: list[str] = []
-    try:
-        result = run(
-            _bad_frames_checked(sequence, start, total, skip_bad_frames, skipped),
-            sequence.camera,
-            config,
-            odometry,
-            groundtruth,
-            progress=(lambda _: bar.update(1)) if bar is not None else None,
-            predict_model=predict_model,
-            slices=out / "slices",
-            backend=backend,
-            capture_errors=True,
-            loop_closer=LoopCloser(config, sequence.camera) if loop_closure else None,
-        )
-    except BaseException:
-        if bar is not None:
-            bar.close()
-        raise
-    info = {
-        "dataset": str(sequence.path),
-        "odometry": odometry,
-        "backend": backend.name,
-        "start": start,
-        "skipped_frames": len(skipped),
-        "skipped_reasons": skipped[:50],
-    }
-    saved: list[str] = []
-    try:
-        if bar is not None:
-            bar.close()  # the one-line messages below start on a line of their own
-        print(f"saving {result.frames} frames...", file=sys.stderr, flush=True)
-        if result.error is not None and not isinstance(result.error, KintinuousError | OSError):
-            write_text_atomic(out / "crash.log", result.error_traceback)
-            saved.append("crash.log")
-        report = write_outputs(result, out, info, saved=saved, groundtruth=groundtruth)
-    except KeyboardInterrupt as again:
-        name = getattr(again, "signal_name", "SIGINT")
-        names = ["trajectory.txt", "mesh.ply", "preview.png", "report.json"]
-        if result.moving is not None:
-            names.insert(2, "volume_origins.txt")
-        missing = [n for n in names if n not in saved]
-        raise Interrupted(
-            name,
-            f"{name} during the save: saved {', '.join(saved) or 'nothing'} in {out}; NOT saved: "
-            f"{', '.join(missing)}",
-        ) from None
-    except OSError as err:
-        raise KintinuousError(
-            f"{out}: cannot save the run ({error_reason(err)}); saved: "
-            f"{', '.join(saved) or 'nothing'}"
-        ) from None
-    kept = f"the {result.frames} frames done are saved in {out}"
-    if report["not_saved"]:
-        problems = "; ".join(f"{k}: {v}" for k, v in report["not_saved"].items())
-        kept = f"saved {', '.join(report['saved'])} in {out} but NOT {problems}"
-    if result.interrupted:
-        raise Interrupted(
-            result.signal_name,
-            f"{result.reason} after frame {result.last_frame}: {kept}",
-        )
-    if result.error is not None:
-        if "crash.log" in saved:
-            raise InternalError(f"{result.reason}; traceback in {out / 'crash.log'}; {kept}")
-        raise KintinuousError(f"{result.reason}; {kept}")
-    if report["not_saved"]:
-        raise KintinuousError(kept)
-    return report
+            bar = tqdm(total=total, unit="frame", desc="reconstruct")
+        skipped: list[str] = []
+        try:
+            result = run(
+                _bad_frames_checked(sequence, start, total, skip_bad_frames, skipped),
+                sequence.camera,
+                config,
+                odometry,
+                groundtruth,
+                progress=(lambda _: bar.update(1)) if bar is not None else None,
+                predict_model=predict_model,
+                slices=out / "slices",
+                backend=backend,
+                capture_errors=True,
+                loop_closer=LoopCloser(config, sequence.camera) if loop_closure else None,
+            )
+        except BaseException:
+            if bar is not None:
+                bar.close()
+            raise
+        info = {
+            "dataset": str(sequence.path),
+            "odometry": odometry,
+            "backend": backend.name,
+            "start": start,
+            "skipped_frames": len(skipped),
+            "skipped_reasons": skipped[:50],
+        }
+        saved: list[str] = []
+        try:
+            if bar is not None:
+                bar.close()  # the one-line messages below start on a line of their own
+            print(f"saving {result.frames} frames...", file=sys.stderr, flush=True)
+            if result.error is not None and not isinstance(result.error, KintinuousError | OSError):
+                write_text_atomic(out / "crash.log", result.error_traceback)
+                saved.append("crash.log")
+            report = write_outputs(result, out, info, saved=saved, groundtruth=groundtruth)
+        except KeyboardInterrupt as again:
+            name = getattr(again, "signal_name", "SIGINT")
+            names = ["trajectory.txt", "mesh.ply", "preview.png", "report.json"]
+            if result.moving is not None:
+                names.insert(2, "volume_origins.txt")
+            missing = [n for n in names if n not in saved]
+            raise Interrupted(
+                name,
+                f"{name} during the save: saved {', '.join(saved) or 'nothing'} in {out}; "
+                f"NOT saved: {', '.join(missing)}",
+            ) from None
+        except OSError as err:
+            raise KintinuousError(
+                f"{out}: cannot save the run ({error_reason(err)}); saved: "
+                f"{', '.join(saved) or 'nothing'}"
+            ) from None
+        kept = f"the {result.frames} frames done are saved in {out}"
+        if report["not_saved"]:
+            problems = "; ".join(f"{k}: {v}" for k, v in report["not_saved"].items())
+            kept = f"saved {', '.join(report['saved'])} in {out} but NOT {problems}"
+        if result.interrupted:
+            raise Interrupted(
+                result.signal_name,
+                f"{result.reason} after frame {result.last_frame}: {kept}",
+            )
+        if result.error is not None:
+            if "crash.log" in saved:
+                raise InternalError(f"{result.reason}; traceback in {out / 'crash.log'}; {kept}")
+            raise KintinuousError(f"{result.reason}; {kept}")
+        if report["not_saved"]:
+            raise KintinuousError(kept)
+        return report

@@ -43,6 +43,15 @@ from kintinuous_ref.program.evaluation.tables import (
     method_title,
     render_markdown,
 )
+from kintinuous_ref.program.output_folder import (
+    LOCK_NAME,
+    atomic,
+    is_temporary,
+    locked,
+    refuse_earlier,
+    remove,
+    write_text_atomic,
+)
 from kintinuous_ref.strict_json import dumps as strict_dumps
 from kintinuous_ref.vocabulary import METHODS
 
@@ -59,6 +68,7 @@ __all__ = [
     "marks",
     "method_title",
     "open_datasets",
+    "prepare_table_folder",
     "render_markdown",
     "run_one",
     "timing_statistics",
@@ -143,11 +153,12 @@ def evaluate_methods(
     mesh: bool = False,
     on_done: Callable[[RunOutcome, int, int], None] | None = None,
     header: list[str] | None = None,
+    overwrite: bool = False,
 ) -> Evaluation:
     """Run every method on every dataset and write table.md, table.json, the figures and the run
-    folders into `out` (see the module docstring). Failed runs are reported, never raised."""
-    from kintinuous_ref.program.evaluation.figures import ranking_figure, trajectory_figure
-
+    folders into `out` (see the module docstring). Failed runs are reported, never raised. `out`
+    is held for the whole evaluation (a second command into it is refused) and must be new or
+    empty unless `overwrite`, which removes the earlier table and its runs first."""
     methods = list(methods or METHODS)
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -162,9 +173,41 @@ def evaluate_methods(
     load_backend(backend)  # a clear error before any run
     config = config or Config()
     config.validate()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    with locked(out) as folder:
+        prepare_table_folder(folder, overwrite)
+        return _evaluate_into(
+            folder,
+            datasets,
+            methods,
+            config,
+            start,
+            frames,
+            size,
+            backend,
+            jobs,
+            scheduler,
+            mesh,
+            on_done,
+            header,
+        )
 
+
+def _evaluate_into(
+    out: Path,
+    datasets: list[str],
+    methods: list[str],
+    config: Config,
+    start: int,
+    frames: int | None,
+    size: tuple[int, int] | None,
+    backend: str,
+    jobs: int,
+    scheduler: str | None,
+    mesh: bool,
+    on_done: Callable[[RunOutcome, int, int], None] | None,
+    header: list[str] | None,
+) -> Evaluation:
+    """evaluate_methods' work, its arguments checked and `out` held and prepared."""
     opened = open_datasets(datasets, start, frames)
     specs, failed = [], []
     for dataset in opened:
@@ -207,11 +250,67 @@ def evaluate_methods(
         "volume": {"resolution": config.volume.resolution, "size_m": config.volume.size},
     }
     markdown = render_markdown(table, header)
-    files = [out / "table.md", out / "table.json"]
-    files[0].write_text(markdown)
-    files[1].write_text(strict_dumps(table, indent=1) + "\n")
-    files.append(ranking_figure(table, "Median", out / "fig4_ranking_median.png"))
-    files.append(ranking_figure(table, "Max", out / "fig5_ranking_max.png"))
     groundtruths = {d.label: d.groundtruth for d in opened}
-    files.append(trajectory_figure(outcomes, groundtruths, methods, out / "trajectories.png"))
+    files = _write_table(out, table, markdown, outcomes, groundtruths, methods)
     return Evaluation(table, markdown, outcomes, files)
+
+
+def _write_table(
+    out: Path,
+    table: dict[str, Any],
+    markdown: str,
+    outcomes: list[RunOutcome],
+    groundtruths: dict[str, Trajectory | None],
+    methods: list[str],
+) -> list[Path]:
+    """table.md, table.json and the figures in `out`, each written whole (under a temporary
+    name, then renamed) so that a reader never finds half a table; their paths."""
+    from kintinuous_ref.program.evaluation.figures import ranking_figure, trajectory_figure
+
+    write_text_atomic(out / "table.md", markdown)
+    write_text_atomic(out / "table.json", strict_dumps(table, indent=1) + "\n")
+    figures = {
+        "fig4_ranking_median.png": lambda path: ranking_figure(table, "Median", path),
+        "fig5_ranking_max.png": lambda path: ranking_figure(table, "Max", path),
+        "trajectories.png": lambda path: trajectory_figure(outcomes, groundtruths, methods, path),
+    }
+    for name, draw in figures.items():
+        with atomic(out / name) as temporary:
+            draw(temporary)
+    return [out / "table.md", out / "table.json", *(out / name for name in figures)]
+
+
+# What a table writes into its folder (the module docstring): an earlier table is these.
+TABLE_NAMES = (
+    "table.md",
+    "table.json",
+    "fig4_ranking_median.png",
+    "fig5_ranking_max.png",
+    "trajectories.png",
+    "runs",
+)
+
+
+def prepare_table_folder(out: Path, overwrite: bool = False) -> None:
+    """Refuse (ConfigError) a folder holding an earlier table or other files unless `overwrite`,
+    which removes the earlier table, its runs included: no old run mixes with the new ones.
+    Called under `locked(out)`, so that no live table owns what it removes."""
+    found = [
+        entry.name
+        for entry in sorted(out.iterdir())
+        if entry.name != LOCK_NAME and not is_temporary(entry.name)
+    ]
+    if found and not overwrite:
+        earlier = [name for name in TABLE_NAMES if name in found]
+        if earlier:
+            raise refuse_earlier(out, earlier)
+        raise ConfigError(
+            f"{out}: is not empty ({', '.join(found[:5])}); pass --overwrite to write the table "
+            "among its files, or choose another --out"
+        )
+    try:
+        remove(out, TABLE_NAMES)
+    except OSError as err:
+        raise ConfigError(
+            f"{out}: cannot clear the earlier table ({err.strerror or err})"
+        ) from None

@@ -22,6 +22,7 @@ import numpy as np
 from kintinuous_ref.backend import load_backend
 from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError, KintinuousError
+from kintinuous_ref.program.output_folder import atomic, write_text_atomic
 from kintinuous_ref.strict_json import dumps as strict_dumps
 
 OK, FAILED = "ok", "failed"
@@ -163,8 +164,9 @@ def _write_run(spec: RunSpec, outcome: RunOutcome, result: Any) -> None:
     report["timings_ms"] = result.timings_ms  # raw per-frame times of every stage
     if spec.mesh:  # the pipeline's own report (mesh, volume) with ours on top
         report = write_outputs(result, out, report, preview=False)
-    write_trajectory(out / "trajectory.txt", result.trajectory)
-    (out / "report.json").write_text(strict_dumps(report, indent=1) + "\n")
+    with atomic(out / "trajectory.txt") as temporary:
+        write_trajectory(temporary, result.trajectory)
+    write_text_atomic(out / "report.json", strict_dumps(report, indent=1) + "\n")
 
 
 def write_failure(spec: RunSpec, outcome: RunOutcome) -> None:
@@ -172,7 +174,9 @@ def write_failure(spec: RunSpec, outcome: RunOutcome) -> None:
     try:
         out = Path(spec.out)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "report.json").write_text(strict_dumps(_report(spec, outcome), indent=1) + "\n")
+        write_text_atomic(
+            out / "report.json", strict_dumps(_report(spec, outcome), indent=1) + "\n"
+        )
     except OSError:
         pass  # the reason still reaches the table through the outcome
 
