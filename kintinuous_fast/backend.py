@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from kintinuous_ref.backend import Backend, BackendUnavailable
+from kintinuous_ref.backend import Backend, BackendUnavailable, DeviceTraffic
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.tsdf import TsdfVolume
@@ -60,6 +60,15 @@ class FastBackend:
         from kintinuous_fast.tsdf.volume import to_reference_volume
 
         return to_reference_volume(volume)
+
+    def device_traffic(self) -> DeviceTraffic:
+        """For cuda: the kernel launches, host waits and downloaded bytes so far
+        (targets.TRAFFIC); for cpu, which has no device, zeros."""
+        if self.name != "cuda":
+            return DeviceTraffic()
+        from kintinuous_fast.targets import TRAFFIC
+
+        return DeviceTraffic(TRAFFIC.launches, TRAFFIC.host_waits, TRAFFIC.bytes_to_host)
 
     def kernels_cached(self, tracking: bool = True) -> bool:
         """For cpu: whether a warm-up from these sources recorded the kernels of each stage a

@@ -26,6 +26,7 @@ pyproject.toml; "auto" picks the first of cuda and cpu that runs here, else the 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from types import ModuleType
 from typing import Any, Protocol, runtime_checkable
@@ -46,6 +47,24 @@ AUTO_ORDER = ("cuda", "cpu")
 # The backends the project itself ships (kintinuous_fast's are named even when not installed,
 # so `kintinuous info` can say why they are missing).
 KNOWN = BACKENDS
+
+
+@dataclass(frozen=True)
+class DeviceTraffic:
+    """What the host has asked of an accelerator so far: kernel launches, blocking downloads
+    (each one a wait for every kernel before it) and the bytes they brought back. A backend
+    that computes where its caller runs (the reference, cpu) has none: all zeros."""
+
+    launches: int = 0
+    host_waits: int = 0
+    bytes_to_host: int = 0
+
+    def __sub__(self, earlier: DeviceTraffic) -> DeviceTraffic:
+        return DeviceTraffic(
+            self.launches - earlier.launches,
+            self.host_waits - earlier.host_waits,
+            self.bytes_to_host - earlier.bytes_to_host,
+        )
 
 
 class BackendUnavailable(ConfigError):
@@ -80,6 +99,11 @@ class Backend(Protocol):
 
     def host_volume(self, volume: Any) -> TsdfVolume:
         """`volume` as a host TsdfVolume for meshing and output."""
+        ...
+
+    def device_traffic(self) -> DeviceTraffic:
+        """The launches, host waits and downloaded bytes counted since the process started
+        (zeros for a backend without an accelerator)."""
         ...
 
     def kernels_cached(self, tracking: bool = True) -> bool:
@@ -126,6 +150,9 @@ class ReferenceBackend:
 
     def host_volume(self, volume: TsdfVolume) -> TsdfVolume:
         return volume
+
+    def device_traffic(self) -> DeviceTraffic:
+        return DeviceTraffic()  # NumPy on the host: no device
 
     def kernels_cached(self, tracking: bool = True) -> bool:
         return True  # NumPy: nothing to compile

@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from kintinuous_ref.backend import Backend, ReferenceBackend
+from kintinuous_ref.backend import Backend, DeviceTraffic, ReferenceBackend
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.tum import Frame, Trajectory
@@ -72,6 +72,10 @@ class PipelineResult:
     poses: list[np.ndarray] = field(default_factory=list)  # camera-to-world, one per frame
     fused: list[bool] = field(default_factory=list)  # False where tracking failed
     timings_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
+    # per stage and frame, what the host asked of the device (zeros without one)
+    traffic: dict[str, list[DeviceTraffic]] = field(
+        default_factory=lambda: {s: [] for s in STAGES}
+    )
     tracking_failures: int = 0
     failure_reasons: list[str] = field(default_factory=list)  # "frame i: reason"
     volume: TsdfVolume | None = None
@@ -206,10 +210,11 @@ def run(
     result = PipelineResult(loop_closer=loop_closer)
     if loop_closer is not None:
         result.timings_ms["loop_closure"] = []
+        result.traffic["loop_closure"] = []
     previous = None
     try:
         for frame in frames:
-            clock = _Clock()
+            clock = _Clock(backend.device_traffic)
             # 1. Preprocess (IV-A.1), where the backend computes.
             current = backend.preprocess.preprocess_frame(
                 backend.upload(frame.colour), backend.upload(frame.depth), camera, config.preprocess
@@ -271,6 +276,7 @@ def run(
             clock.total()
             for stage, milliseconds in clock.laps.items():
                 result.timings_ms[stage].append(milliseconds)
+                result.traffic[stage].append(clock.traffic[stage])
             result.timestamps.append(frame.timestamp)
             result.poses.append(np.asarray(pose, dtype=np.float64))
             result.fused.append(ok)
@@ -305,16 +311,21 @@ def error_reason(err: Exception) -> str:
 
 
 class _Clock:
-    """Milliseconds per stage of one frame."""
+    """Milliseconds and device traffic (DeviceTraffic) per stage of one frame."""
 
-    def __init__(self) -> None:
+    def __init__(self, traffic: Callable[[], DeviceTraffic]) -> None:
+        self.count = traffic
         self.start = self.last = time.perf_counter()
+        self.first = self.counted = traffic()
         self.laps: dict[str, float] = {}
+        self.traffic: dict[str, DeviceTraffic] = {}
 
     def lap(self, stage: str) -> None:
-        now = time.perf_counter()
+        now, counted = time.perf_counter(), self.count()
         self.laps[stage] = 1000.0 * (now - self.last)
-        self.last = now
+        self.traffic[stage] = counted - self.counted
+        self.last, self.counted = now, counted
 
     def total(self) -> None:
         self.laps["total"] = 1000.0 * (time.perf_counter() - self.start)
+        self.traffic["total"] = self.count() - self.first

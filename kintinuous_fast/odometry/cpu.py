@@ -1,7 +1,8 @@
 """The cpu backend's odometry stage (kintinuous_ref.odometry's names and signatures): the CPU's
 systems - icp/cpu.py's and rgbd/cpu.py's per-frame problems, combined.py's joint problem, the
-compiled Gauss-Newton step, the reference's model pyramid, stale-stream test and FOVIS images
-(the frames are NumPy arrays here) - and make_tracker, the reference's trackers over them.
+compiled Gauss-Newton step, the reference's model pyramid, stale-stream test, FOVIS images and
+steps of one dense estimate (the frames are NumPy arrays here) - and make_tracker, the
+reference's trackers over them.
 
     tracker = load_backend("cpu").odometry.make_tracker("icp+rgbd", config, camera)
 """
@@ -19,6 +20,7 @@ from kintinuous_ref.odometry import FovisTracker as FovisTracker
 from kintinuous_ref.odometry import (
     Systems,
     Tracker,
+    estimate_dense,
     fovis_images,
     is_repeated_frame,
     repeated_streams,
@@ -36,7 +38,14 @@ from .solve import refine as refine
 # functions. Beside them, the members of Systems (kintinuous_ref.odometry.Systems) that
 # kintinuous_ref.odometry imports rather than defines are imported here too: IcpProblem,
 # RgbdProblem, CombinedProblem, model_pyramid and refine.
-__all__ = [*TRACKER_NAMES, "fovis_images", "is_repeated_frame", "make_tracker", "repeated_streams"]
+__all__ = [
+    *TRACKER_NAMES,
+    "estimate_dense",
+    "fovis_images",
+    "is_repeated_frame",
+    "make_tracker",
+    "repeated_streams",
+]
 
 
 def make_tracker(

@@ -2,8 +2,9 @@
 """The cuda backend's odometry stage (kintinuous_ref.odometry's names and signatures): the
 CUDA systems - icp/cuda.py's and rgbd/cuda.py's per-frame problems, combined.py's joint problem,
 the compiled Gauss-Newton step on the host, the model pyramid of device maps, the stale-stream
-test on the device and FOVIS's host images downloaded once per frame - and make_tracker, the
-reference's trackers over them.
+test on the device, FOVIS's host images downloaded once per frame and a dense estimate run
+wholly on the device (frame_on_device.py) - and make_tracker, the reference's trackers over
+them.
 
     tracker = load_backend("cuda").odometry.make_tracker("icp+rgbd", config, camera)
 """
@@ -16,6 +17,7 @@ import numpy as np
 from numba import cuda
 
 from kintinuous_fast.odometry import TRACKER_NAMES
+from kintinuous_fast.odometry.frame_on_device import estimate_on_device, repeats_kernel
 from kintinuous_fast.odometry.sums.cuda import stage
 from kintinuous_fast.preprocess.cuda import model_pyramid as model_pyramid
 from kintinuous_fast.targets import is_device, to_host
@@ -29,6 +31,7 @@ from kintinuous_ref.odometry import Systems, Tracker
 from kintinuous_ref.odometry import TrackingResult as TrackingResult
 from kintinuous_ref.odometry import stale_input as stale_input
 from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel
+from kintinuous_ref.raycast import ModelPrediction
 
 from .combined import CombinedProblem as CombinedProblem
 from .icp.cuda import IcpProblem as IcpProblem
@@ -39,22 +42,14 @@ from .solve import refine as refine
 # functions. Beside them, the members of Systems (kintinuous_ref.odometry.Systems) that
 # kintinuous_ref.odometry imports rather than defines are imported here too: IcpProblem,
 # RgbdProblem, CombinedProblem, model_pyramid and refine.
-__all__ = [*TRACKER_NAMES, "fovis_images", "is_repeated_frame", "make_tracker", "repeated_streams"]
-
-
-@cuda.jit
-def _repeats_kernel(depth_before, depth_now, intensity_before, intensity_now, flags):
-    """flags[0] = 1 if any depth now, [1] = 1 if any depth differs, [2] = 1 if any intensity
-    differs (every writer writes the same 1: no atomics needed). != is True for NaN, as
-    np.array_equal's test is False."""
-    u, v = cuda.grid(2)
-    if v < depth_now.shape[0] and u < depth_now.shape[1]:
-        if depth_now[v, u] > 0:
-            flags[0] = 1
-        if depth_now[v, u] != depth_before[v, u]:
-            flags[1] = 1
-        if intensity_now[v, u] != intensity_before[v, u]:
-            flags[2] = 1
+__all__ = [
+    *TRACKER_NAMES,
+    "estimate_dense",
+    "fovis_images",
+    "is_repeated_frame",
+    "make_tracker",
+    "repeated_streams",
+]
 
 
 def repeated_streams(
@@ -68,7 +63,7 @@ def repeated_streams(
     if tuple(before.depth.shape) != tuple(now.depth.shape):  # images of other sizes differ
         return False, False
     flags = cuda.to_device(np.zeros(3, dtype=np.int32))
-    _repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D](
+    repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D](
         stage(before.depth), now.depth, stage(before.intensity), now.intensity, flags
     )
     any_depth, depth_differs, intensity_differs = to_host(flags)
@@ -98,6 +93,21 @@ def fovis_images(frame: PreprocessedFrame) -> PreprocessedFrame:
         for level in frame.levels
     ]
     return PreprocessedFrame(colour=None, depth=levels[0].depth, levels=levels, colour_mask=None)
+
+
+def estimate_dense(
+    tracker: DenseTracker,
+    previous: PreprocessedFrame,
+    current: PreprocessedFrame,
+    model: ModelPrediction | None,
+    previous_pose: np.ndarray,
+) -> tuple[np.ndarray, str]:
+    """kintinuous_ref.odometry.estimate_dense: for frames on the device, every step there and one
+    wait for the result (frame_on_device.py); host frames and a first frame, the reference's
+    steps over this module's systems."""
+    if previous is None or not is_device(current.levels[0].depth):
+        return _reference.estimate_dense(tracker, previous, current, model, previous_pose)
+    return estimate_on_device(tracker, previous, current, model, previous_pose)
 
 
 def make_tracker(

@@ -81,10 +81,30 @@ def is_device(array: Any) -> bool:
     return hasattr(array, "copy_to_host") and not isinstance(array, np.ndarray)
 
 
+class TrafficCounter:
+    """The cuda target's launches, blocking downloads and downloaded bytes since the process
+    started: each kernel launch (targets.cuda.kernel) and each download (to_host) adds to it.
+    A download waits for every kernel launched before it, so `host_waits` counts the points
+    where the host stops and the GPU runs dry."""
+
+    def __init__(self) -> None:
+        self.launches = 0
+        self.host_waits = 0
+        self.bytes_to_host = 0
+
+
+TRAFFIC = TrafficCounter()
+
+
 def to_host(array: Any) -> Any:
     """`array` on the host: a device array copied down, a NumPy array (or None) as it is. The one
-    place where a stage downloads what a cuda kernel left on the device."""
-    return array.copy_to_host() if is_device(array) else array
+    place where a stage downloads what a cuda kernel left on the device (counted in TRAFFIC)."""
+    if not is_device(array):
+        return array
+    host = array.copy_to_host()
+    TRAFFIC.host_waits += 1
+    TRAFFIC.bytes_to_host += host.nbytes
+    return host
 
 
 def pinhole(camera: Any) -> tuple[float, float, float, float]:

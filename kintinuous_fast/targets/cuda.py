@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import is_device, to_host
+from kintinuous_fast.targets import TRAFFIC, is_device, to_host
 
 # Threads per block of the per-pixel kernels: 16 x 16, x along image rows (coalesced reads).
 BLOCK_2D = (16, 16)
@@ -35,6 +35,32 @@ def quiet_small_grids() -> None:
 
 
 quiet_small_grids()
+
+
+class CountedKernel:
+    """A numba.cuda kernel whose launches are counted in targets.TRAFFIC: `kernel[grid, block]`
+    and every attribute are the kernel's own; only the launch goes through here."""
+
+    def __init__(self, dispatcher: Any) -> None:
+        self.dispatcher = dispatcher
+
+    def __getitem__(self, configuration: Any) -> Any:
+        launch = self.dispatcher[configuration]
+
+        def counted_launch(*arguments: Any) -> None:
+            TRAFFIC.launches += 1
+            launch(*arguments)
+
+        return counted_launch
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.dispatcher, name)
+
+
+def kernel(function: Any) -> CountedKernel:
+    """`cuda.jit` for a kernel (not a device function), its launches counted: the decorator of
+    every kernel of the cuda backend."""
+    return CountedKernel(cuda.jit(function))
 
 
 def to_device(array: Any, dtype: Any = None) -> Any:

@@ -162,6 +162,9 @@ class Systems(Protocol):
     - model_pyramid(vertices, normals, levels): kintinuous_ref.preprocess's.
     - refine(pose, system_at, iterations, min_count, converged, step): solve.py's.
     - repeated_streams(previous, current) and fovis_images(frame): this module's.
+    - estimate_dense(tracker, previous, current, model, previous_pose): this module's, the
+      steps of one dense estimate over the members above; the cuda backend's runs the same
+      steps on the device and waits for it once a frame.
     """
 
     IcpProblem: Callable[..., Any]
@@ -193,6 +196,52 @@ class Systems(Protocol):
     def fovis_images(self, frame: PreprocessedFrame) -> PreprocessedFrame:
         """The frame's depth and intensity of every level as NumPy arrays, for FOVIS."""
         ...
+
+    def estimate_dense(
+        self,
+        tracker: DenseTracker,
+        previous: PreprocessedFrame,
+        current: PreprocessedFrame,
+        model: ModelPrediction | None,
+        previous_pose: np.ndarray,
+    ) -> tuple[np.ndarray, str]:
+        """(pose, '') or (pose so far, why it failed): estimate_dense's steps."""
+        ...
+
+
+def estimate_dense(
+    tracker: DenseTracker,
+    previous: PreprocessedFrame,
+    current: PreprocessedFrame,
+    model: ModelPrediction | None,
+    previous_pose: np.ndarray,
+) -> tuple[np.ndarray, str]:
+    """One dense estimate over the tracker's systems, its inputs checked (DenseTracker.estimate):
+    the stale-stream test, the frame's problem, coarse-to-fine Gauss-Newton from the previous
+    pose, then the inlier and jump checks at the estimate. (pose, '') or (pose so far, why)."""
+    systems = tracker.systems
+    depth_repeated, colour_repeated = systems.repeated_streams(previous, current)
+    stale = stale_input(tracker.method, depth_repeated, colour_repeated)
+    if stale:
+        # Nothing new to measure the motion with: a failure (the fallback pose, the frame not
+        # fused), never a silently frozen pose.
+        return previous_pose.copy(), stale
+    problem = tracker.problem(previous, current, model, previous_pose)
+    if isinstance(problem, systems.CombinedProblem) and (depth_repeated or colour_repeated):
+        # One stream is stale: track on the fresh one alone for this frame.
+        problem = problem.icp if colour_repeated else problem.rgbd
+    tracking = tracker.config.tracking
+    pose, reason = systems.refine(
+        previous_pose.copy(),
+        problem.system,
+        tracker.iterations,
+        tracking.min_correspondences,
+        tracking.converged_step,
+    )
+    if reason:
+        return pose, reason
+    fraction = problem.inlier_fraction(pose, tracker.finest_level)
+    return pose, tracker.check_estimate(pose, previous_pose, fraction)
 
 
 def _reference_systems() -> Systems:
@@ -236,13 +285,14 @@ class DenseTracker:
             return tuple(self.config.rgbd.iterations)
         return tuple(self.config.rgbd.combined_iterations)
 
-    def _problem(
+    def problem(
         self,
         previous: PreprocessedFrame,
         current: PreprocessedFrame,
         model: ModelPrediction | None,
         previous_pose: np.ndarray,
     ) -> IcpProblem | RgbdProblem | CombinedProblem:
+        """This frame's problem for the tracker's method, built from its systems."""
         levels = len(self.iterations)
         icp = rgbd = None
         if self.method in ("icp", "icp+rgbd"):
@@ -288,39 +338,20 @@ class DenseTracker:
                     previous_pose,
                     f"{name} frame has {len(frame.levels)} pyramid levels, {levels} needed",
                 )
-        depth_repeated, colour_repeated = self.systems.repeated_streams(previous, current)
-        stale = stale_input(self.method, depth_repeated, colour_repeated)
-        if stale:
-            # Nothing new to measure the motion with: a failure (the fallback pose, the frame
-            # not fused), never a silently frozen pose.
-            return previous_pose.copy(), stale
+        return self.systems.estimate_dense(self, previous, current, model, previous_pose)
+
+    def check_estimate(self, pose: np.ndarray, previous_pose: np.ndarray, fraction: float) -> str:
+        """'' when a converged estimate with `fraction` inliers at the finest level stands, else
+        why not: too few inliers, or an implausible jump (config.tracking)."""
         tracking = self.config.tracking
-        problem = self._problem(previous, current, model, previous_pose)
-        if isinstance(problem, self.systems.CombinedProblem) and (
-            depth_repeated or colour_repeated
-        ):
-            # One stream is stale: track on the fresh one alone for this frame.
-            problem = problem.icp if colour_repeated else problem.rgbd
-        pose, reason = self.systems.refine(
-            previous_pose.copy(),
-            problem.system,
-            self.iterations,
-            tracking.min_correspondences,
-            tracking.converged_step,
-        )
-        if reason:
-            return pose, reason
-        fraction = problem.inlier_fraction(pose, self.finest_level)
-        if fraction < tracking.min_inlier_fraction:
-            return pose, (
-                f"too few inliers ({100 * fraction:.1f}% < {100 * tracking.min_inlier_fraction:g}%)"
-            )
-        reason = implausible_motion(
+        least = tracking.min_inlier_fraction
+        if fraction < least:
+            return f"too few inliers ({100 * fraction:.1f}% < {100 * least:g}%)"
+        return implausible_motion(
             se3.inverse(previous_pose) @ pose,
             tracking.max_translation_jump,
             tracking.max_rotation_jump_deg,
         )
-        return pose, reason
 
     def track(
         self,

@@ -35,6 +35,18 @@ def timing_stats(values: list[float]) -> dict[str, float | None]:
     }
 
 
+TRAFFIC_FIELDS = ("launches", "host_waits", "bytes_to_host")
+
+
+def traffic_stats(frames: list[Any]) -> dict[str, float]:
+    """The median over `frames` (DeviceTraffic, one per frame) of each of TRAFFIC_FIELDS
+    (zeros where nothing was counted)."""
+    return {
+        name: float(np.median([getattr(frame, name) for frame in frames])) if frames else 0.0
+        for name in TRAFFIC_FIELDS
+    }
+
+
 def benchmark(
     dataset: str | None,
     backend: str = "auto",
@@ -45,7 +57,9 @@ def benchmark(
 ) -> dict[str, Any]:
     """Run the pipeline over `frames` frames of `dataset` (a TUM folder or scenario name) on
     `backend` and return {backend, dataset, odometry, frames, resolution, timing_ms: {stage:
-    {mean, median, max}}, fps (1000 / median total ms)} over frames 2..N."""
+    {mean, median, max}}, fps (1000 / median total ms), the device traffic per frame
+    (launches_per_frame, host_waits_per_frame, bytes_to_host_per_frame: medians, zeros without
+    a device) and per stage (traffic_per_stage)} over frames 2..N."""
     from kintinuous_ref import pipeline
     from kintinuous_ref.backend import load_backend
     from kintinuous_ref.program.reconstruct import check_start, open_dataset
@@ -72,6 +86,7 @@ def benchmark(
         )
     timing = {stage: timing_stats(values[1:]) for stage, values in result.timings_ms.items()}
     total = timing.get("total", {}).get("median")
+    traffic = {stage: traffic_stats(frames[1:]) for stage, frames in result.traffic.items()}
     return {
         "backend": chosen.name,
         "dataset": str(sequence.path),
@@ -85,6 +100,8 @@ def benchmark(
         "icp_iterations": list(config.icp.iterations),
         "timing_ms": timing,
         "fps": (1000.0 / total) if total else None,
+        **{f"{name}_per_frame": traffic["total"][name] for name in TRAFFIC_FIELDS},
+        "traffic_per_stage": traffic,
     }
 
 
@@ -106,6 +123,12 @@ def format_table(report: dict[str, Any]) -> str:
             )
     fps = report["fps"]
     lines.append(f"frames/s (median): {fps:.2f}" if fps else "frames/s: -")
+    if report["launches_per_frame"]:
+        lines.append(
+            f"device per frame (median): {report['launches_per_frame']:.0f} kernel launches, "
+            f"{report['host_waits_per_frame']:.0f} host waits, "
+            f"{report['bytes_to_host_per_frame']:.0f} bytes to the host"
+        )
     return "\n".join(lines)
 
 

@@ -18,6 +18,7 @@ from numba import cuda, float64
 from kintinuous_fast.odometry import check_image
 from kintinuous_fast.odometry.sums import NV, sum_partials
 from kintinuous_fast.odometry.sums.cuda import (
+    ANY_LEVEL,
     BLOCK,
     DEVICE,
     GEOMETRY,
@@ -25,6 +26,8 @@ from kintinuous_fast.odometry.sums.cuda import (
     block_reduce,
     counter,
     f64,
+    gated,
+    open_gate,
     reduction_blocks,
     scratch,
     stage,
@@ -32,7 +35,7 @@ from kintinuous_fast.odometry.sums.cuda import (
     zero,
 )
 from kintinuous_fast.targets import pinhole, to_host
-from kintinuous_fast.targets.cuda import grid_1d, like_input, to_device
+from kintinuous_fast.targets.cuda import grid_1d, kernel, like_input, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import IcpConfig
 from kintinuous_ref.odometry.icp import depth_noise_scale as depth_noise_scale
@@ -73,10 +76,13 @@ _pair_weight = _ops.pair_weight
 # Kernels
 
 
-@cuda.jit
-def _icp_kernel(vertices, normals, poses, mv, mn, camera, limits, robust, out):
+@kernel
+def icp_kernel(vertices, normals, poses, mv, mn, camera, limits, robust, out, gate, level):
     # `poses` = (pose, current camera to model camera) stacked, `camera` = (fx, fy, cx, cy),
-    # `limits` = (squared distance, cos angle), `robust` = robust_terms
+    # `limits` = (squared distance, cos angle), `robust` = robust_terms; `gate` and `level`:
+    # sums.cuda.gated (the whole block returns together, before any barrier)
+    if gated(gate, level):
+        return
     pose, to_model = poses[0], poses[1]
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
@@ -101,7 +107,7 @@ def _icp_kernel(vertices, normals, poses, mv, mn, camera, limits, robust, out):
     block_reduce(acc, shared, out)
 
 
-@cuda.jit
+@kernel
 def _associate_kernel(points, normals, poses, mv, mn, camera, limits, count, out):
     pose, to_model = poses[0], poses[1]
     k = cuda.grid(1)
@@ -118,7 +124,7 @@ def _associate_kernel(points, normals, poses, mv, mn, camera, limits, count, out
             out[6, slot], out[7, slot], out[8, slot] = ux, uy, uz
 
 
-@cuda.jit
+@kernel
 def _point_to_plane_kernel(world, mv, mn, jacobian, residuals):
     k = cuda.grid(1)
     if k < world.shape[1]:
@@ -136,7 +142,7 @@ def _icp_sums(current, model, camera, constants, robust) -> tuple[LinearSystem, 
     pose, to_model, dist2, cos_min = constants
     blocks = reduction_blocks(camera.height * camera.width)
     out = scratch("icp partials", (blocks, NV))
-    _icp_kernel[blocks, BLOCK](
+    icp_kernel[blocks, BLOCK](
         *current,
         upload("icp poses", np.stack((pose, to_model))),
         *model,
@@ -144,6 +150,8 @@ def _icp_sums(current, model, camera, constants, robust) -> tuple[LinearSystem, 
         (dist2, cos_min),
         robust,
         out,
+        open_gate(),
+        ANY_LEVEL,
     )
     return sum_partials(to_host(out))
 

@@ -28,6 +28,7 @@ from numba import cuda, float64, int32, int64
 from kintinuous_fast.odometry import check_image
 from kintinuous_fast.odometry.sums import NV, sum_partials
 from kintinuous_fast.odometry.sums.cuda import (
+    ANY_LEVEL,
     BLOCK,
     DEVICE,
     GEOMETRY,
@@ -35,6 +36,8 @@ from kintinuous_fast.odometry.sums.cuda import (
     block_reduce,
     counter,
     f64,
+    gated,
+    open_gate,
     reduction_blocks,
     rounded_up,
     scratch,
@@ -43,7 +46,7 @@ from kintinuous_fast.odometry.sums.cuda import (
     zero,
 )
 from kintinuous_fast.targets import is_device, pinhole, to_host
-from kintinuous_fast.targets.cuda import grid_1d, like_input
+from kintinuous_fast.targets.cuda import grid_1d, kernel, like_input
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.odometry import rgbd as reference
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
@@ -76,8 +79,8 @@ _EMPTY_TALLY = np.zeros(2)  # [pairs listed, sum of their r^2] before Algorithm 
 # Kernels
 
 
-@cuda.jit
-def _interest_kernel(dx, dy, depth, g2, use_depth, max_depth, count, indices):
+@kernel
+def interest_kernel(dx, dy, depth, g2, use_depth, max_depth, count, indices):
     """Algorithm 1: a shared-memory list per block, one global atomic per block."""
     local = cuda.shared.array(BLOCK, int64)
     local_count = cuda.shared.array(1, int32)
@@ -104,10 +107,10 @@ def _interest_kernel(dx, dy, depth, g2, use_depth, max_depth, count, indices):
         indices[base[0] + t] = local[t]
 
 
-@cuda.jit
-def _interest_data_kernel(indices, depth, intensity, dx, dy, camera, points, values, grad):
+@kernel
+def interest_data_kernel(indices, count, depth, intensity, dx, dy, camera, points, values, grad):
     k = cuda.grid(1)
-    if k < indices.shape[0]:
+    if k < count[0]:
         width = depth.shape[1]
         i = indices[k]
         v = i // width
@@ -121,9 +124,10 @@ def _interest_data_kernel(indices, depth, intensity, dx, dy, camera, points, val
         grad[1, k] = float(dy[v, u])
 
 
-@cuda.jit
-def _correspond_kernel(
+@kernel
+def correspond_kernel(
     points,
+    count,
     intensity,
     gradient,
     poses,
@@ -136,10 +140,15 @@ def _correspond_kernel(
     max_change,
     tally,
     pairs,
+    gate,
+    level,
 ):
     """Algorithm 2: kept pairs listed per block in shared memory, then each adds r^2 to the
     global sum (tally[1]) and takes its slot in the global list (counted in tally[0], a float64
-    that counts exactly to 2^53) with atomics. `poses` = (relative, pose, previous) stacked."""
+    that counts exactly to 2^53) with atomics. `poses` = (relative, pose, previous) stacked;
+    `count` = [interest points]; `gate`, `level`: sums.cuda.gated."""
+    if gated(gate, level):
+        return
     relative, pose = poses[0], poses[1]
     local = cuda.shared.array(BLOCK, int64)
     local_r = cuda.shared.array(BLOCK, float64)
@@ -149,7 +158,7 @@ def _correspond_kernel(
         local_count[0] = 0
     cuda.syncthreads()
     k = cuda.grid(1)
-    if k < points.shape[1]:
+    if k < count[0]:
         ok, r, wx, wy, wz, x, y, z, gx, gy = _warp_point(
             points,
             intensity,
@@ -176,11 +185,12 @@ def _correspond_kernel(
         pairs[int(cuda.atomic.add(tally, 0, 1.0))] = local[t]
 
 
-@cuda.jit
+@kernel
 def _correspondence_data_kernel(
     pairs,
     n_pairs,
     points,
+    count,
     intensity,
     gradient,
     poses,
@@ -220,11 +230,12 @@ def _correspondence_data_kernel(
         used_gradient[0, j], used_gradient[1, j] = gx, gy
 
 
-@cuda.jit
-def _rgbd_rows_kernel(
+@kernel
+def rows_kernel(
     pairs,
     tally,
     points,
+    count,
     intensity,
     gradient,
     poses,
@@ -236,10 +247,14 @@ def _rgbd_rows_kernel(
     camera,
     max_change,
     out,
+    gate,
+    level,
 ):
     """The robustly weighted photometric rows of the listed pairs, tree-reduced per block. The
-    pair count and sum of r^2 are read from `tally` where _correspond_kernel left them, so the
+    pair count and sum of r^2 are read from `tally` where correspond_kernel left them, so the
     host waits for neither: sigma' = sqrt(sum r^2 / count), as the host computed it."""
+    if gated(gate, level):
+        return
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     zero(acc)
@@ -270,7 +285,7 @@ def _rgbd_rows_kernel(
     block_reduce(acc, shared, out)
 
 
-@cuda.jit
+@kernel
 def _photometric_kernel(world, warped_points, gradient, previous_pose, focal, jacobian):
     k = cuda.grid(1)
     if k < world.shape[1]:
@@ -296,7 +311,7 @@ def _interest_list(dx, dy, depth, min_gradient: float, max_depth: float):
     count = counter()
     indices = cuda.device_array(max(n, 1), dtype=np.int64)
     use_depth = depth is not None
-    _interest_kernel[grid_1d(n, BLOCK), BLOCK](
+    interest_kernel[grid_1d(n, BLOCK), BLOCK](
         dx,
         dy,
         depth if use_depth else dx,
@@ -307,13 +322,15 @@ def _interest_list(dx, dy, depth, min_gradient: float, max_depth: float):
         indices,
     )
     total = int(to_host(count)[0])
-    return indices[:total], total
+    return indices[:total], total, count
 
 
 def interest_points(intensity_dx, intensity_dy, min_gradient: float):
     """Algorithm 1: flat indices of the pixels with dx^2 + dy^2 >= g^2 (atomic order)."""
     check_image("intensity_dy", intensity_dy, intensity_dx.shape)
-    indices, _ = _interest_list(stage(intensity_dx), stage(intensity_dy), None, min_gradient, 0)
+    indices, _, _ = _interest_list(
+        stage(intensity_dx), stage(intensity_dy), None, min_gradient, 0
+    )
     return like_input(indices, intensity_dx)
 
 
@@ -331,15 +348,15 @@ def prepare_level(
     images = {"depth": depth, "intensity": intensity, "dx": intensity_dx, "dy": intensity_dy}
     check_images("current", camera, **images)
     d_depth, d_dx, d_dy = stage(depth), stage(intensity_dx), stage(intensity_dy)
-    indices, n = _interest_list(d_dx, d_dy, d_depth, min_gradient, max_depth)
+    indices, n, count = _interest_list(d_dx, d_dy, d_depth, min_gradient, max_depth)
     size = max(n, 1)
     points = cuda.device_array((3, size), dtype=np.float64)
     values = cuda.device_array(size, dtype=np.float64)
     gradient = cuda.device_array((2, size), dtype=np.float64)
     if n:
-        images = (indices, d_depth, stage(intensity), d_dx, d_dy)
+        images = (indices, count, d_depth, stage(intensity), d_dx, d_dy)
         intrinsics = pinhole(camera)
-        _interest_data_kernel[grid_1d(n, BLOCK), BLOCK](
+        interest_data_kernel[grid_1d(n, BLOCK), BLOCK](
             *images, intrinsics, points, values, gradient
         )
     result = (indices, points[:, :n], values[:n], gradient[:, :n])
@@ -352,16 +369,26 @@ def _pair_arguments(points, pose, previous_pose, previous, camera, max_depth_cha
     """The arguments _warp_point needs, on the device, in the kernels' order; `previous` = the
     previous frame's (depth, intensity, dx, dy), dx and dy None but in "warped" mode. The three
     poses (relative, current, previous) go up as one array, one copy per iteration."""
+    check_images("previous", camera, depth=previous[0], intensity=previous[1])
+    poses = (relative_pose(pose, previous_pose), pose, previous_pose)
+    count = np.array([points.points.shape[1]], dtype=np.int32)
+    interest = (f64(points.points), upload("rgbd point count", count))
+    interest += (f64(points.intensity), f64(points.gradient))
+    poses = upload("rgbd poses", np.stack(poses).astype(np.float64))
+    return pair_arguments(interest, poses, previous, camera, max_depth_change)
+
+
+def pair_arguments(interest: tuple, poses, previous: tuple, camera, max_depth_change) -> tuple:
+    """What _warp_point reads, in the kernels' order: `interest` = the interest points' device
+    (points, count, intensities, gradients), `poses` = (relative, current, previous) on the
+    device, `previous` = the previous frame's (depth, intensity, dx, dy) staged here, dx and dy
+    None but in "warped" mode."""
     previous_depth, previous_intensity, previous_dx, previous_dy = previous
-    check_images("previous", camera, depth=previous_depth, intensity=previous_intensity)
     prev_i = stage(previous_intensity)
     warped = previous_dx is not None and previous_dy is not None
-    poses = (relative_pose(pose, previous_pose), pose, previous_pose)
     return (
-        f64(points.points),
-        f64(points.intensity),
-        f64(points.gradient),
-        upload("rgbd poses", np.stack(poses).astype(np.float64)),
+        *interest,
+        poses,
         stage(previous_depth),
         prev_i,
         stage(previous_dx) if warped else prev_i,
@@ -379,7 +406,9 @@ def _pair_list(arguments: tuple, n: int, pairs=None):
     if pairs is None:
         pairs = cuda.device_array(max(n, 1), dtype=np.int64)
     if n:
-        _correspond_kernel[grid_1d(n, BLOCK), BLOCK](*arguments, tally, pairs)
+        correspond_kernel[grid_1d(n, BLOCK), BLOCK](
+            *arguments, tally, pairs, open_gate(), ANY_LEVEL
+        )
     return pairs, tally
 
 
@@ -463,7 +492,7 @@ def rgbd_system(
     # enough blocks for every interest point kept: no count to wait for
     blocks = rounded_up(reduction_blocks(n))
     out = scratch("rgbd partials", (blocks, NV))
-    _rgbd_rows_kernel[blocks, BLOCK](pairs, tally, *arguments, out)
+    rows_kernel[blocks, BLOCK](pairs, tally, *arguments, out, open_gate(), ANY_LEVEL)
     return sum_partials(to_host(out))[0]
 
 

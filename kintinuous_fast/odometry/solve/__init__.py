@@ -108,13 +108,18 @@ def solve(system: LinearSystem, min_count: int = 6) -> tuple[np.ndarray | None, 
     status, xi, condition = _scaled_solution(system.A, system.b)
     if status == SOLVED:
         return xi, ""
-    reasons = {
+    return None, solve_reasons(condition)[status]
+
+
+def solve_reasons(condition: float) -> dict[int, str]:
+    """The reference's reason for each failed status of _scaled_solution (`condition`: the
+    scaled matrix's condition number where it is ILL_CONDITIONED)."""
+    return {
         NOT_FINITE: "normal equations contain NaN or infinity",
         UNCONSTRAINED: "singular system (a degree of freedom has no constraint)",
         ILL_CONDITIONED: f"singular system (condition number {condition:.1e})",
         NOT_DEFINITE: "singular system (Cholesky failed)",
     }
-    return None, reasons[status]
 
 
 @_jit

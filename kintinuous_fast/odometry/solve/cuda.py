@@ -19,6 +19,7 @@ from kintinuous_fast.odometry.sums.cuda import (
     zero,
 )
 from kintinuous_fast.targets import to_host
+from kintinuous_fast.targets.cuda import kernel
 from kintinuous_ref.odometry.solve import LinearSystem
 from kintinuous_ref.odometry.solve import implausible_motion as implausible_motion
 
@@ -30,7 +31,7 @@ from . import solve as solve
 __all__ = TARGET_ALL
 
 
-@cuda.jit
+@kernel
 def _accumulate_kernel(jacobian, residuals, weights, weighted, out):
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)

@@ -35,6 +35,8 @@ __all__ = [
     "block_reduce",
     "counter",
     "f64",
+    "gated",
+    "open_gate",
     "reduction_blocks",
     "rounded_up",
     "scratch",
@@ -79,6 +81,31 @@ def block_reduce(acc, shared, partials):
     if t == 0:
         for s in range(NV):
             partials[block, s] = shared[s, 0]
+
+
+# The gate of every Gauss-Newton kernel: the first slots of the state vector the device loop
+# keeps (odometry/frame_on_device.py). Slot GATE_FAILED is non-zero once a step of the frame has
+# failed; slot GATE_DONE_LEVEL is the pyramid level whose steps have converged. A gated kernel
+# returns at once, so a frame launches the same kernels whatever its data do.
+GATE_FAILED = 0
+GATE_DONE_LEVEL = 1
+ANY_LEVEL = -1  # the `level` of a launch that no level's convergence skips (a single system)
+
+
+@cuda.jit(device=True)
+def gated(gate, level):
+    """True when a kernel of `level` has nothing to do: the frame failed or the level is done."""
+    return gate[GATE_FAILED] != 0.0 or (level >= 0 and gate[GATE_DONE_LEVEL] == level)
+
+
+_OPEN_GATE: list[Any] = []
+
+
+def open_gate() -> Any:
+    """A gate that never closes, for kernels launched one system at a time by the host."""
+    if not _OPEN_GATE:
+        _OPEN_GATE.append(cuda.to_device(np.array([0.0, -1.0])))
+    return _OPEN_GATE[0]
 
 
 def reduction_blocks(count: int) -> int:
