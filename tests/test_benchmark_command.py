@@ -1,5 +1,6 @@
 """`kintinuous benchmark --json`: one JSON object whose per-stage statistics are those
-of the frames after the warm-up frame, and frames/s = 1000 / median total ms."""
+of the frames after the warm-up frame, and frames/s = 1000 / median total ms, with the device
+traffic per frame (zeros on the cpu; the cuda counts: tests/test_cuda_frame_budget.py)."""
 
 import json
 from pathlib import Path
@@ -31,6 +32,11 @@ def test_benchmark_json_reports_stages_and_fps(capsys, fast):
     assert parts <= stages["total"]["mean"] * (1 + 1e-9)
     assert report["fps"] == pytest.approx(1000.0 / stages["total"]["median"])
     assert np.isfinite(report["fps"])
+    # the device counters are there for every backend: zeros where nothing runs on a device
+    for name in ("launches", "host_waits", "bytes_to_host"):
+        assert report[f"{name}_per_frame"] == 0
+        assert {stats[name] for stats in report["traffic_per_stage"].values()} == {0}
+    assert set(report["traffic_per_stage"]) == set(stages)
 
 
 def test_benchmark_takes_configuration_overrides(capsys):
