@@ -182,3 +182,91 @@ def test_equivalence_cuda_volume_stays_on_device(gpu_volume):
     assert is_device(volume.tsdf_weight) and is_device(volume.colour)
     prediction = raycast.predict_surface(volume, np.eye(4), fe.camera_for(height, width))
     assert is_device(prediction.vertices) and is_device(prediction.normals)
+
+
+def test_equivalence_cuda_volume_integrate_bounded_on_the_device(gpu_volume):
+    """integrate bounds the frustum by the volume's reach and each voxel column by the frame's
+    largest depth, read on the device (no download). On frames far nearer than the volume
+    reaches, with colour, the volume is voxel for voxel the one that fusing every voxel of the
+    frustum box of the frame's largest depth (computed on the host) gives."""
+    from numba import cuda
+
+    from kintinuous_fast.tsdf.volume import frustum_box
+
+    tsdf, _ = gpu_volume
+    height, width, resolution = VOLUME_SIZES[0]
+    camera = fe.camera_for(height, width)
+    config = VolumeConfig(resolution=resolution, size=3.0)
+    poses = fe.moving_poses(2)
+    bounded, whole = (tsdf.make_volume(config, poses[0]) for _ in range(2))
+    colour = fe.scene_colour(height, width)
+    for index, pose in enumerate(poses):
+        depth = np.float32(0.4) * fe.scene_depth(height, width, seed=index)  # 0.6 to 1.2 m
+        nearest_box = frustum_box(whole, float(depth.max()), pose, camera)
+        reach = tsdf.volume_reach(whole, pose)
+        reach_box = frustum_box(whole, reach, pose, camera)
+        assert reach > 2.0 * depth.max()
+        assert np.prod(reach_box[1] - reach_box[0]) > 2 * np.prod(nearest_box[1] - nearest_box[0])
+        tsdf.integrate(bounded, depth, pose, camera, colour)
+        tsdf.integrate_in_box(whole, cuda.to_device(depth), pose, camera, colour, None, nearest_box)
+    want = whole.tsdf_weight.copy_to_host()
+    assert np.count_nonzero(want[..., 1]) > 0.02 * resolution**3  # a real test
+    np.testing.assert_array_equal(bounded.tsdf_weight.copy_to_host(), want)
+    np.testing.assert_array_equal(bounded.colour.copy_to_host(), whole.colour.copy_to_host())
+
+
+def test_cuda_volume_and_frame_stages_copy_nothing_after_the_first_frame(
+    gpu, gpu_volume, monkeypatch
+):
+    """Preprocessing device images, colour weights, integration (with and without colour
+    weights) and the surface prediction: after a first frame, a frame copies nothing between
+    host and device (each such copy waits for the device's queued work). Constant tables stay
+    on the device; per-frame values go as launch parameters. (Named for the simulator's
+    "volume" child.)"""
+    from numba import cuda
+
+    from kintinuous_fast.colour import cuda as colour
+    from kintinuous_ref.config import ColourConfig
+
+    if SIMULATED:
+        from numba.cuda.simulator.cudadrv.devicearray import FakeCUDAArray as device_array
+    else:
+        from numba.cuda.cudadrv.devicearray import DeviceNDArrayBase as device_array
+    tsdf, raycast = gpu_volume
+    height, width, resolution = (16, 24, 16) if SIMULATED else VOLUME_SIZES[0]
+    camera = fe.camera_for(height, width)
+    config = PreprocessConfig(bilateral_radius=2, pyramid_levels=2)
+    poses = fe.moving_poses(2)
+    volume = tsdf.make_volume(VolumeConfig(resolution=resolution, size=3.0), poses[0])
+    images = [
+        (
+            cuda.to_device(fe.scene_colour(height, width, seed)),
+            cuda.to_device(fe.raw_depth(height, width, seed)),
+        )
+        for seed in range(2)
+    ]
+
+    def one_frame(index: int) -> None:
+        frame = gpu.preprocess_frame(*images[index], camera, config)
+        weights = colour.colour_weights(frame, ColourConfig())
+        tsdf.integrate(volume, frame.depth, poses[index], camera, frame.colour, weights)
+        tsdf.integrate(volume, frame.depth, poses[index], camera, frame.colour)
+        tsdf.integrate(volume, frame.depth, poses[index], camera)
+        raycast.predict_surface(volume, poses[index], camera, stride=2)
+
+    one_frame(0)
+    crossings: list[str] = []
+    upload, download = cuda.to_device, device_array.copy_to_host
+
+    def counted_upload(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        crossings.append("up")
+        return upload(*args, **kwargs)
+
+    def counted_download(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        crossings.append("down")
+        return download(*args, **kwargs)
+
+    monkeypatch.setattr(cuda, "to_device", counted_upload)
+    monkeypatch.setattr(device_array, "copy_to_host", counted_download)
+    one_frame(1)
+    assert crossings == []

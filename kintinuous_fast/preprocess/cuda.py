@@ -4,11 +4,14 @@ each stage's ops.py (the same scalar functions the CPU backend loops over).
 
 Same names, signatures and results as the reference (tests/test_fast_preprocess.py states the
 tolerances). Arrays come back where they were given (kintinuous_fast.targets.cuda); preprocess_frame
-uploads the images once and keeps every intermediate on the device.
+uploads the images once and keeps every intermediate on the device. The weight tables go up once
+per parameter set and stay there (numba's copy to the device waits for the device to finish the
+work queued before it, so an upload per frame would also stall the host).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -151,6 +154,28 @@ def _launch(kernel: Any, shape: tuple[int, ...], *args: Any) -> None:
 
 
 # ----------------------------------------------------------------------------------------------
+# Constant tables, on the device for the run: kernels only read them
+
+
+@functools.lru_cache(maxsize=16)
+def _spatial_table(sigma_space: float, radius: int) -> Any:
+    """spatial_exponents(sigma_space, radius) on the device, uploaded on first use."""
+    return cuda.to_device(spatial_exponents(sigma_space, radius))
+
+
+@functools.lru_cache(maxsize=16)
+def _gaussian_table(blur_sigma: float) -> Any:
+    """gaussian3x3(blur_sigma) on the device, uploaded on first use."""
+    return cuda.to_device(gaussian3x3(blur_sigma))
+
+
+@functools.lru_cache(maxsize=1)
+def _sobel_tables() -> tuple[Any, Any]:
+    """SOBEL_X and SOBEL_Y on the device, uploaded on first use."""
+    return cuda.to_device(SOBEL_X), cuda.to_device(SOBEL_Y)
+
+
+# ----------------------------------------------------------------------------------------------
 # Public functions: kintinuous_ref.preprocess's signatures
 
 
@@ -198,7 +223,7 @@ def bilateral_filter(depth: Any, sigma_space: float, sigma_depth: float, radius:
     """Edge-preserving smoothing of a depth map; holes stay holes (see the reference)."""
     d_depth = to_device(depth, np.float32)
     out = cuda.device_array(depth.shape, dtype=np.float32)
-    spatial = cuda.to_device(spatial_exponents(sigma_space, int(radius)))
+    spatial = _spatial_table(float(sigma_space), int(radius))
     inv_two_sigma2 = inverse_two_variance(sigma_depth)
     _launch(_bilateral_kernel, depth.shape, d_depth, spatial, int(radius), inv_two_sigma2, out)
     return like_input(out, depth)
@@ -247,14 +272,9 @@ def intensity_gradients(intensity: Any, blur_sigma: float) -> tuple[Any, Any]:
     blurred = cuda.device_array(shape, dtype=np.float64)
     dx = cuda.device_array(shape, dtype=np.float32)
     dy = cuda.device_array(shape, dtype=np.float32)
-    _launch(
-        _correlate_kernel,
-        shape,
-        to_device(intensity, np.float32),
-        cuda.to_device(gaussian3x3(blur_sigma)),
-        blurred,
-    )
-    _launch(_sobel_kernel, shape, blurred, cuda.to_device(SOBEL_X), cuda.to_device(SOBEL_Y), dx, dy)
+    gaussian = _gaussian_table(float(blur_sigma))
+    _launch(_correlate_kernel, shape, to_device(intensity, np.float32), gaussian, blurred)
+    _launch(_sobel_kernel, shape, blurred, *_sobel_tables(), dx, dy)
     return like_input(dx, intensity), like_input(dy, intensity)
 
 

@@ -2,11 +2,13 @@
 """kintinuous_ref.raycast as a CUDA kernel: one thread per pixel marching its ray through the
 device volume around kintinuous_fast.raycast.ops, jumping over empty bricks with the reference's
 brick distance map, which three small kernels compute on the device every frame. Only the pose
-goes in. `raycast` downloads the maps (a ModelPrediction of NumPy arrays like the reference's);
+goes in, as launch parameters (a copy to the device would wait for the device's queued work).
+`raycast` downloads the maps (a ModelPrediction of NumPy arrays like the reference's);
 `predict_surface` leaves them on the device, where the next frame's tracking reads them."""
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -16,6 +18,7 @@ from kintinuous_fast.raycast import ops as raycast_ops
 from kintinuous_fast.targets import cuda_device_jit, to_host
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
 from kintinuous_fast.tsdf import voxel
+from kintinuous_fast.tsdf.cuda import matrix_to_device
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_fast.tsdf.voxel import BRICK
 from kintinuous_ref.camera import Intrinsics
@@ -35,19 +38,24 @@ raycast_pixel = raycast_ops.build_ops(cuda_device_jit(), voxels=_voxels).raycast
 count_negative = _voxels.count_negative
 
 
-_NOTHING_SKIPPED: list = []
 # Larger than any chessboard distance between bricks: "no negative brick along this axis yet".
 _FAR = 1 << 30
 
 
+@functools.lru_cache(maxsize=1)
 def _map_that_skips_nothing() -> Any:
     """A (1, 1, 1) distance map of 0 on the device (kept for the run): as march_ray's fine map,
     the brick map decides every step (a jump from distance FINE_LEVEL_BELOW on, else a
     sample); as both maps, every sample is taken (the plain march, whose answer the exact
     skipping returns too)."""
-    if not _NOTHING_SKIPPED:
-        _NOTHING_SKIPPED.append(cuda.to_device(np.zeros((1, 1, 1), dtype=np.uint8)))
-    return _NOTHING_SKIPPED[0]
+    return cuda.to_device(np.zeros((1, 1, 1), dtype=np.uint8))
+
+
+@functools.lru_cache(maxsize=1)
+def _no_colour_volume() -> Any:
+    """A (1, 1, 1, 4) colour volume of 0 on the device (kept for the run), which the kernel
+    takes but does not read when it casts no colour."""
+    return cuda.to_device(np.zeros((1, 1, 1, 4), dtype=np.uint8))
 
 
 def empty_space(volume: FastTsdfVolume) -> Any:
@@ -216,12 +224,9 @@ def _cast(
     if stride > 1:  # the pixels cast are all written; only those left out need clearing
         _clear_kernel[grid_2d(*shape), BLOCK_2D](vertices, normals, colours)
     has_colour = colour and volume.colour is not None
-    colour_volume = (
-        volume.colour if has_colour else cuda.to_device(np.zeros((1, 1, 1, 4), np.uint8))
-    )
+    colour_volume = volume.colour if has_colour else _no_colour_volume()
     pose = np.asarray(pose, dtype=np.float64)
-    # the view's arrays (camera, rotation, origin, volume origin) go up; its voxel size as it is
-    *view_arrays, voxel_size = view_constants(volume, pose, camera)
+    view = _view_arguments(*view_constants(volume, pose, camera))
     cast_grid = grid_2d(-(-shape[0] // stride), -(-shape[1] // stride))
     _raycast_kernel[cast_grid, BLOCK_2D](
         volume.tsdf_weight,
@@ -230,8 +235,7 @@ def _cast(
         volume.offsets(),
         empty_space(volume) if skip_empty else _map_that_skips_nothing(),
         _map_that_skips_nothing(),  # no finer level
-        *(cuda.to_device(array) for array in view_arrays),
-        voxel_size,
+        *view,
         STEP_FRACTION * volume.truncation,
         vertices,
         normals,
@@ -239,3 +243,22 @@ def _cast(
         int(stride),
     )
     return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)
+
+
+def _view_arguments(
+    camera: np.ndarray,
+    rotation: np.ndarray,
+    origin: np.ndarray,
+    volume_origin: np.ndarray,
+    voxel_size: float,
+) -> tuple:
+    """view_constants as the kernel takes them: the vectors as tuples of floats (launch
+    parameters), the rotation, which the ray ops index [row, column], as a device matrix
+    written from launch parameters (matrix_to_device)."""
+    return (
+        tuple(float(x) for x in camera),
+        matrix_to_device(rotation),
+        tuple(float(x) for x in origin),
+        tuple(float(x) for x in volume_origin),
+        voxel_size,
+    )

@@ -3,18 +3,23 @@
 over (k, j), x marched inside the thread, as KinectFusion's GPU design) around
 kintinuous_fast.tsdf.ops, into a FastTsdfVolume in device memory (8 bytes per voxel).
 
-Per frame only the pose, four intrinsics and the frustum box cross from the host; depth, colour
-and colour weights may be device arrays (a host array is uploaded for the call).
+Per frame only launch parameters cross from the host (the pose's camera-frame steps, four
+intrinsics, the frustum box), and nothing comes back: depth, colour and colour weights may be
+device arrays (a host array is uploaded for the call), and the frame's largest depth, which
+bounds the voxels a frame can update, stays on the device where the kernel reads it. (A copy
+between host and device waits for the device to finish the work queued before it, so either way
+the host would stall once per frame.)
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import cuda_device_jit, pinhole, to_host
+from kintinuous_fast.targets import cuda_device_jit, pinhole
 from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel
@@ -22,7 +27,6 @@ from kintinuous_fast.tsdf.volume import (
     FastTsdfVolume,
     camera_frame_steps,
     check_volume_memory,
-    colour_inputs,
     frustum_box,
     fusion_limits,
     image_size,
@@ -64,6 +68,7 @@ __all__ = [
 _voxels = voxel.build_ops(cuda_device_jit())
 _ops = integration.build_ops(cuda_device_jit(), _voxels)
 integrate_voxel = _ops.integrate_voxel
+column_range = _ops.column_range
 ray_distance_pixel = _ops.ray_distance_pixel
 sample_tsdf_at = _voxels.sample_tsdf_at
 
@@ -85,6 +90,24 @@ def _max_depth_kernel(depth, result):
 
 
 @cuda.jit
+def _depth_weights_kernel(depth, out):
+    # flat colour weights: 1 where there is depth, else 0 (the reference's default)
+    u, v = cuda.grid(2)
+    height, width = depth.shape
+    if v < height and u < width:
+        out[v * width + u] = np.float32(1.0) if depth[v, u] > 0 else np.float32(0.0)
+
+
+@cuda.jit
+def _matrix_kernel(rows, out):
+    # out (3, 3) <- `rows`, three tuples of three values that came as launch parameters
+    if cuda.grid(1) == 0:
+        out[0, 0], out[0, 1], out[0, 2] = rows[0]
+        out[1, 0], out[1, 1], out[1, 2] = rows[1]
+        out[2, 0], out[2, 1], out[2, 2] = rows[2]
+
+
+@cuda.jit
 def _ray_distance_kernel(depth, camera, out):
     # flat, with -inf in the "no pixel" slot one past the image (tsdf.ops.project_voxel)
     u, v = cuda.grid(2)
@@ -95,12 +118,29 @@ def _ray_distance_kernel(depth, camera, out):
         out[height * width] = -np.inf
 
 
+@cuda.jit(device=True)
+def _column_span(base, steps, j, k, intrinsics, image_size, far, n):
+    """[i0, i1): the voxels (i, j, k) of the column along x that can project into the image no
+    farther than z = `far` (tsdf.ops.column_range, from the column's camera-frame start in
+    float64; its voxel of margin covers the float32 positions integrate_voxel computes)."""
+    fj, fk = float(j), float(k)
+    start = (
+        float(base[0]) + fj * float(steps[1, 0]) + fk * float(steps[2, 0]),
+        float(base[1]) + fj * float(steps[1, 1]) + fk * float(steps[2, 1]),
+        float(base[2]) + fj * float(steps[1, 2]) + fk * float(steps[2, 2]),
+    )
+    step = (float(steps[0, 0]), float(steps[0, 1]), float(steps[0, 2]))
+    return column_range(start, step, intrinsics, image_size, far, n)
+
+
 @cuda.jit
 def _integrate_kernel(
     tsdf_weight,
     colour_volume,
     offsets,
     box,
+    largest,
+    bounded,
     base,
     steps,
     intrinsics,
@@ -111,12 +151,19 @@ def _integrate_kernel(
     colour_weights,
     fuse_colour,
 ):
-    # `box` = (lo, hi): voxel indices [lo, hi); `limits` = tsdf.ops.fuse_voxel's
+    # `box` = (lo, hi): voxel indices [lo, hi); if `bounded`, each column only where z <= the
+    # frame's largest depth (1,) `largest` + mu, as frustum_box; `limits` = fuse_voxel's
     lo, hi = box
     dk, dj = cuda.grid(2)
     k, j = lo[2] + dk, lo[1] + dj
     if k < hi[2] and j < hi[1]:
-        for i in range(lo[0], hi[0]):
+        first, end = lo[0], hi[0]
+        if bounded:
+            far = float(largest[0]) + float(limits[0])
+            n = tsdf_weight.shape[0]
+            span = _column_span(base, steps, j, k, intrinsics, image_size, far, n)
+            first, end = max(first, span[0]), min(end, span[1])
+        for i in range(first, end):
             integrate_voxel(
                 tsdf_weight,
                 colour_volume,
@@ -150,6 +197,40 @@ def _zeros(shape: tuple[int, ...], dtype: Any) -> Any:
     blocks = min(grid_1d(flat.shape[0] // 64 + 1), 4096)  # >= 64 elements per thread
     _fill_kernel[blocks, BLOCK_1D](flat, 0)
     return array
+
+
+@functools.lru_cache(maxsize=8)
+def _placeholder(shape: tuple[int, ...], dtype: str) -> Any:
+    """A typed zero array on the device for the run, standing in for an array that a kernel
+    takes but does not read (no colour to fuse, no colour volume)."""
+    return cuda.to_device(np.zeros(shape, dtype=dtype))
+
+
+def matrix_to_device(matrix: np.ndarray) -> Any:
+    """A 3x3 matrix as a new device array of its dtype, written by a one-thread kernel from
+    launch parameters: unlike cuda.to_device, nothing waits for the device's queued work."""
+    out = cuda.device_array((3, 3), dtype=matrix.dtype)
+    rows = tuple(tuple(row) for row in matrix)
+    _matrix_kernel[1, 1](rows, out)
+    return out
+
+
+def largest_depth(depth: Any) -> Any:
+    """The largest valid depth of a device depth map as a (1,) device array (0 without any)."""
+    largest = _zeros((1,), np.float32)
+    _max_depth_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, largest)
+    return largest
+
+
+def volume_reach(volume: FastTsdfVolume, pose: np.ndarray) -> float:
+    """The largest distance from the camera centre to a voxel centre of the volume (at a corner
+    of the box of voxel centres, the farthest point of a box from any point): no voxel lies
+    farther along the optical axis, so a frustum box to this depth holds every voxel that any
+    frame seen from `pose` can update."""
+    first = np.asarray(volume.origin, dtype=np.float64) - pose[:3, 3]
+    last = first + volume.voxel_size * (volume.resolution - 1)
+    farthest = np.maximum(np.abs(first), np.abs(last))  # per axis, the farther face
+    return float(np.linalg.norm(farthest)) + volume.voxel_size
 
 
 def available_memory_bytes() -> int:
@@ -192,17 +273,40 @@ def integrate(
     """Fuse one depth map (and optionally its colour) into the device volume, in place; the
     update rule is kintinuous_ref.tsdf.integrate's, rounded to the stored types."""
     check_depth(depth, camera)
-    d_depth = to_device(depth, np.float32)
-    grid = grid_2d(camera.height, camera.width)
-    largest = cuda.to_device(np.zeros(1, dtype=np.float32))
-    _max_depth_kernel[grid, BLOCK_2D](d_depth, largest)
-    box = frustum_box(volume, float(to_host(largest)[0]), pose, camera)
+    # The box bounds the frustum to the volume's far corner, not to the frame's largest depth
+    # (which only the device knows without a wait). The result is the same voxel for voxel:
+    # each voxel's update depends on that voxel and the images only, and every voxel the frame
+    # updates has z <= largest depth + mu (|p_c| <= lambda D + mu), so it lies inside both this
+    # box and the frustum box of the largest depth. The voxels between the two get no update
+    # (fuse_voxel's sdf test); each thread skips most of them by bounding its column with the
+    # largest depth read on the device (_column_span).
+    box = frustum_box(volume, volume_reach(volume, pose), pose, camera)
     if box is None:
         return
+    d_depth = to_device(depth, np.float32)
+    integrate_in_box(
+        volume, d_depth, pose, camera, colour, colour_weights, box, largest_depth(d_depth)
+    )
+
+
+def integrate_in_box(
+    volume: FastTsdfVolume,
+    depth: Any,
+    pose: np.ndarray,
+    camera: Intrinsics,
+    colour: Any,
+    colour_weights: Any,
+    box: tuple[np.ndarray, np.ndarray],
+    largest: Any = None,
+) -> None:
+    """integrate's fusion of a device depth map over the voxel index box [lo, hi) = `box`,
+    each column bounded by z <= largest[0] + mu where `largest` (a (1,) float32 device array)
+    is given; None visits every voxel of the box (what the tests compare with)."""
     ray_distance = cuda.device_array(camera.height * camera.width + 1, dtype=np.float32)
-    _ray_distance_kernel[grid, BLOCK_2D](d_depth, pinhole(camera), ray_distance)
-    fuse_colour, colour, colour_weights, colour_volume = colour_inputs(
-        volume, depth, colour, colour_weights, to_device
+    grid = grid_2d(camera.height, camera.width)
+    _ray_distance_kernel[grid, BLOCK_2D](depth, pinhole(camera), ray_distance)
+    fuse_colour, colour, colour_weights, colour_volume = _colour_arguments(
+        volume, depth, colour, colour_weights
     )
     base, steps = camera_frame_steps(volume, pose)
     lo, hi = index_box(box)
@@ -212,9 +316,11 @@ def integrate(
         colour_volume,
         volume.offsets(),
         (lo, hi),
-        cuda.to_device(base),
-        cuda.to_device(steps),
-        cuda.to_device(projection_constants(camera)),
+        _placeholder((1,), "float32") if largest is None else largest,
+        largest is not None,
+        tuple(base),
+        matrix_to_device(steps),
+        tuple(projection_constants(camera)),
         image_size(camera),
         ray_distance,
         fusion_limits(volume),
@@ -222,6 +328,27 @@ def integrate(
         colour_weights,
         fuse_colour,
     )
+
+
+def _colour_arguments(
+    volume: FastTsdfVolume, depth: Any, colour: Any, colour_weights: Any
+) -> tuple[bool, Any, Any, Any]:
+    """tsdf.volume.colour_inputs on the device without a host wait: (fuse_colour, colour (H W,
+    3) uint8, colour weights (H W) float32, colour volume), the default weights (1 where the
+    float32 depth is > 0; where a wider input depth is > 0 but not its float32, the ray
+    distance is -inf and no voxel reads the weight) made by a kernel, placeholders kept on the
+    device for the run."""
+    colour_volume = volume.colour
+    if colour_volume is None:
+        colour_volume = _placeholder((1, 1, 1, 4), "uint8")
+    if colour is None or volume.colour is None:
+        return False, _placeholder((1, 3), "uint8"), _placeholder((1,), "float32"), colour_volume
+    if colour_weights is None:
+        colour_weights = cuda.device_array(depth.size, dtype=np.float32)
+        _depth_weights_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, colour_weights)
+    colour = to_device(colour, np.uint8).reshape(-1, 3)
+    colour_weights = to_device(colour_weights, np.float32).reshape(-1)
+    return True, colour, colour_weights, colour_volume
 
 
 def sample_tsdf(volume: FastTsdfVolume, coordinates: Any) -> Any:
