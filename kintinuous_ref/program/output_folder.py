@@ -105,7 +105,11 @@ def _lock(lock: Path, wait: bool) -> int | None:
     holds it (and not `wait`). A file removed by its holder as it let go is opened anew, so two
     processes can never hold two different files of the same name."""
     while True:
-        handle = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            handle = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except FileNotFoundError:  # its folder, made by a run that then let it go empty
+            lock.parent.mkdir(parents=True, exist_ok=True)
+            continue
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
             current = os.stat(lock)
