@@ -136,6 +136,20 @@ def test_table_into_a_held_folder_is_refused(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]  # nothing written
 
 
+def test_synth_into_a_held_folder_is_refused_and_into_a_free_one_writes(tmp_path, capsys):
+    out = tmp_path / "scene"
+    synth = ["synth", "desk", "--out", str(out), "--frames", "1", "--width", "16", "--height", "12"]
+    holder = _hold(out)
+    try:
+        assert main(synth) == 2
+    finally:
+        holder.kill()
+        holder.wait()
+    assert f"{out}: in use by pid {holder.pid} (" in capsys.readouterr().err
+    assert main(synth) == 0  # the killed holder's lock file is no content to synth
+    assert (out / "associations.txt").is_file() and not (out / LOCK_NAME).exists()
+
+
 WAIT = """
 import sys
 from pathlib import Path

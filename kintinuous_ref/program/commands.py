@@ -31,18 +31,19 @@ def run_synth(args: argparse.Namespace) -> None:
         return
     if not args.scenario or not args.out:
         raise KintinuousError("synth needs a SCENARIO and --out DIR (or --list)")
-    synthetic.write_scenario(
-        args.scenario,
-        args.out,
-        frames=args.frames,
-        width=args.width,
-        height=args.height,
-        seed=args.seed,
-        noise=not args.no_noise,
-        progress=True,
-        workers=max(1, args.workers),
-        mesh_spacing=args.mesh_spacing,
-    )
+    with locked(args.out) as out:
+        synthetic.write_scenario(
+            args.scenario,
+            out,
+            frames=args.frames,
+            width=args.width,
+            height=args.height,
+            seed=args.seed,
+            noise=not args.no_noise,
+            progress=True,
+            workers=max(1, args.workers),
+            mesh_spacing=args.mesh_spacing,
+        )
     print(f"wrote {args.frames} frames of '{args.scenario}' to {args.out}")
 
 

@@ -182,7 +182,7 @@ def _prepare_folder(out: Path, meta: dict) -> bool:
     if out.exists() and not out.is_dir():
         raise DatasetError(f"{out}: exists and is not a folder")
     same = False
-    if out.is_dir() and any(out.iterdir()):
+    if out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir()):  # not a lock
         if not (out / "scenario.json").is_file():
             raise DatasetError(f"{out}: folder is not empty and not an earlier synth output")
         try:
