@@ -11,7 +11,7 @@ import numpy as np
 from numba import cuda
 
 from kintinuous_fast.targets import cuda_device_jit
-from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, like_input, to_device
+from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, kernel, like_input, to_device
 from kintinuous_fast.tsdf.ops import build_colour_weight
 from kintinuous_ref.colour import angle_weight
 from kintinuous_ref.config import ColourConfig
@@ -22,7 +22,7 @@ __all__ = ["angle_weight", "colour_weights"]
 colour_weight = build_colour_weight(cuda_device_jit()).colour_weight
 
 
-@cuda.jit
+@kernel
 def _weights_kernel(depth, mask, normals, use_mask, use_angle, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:

@@ -28,7 +28,7 @@ from kintinuous_fast.preprocess.host import (
 )
 from kintinuous_fast.preprocess.ops import build_ops
 from kintinuous_fast.targets import cuda_device_jit, is_device, pinhole, to_host
-from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, like_input, to_device
+from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, kernel, like_input, to_device
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
 from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel, check_frame_inputs
@@ -70,63 +70,63 @@ correlate3x3_pixel = _ops.correlate3x3_pixel
 discontinuity_pixel = _ops.discontinuity_pixel
 
 
-@cuda.jit
+@kernel
 def _metric_depth_kernel(raw, integer, depth_scale, max_depth, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = metric_value(raw[v, u], integer, depth_scale, max_depth)
 
 
-@cuda.jit
+@kernel
 def _bilateral_kernel(depth, spatial, radius, inv_two_sigma2, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = bilateral_pixel(depth, v, u, spatial, radius, inv_two_sigma2)
 
 
-@cuda.jit
+@kernel
 def _pyrdown_depth_kernel(depth, cutoff, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = pyrdown_depth_pixel(depth, v, u, cutoff)
 
 
-@cuda.jit
+@kernel
 def _pyrdown_intensity_kernel(image, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = pyrdown_intensity_pixel(image, v, u)
 
 
-@cuda.jit
+@kernel
 def _vertex_kernel(depth, camera, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u, 0], out[v, u, 1], out[v, u, 2] = vertex_pixel(depth, v, u, camera)
 
 
-@cuda.jit
+@kernel
 def _normal_kernel(vertices, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u, 0], out[v, u, 1], out[v, u, 2] = normal_pixel(vertices, v, u)
 
 
-@cuda.jit
+@kernel
 def _intensity_kernel(colour, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = intensity_pixel(colour[v, u, 0], colour[v, u, 1], colour[v, u, 2])
 
 
-@cuda.jit
+@kernel
 def _correlate_kernel(image, kernel, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = correlate3x3_pixel(image, v, u, kernel)
 
 
-@cuda.jit
+@kernel
 def _sobel_kernel(blurred, sobel_x, sobel_y, dx, dy):
     u, v = cuda.grid(2)
     if v < dx.shape[0] and u < dx.shape[1]:
@@ -134,14 +134,14 @@ def _sobel_kernel(blurred, sobel_x, sobel_y, dx, dy):
         dy[v, u] = correlate3x3_pixel(blurred, v, u, sobel_y)
 
 
-@cuda.jit
+@kernel
 def _discontinuity_kernel(depth, radius, jump, max_bad, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
         out[v, u] = discontinuity_pixel(depth, v, u, radius, jump, max_bad)
 
 
-@cuda.jit
+@kernel
 def _subsample_kernel(source, out):
     u, v = cuda.grid(2)
     if v < out.shape[0] and u < out.shape[1]:
@@ -149,8 +149,8 @@ def _subsample_kernel(source, out):
             out[v, u, channel] = source[2 * v, 2 * u, channel]
 
 
-def _launch(kernel: Any, shape: tuple[int, ...], *args: Any) -> None:
-    kernel[grid_2d(shape[0], shape[1]), BLOCK_2D](*args)
+def _launch(compiled: Any, shape: tuple[int, ...], *args: Any) -> None:
+    compiled[grid_2d(shape[0], shape[1]), BLOCK_2D](*args)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from numba import cuda
 
 from kintinuous_fast.raycast import ops as raycast_ops
 from kintinuous_fast.targets import cuda_device_jit, to_host
-from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d
+from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, kernel
 from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.cuda import matrix_to_device
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
@@ -75,7 +75,7 @@ def empty_space(volume: FastTsdfVolume) -> Any:
     return distance
 
 
-@cuda.jit
+@kernel
 def _negative_brick_kernel(tsdf_weight, o0, o1, o2, distance):
     """distance[b] = 0 where logical brick b holds an observed negative voxel, else _FAR."""
     bricks = distance.shape[0]
@@ -88,7 +88,7 @@ def _negative_brick_kernel(tsdf_weight, o0, o1, o2, distance):
     distance[b0, b1, b2] = 0 if found else _FAR
 
 
-@cuda.jit
+@kernel
 def _axis_distance_kernel(source, target, axis):
     """target[x] = min over y on x's line along `axis` of max(|x - y|, source[y]): one pass of
     the separable chessboard distance."""
@@ -110,7 +110,7 @@ def _axis_distance_kernel(source, target, axis):
     target[x[0], x[1], x[2]] = best
 
 
-@cuda.jit
+@kernel
 def _grown_distance_kernel(distance, out):
     """The distance to the negative bricks grown by one brick: one less (not below 0); 2 B
     everywhere when there are none (kintinuous_ref.raycast.empty_space's convention)."""
@@ -123,7 +123,7 @@ def _grown_distance_kernel(distance, out):
     out[b0, b1, b2] = 2 * bricks if d >= _FAR else max(d - 1, 0)
 
 
-@cuda.jit
+@kernel
 def _clear_kernel(vertices, normals, colours):
     u, v = cuda.grid(2)
     if v < vertices.shape[0] and u < vertices.shape[1]:
@@ -133,7 +133,7 @@ def _clear_kernel(vertices, normals, colours):
             colours[v, u, c] = 0
 
 
-@cuda.jit
+@kernel
 def _raycast_kernel(
     tsdf_weight,
     colour_volume,

@@ -20,7 +20,15 @@ import numpy as np
 from numba import cuda
 
 from kintinuous_fast.targets import cuda_device_jit, pinhole
-from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, like_input, to_device
+from kintinuous_fast.targets.cuda import (
+    BLOCK_1D,
+    BLOCK_2D,
+    grid_1d,
+    grid_2d,
+    kernel,
+    like_input,
+    to_device,
+)
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.volume import (
@@ -73,7 +81,7 @@ ray_distance_pixel = _ops.ray_distance_pixel
 sample_tsdf_at = _voxels.sample_tsdf_at
 
 
-@cuda.jit
+@kernel
 def _fill_kernel(flat, value):
     # Grid-stride loop: each thread writes every (total threads)-th element.
     start, stride = cuda.grid(1), cuda.gridsize(1)
@@ -81,7 +89,7 @@ def _fill_kernel(flat, value):
         flat[index] = value
 
 
-@cuda.jit
+@kernel
 def _max_depth_kernel(depth, result):
     # Largest valid depth: one atomic per thread with depth (a reduction small enough here).
     u, v = cuda.grid(2)
@@ -89,7 +97,7 @@ def _max_depth_kernel(depth, result):
         cuda.atomic.max(result, 0, depth[v, u])
 
 
-@cuda.jit
+@kernel
 def _depth_weights_kernel(depth, out):
     # flat colour weights: 1 where there is depth, else 0 (the reference's default)
     u, v = cuda.grid(2)
@@ -98,7 +106,7 @@ def _depth_weights_kernel(depth, out):
         out[v * width + u] = np.float32(1.0) if depth[v, u] > 0 else np.float32(0.0)
 
 
-@cuda.jit
+@kernel
 def _matrix_kernel(rows, out):
     # out (3, 3) <- `rows`, three tuples of three values that came as launch parameters
     if cuda.grid(1) == 0:
@@ -107,7 +115,7 @@ def _matrix_kernel(rows, out):
         out[2, 0], out[2, 1], out[2, 2] = rows[2]
 
 
-@cuda.jit
+@kernel
 def _ray_distance_kernel(depth, camera, out):
     # flat, with -inf in the "no pixel" slot one past the image (tsdf.ops.project_voxel)
     u, v = cuda.grid(2)
@@ -133,7 +141,7 @@ def _column_span(base, steps, j, k, intrinsics, image_size, far, n):
     return column_range(start, step, intrinsics, image_size, far, n)
 
 
-@cuda.jit
+@kernel
 def _integrate_kernel(
     tsdf_weight,
     colour_volume,
@@ -181,7 +189,7 @@ def _integrate_kernel(
             )
 
 
-@cuda.jit
+@kernel
 def _sample_kernel(tsdf_weight, o0, o1, o2, coordinates, out):
     m = cuda.grid(1)
     if m < out.shape[0]:
