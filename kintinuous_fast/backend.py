@@ -20,7 +20,7 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.tsdf import TsdfVolume
 
-STAGES = ("preprocess", "tsdf", "raycast", "colour", "odometry")
+STAGES = ("preprocess", "tsdf", "raycast", "colour", "odometry", "mesh")
 
 
 class FastBackend:

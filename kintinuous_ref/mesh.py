@@ -1,14 +1,17 @@
 """Surface extraction, PLY output, preview pictures, and scoring a mesh against the truth.
 
-The triangle mesh is the TSDF's zero level set, extracted by VTK's flying-edges marching cubes
-(pyvista `ImageData.contour`); the TSDF and the colours are ours. Only observed space yields
-surface: a vertex is kept when every voxel that its position interpolates from has weight > 0
-(marching cubes would otherwise draw surfaces against the 0 of never-seen voxels). Vertex colours
-are the colour volume's trilinear interpolation at the vertex (paper VI-A).
+The triangle mesh is the TSDF's zero level set by our own marching cubes (marching_cubes.py:
+Lorensen and Cline's cases, vertices welded along grid edges), so a machine without VTK still
+makes meshes; pyvista and VTK only render previews and score meshes, imported where they do.
+Only observed space yields surface: a vertex is kept when the voxels of its edge that its
+position interpolates from have weight > min_weight (marching cubes would otherwise draw
+surfaces against the 0 of never-seen voxels). Vertex colours are the colour volume's trilinear
+interpolation at the vertex (paper VI-A).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -16,7 +19,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kintinuous_ref.colour import surface_colour
-from kintinuous_ref.tsdf import TsdfVolume, corner_weights
+from kintinuous_ref.marching_cubes import marching_cubes
+from kintinuous_ref.tsdf import TsdfVolume
 
 if TYPE_CHECKING:
     import pyvista
@@ -39,47 +43,29 @@ class Mesh:
         return mesh
 
 
-def _interpolates_observed(volume: TsdfVolume, points: np.ndarray, min_weight: float) -> np.ndarray:
-    """True where every voxel with a non-zero trilinear weight at the point has weight above
-    min_weight (a vertex on a cell edge depends only on the edge's two voxels)."""
-    coords = volume.world_to_voxel(points)
-    ok = np.ones(len(points), dtype=bool)
-    weight = volume.weight.reshape(-1)
-    for index, w in corner_weights(volume.weight.shape, coords, volume.offset):
-        ok &= (w < 1e-4) | (weight[index] > min_weight)
-    return ok
+# A marching cubes: (tsdf, weight, min_weight) -> (vertices in voxel coordinates, triangles),
+# kintinuous_ref.marching_cubes's or a backend's (kintinuous_fast.mesh).
+Contour = Callable[[np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray]]
 
 
-def extract_mesh(volume: TsdfVolume | None, min_weight: float = 0.0) -> Mesh:
-    """The zero level set of the TSDF as a coloured triangle mesh (world frame)."""
+def extract_mesh(
+    volume: TsdfVolume | None, min_weight: float = 0.0, contour: Contour = marching_cubes
+) -> Mesh:
+    """The zero level set of the TSDF as a coloured triangle mesh (world frame), by `contour`
+    on the volume's logical voxels (the cyclical buffer unrolled)."""
     empty = Mesh(
         np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8)
     )
     if volume is None or not (volume.weight > min_weight).any():
         return empty
-    import pyvista
-
-    n = volume.resolution
-    grid = pyvista.ImageData(
-        dimensions=(n, n, n), spacing=(volume.voxel_size,) * 3, origin=tuple(volume.origin)
-    )
-    # VTK orders points with x fastest; our arrays are [x, y, z], hence Fortran order.
-    grid.point_data["tsdf"] = volume.logical(volume.tsdf).ravel(order="F")
-    surface = grid.contour([0.0], scalars="tsdf", method="flying_edges", compute_normals=False)
-    if surface.n_points == 0:
+    tsdf, weight = volume.logical(volume.tsdf), volume.logical(volume.weight)
+    vertices, triangles = contour(tsdf, weight, min_weight)
+    if len(triangles) == 0:
         return empty
-    points = np.asarray(surface.points, dtype=np.float64)
-    triangles = surface.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
-    keep = _interpolates_observed(volume, points, min_weight)
-    triangles = triangles[keep[triangles].all(axis=1)]
-    # Renumber the surviving vertices.
-    used = np.zeros(len(points), dtype=bool)
-    used[triangles.ravel()] = True
-    new_index = np.cumsum(used) - 1
-    points = points[used]
+    points = volume.voxel_to_world(vertices)
     return Mesh(
         points=points.astype(np.float32),
-        triangles=new_index[triangles],
+        triangles=triangles,
         colours=surface_colour(volume, points),
     )
 

@@ -19,15 +19,15 @@ shift_threshold voxels; the basis is again the window's centre.
 
 Extraction by marching cubes (the paper triangulates extracted points by greedy projection;
 docs/parameters.md: marching cubes on the slice's TSDF instead). A cube of 2x2x2 voxels is named by
-its lower corner. When layers leave, every cube that holds a leaving voxel and lies in the window is
-triangulated now: the leaving slab PLUS the first staying layer (the cubes straddling the boundary).
-Those cubes can never be generated again (one of their voxels is no longer in the window), and every
-later cube lies wholly in the window, so each cube is triangulated exactly once and neighbouring
-slices share the vertices on their common faces. A vertex lies on a grid edge; its KEY is the edge
-(global index of its lower voxel + axis), so the final mesh merges seam vertices exactly by key. A
-vertex is kept when both voxels of its edge have weight >= min_extract_weight (8:
-docs/parameters.md; fewer while fewer frames have been fused), a triangle when its three vertices
-are kept.
+its lower corner (marching_cubes.py, our own: no VTK). When layers leave, every cube that holds a
+leaving voxel and lies in the window is triangulated now: the leaving slab PLUS the first staying
+layer (the cubes straddling the boundary). Those cubes can never be generated again (one of their
+voxels is no longer in the window), and every later cube lies wholly in the window, so each cube is
+triangulated exactly once and neighbouring slices share the vertices on their common faces. A vertex
+lies on a grid edge; its KEY is the edge (global index of its lower voxel + axis), so the final mesh
+merges seam vertices exactly by key. A vertex is kept when both voxels of its edge have weight >=
+min_extract_weight (8: docs/parameters.md; fewer while fewer frames have been fused), a triangle
+when its three vertices are kept.
 
 The slices, their files and the one mesh they make at the end are slices.py's. One caveat: a
 straddling cube is triangulated with the staying layer's values at the time it left; if later
@@ -45,6 +45,8 @@ import numpy as np
 
 from kintinuous_ref import se3
 from kintinuous_ref.config import VolumeConfig
+from kintinuous_ref.marching_cubes import marching_cubes
+from kintinuous_ref.mesh import Contour
 from kintinuous_ref.slices import (
     ON_VOXEL,
     SLICE_NAME,
@@ -121,12 +123,12 @@ def extract_box(
     hi: tuple[int, int, int],
     corner: np.ndarray,
     min_weight: float,
+    contour: Contour = marching_cubes,
 ) -> SliceMesh:
-    """Marching cubes over the logical voxel box [lo, hi) of the window whose logical voxel 0 is
-    global voxel `corner`: every cube with all 8 voxels in the box, triangulated once, with keys.
-    """
-    import pyvista
-
+    """Marching cubes (`contour`) over the logical voxel box [lo, hi) of the window whose
+    logical voxel 0 is global voxel `corner`: every cube with all 8 voxels in the box,
+    triangulated once, with keys; a vertex kept when its edge's voxels have weight >=
+    min_weight (module docstring)."""
     lo, hi = np.asarray(lo, dtype=np.int64), np.asarray(hi, dtype=np.int64)
     box_lo, box_hi = corner + lo, corner + hi
     cells = volume.cells(tuple(lo), tuple(hi))
@@ -134,16 +136,13 @@ def extract_box(
     shape = weight.shape
     if min(shape) < 2 or not (weight >= min_weight).any():
         return empty_slice(box_lo, box_hi)
-    tsdf = volume.tsdf[cells]
-    # The box in its own index units (origin 0, spacing 1): VTK's float32 vertex coordinates then
-    # stay small and exact enough to name their edge (world coordinates could be kilometres).
-    grid = pyvista.ImageData(dimensions=shape, spacing=(1, 1, 1), origin=(0, 0, 0))
-    grid.point_data["tsdf"] = tsdf.ravel(order="F")  # VTK: x fastest
-    surface = grid.contour([0.0], scalars="tsdf", method="flying_edges", compute_normals=False)
-    if surface.n_points == 0:
+    # The box in its own index units: vertex coordinates stay small and exact enough to name
+    # their edge (world coordinates could be kilometres). weight >= m is weight > the float
+    # below m, the contour's rule.
+    below = float(np.nextafter(min_weight, -np.inf))
+    local, triangles = contour(volume.tsdf[cells], weight, below)
+    if len(triangles) == 0:
         return empty_slice(box_lo, box_hi)
-    local = np.asarray(surface.points, dtype=np.float64)
-    triangles = surface.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
 
     # Which grid edge each vertex lies on: two coordinates are whole numbers, the third is not
     # (or none is: the vertex sits on a voxel).
@@ -158,22 +157,12 @@ def extract_box(
     upper[along, axis[along]] += 1
     upper = np.minimum(upper, np.array(shape) - 1)
 
-    # Keep vertices whose edge's voxels are both confidently observed.
-    w_lower = weight[lower[:, 0], lower[:, 1], lower[:, 2]]
-    w_upper = weight[upper[:, 0], upper[:, 1], upper[:, 2]]
-    keep = (w_lower >= min_weight) & (w_upper >= min_weight)
-    triangles = triangles[keep[triangles].all(axis=1)]
-    used = np.zeros(len(local), dtype=bool)
-    used[triangles.ravel()] = True
-    new_index = np.cumsum(used) - 1
-    local, lower, upper, axis = local[used], lower[used], upper[used], axis[used]
-
     colours = _edge_colours(volume, cells, local, lower, upper, axis)
     keys = np.column_stack([box_lo + lower, axis]).astype(np.int32)
     points = volume.voxel_to_world(lo + local)
     return SliceMesh(
         points=points.astype(np.float32),
-        triangles=new_index[triangles],
+        triangles=triangles,
         colours=colours,
         keys=keys,
         box_lo=box_lo,
@@ -235,8 +224,10 @@ class MovingVolume:
         first_pose: np.ndarray,
         config: VolumeConfig,
         store: SliceStore | None = None,
+        contour: Contour = marching_cubes,
     ) -> None:
         self.volume = volume
+        self.contour = contour  # the slices' marching cubes (a backend's, or the reference's)
         self.threshold = config.shift_threshold
         self.min_weight = config.min_extract_weight
         self.store = store if store is not None else SliceStore()
@@ -282,7 +273,9 @@ class MovingVolume:
         else:  # layers n+voxels..n-1 leave; layer n+voxels-1 stays
             leave_lo[axis] = n + voxels
             lo[axis] = max(n + voxels - 1, 0)
-        mesh = extract_box(self.volume, tuple(lo), tuple(hi), self.corner, self.extract_weight)
+        mesh = extract_box(
+            self.volume, tuple(lo), tuple(hi), self.corner, self.extract_weight, self.contour
+        )
         if len(mesh.triangles):
             self.store.add(mesh)
         clear_box(self.volume, tuple(leave_lo), tuple(leave_hi))
@@ -296,7 +289,9 @@ class MovingVolume:
         map deformation moves it with them), the window is cleared and placed on the global grid
         so that the followed point of `pose` is at its centre."""
         n = self.volume.resolution
-        mesh = extract_box(self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight)
+        mesh = extract_box(
+            self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight, self.contour
+        )
         if len(mesh.triangles):
             self.store.add(mesh)
         clear_box(self.volume, (0, 0, 0), (n, n, n))
@@ -313,7 +308,9 @@ class MovingVolume:
         if self.finished:
             return
         n = self.volume.resolution
-        mesh = extract_box(self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight)
+        mesh = extract_box(
+            self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight, self.contour
+        )
         if len(mesh.triangles):
             self.store.add(mesh)
         self.finished = True

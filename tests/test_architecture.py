@@ -17,7 +17,7 @@ from kintinuous_ref.backend import Backend, ReferenceBackend
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "kintinuous_ref"
 FAST = ROOT / "kintinuous_fast"
-FAST_STAGES = ("preprocess", "tsdf", "raycast", "colour", "odometry", "targets")
+FAST_STAGES = ("preprocess", "tsdf", "raycast", "colour", "odometry", "mesh", "targets")
 TINY = ROOT / "data" / "tiny_desk"
 
 

@@ -35,6 +35,7 @@ MIRRORS: dict[str, tuple[str, ...]] = {
     "kintinuous_ref.odometry.solve": tuple(
         f"kintinuous_fast.odometry.solve.{t}" for t in TARGETS
     ),
+    "kintinuous_ref.marching_cubes": tuple(f"kintinuous_fast.mesh.{t}" for t in TARGETS),
     # Host code compiled once for both targets.
     "kintinuous_ref.odometry.combined": ("kintinuous_fast.odometry.combined",),
 }
