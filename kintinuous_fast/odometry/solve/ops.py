@@ -27,7 +27,7 @@ __all__ = ["SCRATCH_MATRICES", "build_ops"]
 
 # The (6, 6) float64 matrices a caller's scratch holds: discounted_joint and increment use all.
 SCRATCH_MATRICES = 6
-# Cyclic Jacobi stops after this many sweeps (6x6 systems converge in 5-8) ...
+# Cyclic Jacobi stops after this many sweeps (the tests' matrices need at most 6) ...
 MAX_SWEEPS = 30
 # ... or once the off-diagonal mass is below float64 rounding of the diagonal:
 # sum_{p<q} a_pq^2 <= (2^-52)^2 sum_p a_pp^2.
