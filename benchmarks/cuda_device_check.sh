@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The checks that need a GPU, in one go: the CUDA equivalence tests on the device (sizes of the
-# CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 256^3 and 512^3.
+# CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 256^3 and 512^3
+# (its JSON has the launches, host waits and bytes to the host per frame and per stage).
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
 # Writes cuda_tests.log, bench_cuda_{256,512}.json, ate_cuda.json, profile.txt, cuda_warm.prof
@@ -33,6 +34,7 @@ python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', nump
 python3 -m kintinuous_ref.program.cli info
 timeout 200 python3 -m pytest -q -p no:cacheprovider --continue-on-collection-errors -k cuda \
     tests/test_fast_cuda.py tests/test_fast_cuda_pipeline.py tests/test_fast_odometry_cuda.py \
+    tests/test_cuda_frame_budget.py tests/test_fast_solve_ops.py \
     tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \
     2>&1 | tee "$out/cuda_tests.log" | tail -40
 for resolution in 256 512; do
