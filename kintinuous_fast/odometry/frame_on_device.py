@@ -429,10 +429,16 @@ def _initial_poses(previous_pose: np.ndarray, icp: IcpProblem | None) -> np.ndar
 
 
 class FrameOnDevice:
-    """estimate_dense's launches for one frame (the module docstring's sequence)."""
+    """estimate_dense's launches for one frame (the module docstring's sequence): `upload` the
+    previous pose, `launch` the kernels, download the `record`. `launch` copies nothing and
+    waits for nothing, and its buffers are the workspace's and the frames' own, so its kernels
+    can be captured on a stream as a CUDA graph and replayed (benchmarks/cuda_graph_frame.py).
+    `stream`: numba's stream for every launch (0: the default stream)."""
 
-    def __init__(self, tracker: Any, problem: Any, previous: Any, current: Any) -> None:
-        self.tracker, self.problem = tracker, problem
+    def __init__(
+        self, tracker: Any, problem: Any, previous: Any, current: Any, stream: Any = 0
+    ) -> None:
+        self.tracker, self.problem, self.stream = tracker, problem, stream
         self.icp, self.rgbd = _parts(problem)
         self.levels = current.levels[: len(tracker.iterations)]
         shapes = tuple(tuple(level.depth.shape) for level in self.levels)
@@ -441,16 +447,31 @@ class FrameOnDevice:
         self.settings = _settings(tracker, problem)
 
     def run(self, previous_pose: np.ndarray) -> np.ndarray:
-        """Launch the frame's sequence and download its record (the frame's one wait)."""
-        space = self.space
-        space.poses.copy_to_device(_initial_poses(previous_pose, self.icp))
-        _begin_kernel[1, 1](space.state, space.flags, space.counts, space.tally)
+        """The frame's record (32 numbers, the module's slots) for an estimate started at
+        `previous_pose`: its one upload, its launches and its one wait."""
+        self.upload(previous_pose)
+        self.launch()
+        return self.record()
+
+    def upload(self, previous_pose: np.ndarray) -> None:
+        """The frame's poses (_initial_poses) into the workspace."""
+        poses = _initial_poses(previous_pose, self.icp)
+        self.space.poses.copy_to_device(poses, stream=self.stream)
+
+    def record(self) -> np.ndarray:
+        """The state vector on the host: the one wait for the device."""
+        return to_host(self.space.state)
+
+    def launch(self) -> None:
+        """Every kernel of the frame, in order, on the stream."""
+        space, stream = self.space, self.stream
+        _begin_kernel[1, 1, stream](space.state, space.flags, space.counts, space.tally)
         before, now = self.previous.levels[0], self.current.levels[0]
-        repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D](
+        repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D, stream](
             stage(before.depth), now.depth, stage(before.intensity), now.intensity, space.flags
         )
         method = METHOD_MODES[self.tracker.method]
-        _mode_kernel[1, 1](space.flags, space.state, method)
+        _mode_kernel[1, 1, stream](space.flags, space.state, method)
         iterations = self.tracker.iterations
         finest = self.tracker.finest_level
         for level in reversed(range(len(iterations))):
@@ -459,7 +480,7 @@ class FrameOnDevice:
             for _ in range(iterations[level]):
                 self._systems(level, level)
                 partials = space.levels[level]
-                _solve_kernel[1, SOLVE_THREADS](
+                _solve_kernel[1, SOLVE_THREADS, stream](
                     partials.icp_partials,
                     partials.rgbd_partials,
                     space.tally,
@@ -469,7 +490,7 @@ class FrameOnDevice:
                     level,
                 )
         self._systems(finest, ANY_LEVEL, rows=False)
-        _finish_kernel[1, 1](
+        _finish_kernel[1, 1, stream](
             space.levels[finest].icp_partials,
             space.tally,
             space.counts,
@@ -477,7 +498,6 @@ class FrameOnDevice:
             space.poses,
             finest,
         )
-        return to_host(space.state)
 
     def _interest_points(self, level: int) -> None:
         """Algorithm 1 at `level` into the level's fixed lists (rgbd/cuda.py's kernels)."""
@@ -488,11 +508,11 @@ class FrameOnDevice:
         threshold = rgbd.min_gradient[min(level, len(rgbd.min_gradient) - 1)]
         depth, dx, dy = stage(image.depth), stage(image.intensity_dx), stage(image.intensity_dy)
         pixels = image.depth.shape[0] * image.depth.shape[1]
-        interest_kernel[grid_1d(pixels, BLOCK), BLOCK](
+        interest_kernel[grid_1d(pixels, BLOCK), BLOCK, self.stream](
             dx, dy, depth, float(threshold) ** 2, True, float(rgbd.max_depth), count,
             buffers.indices,
         )  # fmt: skip
-        interest_data_kernel[grid_1d(pixels, BLOCK), BLOCK](
+        interest_data_kernel[grid_1d(pixels, BLOCK), BLOCK, self.stream](
             buffers.indices, count, depth, stage(image.intensity), dx, dy,
             pinhole(image.camera), buffers.points, buffers.values, buffers.gradient,
         )  # fmt: skip
@@ -507,7 +527,7 @@ class FrameOnDevice:
         if self.icp is not None:
             icp = self.icp
             limits = icp.constants(np.eye(4))[2:]  # (squared distance, cos angle)
-            icp_kernel[reduction_blocks(pixels), BLOCK](
+            icp_kernel[reduction_blocks(pixels), BLOCK, self.stream](
                 *icp.points(level), space.icp_poses, *icp.model(level), pinhole(camera), limits,
                 icp.robust, buffers.icp_partials, space.state, gate_level,
             )  # fmt: skip
@@ -522,11 +542,11 @@ class FrameOnDevice:
             self.rgbd.previous_levels[level].camera,
             self.rgbd.max_depth_change,
         )
-        correspond_kernel[grid_1d(pixels, BLOCK), BLOCK](
+        correspond_kernel[grid_1d(pixels, BLOCK), BLOCK, self.stream](
             *arguments, space.tally, buffers.pairs, space.state, gate_level
         )
         if rows:
-            rows_kernel[reduction_blocks(pixels), BLOCK](
+            rows_kernel[reduction_blocks(pixels), BLOCK, self.stream](
                 buffers.pairs, space.tally, *arguments, buffers.rgbd_partials, space.state,
                 gate_level,
             )  # fmt: skip
