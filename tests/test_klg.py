@@ -5,6 +5,7 @@ cv2.imencode) that shares no code with the project's, from data/tiny_desk. The t
 TUM folder itself: depth rounded to whole millimetres, colour within JPEG's loss.
 """
 
+import json
 import struct
 import zlib
 
@@ -125,11 +126,6 @@ def test_bad_logs_get_one_line_naming_the_file_and_frame(frames, log, tmp_path, 
     def reconstruct(path, *extra):
         return main(["reconstruct", str(path), "--out", str(tmp_path / "out"), *common, *extra])
 
-    truncated = tmp_path / "truncated.klg"
-    truncated.write_bytes(data[: len(data) - 1000])  # the last frame's image is cut
-    assert reconstruct(truncated) == 2
-    one_line(capsys, str(truncated), "truncated", "frame 9 of 10")
-
     header_only = tmp_path / "header.klg"
     header_only.write_bytes(data[:4] + data[4:20])  # frame 0's header, no data, no frame 1
     assert reconstruct(header_only) == 2
@@ -150,6 +146,97 @@ def test_bad_logs_get_one_line_naming_the_file_and_frame(frames, log, tmp_path, 
     # Read as 200x150: frame 0's depth inflates to 160*120*2 bytes, not 200*150*2.
     assert reconstruct(log, "--size", "200x150", "--intrinsics", "160,160,99.5,74.5") == 2
     one_line(capsys, str(log), "frame 0", "holds 38400 bytes", "200x150")
+
+
+def _damaged(data, offsets, kind):
+    """A five-frame log damaged at its end the way a logger cut off leaves it."""
+    if kind == "cut-data":  # frame 2's data cut short
+        return data[: offsets[2] + 100]
+    if kind == "cut-header":  # inside frame 2's header
+        return data[: offsets[2] - 5]
+    if kind == "count-too-large":  # ends right after frame 2: the count says 5
+        return data[: offsets[3] - 16]
+    damaged = bytearray(data)
+    if kind == "bad-header":  # frame 3's byte counts garbled
+        damaged[offsets[3] - 8 : offsets[3]] = struct.pack("<ii", -7, 12)
+    else:  # "undecodable-last": frame 4's depth is whole but not zlib data
+        damaged[offsets[4] : offsets[4] + 8] = b"notzlib!"
+    return bytes(damaged)
+
+
+DAMAGE = {  # kind: (intact frames, the warning's account of the damage)
+    "cut-data": (2, "truncated: frame 2 of 5 needs bytes up to "),
+    "cut-header": (2, "truncated: the header says 5 frames but the log ends inside frame 2's"),
+    "count-too-large": (3, "truncated: the header says 5 frames but the log ends before frame 3"),
+    "bad-header": (3, "frame 3: bad frame header (depth -7 bytes, image 12 bytes)"),
+    "undecodable-last": (4, "frame 4: depth is not zlib data ("),
+}
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_a_log_damaged_at_its_end_reads_its_intact_frames(frames, tmp_path, capsys, kind):
+    whole = tmp_path / "whole.klg"
+    write_klg(whole, frames[:5])
+    offsets = klg.open_log(whole, (WIDTH, HEIGHT))._offsets
+    path = tmp_path / f"{kind}.klg"
+    path.write_bytes(_damaged(whole.read_bytes(), offsets, kind))
+    intact, account = DAMAGE[kind]
+    expected = (
+        f"kintinuous: warning: {path}: {account}",
+        f"; reading the {intact} intact frames before it (0..{intact - 1})",
+    )
+
+    sequence = klg.open_log(path, (WIDTH, HEIGHT))
+    line = one_line(capsys, *expected)
+    assert line.startswith(expected[0]) and line.endswith(expected[1])
+    assert len(sequence) == intact and sequence.damage.startswith(account)
+    stamps = [stamp for stamp, _, _ in frames[:intact]]
+    np.testing.assert_array_equal(sequence.timestamps, stamps)
+
+    # reconstruct uses them by default, --skip-bad-frames or not
+    truth = str(TINY / "groundtruth.txt")
+    common = ["--intrinsics", INTRINSICS, "--size", "160x120", "--backend", "ref"]
+    common += ["--groundtruth", truth, "--odometry", "groundtruth", "--resolution", "32"]
+    for extra in ([], ["--skip-bad-frames"]):
+        out = tmp_path / f"out{len(extra)}"
+        assert main(["reconstruct", str(path), "--out", str(out), *common, *extra]) == 0
+        one_line(capsys, *expected)
+        trajectory = tum.read_trajectory(out / "trajectory.txt")
+        np.testing.assert_allclose(trajectory.timestamps, stamps, atol=1e-6)
+
+    # convert writes them, and only them
+    folder = tmp_path / "folder"
+    assert main(["convert", str(path), str(folder), "--size", "160x120"]) == 0
+    assert f"wrote {intact} frames to {folder}" in capsys.readouterr().out
+    written = tum.open_sequence(folder, INTRINSICS)
+    np.testing.assert_array_equal(written.timestamps, stamps)
+    for frame, (_, raw, _) in zip(written, frames, strict=False):
+        assert np.abs(frame.depth - raw / 5000.0).max() <= 0.0004 + 1e-6
+
+
+def test_a_bad_frame_in_the_middle_still_needs_skip_bad_frames(frames, tmp_path, capsys):
+    """Only a damaged end is left out by default: frame 2 of 5 undecodable ends a run
+    there (the 2 frames before it kept) unless --skip-bad-frames leaves it out."""
+    path = tmp_path / "middle.klg"
+    write_klg(path, frames[:5])
+    offset = int(klg.open_log(path, (WIDTH, HEIGHT))._offsets[2])
+    damaged = bytearray(path.read_bytes())
+    damaged[offset : offset + 8] = b"notzlib!"
+    path.write_bytes(bytes(damaged))
+    common = ["--intrinsics", INTRINSICS, "--size", "160x120", "--backend", "ref"]
+    common += ["--groundtruth", str(TINY / "groundtruth.txt"), "--odometry", "groundtruth"]
+    common += ["--resolution", "32"]
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(path), "--out", str(out), *common]) == 2
+    one_line(capsys, f"frame 2: {path}: frame 2: depth is not zlib data", "2 frames done")
+    again = [*common, "--overwrite", "--skip-bad-frames"]
+    assert main(["reconstruct", str(path), "--out", str(out), *again]) == 0
+    assert "kintinuous:" not in capsys.readouterr().err
+    trajectory = tum.read_trajectory(out / "trajectory.txt")
+    np.testing.assert_allclose(trajectory.timestamps, [frames[i][0] for i in (0, 1, 3, 4)])
+    report = json.loads((out / "report.json").read_text())
+    assert (report["frames"], report["skipped_frames"]) == (4, 1)
+    assert report["skipped_reasons"][0].startswith("frame 2: ")
 
 
 def test_convert_round_trips_both_ways(frames, log, tmp_path, capsys):

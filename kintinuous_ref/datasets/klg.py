@@ -12,17 +12,24 @@ that convention (the decoded buffer is RGB, no channel swap), so that logs recor
 tools and logs written here read the same in both.
 
 Opening a log reads only the 16-byte frame headers (seeking over the data) and keeps each
-frame's offset: a log of many gigabytes is never loaded whole.
+frame's offset, so a log of many gigabytes is never loaded whole; it decodes the last frame only.
+A log ends where its logger stopped, and a logger cut off leaves its last frame cut short, its
+header garbled or its data undecodable: the frames before such a frame are read, and one warning
+line names the file, the frame and what is wrong with it. A log whose frame 0 is already damaged
+is an error. A bad frame in the middle is found when it is read (reconstruct's
+--skip-bad-frames leaves it out).
 """
 
 from __future__ import annotations
 
 import os
 import struct
+import sys
 import zlib
 from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -63,6 +70,14 @@ class KlgSequence(FrameSequence):
         self.camera = camera  # type: ignore[assignment]  # None: converting needs no camera
         self.groundtruth_path = groundtruth_path
         self.groundtruth = read_trajectory(groundtruth_path) if groundtruth_path else None
+        self.damage = ""  # why the frames after the last one cannot be read ("" when none)
+
+    def keep_first(self, count: int, damage: str) -> None:
+        """Read only frames 0..count-1: `damage` says what is wrong with frame `count`, the
+        first one that cannot be read, and stays in `damage` for the report."""
+        self._offsets, self._depth_sizes = self._offsets[:count], self._depth_sizes[:count]
+        self._image_sizes, self.timestamps = self._image_sizes[:count], self.timestamps[:count]
+        self.damage = damage
 
     def _read(self, index: int) -> Frame:
         depth_size, image_size = int(self._depth_sizes[index]), int(self._image_sizes[index])
@@ -129,7 +144,9 @@ def open_log(
     groundtruth: Path | None = None,
 ) -> KlgSequence:
     """Index a `.klg` log's frame headers. `size` is (width, height); `camera`, when given, must
-    be of that size (its depth units become millimetres); `groundtruth` is a TUM trajectory."""
+    be of that size (its depth units become millimetres); `groundtruth` is a TUM trajectory.
+    A damaged tail (module docstring) is left out with a warning on stderr; the sequence's
+    `damage` says why."""
     path = Path(path)
     width, height = size
     if camera is not None:
@@ -141,58 +158,115 @@ def open_log(
         camera = replace(camera, depth_scale=KLG_DEPTH_SCALE)
     if not path.is_file():
         raise DatasetError(f"{path}: log file not found")
-    file_size = path.stat().st_size
-    offsets, depth_sizes, image_sizes, stamps = [], [], [], []
     with open(path, "rb") as log:
-        head = log.read(_COUNT.size)
-        if len(head) < _COUNT.size:
-            raise DatasetError(f"{path}: not a .klg log (shorter than its 4-byte frame count)")
-        (count,) = _COUNT.unpack(head)
-        if count <= 0:
-            raise DatasetError(f"{path}: bad header: frame count {count}")
-        position = _COUNT.size
-        for index in range(count):
-            header = log.read(_HEADER.size)
-            if len(header) < _HEADER.size:
-                raise DatasetError(
-                    f"{path}: truncated: the header says {count} frames but the log ends "
-                    f"at frame {index}"
-                )
-            stamp, depth_size, image_size = _HEADER.unpack(header)
-            if depth_size < 0 or image_size < 0:
-                raise DatasetError(
-                    f"{path}: frame {index}: bad frame header (depth {depth_size} bytes, "
-                    f"image {image_size} bytes)"
-                )
-            if depth_size > width * height * 2 or image_size > width * height * 3:
-                raise DatasetError(
-                    f"{path}: frame {index}: sizes do not match {width}x{height} frames "
-                    f"(depth {depth_size} bytes, image {image_size} bytes; wrong --size?)"
-                )
-            position += _HEADER.size
-            end = position + depth_size + image_size
-            if end > file_size:
-                raise DatasetError(
-                    f"{path}: truncated: frame {index} of {count} needs bytes up to {end} but "
-                    f"the log has {file_size}"
-                )
-            offsets.append(position)
-            depth_sizes.append(depth_size)
-            image_sizes.append(image_size)
-            stamps.append(stamp)
-            position = end
-            log.seek(position)
-    return KlgSequence(
+        count = _frame_count(path, log)
+        index, damage = _index_frames(path, log, count, width, height, path.stat().st_size)
+    sequence = KlgSequence(
         path,
         width,
         height,
-        np.array(offsets, dtype=np.int64),
-        np.array(depth_sizes, dtype=np.int64),
-        np.array(image_sizes, dtype=np.int64),
-        np.array(stamps, dtype=np.int64) / 1e6,
+        *index,
         camera,
         Path(groundtruth) if groundtruth is not None else None,
     )
+    if not damage and (damage := _damaged_last_frame(sequence)):
+        sequence.keep_first(len(sequence) - 1, damage)
+    elif damage:
+        sequence.keep_first(len(sequence), damage)
+    if damage:
+        warn(
+            f"{path}: {damage}; reading the {len(sequence)} intact frames before it "
+            f"(0..{len(sequence) - 1})"
+        )
+    return sequence
+
+
+def warn(message: str) -> None:
+    """One line on stderr for damage that is worked around: the run goes on without it."""
+    print(f"kintinuous: warning: {message}", file=sys.stderr, flush=True)
+
+
+def _frame_count(path: Path, log: BinaryIO) -> int:
+    head = log.read(_COUNT.size)
+    if len(head) < _COUNT.size:
+        raise DatasetError(f"{path}: not a .klg log (shorter than its 4-byte frame count)")
+    (count,) = _COUNT.unpack(head)
+    if count <= 0:
+        raise DatasetError(f"{path}: bad header: frame count {count}")
+    return count
+
+
+def _index_frames(
+    path: Path, log: BinaryIO, count: int, width: int, height: int, file_size: int
+) -> tuple[tuple[np.ndarray, ...], str]:
+    """Offsets, depth and image byte counts and timestamps (s) of the frames whose header and
+    data are whole, and why the frames after them cannot be read ("" when all can).
+
+    A log ends where its logger stopped, so a cut or garbled frame ends the readable log: the
+    frames before it are kept. Frame 0 itself damaged leaves nothing to read: an error."""
+    rows: list[tuple[int, int, int, int]] = []
+    position, damage = _COUNT.size, ""
+    for index in range(count):
+        header = log.read(_HEADER.size)
+        damage = _header_damage(index, count, header, width, height)
+        if damage:
+            break
+        stamp, depth_size, image_size = _HEADER.unpack(header)
+        position += _HEADER.size
+        end = position + depth_size + image_size
+        if end > file_size:
+            damage = (
+                f"truncated: frame {index} of {count} needs bytes up to {end} but the log has "
+                f"{file_size}"
+            )
+            break
+        rows.append((position, depth_size, image_size, stamp))
+        position = end
+        log.seek(position)
+    if damage and not rows:
+        raise DatasetError(f"{path}: {damage}")
+    columns = np.array(rows, dtype=np.int64).reshape(-1, 4).T
+    offsets, depth_sizes, image_sizes, stamps = (column.copy() for column in columns)
+    return (offsets, depth_sizes, image_sizes, stamps / 1e6), damage
+
+
+def _header_damage(index: int, count: int, header: bytes, width: int, height: int) -> str:
+    """What is wrong with frame `index`'s 16-byte header ("" when nothing)."""
+    if len(header) < _HEADER.size:
+        where = "inside" if header else "before"
+        return (
+            f"truncated: the header says {count} frames but the log ends {where} frame "
+            f"{index}'s header"
+        )
+    _, depth_size, image_size = _HEADER.unpack(header)
+    if depth_size < 0 or image_size < 0:
+        return (
+            f"frame {index}: bad frame header (depth {depth_size} bytes, image {image_size} bytes)"
+        )
+    if depth_size > width * height * 2 or image_size > width * height * 3:
+        return (
+            f"frame {index}: sizes do not match {width}x{height} frames (depth {depth_size} "
+            f"bytes, image {image_size} bytes; wrong --size?)"
+        )
+    return ""
+
+
+def _damaged_last_frame(sequence: KlgSequence) -> str:
+    """Why the log's last frame cannot be decoded, when the one before it can ("" otherwise):
+    whole bytes that do not decode at the very end are the mark of a logger cut off; a log
+    whose frames all fail is read wrongly (a wrong --size), which reading any frame reports."""
+    last = len(sequence) - 1
+    if last < 1:
+        return ""
+    try:
+        sequence[last]
+    except DatasetError as err:
+        try:
+            sequence[last - 1]
+        except DatasetError:
+            return ""
+        return str(err).removeprefix(f"{sequence.path}: ")
+    return ""
 
 
 def write_log(path: Path, frames: Iterable[Frame], jpeg_quality: int = JPEG_QUALITY) -> int:
