@@ -11,14 +11,15 @@ from pathlib import Path
 import numpy as np
 
 from kintinuous_fast.mesh.ops import build_ops
-from kintinuous_fast.targets import cpu_jit_numpy_errors_called
+from kintinuous_fast.targets import cpu_jit_numpy_errors
 from kintinuous_fast.targets.cache import drop_stale_kernels
 from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
 
 __all__ = ["marching_cubes"]
 
-_ops = build_ops(cpu_jit_numpy_errors_called)
+_ops = build_ops(cpu_jit_numpy_errors)
 row_vertices, row_triangles = _ops.row_vertices, _ops.row_triangles
+row_is_uniform = _ops.row_is_uniform
 write_row_vertices, write_row_triangles = _ops.write_row_vertices, _ops.write_row_triangles
 
 
@@ -27,6 +28,9 @@ def _count_loop(claims, parts, tsdf, weight, min_weight, vertices, triangles):
     ny = tsdf.shape[1]
     for row in claimed_items(claims, tsdf.shape[0] * ny, parts):
         i, j = row // ny, row % ny
+        if row_is_uniform(tsdf, i, j):
+            vertices[row] = triangles[row] = 0
+            continue
         vertices[row] = row_vertices(tsdf, weight, min_weight, i, j)
         triangles[row] = row_triangles(tsdf, weight, min_weight, i, j)
 

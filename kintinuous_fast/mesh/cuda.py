@@ -18,6 +18,7 @@ __all__ = ["marching_cubes"]
 
 _ops = build_ops(cuda_device_jit())
 row_vertices, row_triangles = _ops.row_vertices, _ops.row_triangles
+row_is_uniform = _ops.row_is_uniform
 write_row_vertices, write_row_triangles = _ops.write_row_vertices, _ops.write_row_triangles
 
 # Threads of the one block per count that adds up the rows' counts.
@@ -28,7 +29,9 @@ SCAN_THREADS = 256
 def _count_kernel(tsdf, weight, min_weight, counts):
     row = cuda.grid(1)
     ny = tsdf.shape[1]
-    if row < tsdf.shape[0] * ny:
+    if row < tsdf.shape[0] * ny and row_is_uniform(tsdf, row // ny, row % ny):
+        counts[0, row] = counts[1, row] = 0
+    elif row < tsdf.shape[0] * ny:
         counts[0, row] = row_vertices(tsdf, weight, min_weight, row // ny, row % ny)
         counts[1, row] = row_triangles(tsdf, weight, min_weight, row // ny, row % ny)
 

@@ -151,6 +151,20 @@ def _build_rows(jit: Callable[[Any], Any], cube: SimpleNamespace) -> SimpleNames
         return edge_used(tsdf, weight, min_weight, edge)
 
     @jit
+    def row_is_uniform(tsdf: Any, i: int, j: int) -> bool:
+        """Whether the voxels (i..i+1, j..j+1, all k) are all inside or all outside: then row
+        (i, j) has no vertex and no triangle. One pass without early exit, which vectorises;
+        most rows of a volume are free or unseen space and end here."""
+        if i > tsdf.shape[0] - 2 or j > tsdf.shape[1] - 2:
+            return False
+        some, every = 0, 15
+        for k in range(tsdf.shape[2]):
+            bits = corner_bits(tsdf, i, j, k)
+            some |= bits
+            every &= bits
+        return some == 0 or every == 15
+
+    @jit
     def row_vertices(tsdf: Any, weight: Any, min_weight: float, i: int, j: int) -> int:
         """How many vertices row (i, j) owns."""
         found = 0
@@ -238,6 +252,7 @@ def _build_rows(jit: Callable[[Any], Any], cube: SimpleNamespace) -> SimpleNames
 
     return SimpleNamespace(
         edge_id=edge_id,
+        row_is_uniform=row_is_uniform,
         row_triangles=row_triangles,
         row_vertices=row_vertices,
         vertex_index=vertex_index,
