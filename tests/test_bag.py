@@ -7,6 +7,7 @@ from tiny_desk import TINY, tum_frames
 
 from kintinuous_ref.camera import load_intrinsics_json
 from kintinuous_ref.datasets import bag, tum
+from kintinuous_ref.errors import DatasetError
 from kintinuous_ref.program.cli import main
 
 TUM_TOPICS = ("/camera/rgb/image_color", "/camera/depth/image", "/camera/rgb/camera_info")
@@ -187,3 +188,67 @@ def test_reconstructing_a_bag_tracks_like_its_tum_folder(ros1_bag, tmp_path):
     np.testing.assert_allclose(bagged.poses, folder.poses, atol=1e-6)
     groundtruth = tum.open_sequence(TINY).groundtruth_for_frames()
     assert np.linalg.norm(groundtruth.positions[-1] - groundtruth.positions[0]) > 0.1  # it moved
+
+
+def test_topics_that_are_not_images_are_refused_naming_what_would_work(tmp_path, capsys):
+    path = write_bag(tmp_path / "desk.bag", topics=OTHER_TOPICS)
+    out = str(tmp_path / "out")
+    found = "the bag's image topics: /cam/colour, /cam/depth_mm; its camera info topics: /cam/info"
+    topics = "/rosout_note,/cam/info,/cam/info"
+    assert main(["reconstruct", str(path), "--out", out, "--topics", topics]) == 2
+    assert capsys.readouterr().err == (
+        f"kintinuous: error: {path}: rgb topic /rosout_note carries std_msgs/msg/String, not "
+        "sensor_msgs/msg/Image; depth topic /cam/info carries sensor_msgs/msg/CameraInfo, not "
+        f"sensor_msgs/msg/Image; {found} (pass --topics rgb,depth,info)\n"
+    )
+    # an image as the camera info: refused, unless --intrinsics gives the camera
+    topics = "/cam/colour,/cam/depth_mm,/cam/depth_mm"
+    assert main(["convert", str(path), str(tmp_path / "folder"), "--topics", topics]) == 2
+    assert capsys.readouterr().err == (
+        f"kintinuous: error: {path}: info topic /cam/depth_mm carries sensor_msgs/msg/Image, not "
+        f"sensor_msgs/msg/CameraInfo; {found} (pass --topics rgb,depth,info)\n"
+    )
+    assert not (tmp_path / "folder").exists()
+    camera = load_intrinsics_json(TINY / "intrinsics.json")
+    topics = ("/cam/colour", "/cam/depth_mm", "/cam/depth_mm")
+    assert len(bag.open_bag(path, topics, camera)) == 10
+
+
+def copy_bag(source, target, cut):
+    """A copy of a ROS1 bag whose messages `cut` ((topic, number) pairs) keep 100 bytes."""
+    from rosbags.rosbag1 import Reader, Writer
+
+    seen = {}
+    with Reader(source) as reader, Writer(target) as writer:
+        made = {
+            c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, md5sum=c.digest)
+            for c in reader.connections
+        }
+        for connection, time, raw in reader.messages():
+            number = seen[connection.topic] = seen.get(connection.topic, -1) + 1
+            damaged = (connection.topic, number) in cut
+            writer.write(made[connection.id], time, raw[:100] if damaged else raw)
+    return target
+
+
+def test_a_bag_whose_last_images_are_cut_reads_the_frames_before(tmp_path, capsys):
+    whole = write_bag(tmp_path / "whole.bag")
+    depth = TUM_TOPICS[1]
+    path = copy_bag(whole, tmp_path / "cut.bag", {(depth, 8), (depth, 9)})
+    sequence = bag.open_bag(path)
+    assert capsys.readouterr().err == (
+        f"kintinuous: warning: {path}: {depth}: message 8 and those after it cannot be read "
+        "(Invalid sequence length 76800 at offset 48.); reading the 8 messages before it\n"
+    )
+    folder = tum.open_sequence(TINY)
+    assert len(sequence) == 8
+    np.testing.assert_allclose(sequence.timestamps, folder.timestamps[:8], atol=1e-9)
+    np.testing.assert_array_equal(sequence[7].depth, folder[7].depth)
+
+    # the same damage in the middle is an error naming the message
+    middle = copy_bag(whole, tmp_path / "middle.bag", {(depth, 4)})
+    with pytest.raises(DatasetError) as excinfo:
+        bag.open_bag(middle)
+    assert str(excinfo.value) == (
+        f"{middle}: {depth}: message 4 cannot be read (Invalid sequence length 76800 at offset 48.)"
+    )

@@ -12,6 +12,7 @@ driver with depth aligned to colour; other names are given as `rgb,depth,info`.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +38,7 @@ TOPIC_SETS = (
     ),
 )
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+IMAGE, CAMERA_INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"  # rosbags' names
 
 
 def is_bag(path: Path) -> bool:
@@ -128,14 +130,12 @@ def open_bag(
         raise DatasetError(f"{path}: cannot open as a ROS bag ({message})") from None
     try:
         colour_topic, depth_topic, info_topic = _choose_topics(path, reader, topics)
+        _check_types(path, reader, (colour_topic, depth_topic, info_topic), camera is None)
         by_topic = {c.topic: c for c in reader.connections}
         colour_conn, depth_conn = by_topic[colour_topic], by_topic[depth_topic]
         if camera is None:
             camera = _camera_info(path, reader, by_topic[info_topic])
-        stamps: dict[str, list[tuple[int, float]]] = {colour_topic: [], depth_topic: []}
-        for connection, time, raw in reader.messages(connections=[colour_conn, depth_conn]):
-            message = reader.deserialize(raw, connection.msgtype)
-            stamps[connection.topic].append((time, _stamp(message)))
+        stamps = _read_stamps(path, reader, (colour_conn, depth_conn))
         colour_stamps = np.array([s for _, s in stamps[colour_topic]], dtype=np.float64)
         depth_stamps = np.array([s for _, s in stamps[depth_topic]], dtype=np.float64)
         colour_index, depth_index = associate(colour_stamps, depth_stamps, max_difference)
@@ -175,6 +175,77 @@ def _choose_topics(
     raise DatasetError(f"{path}: the bag lacks the topics {wanted} (--topics); it has: {has}")
 
 
+def _read_stamps(
+    path: Path, reader: Any, connections: tuple[Any, Any]
+) -> dict[str, list[tuple[int, float]]]:
+    """(bag time ns, header stamp s) of each image message, per topic. Messages that do not
+    decode (or hold fewer bytes than their rows) at the end of a topic are a recording cut
+    off: left out with one warning line; such a message followed by good ones is an error."""
+    stamps: dict[str, list[tuple[int, float]]] = {c.topic: [] for c in connections}
+    bad: dict[str, tuple[int, str]] = {}  # topic: (its first bad message's number, why)
+    seen = dict.fromkeys(stamps, 0)
+    for connection, time, raw in reader.messages(connections=list(connections)):
+        topic, number = connection.topic, seen[connection.topic]
+        seen[topic] += 1
+        message, damage = _decoded(reader, raw, connection.msgtype)
+        if damage:
+            bad.setdefault(topic, (number, damage))
+        elif topic in bad:
+            first, why = bad[topic]
+            raise DatasetError(f"{path}: {topic}: message {first} cannot be read ({why})")
+        else:
+            stamps[topic].append((time, _stamp(message)))
+    for topic, (first, why) in bad.items():
+        warn(
+            f"{path}: {topic}: message {first} and those after it cannot be read ({why}); "
+            f"reading the {first} messages before it"
+        )
+    return stamps
+
+
+def _decoded(reader: Any, raw: bytes, msgtype: str) -> tuple[Any, str]:
+    """An Image message and "", or None and why it cannot be read."""
+    try:
+        message = reader.deserialize(raw, msgtype)
+    except Exception as err:  # rosbags' errors for bytes that are not the message
+        return None, " ".join(str(err).split())
+    size = len(message.data)
+    if message.height * message.step > size:
+        return None, (
+            f"{size} bytes of pixels for {message.height} rows of {message.step} bytes, cut short"
+        )
+    return message, ""
+
+
+def warn(message: str) -> None:
+    """One line on stderr for damage that is worked around: the run goes on without it."""
+    print(f"kintinuous: warning: {message}", file=sys.stderr, flush=True)
+
+
+def _check_types(path: Path, reader: Any, topics: tuple[str, str, str], need_info: bool) -> None:
+    """Refuse, before any message is read, colour or depth topics that are not images, and an
+    info topic that is not CameraInfo when the camera comes from it: their messages have none
+    of the fields a frame is read from."""
+    present = {c.topic: c.msgtype for c in reader.connections}
+    roles = zip(("rgb", "depth", "info"), topics, (IMAGE, IMAGE, CAMERA_INFO), strict=True)
+    wrong = [
+        f"{role} topic {topic} carries {present[topic]}, not {wanted}"
+        for role, topic, wanted in roles
+        if present[topic] != wanted and (role != "info" or need_info)
+    ]
+    if wrong:
+        images = _topics_of(present, IMAGE, "no image topic")
+        infos = _topics_of(present, CAMERA_INFO, "none (pass --intrinsics)")
+        raise DatasetError(
+            f"{path}: {'; '.join(wrong)}; the bag's image topics: {images}; its camera info "
+            f"topics: {infos} (pass --topics rgb,depth,info)"
+        )
+
+
+def _topics_of(present: dict[str, str], msgtype: str, none: str) -> str:
+    return ", ".join(sorted(topic for topic, kind in present.items() if kind == msgtype)) or none
+
+
 def _camera_info(path: Path, reader: Any, connection: Any) -> Intrinsics:
     for _, _, raw in reader.messages(connections=[connection]):
         info = reader.deserialize(raw, connection.msgtype)
@@ -195,10 +266,16 @@ def _stamp(message: Any) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def _pixels(message: Any, dtype: str, channels: int) -> np.ndarray:
+def _pixels(message: Any, dtype: str, channels: int, where: str) -> np.ndarray:
     """The (H, W[, C]) array of an Image message, honouring its row step and byte order."""
     item = np.dtype(dtype).itemsize * channels
-    rows = np.frombuffer(message.data, np.uint8).reshape(message.height, message.step)
+    if message.step < message.width * item or len(message.data) < message.height * message.step:
+        raise DatasetError(
+            f"{where}: {message.encoding} image of {message.width}x{message.height} with rows "
+            f"of {message.step} bytes and {len(message.data)} bytes of pixels: too few"
+        )
+    rows = np.frombuffer(message.data, np.uint8)[: message.height * message.step]
+    rows = rows.reshape(message.height, message.step)
     rows = rows[:, : message.width * item]
     order = ">" if message.is_bigendian else "<"
     values = np.frombuffer(rows.tobytes(), np.dtype(dtype).newbyteorder(order))
@@ -209,11 +286,11 @@ def _pixels(message: Any, dtype: str, channels: int) -> np.ndarray:
 def _colour_image(message: Any, path: Path, index: int) -> np.ndarray:
     encoding = message.encoding.lower()
     if encoding in ("rgb8", "bgr8"):
-        image = _pixels(message, "u1", 3)
+        image = _pixels(message, "u1", 3, f"{path}: frame {index}")
     elif encoding in ("rgba8", "bgra8"):
-        image = _pixels(message, "u1", 4)[..., :3]
+        image = _pixels(message, "u1", 4, f"{path}: frame {index}")[..., :3]
     elif encoding in ("mono8", "8uc1"):
-        image = np.repeat(_pixels(message, "u1", 1)[..., None], 3, axis=2)
+        image = np.repeat(_pixels(message, "u1", 1, f"{path}: frame {index}")[..., None], 3, axis=2)
     else:
         raise DatasetError(
             f"{path}: frame {index}: colour encoding {message.encoding!r} is not supported "
@@ -227,10 +304,10 @@ def _colour_image(message: Any, path: Path, index: int) -> np.ndarray:
 def _depth_image(message: Any, path: Path, index: int) -> np.ndarray:
     encoding = message.encoding.lower()
     if encoding == "32fc1":
-        depth = _pixels(message, "f4", 1).astype(np.float32)
+        depth = _pixels(message, "f4", 1, f"{path}: frame {index}").astype(np.float32)
         depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0))
     elif encoding in ("16uc1", "mono16"):
-        millimetres = _pixels(message, "u2", 1)
+        millimetres = _pixels(message, "u2", 1, f"{path}: frame {index}")
         depth = millimetres.astype(np.float32) / np.float32(1000.0)
     else:
         raise DatasetError(
