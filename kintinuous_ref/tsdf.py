@@ -25,12 +25,12 @@ zero for a volume that never moved (then array cell = logical voxel, as before).
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from kintinuous_ref import memory
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import VolumeConfig
 from kintinuous_ref.errors import ConfigError, DatasetError
@@ -112,25 +112,23 @@ def memory_bytes(config: VolumeConfig) -> int:
 
 
 def available_memory_bytes() -> int:
-    """Memory the system can still give us (Linux MemAvailable, else total physical memory)."""
-    try:
-        with open("/proc/meminfo") as meminfo:
-            for line in meminfo:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    """Memory this process can still allocate: the least of free memory, what `ulimit -v`
+    leaves and what its cgroup leaves (kintinuous_ref.memory); MemAvailable alone would pass
+    volumes that a limit then kills half way through a run."""
+    return memory.available_bytes()
 
 
-def refuse_if_too_big(config: VolumeConfig, needed: int, available: int, headroom: int) -> None:
+def refuse_if_too_big(
+    config: VolumeConfig, needed: int, available: int, headroom: int, limited_by: str = ""
+) -> None:
     """Refuse, in one line, a volume of `needed` bytes that leaves less than `headroom` of the
     `available` memory; each backend passes its own volume size and the memory it allocates
-    from (host memory, or the GPU's)."""
+    from (host memory, or the GPU's). `limited_by` names the limit that set `available`."""
     if needed + headroom > available:
+        where = f" (within {limited_by})" if limited_by else ""
         raise ConfigError(
             f"a {config.resolution}^3 volume needs {needed / 2**30:.1f} GiB but only "
-            f"{available / 2**30:.1f} GiB of memory is available; lower --resolution"
+            f"{available / 2**30:.1f} GiB of memory is available{where}; lower --resolution"
         )
 
 
@@ -148,7 +146,10 @@ def check_volume_config(config: VolumeConfig) -> None:
     memory. The config's own fields were checked when it was made (VolumeConfig.__post_init__);
     a fast backend checks its volume with its own `check_volume_config`."""
     # Integration temporaries and the rest of the pipeline need headroom beside the volume.
-    refuse_if_too_big(config, memory_bytes(config), available_memory_bytes(), 1 << 30)
+    available = available_memory_bytes()
+    tightest = memory.tightest()
+    limited_by = tightest.source if tightest.bytes == available else ""
+    refuse_if_too_big(config, memory_bytes(config), available, 1 << 30, limited_by)
 
 
 def volume_origin(first_pose: np.ndarray, config: VolumeConfig) -> np.ndarray:
@@ -165,14 +166,24 @@ def volume_origin(first_pose: np.ndarray, config: VolumeConfig) -> np.ndarray:
 def make_volume(
     config: VolumeConfig, first_pose: np.ndarray, colour_max_weight: float = 255.0
 ) -> TsdfVolume:
-    """An empty volume placed for the first camera pose (all weights 0)."""
+    """An empty volume placed for the first camera pose (all weights 0). Memory taken by others
+    between the check and the allocation is refused in the check's one line, not a bug's."""
     check_volume_config(config)
     n = config.resolution
+    try:
+        tsdf, weight = np.zeros((n, n, n), np.float32), np.zeros((n, n, n), np.float32)
+        colour = np.zeros((n, n, n, 3), np.float32) if config.colour else None
+        colour_weight = np.zeros((n, n, n), np.float32) if config.colour else None
+    except MemoryError:
+        raise ConfigError(
+            f"a {n}^3 volume needs {memory_bytes(config) / 2**30:.1f} GiB: out of memory while "
+            "allocating it; lower --resolution"
+        ) from None
     return TsdfVolume(
-        tsdf=np.zeros((n, n, n), dtype=np.float32),
-        weight=np.zeros((n, n, n), dtype=np.float32),
-        colour=np.zeros((n, n, n, 3), dtype=np.float32) if config.colour else None,
-        colour_weight=np.zeros((n, n, n), dtype=np.float32) if config.colour else None,
+        tsdf=tsdf,
+        weight=weight,
+        colour=colour,
+        colour_weight=colour_weight,
         origin=volume_origin(np.asarray(first_pose, dtype=np.float64), config),
         voxel_size=config.voxel_size,
         truncation=config.truncation,
