@@ -217,7 +217,9 @@ class LoopClosureConfig:
     odometry_sigma_rotation_deg: float = 0.5
     loop_sigma_translation: float = 0.01
     loop_sigma_rotation_deg: float = 0.5
-    switch_prior_sigma: float = 1.0  # Suenderhauf and Protzel's switchable-constraint prior
+    # loop edges are scaled by dynamic covariance scaling (Agarwal et al., ICRA 2013), the closed
+    # form of switchable constraints: s = min(1, 2 phi / (phi + chi^2)), phi = 1 / sigma^2
+    switch_prior_sigma: float = 1.0
     # a new loop is kept when, solved with it, no edge disagrees by more than this many sigmas
     # (a true loop spreads its drift over many edges: under 1 sigma each on `revisit`)
     loop_consistency_sigmas: float = 5.0
