@@ -57,13 +57,15 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 #
 # ICP in KinectFusion is **frame to model**: the current depth frame is aligned not to the
 # previous depth frame but to the surface predicted from the whole fused volume, rendered from
-# the previous pose. We fuse eight noisy frames at their true poses (the map so far), raycast it
-# from frame 10's pose, and render the current frame after a known motion of 3.7 cm and 1.5
-# degrees (a fast hand-held camera at 30 Hz).
+# the previous pose. We fuse six noisy frames at their true poses (every second frame from 0 to
+# 10: the map so far), raycast it from frame 10's pose, and render the current frame after a
+# known motion of 3.7 cm and 1.5 degrees (a fast hand-held camera at 30 Hz).
 
 # %%
 volume = tsdf.make_volume(config.volume, poses[0])
-for index in range(0, 11, 2):
+map_indices = range(0, 11, 2)
+assert len(map_indices) == 6  # the six frames of the text
+for index in map_indices:
     frame = preprocess.preprocess_frame(*scenario.render(index), camera, config.preprocess)
     tsdf.integrate(volume, frame.depth, poses[index], camera)
 previous_pose = poses[10]
@@ -76,6 +78,8 @@ print(
     f"true motion {100 * np.linalg.norm(true_motion[:3, 3]):.1f} cm, "
     f"{np.degrees(se3.rotation_angle(true_motion[:3, :3])):.2f} deg"
 )
+assert round(100 * np.linalg.norm(true_motion[:3, 3]), 1) == 3.7
+assert round(np.degrees(se3.rotation_angle(true_motion[:3, :3])), 1) == 1.5
 
 fig, axes = plt.subplots(1, 3, figsize=(13, 3.2))
 axes[0].imshow(np.abs(model.normals) * ~np.isnan(model.normals[..., :1]))
@@ -118,11 +122,15 @@ points, point_normals = icp.valid_points(current.levels[0].vertices, current.lev
 model_vertices, model_normals = icp.map_columns(model.vertices, model.normals)
 
 
-def rejection_map(pose: np.ndarray, distance: float, angle_deg: float) -> np.ndarray:
-    """Per current pixel: 0 no depth, 1 no model pixel, 2 too far, 3 normals disagree, 4 kept.
-    The same tests as icp.associate, kept per pixel for the picture."""
-    vertices = current.levels[0].vertices.reshape(-1, 3)
-    normals = current.levels[0].normals.reshape(-1, 3)
+def rejection_map(
+    pose: np.ndarray, distance: float, angle_deg: float, frame: object = None
+) -> np.ndarray:
+    """Per pixel of `frame` (default: the current frame): 0 no depth, 1 no model pixel, 2 too
+    far, 3 normals disagree, 4 kept. The same tests as icp.associate, kept per pixel for the
+    picture."""
+    frame = current if frame is None else frame
+    vertices = frame.levels[0].vertices.reshape(-1, 3)
+    normals = frame.levels[0].normals.reshape(-1, 3)
     valid = np.isfinite(vertices).all(axis=1) & np.isfinite(normals).all(axis=1)
     label = np.zeros(len(vertices), dtype=int)
     world = vertices[valid] @ pose[:3, :3].T + pose[:3, 3]
@@ -306,6 +314,8 @@ print(
     f"{100 * problem.inlier_fraction(estimate):.0f}% of the valid pixels are paired"
 )
 assert translation_mm < 5.0 and rotation_deg < 0.2
+assert translation_mm < 2.0  # "about a millimetre" (summary)
+assert solve(problem.system(0, estimate))[0] is not None  # the final system is solvable
 
 # %% [markdown]
 # ## Where ICP is blind: the corridor
@@ -363,13 +373,16 @@ for name, A in matrices.items():
     )
 weakest = np.linalg.eigh(matrices["corridor"][3:, 3:])[1][:, 0]
 assert abs(weakest[0]) > 0.99  # the corridor's axis
+corridor_values = np.linalg.eigvalsh(matrices["corridor"][3:, 3:])
+print(f"corridor: middle / weakest eigenvalue {corridor_values[1] / corridor_values[0]:.0f}")
+assert corridor_values[1] > 1000 * corridor_values[0]  # "more than a thousand times" below
 assert condition["corridor"] > 10 * condition["desk"]
 
 # %% [markdown]
-# The corridor's weakest translation is its own axis, measured thousands of times more weakly
-# than the other two: exactly the motion ICP cannot see. The other estimators of the paper exist
-# for this case: RGB-D odometry sees the wall texture move (notebooks 2 and 3), FOVIS tracks
-# features on it (notebook 7).
+# The corridor's weakest translation is its own axis, measured more than a thousand times more
+# weakly than the other two: exactly the motion ICP cannot see. The other estimators of the
+# paper exist for this case: RGB-D odometry sees the wall texture move (notebooks 2 and 3),
+# FOVIS tracks features on it (notebook 7).
 #
 # ## Summary
 #
@@ -379,104 +392,140 @@ assert condition["corridor"] > 10 * condition["desk"]
 #   row per pair, $r_k = (\mathbf{p}_k - \mathbf{v}_m^k)\cdot\mathbf{n}_m^k$,
 #   $J_k = [(\mathbf{p}_k\times\mathbf{n}_m^k)^\top\; {\mathbf{n}_m^k}^\top]$ (eq. 9); the 6x6
 #   normal equations of eq. 10's least squares are summed on the GPU and solved on the CPU.
-# - Coarse to fine, it recovers a 3.7 cm / 1.5 degree motion to a few millimetres against a
-#   model raycast from a noisy fused volume.
+# - Coarse to fine, it recovers a 3.7 cm / 1.5 degree motion to under 5 mm and 0.2 degrees
+#   (about a millimetre here) against a model raycast from a noisy fused volume.
 # - The eigenvalues of $J^\top J$ say what the geometry can determine; in a corridor the
 #   translation along it is (nearly) unconstrained, which is why the paper adds colour.
 #
 # ## Exercises
 #
+# Your answers go into the cell below the list, one variable each, `None` until you have it.
+# The check cell after it compares each answer with a truth it computes by its own route, and
+# says which exercises are still open; it never prints an answer.
+#
 # 1. **Association under a larger motion.** Multiply the true twist by 4 (about 15 cm, 6
-#    degrees), rebuild `current`, and count the pairs kept from the identity start with
-#    `rejection_map`. Which test rejects most pixels now? Check: the cell below computes the
-#    count; your number should equal `exercise_1_pairs`.
+#    degrees: `se3.exp(4 * se3.log(true_motion))`), render and preprocess that current frame,
+#    and count the pairs `icp.associate` keeps from the identity start (the previous pose).
+#    Which test rejects most pixels now (one of `names`)? Set `your_pairs_4x` and
+#    `your_main_rejection`.
 # 2. **Point-to-point.** Replace the residual by the full 3D difference
-#    $\mathbf{p}_k - \mathbf{v}_m^k$ (three rows per pair, Jacobian
-#    $[-[\mathbf{p}_k]_\times \; I_3]$). Its translation block is $N I_3$ for $N$ pairs: every
-#    direction looks equally well measured, even in the corridor. Why is that reassurance false?
-#    (The pairs along a flat wall are not true correspondences; the cost pulls the estimate
-#    towards the starting guess, not towards the truth.) Check: `point_to_point_block` below
-#    returns $N I_3$.
-# 3. **Thresholds.** Set the angle threshold to 5 degrees and the distance threshold to 2 cm:
-#    how does the final error change? Check with `exercise_3` below (it prints both errors).
+#    $\mathbf{p}_k - \mathbf{v}_m^k$: three rows per pair, ordered pair by pair ($x, y, z$ of
+#    pair 0, then pair 1, ...), with Jacobian $[-[\mathbf{p}_k]_\times \; I_3]$. Write
+#    `point_to_point_rows(p, vm)` returning the (6, 3N) Jacobian and the (3N,) residuals of
+#    (3, N) columns, like `icp.point_to_plane_rows`. The check compares your rows with finite
+#    differences of $\exp(\hat\xi)\,\mathbf{p}_k - \mathbf{v}_m^k$ and shows your translation
+#    block $\sum_k J_u J_u^\top$: it is $N I_3$, every direction equally well measured, even in
+#    the corridor. Why is that reassurance false? (The pairs along a flat wall are not true
+#    correspondences; the cost pulls the estimate towards the starting guess, not the truth.)
+# 3. **Thresholds.** Set the distance threshold to 2 cm and the angle threshold to 5 degrees
+#    (`icp.IcpProblem(..., distance_threshold, angle_threshold_deg)`) and rerun the
+#    coarse-to-fine solve: what is the final translation error (mm)? Set `your_strict_error_mm`.
+#    Is it better or worse than the default thresholds' error above, and why?
 # 4. **Weighing the pairs** (beyond the paper). The project's default `icp` weighs each pair
 #    by Huber's kernel and by the noise at its depth: the camera's axial noise
 #    $\sigma_a(z) = 1.2 + 1.9 (z - 0.4)^2$ mm ($z$ in metres) together with the model's
-#    voxelisation, voxel $/\sqrt{12}$ (`icp.pair_weights`, docs/odometry.md). What weight does a
-#    pair at 3 m keep relative to one at 1 m with this notebook's voxels? Rerun the coarse-to-fine
-#    solve with `robust_kernel="huber"` and `model_noise` set: does one frame pair show a
-#    difference? (Over whole sequences it does: docs/odometry.md measures 300-frame runs.)
-#    Check: `exercise_4()` below returns the weight and both errors.
+#    voxelisation, voxel $/\sqrt{12}$ (`icp.pair_weights`, docs/odometry.md); a pair's weight
+#    is $1/\sigma^2$ with $\sigma^2 = \sigma_a^2 + \text{voxel}^2/12$. What weight does a pair
+#    at 3 m keep relative to one at 1 m with this notebook's voxels (`your_weight_3m`)? Rerun the
+#    coarse-to-fine solve with `robust_kernel="huber"` and
+#    `model_noise=icp.voxel_noise(config.volume.voxel_size)`: what final translation error
+#    (mm) do you get (`your_weighted_error_mm`)? Does one frame pair show a difference? (Over
+#    whole sequences it does: docs/odometry.md measures 300-frame runs.)
 
 # %%
-big_motion = se3.exp(4 * se3.log(true_motion))
-big_current = preprocess.preprocess_frame(
-    *scenario.render_at(previous_pose @ big_motion), camera, config.preprocess
-)
-big_points = icp.valid_points(big_current.levels[0].vertices, big_current.levels[0].normals)
-exercise_1_pairs = icp.associate(
-    *big_points, previous_pose, model_vertices, model_normals, previous_pose, camera, 0.10, 20.0
-)[0].shape[1]
-print(f"exercise 1: {exercise_1_pairs} pairs kept under the 4x motion (vs {kept_count} for 1x)")
+your_pairs_4x = None  # exercise 1: pairs kept under the 4x motion
+your_main_rejection = None  # exercise 1: one of names, e.g. "no model"
+point_to_point_rows = None  # exercise 2: your function (p, vm) -> (jacobian, residuals)
+your_strict_error_mm = None  # exercise 3
+your_weight_3m = None  # exercise 4: weight at 3 m relative to 1 m
+your_weighted_error_mm = None  # exercise 4
 
 
-def exercise_3(distance: float = 0.02, angle_deg: float = 5.0) -> tuple[float, float]:
-    """Final translation error (mm) with the default thresholds and with the given ones."""
-    errors = []
-    for d, a in ((0.10, 20.0), (distance, angle_deg)):
-        strict = icp.IcpProblem(
-            current.levels,
-            preprocess.model_pyramid(model.vertices, model.normals, levels),
-            model.pose,
-            d,
-            a,
-        )
-        pose, _ = refine(previous_pose.copy(), strict.system, config.icp.iterations)
-        errors.append(pose_error(pose, current_pose)[0])
-    print(
-        f"exercise 3: default thresholds {errors[0]:.2f} mm, "
-        f"{100 * distance:.0f} cm / {angle_deg:.0f} deg: {errors[1]:.2f} mm"
+# %%
+def open_exercise(number: int, *answers: object) -> bool:
+    """True (and a note) while any answer of the exercise is still None."""
+    if any(answer is None for answer in answers):
+        print(f"exercise {number}: not answered yet (fill in its variables in the cell above)")
+        return True
+    return False
+
+
+def final_error(**thresholds_and_weights: object) -> float:
+    """Final translation error (mm) of the coarse-to-fine solve with IcpProblem's options."""
+    trial = icp.IcpProblem(
+        current.levels,
+        preprocess.model_pyramid(model.vertices, model.normals, levels),
+        model.pose,
+        **thresholds_and_weights,
     )
-    return errors[0], errors[1]
+    pose, _ = refine(previous_pose.copy(), trial.system, config.icp.iterations)
+    return pose_error(pose, current_pose)[0]
 
 
-exercise_3()
-
-
-def exercise_4() -> tuple[float, float, float]:
-    """(the weight of a pair at 3 m relative to 1 m, the final translation error in mm with
-    every pair alike, and with Huber and depth noise weights)."""
-    model_noise = icp.voxel_noise(config.volume.voxel_size)
-    weight_at_3m = float(icp.depth_noise_scale(np.array([3.0]), model_noise)[0] ** 2)
-    errors = []
-    for kernel, noise in (("none", None), ("huber", model_noise)):
-        weighted = icp.IcpProblem(
-            current.levels,
-            preprocess.model_pyramid(model.vertices, model.normals, levels),
-            model.pose,
-            robust_kernel=kernel,
-            model_noise=noise,
-        )
-        pose, _ = refine(previous_pose.copy(), weighted.system, config.icp.iterations)
-        errors.append(pose_error(pose, current_pose)[0])
-    print(
-        f"exercise 4: a pair at 3 m weighs {weight_at_3m:.3f} of one at 1 m; final error "
-        f"{errors[0]:.2f} mm with every pair alike, {errors[1]:.2f} mm weighted"
+def check_exercise_1(pairs: int | None, main_rejection: str | None) -> None:
+    if open_exercise(1, pairs, main_rejection):
+        return
+    # The truth by the per-pixel route of rejection_map, not by icp.associate.
+    big = preprocess.preprocess_frame(
+        *scenario.render_at(previous_pose @ se3.exp(4 * se3.log(true_motion))),
+        camera,
+        config.preprocess,
     )
-    return weight_at_3m, errors[0], errors[1]
+    big_labels = rejection_map(previous_pose, 0.10, 20.0, big)
+    assert pairs == (big_labels == 4).sum(), "count the columns icp.associate returns"
+    rejected = np.bincount(big_labels.ravel(), minlength=5)[1:4]
+    assert main_rejection == names[1 + int(np.argmax(rejected))], "compare the three tests"
+    print("exercise 1 correct")
 
 
-weight_at_3m, *_ = exercise_4()
-# sigma(1 m)^2 / sigma(3 m)^2 with sigma^2 = axial^2 + (voxel / sqrt(12))^2, by hand.
-voxel_variance = config.volume.voxel_size**2 / 12
-expected_weight = (0.001884**2 + voxel_variance) / (0.014044**2 + voxel_variance)
-assert abs(weight_at_3m - expected_weight) < 1e-4 * expected_weight
+def check_exercise_2(rows_of: object) -> None:
+    if open_exercise(2, rows_of):
+        return
+    p, vm = world[:, :300], matched[:, :300]
+    jacobian, residual = rows_of(p, vm)
+    assert jacobian.shape == (6, 3 * p.shape[1]) and residual.shape == (3 * p.shape[1],)
+
+    def moved(xi: np.ndarray) -> np.ndarray:  # the exact residual after exp(xi), pair by pair
+        motion = se3.exp(xi)
+        return (motion[:3, :3] @ p + motion[:3, 3:4] - vm).T.ravel()
+
+    np.testing.assert_allclose(residual, moved(np.zeros(6)), atol=1e-12)
+    numeric = np.stack([(moved(1e-6 * e) - moved(-1e-6 * e)) / 2e-6 for e in np.eye(6)])
+    np.testing.assert_allclose(jacobian, numeric, atol=1e-6)
+    block = jacobian[3:] @ jacobian[3:].T
+    print(f"exercise 2 correct; your translation block for N = {p.shape[1]} pairs:")
+    print(np.round(block, 6))
+    np.testing.assert_allclose(block, p.shape[1] * np.eye(3), atol=1e-9)
 
 
-def point_to_point_block(p: np.ndarray) -> np.ndarray:
-    """Translation block of the point-to-point normal equations: J = [-[p]x, I3] per pair."""
-    return sum(np.eye(3) for _ in range(p.shape[1]))
+def check_exercise_3(error_mm: float | None) -> None:
+    if open_exercise(3, error_mm):
+        return
+    strict = final_error(distance_threshold=0.02, angle_threshold_deg=5.0)
+    assert abs(error_mm - strict) < 0.01, "not the final error with 2 cm and 5 degrees"
+    print("exercise 3 correct")
 
 
-np.testing.assert_allclose(point_to_point_block(world), world.shape[1] * np.eye(3))
-assert solve(problem.system(0, estimate))[0] is not None
+def check_exercise_4(weight_3m: float | None, weighted_error_mm: float | None) -> None:
+    if open_exercise(4, weight_3m, weighted_error_mm):
+        return
+    # sigma(z)^2 = axial(z)^2 + voxel^2 / 12, axial(z) = 1.2 + 1.9 (z - 0.4)^2 mm, by hand.
+    variance = [(1e-3 * (1.2 + 1.9 * (z - 0.4) ** 2)) ** 2 + config.volume.voxel_size**2 / 12
+                for z in (1.0, 3.0)]  # fmt: skip
+    assert abs(weight_3m - variance[0] / variance[1]) < 1e-3, "weights are 1 / sigma(z)^2"
+    weighted = final_error(
+        robust_kernel="huber", model_noise=icp.voxel_noise(config.volume.voxel_size)
+    )
+    assert abs(weighted_error_mm - weighted) < 0.01, "not the final error with the weights"
+    print("exercise 4 correct")
+
+
+# The hand-made truth of exercise 4 is the package's weight (checked silently).
+_hand = [(1e-3 * (1.2 + 1.9 * (z - 0.4) ** 2)) ** 2 + config.volume.voxel_size**2 / 12
+         for z in (1.0, 3.0)]  # fmt: skip
+_package = icp.depth_noise_scale(np.array([3.0]), icp.voxel_noise(config.volume.voxel_size))
+assert abs(_package[0] ** 2 - _hand[0] / _hand[1]) < 1e-4 * _hand[0] / _hand[1]
+check_exercise_1(your_pairs_4x, your_main_rejection)
+check_exercise_2(point_to_point_rows)
+check_exercise_3(your_strict_error_mm)
+check_exercise_4(your_weight_3m, your_weighted_error_mm)
