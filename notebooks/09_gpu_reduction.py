@@ -24,7 +24,8 @@
 #
 # 1. the kernel: a grid-stride loop over pixels, a local accumulator, a tree in shared memory,
 # 2. a plain-Python emulation of the block's tree, checked equal to a plain sum,
-# 3. the simulated kernel's 6x6 system against the reference, and the block partials it leaves.
+# 3. the simulated kernel's 6x6 system against the reference, and the block partials it leaves,
+# 4. the grid-stride loop looping: fewer threads than pixels, each thread taking several.
 #
 # Prerequisites: notebook 5 (ICP). About 20 s warm; the simulator is thousands of times slower
 # than a GPU, which is why the frame is tiny. The simulator must be switched on before numba is
@@ -41,6 +42,7 @@ import inspect
 import matplotlib.pyplot as plt
 import numpy as np
 
+from kintinuous_fast.odometry import sums
 from kintinuous_fast.odometry.icp import cuda as gpu
 from kintinuous_fast.odometry.sums import cuda as reduction
 from kintinuous_ref import preprocess
@@ -62,17 +64,24 @@ camera, poses = scene.camera, scene.trajectory.poses
 #
 # 1. associates the vertex projectively with the model (`icp_match`, notebook 5's `associate`),
 # 2. forms the row of eq. 9 (`point_to_plane_row`),
-# 3. adds $w\,[J^\top J \text{ (21 numbers of the upper triangle)}, J^\top r \text{ (6)},
-#    r^2, 1]$ into a private accumulator of 30 float64 numbers (`add_row`).
+# 3. adds the 29 numbers $w\,[J^\top J \text{ (21 numbers of the upper triangle)},
+#    J^\top r \text{ (6)}, r^2, 1]$ into a private accumulator of float64 numbers (`add_row`).
 #
-# Then the block's threads reduce their accumulators by a **tree** in shared memory
-# (`block_reduce`, shared by every odometry kernel in `kintinuous_fast.odometry.sums.cuda`), and
-# thread 0 writes the block's partial sums to global memory. The host adds
-# the few hundred partials in float64 and solves the 6x6 system by Cholesky, as in the paper.
+# The accumulator has one more slot, 30 in all (`sums.NV`): the kernel counts the valid current
+# pixels in the last one, which the inlier fraction divides by. Then the block's threads reduce
+# their accumulators by a **tree** in shared memory (`block_reduce`, shared by every odometry
+# kernel in `kintinuous_fast.odometry.sums.cuda`), and thread 0 writes the block's partial sums
+# to global memory. The host adds the partials, one row of 30 per block, in float64 and solves
+# the 6x6 system by Cholesky, as in the paper. How many blocks: one per $B$ pixels, rounded up,
+# at most `MAX_BLOCKS` = 1024 (`reduction_blocks`); for this 80x60 frame, 38.
 
 # %%
-for function in (gpu._icp_kernel, reduction.block_reduce, gpu._point_to_plane_row):
+for function in (gpu.icp_kernel, reduction.block_reduce, gpu._point_to_plane_row):
     print(inspect.getsource(function.py_func))
+upper_triangle, right_side, cost_and_count = 6 * 7 // 2, 6, 2
+assert upper_triangle + right_side + cost_and_count == 29 == sums.SLOT_EXTRA  # add_row's share
+assert sums.NV == 30  # and the valid-pixel counter after them
+assert reduction.MAX_BLOCKS == 1024 and reduction.reduction_blocks(HEIGHT * WIDTH) == 38
 
 # %% [markdown]
 # ## The tree, in plain Python
@@ -137,72 +146,100 @@ arguments = (
 simulated = gpu.icp_system(*arguments)
 reference = icp.icp_system(*arguments)
 print(f"pairs: simulated kernel {simulated.count}, reference {reference.count}")
-print(
-    f"largest |A_sim - A_ref| / max |A_ref| = "
-    f"{np.abs(simulated.A - reference.A).max() / np.abs(reference.A).max():.1e}"
-)
+relative_difference = np.abs(simulated.A - reference.A).max() / np.abs(reference.A).max()
+print(f"largest |A_sim - A_ref| / max |A_ref| = {relative_difference:.1e}")
+assert relative_difference < 1e-12  # rounding: float64 sums in another order
 assert simulated.count == reference.count
 np.testing.assert_allclose(simulated.A, reference.A, rtol=0, atol=1e-10 * np.abs(reference.A).max())
 np.testing.assert_allclose(simulated.b, reference.b, rtol=0, atol=1e-10 * np.abs(reference.b).max())
 
 # %% [markdown]
-# Which block summed which pixels: with $G$ threads in the grid, pixel $i$ goes to thread
-# $i \bmod G$, i.e. to block $\lfloor (i \bmod G) / B \rfloor$. Below, that map, and each block's
-# share of the pairs (the last of its 30 numbers is its count of valid pixels; recomputing the
-# pairs per block on the host shows how evenly the work is spread).
+# ## The grid-stride loop, looping
+#
+# Above, `reduction_blocks` gave 38 blocks of 128 threads, 4,864 threads for 4,800 pixels: every
+# thread took at most one pixel and the loop never went round. On a real GPU it does: a 640x480
+# frame has 307,200 pixels and the cap of 1024 blocks gives 131,072 threads, so each thread takes
+# two or three. To see that here, the cap is lowered to 8 blocks for one run: 1,024 threads for
+# the 4,800 pixels, so thread $t$ takes pixels $t, t + 1024, t + 2048, \ldots$, four or five
+# each. The system must not change (the sums only come in another order), and the simulator,
+# with fewer Python threads, is faster too.
+#
+# Which block summed which pixel: pixel $i$ goes to thread $i \bmod G$, i.e. to block
+# $\lfloor (i \bmod G) / B \rfloor$, in round $\lfloor i / G \rfloor$ of its thread's loop.
+# Below, both maps, and each block's share of the valid pixels (the kernel's last slot, summed
+# over the blocks, against the host's count).
 
 # %%
-blocks = reduction.reduction_blocks(HEIGHT * WIDTH)
+default_cap, reduction.MAX_BLOCKS = reduction.MAX_BLOCKS, 8
+try:
+    blocks = reduction.reduction_blocks(HEIGHT * WIDTH)
+    looped, kernel_valid = gpu._icp_system_and_valid(
+        current.vertices,
+        current.normals,
+        model_vertices,
+        model_normals,
+        current_pose,
+        previous_pose,
+        camera,
+        0.10,
+        20.0,
+    )
+finally:
+    reduction.MAX_BLOCKS = default_cap
 grid = blocks * reduction.BLOCK
-pixel_block = ((np.arange(HEIGHT * WIDTH) % grid) // reduction.BLOCK).reshape(HEIGHT, WIDTH)
-points, point_normals = icp.valid_points(current.vertices, current.normals)
+pixel_index = np.arange(HEIGHT * WIDTH)
+pixel_block = ((pixel_index % grid) // reduction.BLOCK).reshape(HEIGHT, WIDTH)
+pixel_round = (pixel_index // grid).reshape(HEIGHT, WIDTH)
+pixels_per_thread = np.bincount(pixel_index % grid, minlength=grid)
 valid = (np.isfinite(current.vertices).all(-1) & np.isfinite(current.normals).all(-1)).ravel()
-world, matched, _ = icp.associate(
-    points,
-    point_normals,
-    current_pose,
-    *icp.map_columns(model_vertices, model_normals),
-    previous_pose,
-    camera,
-    0.10,
-    20.0,
-)
 per_block_valid = np.bincount(pixel_block.ravel()[valid], minlength=blocks)
-_, kernel_valid = gpu._icp_system_and_valid(
-    current.vertices,
-    current.normals,
-    model_vertices,
-    model_normals,
-    current_pose,
-    previous_pose,
-    camera,
-    0.10,
-    20.0,
-)
+assert blocks == 8 and grid == 1024 and grid < HEIGHT * WIDTH
+assert pixels_per_thread.min() == 4 and pixels_per_thread.max() == 5  # the loop goes round
+assert 640 * 480 / (1024 * reduction.BLOCK) > 2  # the same on a real 640x480 frame
+assert looped.count == reference.count
+np.testing.assert_allclose(looped.A, reference.A, rtol=0, atol=1e-10 * np.abs(reference.A).max())
+np.testing.assert_allclose(looped.b, reference.b, rtol=0, atol=1e-10 * np.abs(reference.b).max())
+assert kernel_valid == valid.sum()
 
-fig, axes = plt.subplots(1, 2, figsize=(12, 3.4))
-shown = axes[0].imshow(pixel_block, cmap="tab20", interpolation="nearest")
-axes[0].set_title(f"block of each pixel ({blocks} blocks x {reduction.BLOCK} threads)")
-axes[0].axis("off")
-axes[1].bar(range(blocks), per_block_valid)
-axes[1].set_xlabel("block")
-axes[1].set_ylabel("valid pixels summed")
-axes[1].set_title("work per block")
+fig, axes = plt.subplots(1, 3, figsize=(15, 3.4))
+block_colours = plt.get_cmap("tab10", blocks)
+shown = axes[0].imshow(
+    pixel_block, cmap=block_colours, vmin=-0.5, vmax=blocks - 0.5, interpolation="nearest"
+)
+fig.colorbar(shown, ax=axes[0], ticks=range(blocks), label="block")
+axes[0].set_title(f"block of each pixel ({blocks} x {reduction.BLOCK} threads)")
+round_colours = plt.get_cmap("viridis", pixel_round.max() + 1)
+shown = axes[1].imshow(
+    pixel_round, cmap=round_colours, vmin=-0.5, vmax=pixel_round.max() + 0.5,
+    interpolation="nearest",
+)  # fmt: skip
+fig.colorbar(shown, ax=axes[1], ticks=range(pixel_round.max() + 1), label="round")
+axes[1].set_title("round of the grid-stride loop")
+for ax in axes[:2]:
+    ax.axis("off")
+axes[2].bar(range(blocks), per_block_valid, color=[block_colours(b) for b in range(blocks)])
+axes[2].set_xlabel("block")
+axes[2].set_ylabel("valid pixels summed")
+axes[2].set_title("work per block")
+plt.tight_layout()
 plt.show()
 print(
-    f"{blocks} blocks of {reduction.BLOCK} threads for {HEIGHT * WIDTH} pixels; valid pixels "
-    f"{valid.sum()} (the kernels' summed counters: {kernel_valid}), pairs {world.shape[1]}"
+    f"{blocks} blocks of {reduction.BLOCK} threads for {HEIGHT * WIDTH} pixels: "
+    f"{pixels_per_thread.min()} to {pixels_per_thread.max()} pixels per thread; valid pixels "
+    f"{valid.sum()} (the kernel's summed counters: {kernel_valid}); the same system as the "
+    "reference"
 )
-assert world.shape[1] == reference.count and kernel_valid == valid.sum()
 
 # %% [markdown]
 # ## Summary
 #
-# - A reduction kernel gives each thread a private accumulator (grid-stride loop over pixels),
+# - A reduction kernel gives each thread a private accumulator (a grid-stride loop over pixels,
+#   which goes round once the pixels outnumber the threads),
 #   then reduces a block's accumulators by a tree in shared memory in $\log_2 B$ synchronised
 #   steps; the host adds the block partials and solves the 6x6 system.
-# - The sums are float64 (float32 sums over 300 000 pixels lose the small increments), and only
-#   their order differs from the NumPy reference: the systems agree to about 1e-15.
+# - The sums are float64 (float32 sums over a whole frame would lose small increments), and
+#   only their order differs from the NumPy reference: the systems agree to rounding (under
+#   1e-12 of the largest entry), whether each thread takes one pixel or several.
 # - numba's CUDA simulator runs the same kernel code on the CPU, thread by thread: slow, but it
 #   lets the kernel be read, stepped through and tested without a GPU.
 #
@@ -220,12 +257,23 @@ assert world.shape[1] == reference.count and kernel_valid == valid.sum()
 #    simulator, and compare with `(current.depth > 0).sum()`.
 
 
+# Your answers go into the next cell (`None` until you have them); the check cell compares them
+# with the tree emulation above and the block count's rule, and says what is still open.
+
 # %%
-def check_exercise_1(steps: int, block_count: int) -> None:
-    assert steps == int(np.log2(64)), "one step per halving of the block"
+your_steps = None  # exercise 1: tree steps of a 64-thread block
+your_blocks = None  # exercise 1: blocks for an 80x60 frame with 64 threads each
+
+
+# %%
+def check_exercise_1(steps: int | None, block_count: int | None) -> None:
+    if steps is None or block_count is None:
+        print("exercise 1: not answered yet (fill in your_steps and your_blocks above)")
+        return
+    assert steps == len(tree_sum(np.zeros(64))[1]), "count the halvings of the block"
     expected = min(-(-HEIGHT * WIDTH // 64), reduction.MAX_BLOCKS)
-    assert block_count == expected, f"ceil({HEIGHT * WIDTH} / 64) blocks"
+    assert block_count == expected, "one block per 64 pixels, rounded up, at most MAX_BLOCKS"
     print("exercise 1 correct")
 
 
-check_exercise_1(6, 75)  # the solution, so that the check cell runs (try it yourself first)
+check_exercise_1(your_steps, your_blocks)
