@@ -2,12 +2,17 @@
 (`ulimit -v`, cgroups), and signals that end `warmup --empty-cache` while its compile workers
 run. docs/reliability.md lists these cases."""
 
+import os
 import re
 import resource
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
+
+import pytest
 
 from kintinuous_ref import memory
 
@@ -121,3 +126,62 @@ def test_memory_gone_between_the_check_and_the_allocation_is_one_line(tmp_path):
         f"lower --resolution; the 0 frames done are saved in {out}"
     ]
     assert not (out / "crash.log").exists()
+
+
+def _processes_using(folder: Path) -> dict[int, bytes]:
+    """Pid: command line of every live process whose NUMBA_CACHE_DIR lies in `folder` (the
+    warm-up's child and its compile workers inherit it from the command)."""
+    marker = f"NUMBA_CACHE_DIR={folder}/".encode()
+    found = {}
+    for entry in Path("/proc").glob("[0-9]*"):
+        try:
+            if marker in (entry / "environ").read_bytes():
+                found[int(entry.name)] = (entry / "cmdline").read_bytes()
+        except OSError:  # ended, or not ours
+            continue
+    return found
+
+
+def _compile_workers(folder: Path) -> list[int]:
+    return [
+        pid
+        for pid, cmdline in _processes_using(folder).items()
+        if b"--multiprocessing-fork" in cmdline and b"resource_tracker" not in cmdline
+    ]
+
+
+@pytest.mark.parametrize(
+    ("number", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["SIGTERM", "SIGINT"]
+)
+def test_a_signal_ends_warmup_empty_cache_with_its_workers_and_its_cache(tmp_path, number, status):
+    temporary = tmp_path / "tmp"  # where the command makes its temporary cache
+    temporary.mkdir()
+    argv = [sys.executable, "-m", "kintinuous_ref.program.cli", "warmup", "--empty-cache"]
+    argv += ["--backend", "cpu", "--odometry", "icp"]
+    command = subprocess.Popen(
+        argv,
+        env={**os.environ, "TMPDIR": str(temporary)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len(_compile_workers(temporary)) < 2:
+            assert command.poll() is None, command.communicate()
+            assert time.monotonic() < deadline, "the two compile workers never started"
+            time.sleep(0.1)
+        assert len(list(temporary.glob("kintinuous-numba-cache-*"))) == 1
+        command.send_signal(number)
+        stdout, stderr = command.communicate(timeout=30)
+        assert command.returncode == status, stderr
+        name = signal.Signals(number).name
+        assert stderr.strip().splitlines() == [f"kintinuous: interrupted by {name}"]
+        assert stdout == ""
+        assert _processes_using(temporary) == {}  # the child and its workers ended with it
+        assert list(temporary.iterdir()) == []  # and its temporary cache went with them
+    finally:
+        command.kill()
+        command.wait()
+        for pid in _processes_using(temporary):
+            os.kill(pid, signal.SIGKILL)

@@ -20,10 +20,12 @@ then loads everything in about a second.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -32,6 +34,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 from kintinuous_ref.backend import Backend, ReferenceBackend, load_backend
@@ -173,14 +176,34 @@ def _compile_part(backend_name: str, config: Config, methods: list[str], part: s
 def compile_in_two_processes(backend_name: str, config: Config, methods: list[str]) -> dict:
     """Compile the model and the tracking halves in two child processes at once (spawned: a
     fresh interpreter each, nothing inherited from this one's numba state); seconds per
-    kernel compiled there."""
+    kernel compiled there. A signal or an error here ends both children before it goes on:
+    a compile left running would outlive the command by a minute."""
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=2, mp_context=context) as pool:
+    pool = ProcessPoolExecutor(max_workers=2, mp_context=context)
+    try:
         parts = [pool.submit(_compile_part, backend_name, config, methods, part) for part in PARTS]
         compiled: dict[str, float] = {}
         for future in parts:
             compiled.update(future.result())
+    except BaseException:
+        _end_workers(pool)
+        raise
+    pool.shutdown()
     return compiled
+
+
+def _end_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate a pool's workers and wait for them (the executor's own shutdown would wait
+    for their compiles to finish)."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for worker in workers:
+        worker.terminate()
+    for worker in workers:
+        worker.join(timeout=10)
+        if worker.is_alive():
+            worker.kill()
+            worker.join()
 
 
 @contextmanager
@@ -215,19 +238,80 @@ def warm_up_from_empty_cache(
     backend: str, odometry: str, serial: bool = False, timeout: float = 1800.0
 ) -> dict:
     """The warm-up in a child process whose numba cache is an empty temporary folder: what a
-    fresh installation pays, measured without touching this installation's cache."""
+    fresh installation pays, measured without touching this installation's cache. The child
+    and its compile workers run in a process group of their own, which ends with this call
+    however it ends (a signal included), before the folder is removed."""
     with tempfile.TemporaryDirectory(prefix="kintinuous-numba-cache-") as cache:
         environment = {**os.environ, "NUMBA_CACHE_DIR": cache}
         cli = [sys.executable, "-m", "kintinuous_ref.program.cli", "warmup", "--json"]
         command = [*cli, "--backend", backend, "--odometry", odometry]
         command += ["--serial"] if serial else []
-        done = subprocess.run(
-            command, capture_output=True, text=True, env=environment, timeout=timeout
+        child = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=environment,
+            start_new_session=True,  # its own process group: its workers end with it
         )
-    if done.returncode != 0:
-        lines = done.stderr.strip().splitlines() or ["no output"]
+        try:
+            stdout, stderr = child.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            raise KintinuousError(
+                f"the warm-up from an empty cache took over {timeout:.0f} s; it was stopped"
+            ) from None
+        finally:
+            end_process_group(child)
+    if child.returncode != 0:
+        lines = stderr.strip().splitlines() or ["no output"]
         raise KintinuousError(f"the warm-up from an empty cache failed: {lines[-1]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
+def end_process_group(child: subprocess.Popen, grace: float = 5.0) -> None:
+    """End `child` (started with start_new_session) and every process of its group: SIGTERM,
+    then SIGKILL to those left after `grace` seconds; return once none is left. Further
+    signals wait until then, so that a second Ctrl-C cannot leave the group half ended."""
+    ending = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, ending)
+    try:
+        for number in (signal.SIGTERM, signal.SIGKILL):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(child.pid, number)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                child.wait(timeout=grace)
+            if _group_ended(child.pid, grace):
+                break
+        child.wait()
+        for stream in (child.stdout, child.stderr):
+            if stream is not None:
+                stream.close()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
+
+def _group_ended(group: int, wait: float) -> bool:
+    """Whether process group `group` has no live process, polling for up to `wait` seconds.
+    A zombie (dead, not yet reaped by whoever inherited it) counts as ended."""
+    deadline = time.monotonic() + wait
+    while _live_members(group):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def _live_members(group: int) -> list[int]:
+    """Pids of the processes of group `group` that are not zombies (from /proc)."""
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+        except OSError:  # ended while we looked
+            continue
+        if len(fields) > 2 and int(fields[2]) == group and fields[0] not in ("Z", "X"):
+            members.append(int(stat.parent.name))
+    return members
 
 
 def format_report(report: dict[str, Any], kernels: int = 10) -> str:
