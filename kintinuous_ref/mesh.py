@@ -103,12 +103,28 @@ def render_preview(
     path: Path,
     view_pose: np.ndarray | None = None,
     size: tuple[int, int] = (960, 720),
-) -> None:
-    """An off-screen picture of the coloured mesh (VTK through EGL or OSMesa, no display needed).
+) -> str:
+    """An off-screen picture of the coloured mesh (VTK through EGL or OSMesa, no display needed);
+    '' when VTK drew it. Where VTK cannot draw (not installed, or no EGL, OSMesa or GL context)
+    the picture is matplotlib's plan view (`render_plan_view`) and the one line returned says so.
 
     With `view_pose` (camera-to-world, e.g. the first camera) the picture is taken from a little
     behind and above that camera, looking at the mesh's centre, so it resembles the first frame.
     """
+    try:
+        _render_with_vtk(mesh, path, view_pose, size)
+        return ""
+    except ImportError as err:
+        reason = f"{err.name or 'VTK'} is not installed"
+    except Exception as err:  # noqa: BLE001  (any VTK failure leaves the plan view)
+        reason = f"VTK cannot render here ({type(err).__name__}: {err})"
+    render_plan_view(mesh, path, view_pose, size)
+    return f"the preview is a plan view drawn by matplotlib: {reason}"
+
+
+def _render_with_vtk(
+    mesh: Mesh, path: Path, view_pose: np.ndarray | None, size: tuple[int, int]
+) -> None:
     import pyvista
     import vtk
 
@@ -123,6 +139,46 @@ def render_preview(
             plotter.view_isometric()
     plotter.screenshot(str(path))
     plotter.close()
+
+
+# The plan view draws at most this many vertices (a random subset beyond): enough to fill a
+# 960 x 720 picture, few enough to draw in a second.
+PLAN_VIEW_POINTS = 300_000
+
+
+def render_plan_view(
+    mesh: Mesh,
+    path: Path,
+    view_pose: np.ndarray | None = None,
+    size: tuple[int, int] = (960, 720),
+) -> None:
+    """The mesh's vertices seen from above, in their colours, drawn by matplotlib (no GL needed).
+    "Above" is against the y axis of `view_pose`'s camera (down in its image), with its x to the
+    right and its viewing direction up the picture; without a pose, the world's x and y. The
+    highest vertices are drawn last, so they cover what lies below them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot
+
+    points, colours = mesh.points.astype(np.float64), mesh.colours
+    if len(points) > PLAN_VIEW_POINTS:
+        chosen = np.random.default_rng(0).choice(len(points), PLAN_VIEW_POINTS, replace=False)
+        points, colours = points[chosen], colours[chosen]
+    if view_pose is not None:
+        local = (points - view_pose[:3, 3]) @ view_pose[:3, :3]  # the camera's frame
+        across, along, height = local[:, 0], local[:, 2], -local[:, 1]
+    else:
+        across, along, height = points[:, 0], points[:, 1], points[:, 2]
+    order = np.argsort(height)
+    dpi = 100
+    figure = pyplot.figure(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi)
+    axes = figure.add_axes((0, 0, 1, 1))
+    axes.scatter(across[order], along[order], c=colours[order] / 255.0, s=1, marker="s", lw=0)
+    axes.set_aspect("equal")
+    axes.set_axis_off()
+    figure.savefig(path, dpi=dpi, facecolor="white")
+    pyplot.close(figure)
 
 
 def look_as_camera(

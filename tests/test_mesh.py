@@ -94,3 +94,29 @@ def test_ply_round_trip(tmp_path):
     np.testing.assert_array_equal(back.points, surface.points)
     np.testing.assert_array_equal(back.faces.reshape(-1, 4)[:, 1:], surface.triangles)
     np.testing.assert_array_equal(back.point_data["RGB"], surface.colours)
+
+
+def test_preview_without_vtk_is_a_plan_view_of_the_vertices(tmp_path, monkeypatch):
+    """Where VTK cannot be imported the preview is matplotlib's plan view: the vertices seen from
+    above the camera in their own colours, the picture of the requested size."""
+    import cv2
+
+    monkeypatch.setitem(__import__("sys").modules, "pyvista", None)  # import pyvista fails
+    grid = np.stack(np.meshgrid(np.linspace(-0.5, 0.5, 60), np.linspace(1.0, 2.0, 60)), -1)
+    floor = np.column_stack([grid[..., 0].ravel(), np.full(3600, 0.4), grid[..., 1].ravel()])
+    colours = np.zeros((3600, 3), np.uint8)
+    colours[:, 0] = 200  # a red floor 0.4 m below the camera (its y points down)
+    colours[floor[:, 0] > 0, 2] = 200  # ... magenta on the camera's right
+    surface = mesh.Mesh(floor.astype(np.float32), np.zeros((0, 3), np.int64), colours)
+    path = tmp_path / "preview.png"
+    line = mesh.render_preview(surface, path, view_pose=np.eye(4), size=(320, 240))
+    assert line == "the preview is a plan view drawn by matplotlib: pyvista is not installed"
+    picture = cv2.imread(str(path))[..., ::-1]  # RGB
+    assert picture.shape == (240, 320, 3)
+    red = (picture[..., 0] > 150) & (picture[..., 1] < 80) & (picture[..., 2] < 80)
+    magenta = (picture[..., 0] > 150) & (picture[..., 1] < 80) & (picture[..., 2] > 150)
+    white = picture.min(axis=2) > 240
+    assert red.mean() > 0.02 and magenta.mean() > 0.02 and white.mean() > 0.3
+    # the camera's right is the picture's right
+    columns = np.arange(320)[None, :].repeat(240, 0)
+    assert columns[magenta].mean() > columns[red].mean() + 60
