@@ -59,6 +59,7 @@ from kintinuous_ref.datasets.tum import Frame, Trajectory
 from kintinuous_ref.errors import ConfigError, KintinuousError
 from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.moving_volume import MovingVolume, SliceStore
+from kintinuous_ref.plausibility import check_iterations
 from kintinuous_ref.raycast import ModelPrediction
 from kintinuous_ref.tsdf import TsdfVolume
 from kintinuous_ref.vocabulary import GROUNDTRUTH, ODOMETRY_CHOICES
@@ -73,9 +74,7 @@ class PipelineResult:
     fused: list[bool] = field(default_factory=list)  # False where tracking failed
     timings_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     # per stage and frame, what the host asked of the device (zeros without one)
-    traffic: dict[str, list[DeviceTraffic]] = field(
-        default_factory=lambda: {s: [] for s in STAGES}
-    )
+    traffic: dict[str, list[DeviceTraffic]] = field(default_factory=lambda: {s: [] for s in STAGES})
     tracking_failures: int = 0
     failure_reasons: list[str] = field(default_factory=list)  # "frame i: reason"
     volume: TsdfVolume | None = None
@@ -139,7 +138,8 @@ def check_settings(
 ) -> None:
     """Refuse, before any data is read, settings a run cannot succeed with (one-line
     ConfigError): a config value, a volume too big for the memory of the backend that will hold
-    it (`backend.tsdf.check_volume_config`), an unknown odometry, loop closure on a fixed volume.
+    it (`backend.tsdf.check_volume_config`), an unknown odometry, iterations that leave its
+    tracker no work (`plausibility.check_iterations`), loop closure on a fixed volume.
     The one place these are checked; `check_run` adds what needs the dataset."""
     config.validate()
     (backend or ReferenceBackend()).tsdf.check_volume_config(config.volume)
@@ -147,6 +147,7 @@ def check_settings(
         raise ConfigError(
             f"unknown odometry {odometry!r}; choose one of {', '.join(ODOMETRY_CHOICES)}"
         )
+    check_iterations(config, odometry)
     if loop_closure and not config.volume.moving:
         raise ConfigError(
             "loop closure needs the moving volume (volume.moving = true): drop --fixed-volume"

@@ -131,6 +131,22 @@ def _drop_partial(part: Path) -> None:
         pass
 
 
+MIRROR_SCHEMES = ("http", "https", "ftp")
+
+
+def check_mirror(mirror: str, source: str) -> None:
+    """Refuse a mirror that is not a base URL (`source`: the option or variable that gave it),
+    before a download tries it and fails with an error that names neither."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(mirror)
+    if parts.scheme not in MIRROR_SCHEMES or not parts.netloc:
+        raise DatasetError(
+            f"{source} {mirror!r} is not a base URL: expected {', '.join(MIRROR_SCHEMES)}://HOST"
+            f"/PATH laid out as {TUM_BASE_URL} (freiburg1/rgbd_dataset_freiburg1_desk.tgz, ...)"
+        )
+
+
 def download(
     target: str,
     root: Path,
@@ -178,9 +194,12 @@ def download(
                     downloader=resumable_fetch(part, progress),
                 )
             )
-        except ValueError as err:  # pooch: the checksum does not match
+        except ValueError as err:  # pooch: the checksum does not match, or a bad URL
             _drop_partial(part)
             got = re.search(r"but got ([0-9a-f]+)", str(err))
+            if checksum is None or got is None:
+                message = " ".join(str(err).split())
+                raise DatasetError(f"{url}: cannot download ({message})") from None
             raise DatasetError(
                 f"{url}: corrupt or truncated download: sha256 {got.group(1) if got else '?'}"
                 f", expected {checksum}; nothing was kept"

@@ -61,7 +61,7 @@ def write_trajectory(path: Path, trajectory: Trajectory) -> None:
     for timestamp, pose in zip(trajectory.timestamps, trajectory.poses, strict=True):
         values = " ".join(f"{v:.9f}" for v in se3.to_tum(pose))
         lines.append(f"{timestamp:.6f} {values}")
-    path.write_text("\n".join(lines) + "\n")
+    write_file(path, "\n".join(lines) + "\n")
 
 
 def _read_text(path: Path) -> str:
@@ -221,6 +221,13 @@ class FrameSequence(ABC):
             raise DatasetError(f"{self.path}: sequence has no ground truth")
         nearest = nearest_indices(self.timestamps, self.groundtruth.timestamps, max_difference)
         missing = np.flatnonzero(nearest < 0)
+        if len(missing) == len(self) and len(self):
+            frames, poses = self.timestamps, self.groundtruth.timestamps
+            raise DatasetError(
+                f"{self.groundtruth_path or self.path}: no pose within {max_difference} s of any "
+                f"of the {len(self)} frames (frames at {frames.min():.6f}..{frames.max():.6f} s, "
+                f"poses at {poses.min():.6f}..{poses.max():.6f} s)"
+            )
         if len(missing):
             first = missing[0]
             raise DatasetError(
@@ -252,16 +259,13 @@ class TumSequence(FrameSequence):
         entry = self._entries[index]
         colour = _read_colour(entry.colour)
         depth = _read_depth(entry.depth, self.camera.depth_scale)
-        if colour.shape[:2] != depth.shape:
-            raise DatasetError(
-                f"{entry.depth}: depth is {depth.shape[1]}x{depth.shape[0]} but colour image "
-                f"{entry.colour.name} is {colour.shape[1]}x{colour.shape[0]}"
-            )
-        if depth.shape != (self.camera.height, self.camera.width):
-            raise DatasetError(
-                f"{entry.depth}: image is {depth.shape[1]}x{depth.shape[0]} but the camera is "
-                f"{self.camera.width}x{self.camera.height}"
-            )
+        # each image against the camera, so that the message names the one whose size is wrong
+        for path, image in ((entry.depth, depth), (entry.colour, colour)):
+            if image.shape[:2] != (self.camera.height, self.camera.width):
+                raise DatasetError(
+                    f"{path}: image is {image.shape[1]}x{image.shape[0]} but the camera is "
+                    f"{self.camera.width}x{self.camera.height}"
+                )
         return Frame(index=index, timestamp=entry.timestamp, colour=colour, depth=depth)
 
 
@@ -389,13 +393,35 @@ def _read_depth(path: Path, depth_scale: float) -> np.ndarray:
     return (raw.astype(np.float32) / np.float32(depth_scale)).astype(np.float32)
 
 
+def write_file(path: Path, data: bytes | str) -> None:
+    """`data` into `path`; an OSError (a full disk, a folder that cannot be written) becomes a
+    one-line DatasetError naming the file, which a write's own error does not."""
+    try:
+        if isinstance(data, str):
+            Path(path).write_text(data)
+        else:
+            Path(path).write_bytes(data)
+    except OSError as err:
+        raise DatasetError(f"{path}: cannot write ({err.strerror or err})") from None
+
+
+def write_image(path: Path, image: np.ndarray, options: Iterable[int] = ()) -> None:
+    """An image encoded in memory (its suffix says the format) and written with `write_file`:
+    an encoder writing to a full disk says only "Write Error", without the file."""
+    ok, encoded = cv2.imencode(Path(path).suffix, image, list(options))
+    if not ok:
+        raise DatasetError(f"{path}: cannot encode image ({image.shape}, {image.dtype})")
+    write_file(path, encoded.tobytes())
+
+
 def write_sequence(
     folder: Path,
     frames: Iterable[Frame],
     camera: Intrinsics | None = None,
     groundtruth: Trajectory | None = None,
 ) -> int:
-    """Write frames as a TUM folder; returns the number of frames written.
+    """Write frames as a TUM folder; returns the number of frames written. A `camera` is
+    needed (reconstruct reads it from intrinsics.json): None is refused before any frame.
 
     Colour becomes lossless PNG, depth 16-bit PNG in TUM units (1/5000 m; beyond 13.1 m, the
     largest value 16 bits hold, it becomes 0, no measurement). `camera` is written as
@@ -406,6 +432,12 @@ def write_sequence(
     folder = Path(folder)
     if folder.exists():
         raise DatasetError(f"{folder}: already exists; choose a new output folder")
+    if camera is None:  # reconstruct would refuse a folder without intrinsics.json
+        raise DatasetError(
+            f"{folder}: the source says nothing of its camera, and a folder without "
+            "intrinsics.json cannot be reconstructed: pass --intrinsics fx,fy,cx,cy (and "
+            "--size WxH unless 640x480), or write a .klg log (OUT.klg), which holds no camera"
+        )
     folder.parent.mkdir(parents=True, exist_ok=True)
     partial = folder.with_name(f".{folder.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)
@@ -420,21 +452,18 @@ def write_sequence(
             units = np.round(frame.depth.astype(np.float64) * TUM_DEPTH_SCALE)
             units[~np.isfinite(units) | (units > np.iinfo(np.uint16).max) | (units < 0)] = 0
             colour_name, depth_name = f"rgb/{stamp}.png", f"depth/{stamp}.png"
-            if not cv2.imwrite(str(partial / colour_name), frame.colour[..., ::-1]):
-                raise DatasetError(f"{partial / colour_name}: cannot write image")
-            if not cv2.imwrite(str(partial / depth_name), units.astype(np.uint16)):
-                raise DatasetError(f"{partial / depth_name}: cannot write image")
+            write_image(partial / colour_name, frame.colour[..., ::-1])
+            write_image(partial / depth_name, units.astype(np.uint16))
             rgb_lines.append(f"{stamp} {colour_name}")
             depth_lines.append(f"{stamp} {depth_name}")
             pairs.append(f"{stamp} {colour_name} {stamp} {depth_name}")
-        (partial / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
-        (partial / "depth.txt").write_text("\n".join(depth_lines) + "\n")
-        if camera is not None:
-            values = {**camera.to_json(), "depth_scale": TUM_DEPTH_SCALE}
-            (partial / "intrinsics.json").write_text(strict_dumps(values, indent=2) + "\n")
+        write_file(partial / "rgb.txt", "\n".join(rgb_lines) + "\n")
+        write_file(partial / "depth.txt", "\n".join(depth_lines) + "\n")
+        values = {**camera.to_json(), "depth_scale": TUM_DEPTH_SCALE}
+        write_file(partial / "intrinsics.json", strict_dumps(values, indent=2) + "\n")
         if groundtruth is not None:
             write_trajectory(partial / "groundtruth.txt", groundtruth)
-        (partial / "associations.txt").write_text("\n".join(pairs) + "\n")
+        write_file(partial / "associations.txt", "\n".join(pairs) + "\n")
         partial.rename(folder)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)

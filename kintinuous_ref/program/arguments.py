@@ -160,6 +160,14 @@ def add_reconstruct(commands: argparse._SubParsersAction) -> argparse.ArgumentPa
         "instead of stopping there (the work before it is kept either way)",
     )
     parser.add_argument(
+        "--no-plausibility-checks",
+        action="store_true",
+        help="run input that is valid but implausible (a principal point outside the image, a "
+        "field of view outside 20..160 degrees, a depth scale that puts the first frame's "
+        "median depth outside 0.5..10 m, a volume with voxels over 0.1 m or that misses the "
+        "first frame's surface), which is otherwise refused (docs/reliability.md)",
+    )
+    parser.add_argument(
         "--odometry",
         default=DEFAULT_ODOMETRY,
         choices=ODOMETRY_CHOICES,

@@ -31,6 +31,8 @@ def run_synth(args: argparse.Namespace) -> None:
         return
     if not args.scenario or not args.out:
         raise KintinuousError("synth needs a SCENARIO and --out DIR (or --list)")
+    if args.frames < 1:
+        raise KintinuousError(f"--frames must be at least 1 (frames to render), got {args.frames}")
     with locked(args.out) as out:
         synthetic.write_scenario(
             args.scenario,
@@ -101,6 +103,8 @@ def run_reconstruct(args: argparse.Namespace) -> None:
             overwrite=args.overwrite,
             skip_bad_frames=args.skip_bad_frames,
             loop_closure=args.loop_closure,
+            plausibility_checks=not args.no_plausibility_checks,
+            camera_source=f"--intrinsics {args.intrinsics}" if args.intrinsics else None,
         )
     total = report["timing_ms"]["total"]["mean"]
     skipped = f", skipped {report['skipped_frames']} bad" if report["skipped_frames"] else ""
@@ -170,13 +174,15 @@ def run_convert(args: argparse.Namespace) -> None:
 
 
 def run_download(args: argparse.Namespace) -> None:
-    from kintinuous_ref.datasets.download import download
+    from kintinuous_ref.datasets.download import check_mirror, download
     from kintinuous_ref.program import reconstruct
 
     if args.sha256 and len(args.targets) > 1:
         raise KintinuousError("--sha256 checks one archive: give one NAME or URL with it")
     root = args.dest or reconstruct.cache_folder() / "tum"
     mirror = args.mirror or os.environ.get(MIRROR_VARIABLE) or None
+    if mirror:
+        check_mirror(mirror, "--mirror" if args.mirror else f"${MIRROR_VARIABLE}")
     for target in args.targets:
         folder, digest = download(target, root, args.sha256, mirror)
         if digest:

@@ -173,9 +173,11 @@ def atomic(path: str | Path) -> Iterator[Path]:
         if not temporary.exists():  # the writer wrote nothing (an empty block)
             temporary.touch()
         os.replace(temporary, path)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(OSError):
             temporary.unlink()
+        if isinstance(err, OSError) and err.filename is None:  # a write's error names no file
+            err.filename = str(path)
         raise
 
 

@@ -23,6 +23,7 @@ from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
 from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.pipeline import GROUNDTRUTH, PipelineResult, check_run, error_reason, run
+from kintinuous_ref.plausibility import check_inputs, run_warnings
 from kintinuous_ref.program.output_folder import (
     atomic,
     check_folder_path,
@@ -41,9 +42,23 @@ SCENARIO_FRAMES = 300  # length of a built-in scenario generated into the cache
 
 
 def cache_folder() -> Path:
-    """Where generated scenarios are kept: $KINTINUOUS_CACHE, else ~/.cache/kintinuous."""
+    """Where generated scenarios are kept: $KINTINUOUS_CACHE, else ~/.cache/kintinuous. A
+    variable naming a file (or a path through one) is refused here, naming the variable, since
+    the error of the first write below it would name neither."""
     root = os.environ.get("KINTINUOUS_CACHE")
-    return Path(root) if root else Path.home() / ".cache" / "kintinuous"
+    if not root:
+        return Path.home() / ".cache" / "kintinuous"
+    path = Path(root)
+    for folder in (path, *path.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise ConfigError(
+                    f"$KINTINUOUS_CACHE={root}: {folder} is a file, not a folder; point "
+                    "KINTINUOUS_CACHE at a folder (made when missing), or unset it for "
+                    "~/.cache/kintinuous"
+                )
+            break
+    return path
 
 
 def open_dataset(
@@ -296,6 +311,15 @@ def write_outputs(
         "saved": [*saved, "report.json"],
         "not_saved": not_saved,
     }
+    report["warnings"] = [
+        *report.get("warnings", []),
+        *run_warnings(
+            result.frames,
+            report["fused_frames"],
+            result.tracking_failures,
+            report["mesh"]["vertices"],
+        ),
+    ]
     if closer is not None:
         report["loop_closures"] = closer.report()
     if result.volume is not None:
@@ -337,6 +361,27 @@ def _loop_closure_trajectories(
             path, uncorrected.poses[:, :3, 3], result.trajectory.poses[:, :3, 3], truth, loops
         ),
     )
+
+
+def _warn(warnings: list[str]) -> None:
+    for warning in warnings:
+        print(f"kintinuous: warning: {warning}", file=sys.stderr, flush=True)
+
+
+def _camera_source(sequence: FrameSequence) -> str:
+    """Where a sequence's camera came from, for messages: its intrinsics.json, else the
+    sequence."""
+    listed = Path(sequence.path) / "intrinsics.json"
+    return str(listed) if listed.is_file() else str(sequence.path)
+
+
+def _first_depth(sequence: FrameSequence, start: int) -> np.ndarray | None:
+    """The depth (metres) of the run's first frame, for the checks before the work; None when
+    it cannot be read, which the run itself then reports (or skips)."""
+    try:
+        return sequence[start].depth
+    except DatasetError:
+        return None
 
 
 def _bad_frames_checked(
@@ -397,6 +442,8 @@ def reconstruct(
     overwrite: bool = False,
     skip_bad_frames: bool = False,
     loop_closure: bool = False,
+    plausibility_checks: bool = True,
+    camera_source: str | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline over frames start.. of a sequence and write the outputs into `out`.
 
@@ -408,20 +455,37 @@ def reconstruct(
     Interrupted, a failed one a one-line KintinuousError (InternalError for a bug, whose
     traceback goes to crash.log in `out`). An unreadable frame ends the run, or with
     `skip_bad_frames` is left out and counted in the report's "skipped_frames". `loop_closure`
-    closes loops and deforms the map (docs/loop_closure.md).
+    closes loops and deforms the map (docs/loop_closure.md). `plausibility_checks` refuses
+    valid but absurd input before the work (plausibility.check_inputs; `camera_source` names
+    where the camera came from, the dataset's by default); what they and the run find
+    suspicious is written to stderr and report.json's "warnings".
     """
     backend = load_backend(backend_name)  # ConfigError when it cannot run here
     check_start(start, sequence)
     if count is not None and count <= 0:
         raise ConfigError(f"--frames must be positive, got {count}")
+    warnings: list[str] = []
     groundtruth = None
     if sequence.groundtruth is not None:
         try:
             groundtruth = sequence.groundtruth_for_frames()
-        except DatasetError:
+        except DatasetError as err:
             if odometry == GROUNDTRUTH:
                 raise
+            # optional for a tracker: the run goes on from the identity, and says so
+            warnings.append(f"{err}: ground truth not used; the run starts at the identity")
     check_run(config, odometry, groundtruth, backend, loop_closure, dataset=str(sequence.path))
+    if plausibility_checks:
+        first_pose = np.eye(4) if groundtruth is None else groundtruth.poses[start]
+        warnings += check_inputs(
+            config,
+            sequence.camera,
+            camera_source or _camera_source(sequence),
+            _first_depth(sequence, start),
+            first_pose,
+            start,
+        )
+    _warn(warnings)
     with locked(out):  # a second run into `out` is refused until this one ends
         out = prepare_output(out, overwrite)
         total = (len(sequence) - start) if count is None else min(count, len(sequence) - start)
@@ -458,6 +522,7 @@ def reconstruct(
             "start": start,
             "skipped_frames": len(skipped),
             "skipped_reasons": skipped[:50],
+            "warnings": warnings,
         }
         saved: list[str] = []
         try:
@@ -484,6 +549,7 @@ def reconstruct(
                 f"{out}: cannot save the run ({error_reason(err)}); saved: "
                 f"{', '.join(saved) or 'nothing'}"
             ) from None
+        _warn(report["warnings"][len(warnings) :])  # the run's own
         kept = f"the {result.frames} frames done are saved in {out}"
         if report["not_saved"]:
             problems = "; ".join(f"{k}: {v}" for k, v in report["not_saved"].items())

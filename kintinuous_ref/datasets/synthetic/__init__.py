@@ -26,7 +26,7 @@ from kintinuous_ref.datasets.synthetic.scenarios import SCENARIOS as _LAYOUTS
 from kintinuous_ref.datasets.synthetic.scene import Scene, rotate
 from kintinuous_ref.datasets.synthetic.sensor import SensorModel, measure_colour, measure_depth
 from kintinuous_ref.datasets.synthetic.trajectories import FRAME_RATE, START_TIME, hand_held
-from kintinuous_ref.datasets.tum import Trajectory, write_trajectory
+from kintinuous_ref.datasets.tum import Trajectory, write_file, write_image, write_trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError
 from kintinuous_ref.strict_json import dumps as strict_dumps
 
@@ -216,8 +216,7 @@ def _write_frames(
             (out / "rgb" / names[index], colour[..., ::-1]),  # OpenCV writes BGR
             (out / "depth" / names[index], units.astype(np.uint16)),
         ):
-            if not cv2.imwrite(str(path), image, options):
-                raise DatasetError(f"{path}: cannot write image")
+            write_image(path, image, options)
     return len(indices)
 
 
@@ -248,6 +247,8 @@ def write_scenario(
     """
     if workers < 1:
         raise ConfigError(f"workers must be at least 1, got {workers}")
+    if frames < 1:  # before the render range, which it bounds
+        raise ConfigError(f"frames must be at least 1, got {frames}")
     build = (name, frames, width, height, seed, noise)
     rendered = frames if render is None else render
     if not 1 <= rendered <= frames:
@@ -270,7 +271,7 @@ def write_scenario(
     meta = json.loads(strict_dumps(meta))  # as it reads back from scenario.json
     same = _prepare_folder(out, meta)
     # first, so that an interrupted run's folder is recognised (and reused) as ours
-    (out / "scenario.json").write_text(strict_dumps(meta, indent=2) + "\n")
+    write_file(out / "scenario.json", strict_dumps(meta, indent=2) + "\n")
     timestamps = scenario.trajectory.timestamps
     names = [f"{t:.6f}.png" for t in timestamps]
 
@@ -300,15 +301,21 @@ def write_scenario(
         lines += [f"{t:.6f} {kind}/{n}" for t, n in zip(timestamps[:rendered], names, strict=False)]
         return "\n".join(lines) + "\n"
 
-    (out / "rgb.txt").write_text(listing("rgb").replace("# rgb images", "# color images"))
-    (out / "depth.txt").write_text(listing("depth"))
+    write_file(out / "rgb.txt", listing("rgb").replace("# rgb images", "# color images"))
+    write_file(out / "depth.txt", listing("depth"))
     pairs = [
         f"{t:.6f} rgb/{n} {t:.6f} depth/{n}"
         for t, n in zip(timestamps[:rendered], names, strict=False)
     ]
-    (out / "associations.txt").write_text("\n".join(pairs) + "\n")
+    write_file(out / "associations.txt", "\n".join(pairs) + "\n")
     write_trajectory(out / "groundtruth.txt", scenario.trajectory)
-    (out / "intrinsics.json").write_text(strict_dumps(scenario.camera.to_json(), indent=2) + "\n")
+    write_file(out / "intrinsics.json", strict_dumps(scenario.camera.to_json(), indent=2) + "\n")
     if not (same and (out / "scene.ply").is_file()):
-        scenario.surface_mesh(mesh_spacing).save(str(out / "scene.ply"), binary=True, texture="rgb")
+        mesh = scenario.surface_mesh(mesh_spacing)
+        try:
+            mesh.save(str(out / "scene.ply"), binary=True, texture="rgb")
+        except OSError as err:
+            raise DatasetError(
+                f"{out / 'scene.ply'}: cannot write ({err.strerror or err})"
+            ) from None
     return out
