@@ -206,9 +206,12 @@ def test_a_log_damaged_at_its_end_reads_its_intact_frames(frames, tmp_path, caps
 
     # convert writes them, and only them
     folder = tmp_path / "folder"
-    assert main(["convert", str(path), str(folder), "--size", "160x120"]) == 0
+    assert (
+        main(["convert", str(path), str(folder), "--size", "160x120", "--intrinsics", INTRINSICS])
+        == 0
+    )
     assert f"wrote {intact} frames to {folder}" in capsys.readouterr().out
-    written = tum.open_sequence(folder, INTRINSICS)
+    written = tum.open_sequence(folder)
     np.testing.assert_array_equal(written.timestamps, stamps)
     for frame, (_, raw, _) in zip(written, frames, strict=False):
         assert np.abs(frame.depth - raw / 5000.0).max() <= 0.0004 + 1e-6
