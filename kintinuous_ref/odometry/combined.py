@@ -13,10 +13,13 @@ the stacked system [J_icp; v J_rgbd] with v = sqrt(w): simply the weighted sum o
 systems. Three pyramid levels, 10 / 5 / 4 iterations from finest to coarsest.
 
 Units and the weight. The paper sets w = 0.1 "to reflect the difference in metrics" without
-saying in which units the two costs are added, so its 0.1 cannot be carried over by itself. The
-RGB-D rows of rgbd.py are robustly weighted by 1 / (sigma' + |r|) and so dimensionless; ICP's
-residuals are metres. "paper" makes E_icp dimensionless the same way, dividing it by its own
-mean squared residual sigma_icp^2 (recomputed every iteration, as sigma' is):
+saying in which units the two costs are added. The RGB-D rows of rgbd.py are robustly weighted
+by 1 / (sigma' + |r|) and so dimensionless; ICP's residuals are metres. The authors' code
+answers the question: its combination ("original-code", below) converges to E_icp + 0.1 E_rgbd
+with E_icp in square metres, the literal sum ("paper-metres" with rgbd_weight = 0.1). "paper",
+despite its name, is not the paper's sum but this package's normalisation: it makes E_icp
+dimensionless too, dividing it by its own mean squared residual sigma_icp^2 (recomputed every
+iteration, as sigma' is), which the paper never does:
 
     E = E_icp / sigma_icp^2 + w E_rgbd,   w = 1   (config.combined.rgbd_weight),
 
@@ -65,8 +68,14 @@ The other weightings:
 - "paper-metres": the literal sum, E_icp in square metres: one photometric pair then outweighs
   about a thousand geometric ones, i.e. frame-to-frame RGB-D.
 - "original-code": the authors' public code, A = A_rgbd + s^2 A_icp, b = b_rgbd + s b_icp with
-  s = 10 (config.combined.original_code_icp_scale). A and b are scaled inconsistently, so its
-  step is not the minimiser of any weighted sum of the two costs.
+  s = 10 (config.combined.original_code_icp_scale). A and b are scaled differently, so this is
+  not the normal equations of a weighted sum, but its step, -(1/s) (A_icp + A_rgbd / s^2)^-1
+  (b_icp + b_rgbd / s), is zero exactly where b_icp + b_rgbd / s = 0: the stationary point of
+  E_icp + (1/s) E_rgbd with ICP in metres, i.e. of eq. 11 with w = 0.1, "paper-metres" with
+  rgbd_weight = 0.1. Run to convergence the two reach the same poses; s only changes the step
+  (a tenth of the Gauss-Newton step where ICP's information dominates, the same step where
+  RGB-D's does), and so the path, the speed of convergence and what a fixed 10 / 5 / 4
+  iterations reach (notebooks/03_combined_cost.py measures both).
 - "elasticfusion": ElasticFusion's combination, which is the same formula with its own ICP
   weight of 10: the same system as "original-code".
 - "huber", "tukey": "degeneracy-aware" with the ICP rows robustly weighted by that M-estimator
