@@ -177,7 +177,10 @@ def _wrong_size(copy: Path, frame: int) -> None:
 
 @pytest.mark.parametrize(
     ("damage", "message"),
-    [(_corrupt, "cannot read colour image"), (_wrong_size, "depth is 80x60 but colour image")],
+    [
+        (_corrupt, "cannot read colour image"),
+        (_wrong_size, "image is 80x60 but the camera is 160x120"),
+    ],
     ids=["corrupt", "wrong-size"],
 )
 def test_a_bad_frame_late_stops_there_and_keeps_the_frames_before(

@@ -275,7 +275,7 @@ def test_colour_depth_size_mismatch(tmp_path):
     cv2.imwrite(str(folder / "rgb/0.000000.png"), np.zeros((HEIGHT, WIDTH + 2, 3), np.uint8))
     with pytest.raises(DatasetError) as excinfo:
         tum.open_sequence(folder)[0]
-    one_line_error(excinfo, "0.004000.png", "8x6", "10x6")
+    one_line_error(excinfo, "rgb/0.000000.png", "10x6", "8x6")  # the colour image is wrong
 
 
 def test_image_size_differs_from_camera(tmp_path):
