@@ -58,8 +58,8 @@ WIDTH, HEIGHT, FRAMES = 160, 120, 150
 # with an offset $\mathbf{o}$ that starts at zero. Shifting the window by $s$ voxels along an axis
 # moves no data: $\mathbf{c}$ and $\mathbf{o}$ grow by $s$ (modulo $N$), and the $s$ layers of
 # cells that held the leaving voxels, once extracted and cleared, now hold the voxels that
-# entered. On the GPU this is what lets Kintinuous shift in a few milliseconds (no copy of the
-# 512^3 volume). A toy volume of $N = 8$ along one axis, shifted by 3 and then by 3 again:
+# entered. On the GPU this is what makes a shift cheap: no voxel of the volume is copied. A
+# toy volume of $N = 8$ along one axis, shifted by 3 and then by 3 again:
 
 # %%
 N = 8
@@ -130,6 +130,16 @@ print(inspect.getsource(moving_volume.MovingVolume.shift_axis))
 # %%
 config = with_overrides(Config(), {"volume.resolution": 96, "volume.size": 2.0})
 scene = make_scenario("corridor", frames=FRAMES, width=WIDTH, height=HEIGHT, seed=0, noise=True)
+seconds = scene.trajectory.timestamps[-1] - scene.trajectory.timestamps[0]
+speed = np.ptp(scene.trajectory.positions[:, 0]) / seconds  # along the corridor
+print(
+    f"{seconds:.1f} s at {speed:.2f} m/s; voxel {100 * config.volume.voxel_size:.1f} cm, "
+    f"threshold {config.volume.shift_threshold} voxels = "
+    f"{100 * config.volume.shift_threshold * config.volume.voxel_size:.0f} cm"
+)
+assert round(seconds) == 5 and round(speed, 2) == 0.35  # five seconds, walking 0.35 m/s
+assert round(100 * config.volume.voxel_size, 1) == 2.1 and config.volume.shift_threshold == 14
+assert round(100 * config.volume.shift_threshold * config.volume.voxel_size) == 29
 frames = [Frame(i, float(scene.trajectory.timestamps[i]), *scene.render(i)) for i in range(FRAMES)]
 moving_run = pipeline.run(frames, scene.camera, config, groundtruth=scene.trajectory)
 moving = moving_run.moving
@@ -149,35 +159,49 @@ assert moving.shifts >= 3 and len(slices) >= moving.shifts
 
 # %% [markdown]
 # The slices on the wall, seen from inside the corridor (an elevation: along the corridor against
-# height), one colour each, with the volume's outline at each shift and the camera path. Each
-# slice is the part of the wall that was in the window and left it at a shift; the last one is
-# what was still in the window at the end. The first shifts carry little: the camera looks ahead,
-# so the wall it has seen leaves the window only after it has walked about a metre.
+# height), with the camera path. Each slice that left the window at a shift has its own colour
+# and number; the last slice, what was still in the window at the end, is drawn in light grey
+# beneath them, since it is by far the largest and would hide the others. The dashed squares
+# are the window at the start and after each shift. On the right, the triangles in each
+# slice. The first shifts carry little: the camera looks ahead along the corridor, so the wall
+# it has seen leaves the window only some shifts later; a shift along an axis where no surface
+# leaves yields no slice.
 
 # %%
-fig, ax = plt.subplots(figsize=(10, 4.5))
-colours = plt.get_cmap("tab10")
-for number, piece in enumerate(slices):
+fig, (ax, bars) = plt.subplots(1, 2, figsize=(14, 4.5), gridspec_kw={"width_ratios": [3, 1]})
+left = slices[:-1]  # the slices that left at shifts; slices[-1] is the window at the end
+colours = plt.get_cmap("tab20", max(len(left), 1))
+remainder = slices[-1].points
+ax.plot(remainder[:, 0], remainder[:, 2], ".", ms=1, color="0.85", label="last slice (the end)")
+for number, piece in enumerate(left):
     ax.plot(
-        piece.points[::3, 0],
-        piece.points[::3, 2],
-        ".",
-        ms=1,
-        color=colours(number),
+        piece.points[:, 0], piece.points[:, 2], ".", ms=2, color=colours(number),
         label=f"slice {number}",
-    )
+    )  # fmt: skip
+    if len(piece.points):
+        middle = np.median(piece.points[:, [0, 2]], axis=0)
+        ax.annotate(str(number), middle, fontsize=9, weight="bold", ha="center")
 size = config.volume.size
-for index in np.flatnonzero(np.r_[True, np.any(np.diff(origins, axis=0) != 0, axis=1)]):
+shift_frames = np.flatnonzero(np.any(np.diff(origins, axis=0) != 0, axis=1)) + 1
+for index in np.r_[0, shift_frames]:
     lo = origins[index] - config.volume.voxel_size / 2
-    ax.add_patch(Rectangle(lo[[0, 2]], size, size, fill=False, ls="--", ec="grey"))
+    ax.add_patch(Rectangle(lo[[0, 2]], size, size, fill=False, ls="--", ec="grey", lw=0.7))
 positions = scene.trajectory.positions
 ax.plot(positions[:, 0], positions[:, 2], "k-", lw=2, label="camera")
 ax.set_aspect("equal")
 ax.set_xlabel("x (m), along the corridor")
 ax.set_ylabel("z (m), height")
 ax.set_title("slices leaving the moving volume (dashed: the window at each shift)")
-ax.legend(markerscale=8, fontsize=8, loc="lower right", ncols=3)
+ax.legend(markerscale=6, fontsize=7, loc="upper left", bbox_to_anchor=(0, -0.15), ncols=6)
+triangles = [len(piece.triangles) for piece in slices]
+bars.bar(range(len(slices)), triangles, color=[*map(colours, range(len(left))), "0.7"])
+bars.set_yscale("log")
+bars.set_xlabel("slice (last: the end)")
+bars.set_ylabel("triangles")
 plt.show()
+print(f"{len(shift_frames)} frames shifted the window, at frames {shift_frames.tolist()}")
+assert triangles[-1] > max(triangles[:-1])  # the window at the end holds the most
+assert triangles[0] < max(triangles[:-1])  # the first slice carries little
 
 # %% [markdown]
 # ## One mesh from the slices, and what a fixed volume keeps
@@ -204,8 +228,10 @@ fixed = mesh.extract_mesh(fixed_run.volume)
 np.testing.assert_array_equal(fixed_run.volume.tsdf.shape, moving_run.volume.tsdf.shape)
 
 truth = scene.surface_mesh(spacing=0.05)
+mean_distance = {}
 for name, surface in (("moving", merged), ("fixed", fixed)):
     distance = mesh.closest_on(truth, surface.points.astype(np.float64))[0]
+    mean_distance[name] = distance.mean()
     extent = surface.points[:, 0].min(), surface.points[:, 0].max()
     print(
         f"{name:6s}: {len(surface.points):6d} vertices, x from {extent[0]:.2f} to "
@@ -213,6 +239,7 @@ for name, surface in (("moving", merged), ("fixed", fixed)):
     )
 assert merged.points[:, 0].max() > fixed.points[:, 0].max() + 0.3
 assert len(merged.points) > len(fixed.points)
+assert max(mean_distance.values()) < 1e-3  # both within a millimetre of the truth
 
 fig, axes = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
 for ax, (name, surface) in zip(
@@ -230,7 +257,7 @@ plt.show()
 # %% [markdown]
 # The fixed volume keeps only what lies inside the first window; the moving volume keeps the
 # whole walk, with the same memory. Both surfaces sit within a millimetre of the truth (on
-# average over their vertices): extraction by slices costs no accuracy.
+# average over their vertices, printed above): extraction by slices costs no accuracy.
 #
 # ## Summary
 #
@@ -252,24 +279,47 @@ plt.show()
 # 2. **Ring arithmetic.** In the toy volume ($N = 8$), after shifts of +3, +3 and -5, which
 #    array cell holds logical voxel 0, and which global voxel does it hold? Check:
 #    `check_exercise_2(cell, global_voxel)`.
-# 3. **Placement.** Set `volume.placement` to `"centred"` (the camera at the volume's centre,
-#    as in the paper) and compare the fraction of the volume in front of the camera: what does
-#    each placement waste?
+# 3. **Placement.** Set `volume.placement` to `"centred"` (the camera at the volume's centre)
+#    and compare the fraction of the volume in front of the camera: what does each placement
+#    waste? (The paper does not say where in the volume the camera sits; it says only that the
+#    volume shifts once the camera has moved past a threshold, Fig. 2. docs/moving_volume.md
+#    explains why the package follows a point ahead of the camera by default.)
+
+
+# Your answers go into the next cell (`None` until you have them); the check cell compares them
+# with a rerun of the corridor (exercise 1) and with the package's own ring indexing (exercise
+# 2), and says what is still open.
+
+# %%
+your_threshold, your_shift_count = None, None  # exercise 1: a threshold and its shift count
+your_cell, your_global_voxel = None, None  # exercise 2
 
 
 # %%
-def check_exercise_1(threshold: int, shifts: int) -> None:
+def check_exercise_1(threshold: int | None, shifts: int | None) -> None:
+    if threshold is None or shifts is None:
+        print("exercise 1: not answered yet (fill in your_threshold and your_shift_count above)")
+        return
     trial = with_overrides(config, {"volume.shift_threshold": threshold})
     run = pipeline.run(frames, scene.camera, trial, groundtruth=scene.trajectory)
-    assert shifts == run.moving.shifts, f"not {shifts}: try again"
-    print(f"exercise 1 correct: {run.moving.shifts} shifts at threshold {threshold}")
+    assert shifts == run.moving.shifts, f"not the number of shifts at threshold {threshold}"
+    print("exercise 1 correct")
 
 
-def check_exercise_2(cell: int, global_voxel: int) -> None:
-    corner = 3 + 3 - 5
-    assert cell == corner % N, "cell = (0 + offset) mod N, offset = the sum of the shifts mod N"
+def check_exercise_2(cell: int | None, global_voxel: int | None) -> None:
+    if cell is None or global_voxel is None:
+        print("exercise 2: not answered yet (fill in your_cell and your_global_voxel above)")
+        return
+    # The truth from the package's volume: its offset after the three shifts, and its cells.
+    ring = tsdf.make_volume(with_overrides(Config(), {"volume.resolution": N}).volume, np.eye(4))
+    corner = 0
+    for shift in (3, 3, -5):
+        corner += shift
+        ring.offset[0] = (ring.offset[0] + shift) % N
+    assert cell == ring.cells((0, 0, 0), (1, 1, 1))[0].item(), "cell = (l + o) mod N for l = 0"
     assert global_voxel == corner, "global = corner + logical"
     print("exercise 2 correct")
 
 
-check_exercise_2(1, 1)  # the solution, so that the check cell runs (try it yourself first)
+check_exercise_1(your_threshold, your_shift_count)
+check_exercise_2(your_cell, your_global_voxel)
