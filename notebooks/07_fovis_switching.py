@@ -232,7 +232,7 @@ axes[0].plot(
     "rx",
     label="ICP reported failure (no error to plot)",
 )
-axes[0].legend(fontsize=8, ncols=3)
+axes[0].legend(fontsize=8, ncols=5, loc="lower center", bbox_to_anchor=(0.5, 1.0))
 axes[1].plot(pairs[icp_ok], disagreement[icp_ok], "o", color="tab:purple", label="ICP ok")
 axes[1].axhline(1000 * config.fovis.switch_threshold, color="r", ls="--", label="mu = 3 cm")
 axes[1].plot(pairs[caught], disagreement[caught], "r*", ms=10, label="ICP ok, FOVIS chosen")
