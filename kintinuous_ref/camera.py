@@ -130,6 +130,11 @@ TUM_CAMERAS = {
 }
 
 
+# The Kinect's nominal calibration (OpenNI's defaults, 640x480): the camera a converted log
+# without one is given, so that the folder can be read (tum.write_sequence says so).
+DEFAULT_CAMERA = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
 def load_intrinsics_json(path: Path) -> Intrinsics:
     """Read `{"fx","fy","cx","cy","width","height","depth_scale"}` from a JSON file."""
     path = Path(path)

@@ -20,6 +20,7 @@ import numpy as np
 
 from kintinuous_ref import se3
 from kintinuous_ref.camera import (
+    DEFAULT_CAMERA,
     TUM_DEPTH_SCALE,
     Intrinsics,
     camera_from_folder_name,
@@ -420,8 +421,9 @@ def write_sequence(
     camera: Intrinsics | None = None,
     groundtruth: Trajectory | None = None,
 ) -> int:
-    """Write frames as a TUM folder; returns the number of frames written. A `camera` is
-    needed (reconstruct reads it from intrinsics.json): None is refused before any frame.
+    """Write frames as a TUM folder; returns the number of frames written. Without a `camera`
+    (a log holds none) intrinsics.json holds DEFAULT_CAMERA scaled to the images, with a note on
+    stdout, so that reconstruct reads the folder.
 
     Colour becomes lossless PNG, depth 16-bit PNG in TUM units (1/5000 m; beyond 13.1 m, the
     largest value 16 bits hold, it becomes 0, no measurement). `camera` is written as
@@ -432,12 +434,7 @@ def write_sequence(
     folder = Path(folder)
     if folder.exists():
         raise DatasetError(f"{folder}: already exists; choose a new output folder")
-    if camera is None:  # reconstruct would refuse a folder without intrinsics.json
-        raise DatasetError(
-            f"{folder}: the source says nothing of its camera, and a folder without "
-            "intrinsics.json cannot be reconstructed: pass --intrinsics fx,fy,cx,cy (and "
-            "--size WxH unless 640x480), or write a .klg log (OUT.klg), which holds no camera"
-        )
+
     folder.parent.mkdir(parents=True, exist_ok=True)
     partial = folder.with_name(f".{folder.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)
@@ -457,10 +454,18 @@ def write_sequence(
             rgb_lines.append(f"{stamp} {colour_name}")
             depth_lines.append(f"{stamp} {depth_name}")
             pairs.append(f"{stamp} {colour_name} {stamp} {depth_name}")
+        if camera is None and len(pairs) > 1:  # a folder without one would be refused
+            camera = DEFAULT_CAMERA.resized(frame.depth.shape[1], frame.depth.shape[0])
+            print(
+                f"note: the source holds no camera: {folder}/intrinsics.json holds "
+                "the Kinect's nominal one (fx 525 at 640x480, scaled to the images); replace "
+                "it with the camera's own, or convert with --intrinsics fx,fy,cx,cy"
+            )  # on stdout, beside convert's summary: no error
         write_file(partial / "rgb.txt", "\n".join(rgb_lines) + "\n")
         write_file(partial / "depth.txt", "\n".join(depth_lines) + "\n")
-        values = {**camera.to_json(), "depth_scale": TUM_DEPTH_SCALE}
-        write_file(partial / "intrinsics.json", strict_dumps(values, indent=2) + "\n")
+        if camera is not None:
+            values = {**camera.to_json(), "depth_scale": TUM_DEPTH_SCALE}
+            write_file(partial / "intrinsics.json", strict_dumps(values, indent=2) + "\n")
         if groundtruth is not None:
             write_trajectory(partial / "groundtruth.txt", groundtruth)
         write_file(partial / "associations.txt", "\n".join(pairs) + "\n")
