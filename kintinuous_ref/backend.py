@@ -82,6 +82,7 @@ class Backend(Protocol):
     raycast: ModuleType
     colour: ModuleType
     odometry: ModuleType
+    mesh: ModuleType  # marching_cubes(tsdf, weight, min_weight), kintinuous_ref.marching_cubes's
 
     def upload(self, array: np.ndarray) -> Any:
         """`array` where this backend computes (device memory, or the array itself)."""
@@ -126,6 +127,7 @@ class ReferenceBackend:
 
     def __init__(self) -> None:
         import kintinuous_ref.colour
+        import kintinuous_ref.marching_cubes
         import kintinuous_ref.odometry
         import kintinuous_ref.preprocess
         import kintinuous_ref.raycast
@@ -136,6 +138,7 @@ class ReferenceBackend:
         self.raycast = kintinuous_ref.raycast
         self.colour = kintinuous_ref.colour
         self.odometry = kintinuous_ref.odometry
+        self.mesh = kintinuous_ref.marching_cubes
 
     def upload(self, array: np.ndarray) -> np.ndarray:
         return array

@@ -83,6 +83,8 @@ class PipelineResult:
     moving: MovingVolume | None = None  # the cyclical buffer's state (None: a fixed volume)
     # the backend's volume -> a host TsdfVolume for meshing (Backend.host_volume)
     host_volume: Callable[[Any], TsdfVolume] | None = None
+    # the backend's marching cubes (Backend.mesh), for the final mesh as for the slices
+    contour: Callable[..., tuple[np.ndarray, np.ndarray]] | None = None
     volume_origins: list[np.ndarray] = field(default_factory=list)  # per frame, after its shift
     reason: str = ""  # why the run ended early (the signal, the error); "" when it completed
     error: Exception | None = None  # the exception that ended the loop (capture_errors)
@@ -237,9 +239,14 @@ def run(
                 )
                 if config.volume.moving:
                     result.moving = MovingVolume(
-                        backend.volume_view(result.volume), pose, config.volume, SliceStore(slices)
+                        backend.volume_view(result.volume),
+                        pose,
+                        config.volume,
+                        SliceStore(slices),
+                        contour=backend.mesh.marching_cubes,
                     )
                 result.host_volume = backend.host_volume
+                result.contour = backend.mesh.marching_cubes
             # 2b. Loop closure: on a closed loop the camera and the volume move with it.
             if loop_closer is not None:
                 correction = loop_closer.observe(

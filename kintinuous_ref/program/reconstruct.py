@@ -280,16 +280,20 @@ def write_outputs(
         try:
             if result.host_volume is not None:  # a fast backend's volume, as a host TsdfVolume
                 volume = result.host_volume(volume)
-            surface = meshing.extract_mesh(volume)
+            contour = result.contour or meshing.marching_cubes  # the backend's, else ref's
+            surface = meshing.extract_mesh(volume, contour=contour)
         except Exception as err:
             not_saved["mesh.ply"] = error_reason(err)
         if surface is not None:
             attempt("mesh.ply", lambda path: meshing.write_ply(path, surface))
             if "mesh.ply" in saved:
                 mesh_size = (len(surface.points), len(surface.triangles))
+    preview_note = None  # why the preview is a plan view, where VTK cannot render
     if preview and surface is not None:
         first = result.poses[0] if result.poses else None
-        attempt("preview.png", lambda path: meshing.render_preview(surface, path, view_pose=first))
+        preview_note = attempt(
+            "preview.png", lambda path: meshing.render_preview(surface, path, view_pose=first)
+        )
     report = {
         **report,
         "status": result.status,
@@ -313,6 +317,7 @@ def write_outputs(
     }
     report["warnings"] = [
         *report.get("warnings", []),
+        *([preview_note] if preview_note else []),
         *run_warnings(
             result.frames,
             report["fused_frames"],
@@ -529,7 +534,8 @@ def reconstruct(
             if bar is not None:
                 bar.close()  # the one-line messages below start on a line of their own
             print(f"saving {result.frames} frames...", file=sys.stderr, flush=True)
-            if result.error is not None and not isinstance(result.error, KintinuousError | OSError):
+            expected = KintinuousError | OSError | MemoryError  # one line, no crash.log
+            if result.error is not None and not isinstance(result.error, expected):
                 write_text_atomic(out / "crash.log", result.error_traceback)
                 saved.append("crash.log")
             report = write_outputs(result, out, info, saved=saved, groundtruth=groundtruth)
