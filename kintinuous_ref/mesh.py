@@ -141,6 +141,36 @@ def _render_with_vtk(
     plotter.close()
 
 
+# What rendering_status runs in a child process: one triangle drawn off-screen by VTK (a process
+# without a GL context may abort rather than raise, so the probe never runs in the caller's).
+_RENDER_PROBE = """
+import sys, tempfile
+import numpy as np
+from kintinuous_ref.mesh import Mesh, _render_with_vtk
+triangle = Mesh(np.eye(3, dtype=np.float32), np.array([[0, 1, 2]]), np.zeros((3, 3), np.uint8))
+with tempfile.TemporaryDirectory() as folder:
+    _render_with_vtk(triangle, folder + "/probe.png", None, (64, 48))
+"""
+
+
+def rendering_status(timeout: float = 120.0) -> str:
+    """'' when VTK renders off-screen here, else why not in one line (previews are then
+    matplotlib's plan views): a child process draws one triangle."""
+    import subprocess
+    import sys
+
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _RENDER_PROBE], capture_output=True, text=True, timeout=timeout
+        )
+    except subprocess.TimeoutExpired:
+        return f"drawing one triangle with VTK took over {timeout:g} s"
+    if done.returncode == 0:
+        return ""
+    lines = [line for line in done.stderr.strip().splitlines() if line.strip()]
+    return lines[-1] if lines else f"drawing a triangle with VTK ended with {done.returncode}"
+
+
 # The plan view draws at most this many vertices (a random subset beyond): enough to fill a
 # 960 x 720 picture, few enough to draw in a second.
 PLAN_VIEW_POINTS = 300_000

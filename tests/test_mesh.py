@@ -120,3 +120,16 @@ def test_preview_without_vtk_is_a_plan_view_of_the_vertices(tmp_path, monkeypatc
     # the camera's right is the picture's right
     columns = np.arange(320)[None, :].repeat(240, 0)
     assert columns[magenta].mean() > columns[red].mean() + 60
+
+
+def test_rendering_status_says_why_vtk_cannot_render(tmp_path, monkeypatch):
+    """`kintinuous info`'s preview line: '' where VTK draws off-screen (this machine), else the
+    child's last error line; here a sitecustomize makes `import pyvista` fail in the child."""
+    import os
+
+    assert mesh.rendering_status() == ""
+    (tmp_path / "sitecustomize.py").write_text("import sys\nsys.modules['pyvista'] = None\n")
+    paths = [str(tmp_path), *filter(None, [os.environ.get("PYTHONPATH")])]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(paths))
+    reason = mesh.rendering_status()
+    assert reason.startswith(("ImportError", "ModuleNotFoundError")) and "pyvista" in reason

@@ -315,3 +315,8 @@ def run_info(args: argparse.Namespace) -> None:
         note = load_backend(name).note
         print(f"{name:5s} yes   {notes.get(name, 'a plugin')}" + (f" ({note})" if note else ""))
     print(f"auto -> {load_backend('auto').name}")
+    from kintinuous_ref.mesh import rendering_status
+
+    reason = rendering_status()
+    rendering = "VTK off-screen" if not reason else f"matplotlib plan views only: {reason}"
+    print(f"previews: {rendering}")
