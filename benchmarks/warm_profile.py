@@ -3,13 +3,14 @@ has compiled every kernel, so compilation stays out of the profile (the first ru
 printed apart).
 
     python benchmarks/warm_profile.py DATASET --backend cuda --frames 30 [--set K=V] [--out F]
-    python benchmarks/warm_profile.py DATASET --loops [--frames 30]
+    python benchmarks/warm_profile.py DATASET --loops [--frames 30] [--json F]
 
 Prints the stages' medians, the functions with the most time of their own and the project's
 functions by cumulative time, per frame; `--out` keeps the profile for pstats or snakeviz.
 `--loops` (cpu backend) runs without the profiler and times every parallel loop instead: its
-wall time per frame (the helper threads' hand-over included) and, per stage, the time outside
-the loops, which is what the host's Python costs.
+wall time per frame (the helper threads' hand-over included; the median over the frames the
+stages' medians cover) and, per stage, the time outside the loops, which is what the host's Python costs; `--json` writes the same numbers, with the
+thread count numba used, for benchmarks/thread_sweep.py.
 """
 
 from __future__ import annotations
@@ -17,11 +18,16 @@ from __future__ import annotations
 import argparse
 import cProfile
 import json
+import os
 import pstats
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from kintinuous_ref.config import Config, with_overrides
 from kintinuous_ref.program.benchmark import benchmark
@@ -37,7 +43,10 @@ def main() -> None:
     parser.add_argument("--top", type=int, default=25, help="rows of each listing")
     parser.add_argument("--out", type=Path, help="write the profile here")
     parser.add_argument("--loops", action="store_true", help="time each cpu loop, no profiler")
+    parser.add_argument("--json", type=Path, help="with --loops: write the loop report here")
     args = parser.parse_args()
+    if args.json and not args.loops:
+        parser.error("--json writes the --loops report; add --loops")
     overrides = {key: json.loads(value) for key, _, value in (s.partition("=") for s in args.set)}
     config = with_overrides(Config(), overrides)
     run = dict(backend=args.backend, odometry=args.odometry, config=config)
@@ -45,7 +54,10 @@ def main() -> None:
     benchmark(args.dataset, frames=2, **run)
     print(f"first run (compiling or loading the kernels): {time.perf_counter() - started:.1f} s")
     if args.loops:
-        print_loop_times(args.dataset, args.frames, run)
+        report = time_loops(args.dataset, args.frames, run)
+        print_loop_report(report)
+        if args.json:
+            args.json.write_text(json.dumps(report, indent=1) + "\n")
         return
     profiler = cProfile.Profile()
     result = profiler.runcall(benchmark, args.dataset, frames=args.frames, **run)
@@ -72,49 +84,124 @@ def main() -> None:
             )
 
 
-def print_loop_times(dataset: str, frames: int, run: dict) -> None:
-    """Run the benchmark with every kintinuous_fast module's run_parallel timed (the cpu loops
-    are called through it) and print ms per frame per loop and per stage."""
-    import kintinuous_fast.targets.cpu as threads
+class LoopClock:
+    """Seconds and calls of each loop, per frame: per-frame numbers give medians over the same
+    frames as the stages' medians, which a busy machine's outliers leave alone."""
 
-    untimed = threads.run_parallel
-    seconds: dict[str, float] = defaultdict(float)
-    calls: dict[str, int] = defaultdict(int)
+    def __init__(self) -> None:
+        self.runs: list[list[dict[str, list[float]]]] = []
+
+    def frames(self, frames: Iterable[Any]) -> Iterator[Any]:
+        """`frames`, opening a new record for each: the loops called until the pipeline asks
+        for the next frame are that frame's."""
+        self.runs.append([])
+        for frame in frames:
+            self.runs[-1].append(defaultdict(list))
+            yield frame
+
+    def add(self, name: str, seconds: float) -> None:
+        """Count a call of loop `name` to the frame under way (none before the first frame)."""
+        if self.runs and self.runs[-1]:
+            self.runs[-1][-1][name].append(seconds)
+
+
+def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
+    """Run the benchmark with every kintinuous_fast module's run_parallel timed (the cpu loops
+    are called through it) and return loop_report's summary: timing the calls from outside the
+    loops includes the helper threads' hand-over, which is what a thread count changes."""
+    import kintinuous_fast.targets.cpu as threads
+    from kintinuous_ref import pipeline
+
+    untimed, unframed = threads.run_parallel, pipeline.run
+    clock = LoopClock()
 
     def timed(loop, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
         started = time.perf_counter()
         untimed(loop, *args, **options)
-        name = f"{loop.__module__.split('.')[1]}.{loop.__name__}"
-        seconds[name] += time.perf_counter() - started
-        calls[name] += 1
+        clock.add(f"{loop.__module__.split('.')[1]}.{loop.__name__}", time.perf_counter() - started)
+
+    def framed(frames, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
+        return unframed(clock.frames(frames), *args, **options)
 
     modules = [m for n, m in sys.modules.items() if n.startswith("kintinuous_fast.")]
     patched = [m for m in modules if getattr(m, "run_parallel", None) is untimed]
     for module in patched:
         module.run_parallel = timed
+    pipeline.run = framed
     try:
         result = benchmark(dataset, frames=frames, **run)
     finally:
+        pipeline.run = unframed
         for module in patched:
             module.run_parallel = untimed
-    count = frames + 2  # the benchmark's 2 warm-up frames, then the timed ones
     medians = {stage: t["median"] for stage, t in result["timing_ms"].items()}
-    print(f"stage medians (ms), frames 2..{frames}: {medians}")
-    print("\nms per frame (mean over every frame, the 2 warm-up frames included), calls per frame:")
-    per_stage: dict[str, float] = defaultdict(float)
-    for name in sorted(seconds, key=seconds.get, reverse=True):
-        per_stage[name.split(".")[0]] += seconds[name]
-        print(f"{1000 * seconds[name] / count:8.2f} {calls[name] / count:6.1f}  {name}")
-    print("\nper stage package: loops, and the stage's median less its loops")
-    stage_of = {"tsdf": "integrate", "colour": "integrate"}  # the others share their names
-    outside = dict(medians)
-    for package, total in per_stage.items():
-        stage = stage_of.get(package, package)
-        outside[stage] = outside.get(stage, 0.0) - 1000 * total / count
-        print(f"{package:12s} loops {1000 * total / count:7.2f}")
-    print({stage: round(ms, 2) for stage, ms in outside.items() if stage != "total"})
-    loops = 1000 * sum(per_stage.values()) / count
-    print(f"all loops {loops:.2f} ms of a median frame of {medians['total']:.2f} ms")
+    # The benchmark's last run is the timed one; its first frame (no model) is left out, as
+    # from the stages' statistics.
+    return loop_report(medians, clock.runs[-1][1:])
+
+
+def loop_report(medians: dict[str, float], frames: list[dict[str, list[float]]]) -> dict[str, Any]:
+    """Per loop, the median ms per frame and the mean calls per frame over `frames` (each a
+    record of seconds per call per loop), each stage's median split into its loops and the time
+    outside them (the host's Python), and the thread count numba ran with, since
+    NUMBA_NUM_THREADS above the machine's cores is not honoured as asked."""
+    import numba
+
+    names = {name for frame in frames for name in frame}
+    ms = {name: [1000 * sum(frame.get(name, ())) for frame in frames] for name in names}
+    loops = {
+        name: {
+            "ms_per_frame": float(np.median(ms[name])),
+            "calls_per_frame": float(np.mean([len(frame.get(name, ())) for frame in frames])),
+        }
+        for name in sorted(names, key=lambda name: np.median(ms[name]), reverse=True)
+    }
+    stages = {
+        stage: {"median_ms": median, "loops_ms": 0.0, "outside_ms": median}
+        for stage, median in medians.items()
+        if stage != "total"
+    }
+    for name, loop in loops.items():
+        stage = stages.setdefault(
+            stage_of(name), {"median_ms": 0.0, "loops_ms": 0.0, "outside_ms": 0.0}
+        )
+        stage["loops_ms"] += loop["ms_per_frame"]
+        stage["outside_ms"] -= loop["ms_per_frame"]
+    return {
+        "threads": numba.get_num_threads(),
+        "timed_frames": len(frames),
+        "load_average": list(os.getloadavg()),
+        "stage_medians_ms": medians,
+        "loops": loops,
+        "stages": stages,
+        "loops_ms": sum(loop["ms_per_frame"] for loop in loops.values()),
+    }
+
+
+# The loops' packages named after their stage where the two differ.
+STAGE_OF_PACKAGE = {"tsdf": "integrate", "colour": "integrate"}
+
+
+def stage_of(loop: str) -> str:
+    """The pipeline stage a loop named package.function runs in."""
+    package = loop.split(".")[0]
+    return STAGE_OF_PACKAGE.get(package, package)
+
+
+def print_loop_report(report: dict[str, Any]) -> None:
+    """The loop report as text: stage medians, ms and calls per frame per loop, and per stage
+    the loops' ms against the rest."""
+    medians = report["stage_medians_ms"]
+    print(f"numba threads: {report['threads']}")
+    print(f"stage medians (ms) over {report['timed_frames']} frames: {medians}")
+    print("\nms per frame (median over the same frames), calls per frame (mean):")
+    for name, loop in report["loops"].items():
+        print(f"{loop['ms_per_frame']:8.2f} {loop['calls_per_frame']:6.1f}  {name}")
+    print("\nper stage: the loops, and the stage's median less its loops")
+    for stage, split in report["stages"].items():
+        print(f"{stage:12s} loops {split['loops_ms']:7.2f}  outside {split['outside_ms']:7.2f}")
+    total = medians["total"]
+    print(f"all loops {report['loops_ms']:.2f} ms of a median frame of {total:.2f} ms")
 
 
 if __name__ == "__main__":
