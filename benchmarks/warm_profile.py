@@ -9,8 +9,9 @@ Prints the stages' medians, the functions with the most time of their own and th
 functions by cumulative time, per frame; `--out` keeps the profile for pstats or snakeviz.
 `--loops` (cpu backend) runs without the profiler and times every parallel loop instead: its
 wall time per frame (the helper threads' hand-over included; the median over the frames the
-stages' medians cover) and, per stage, the time outside the loops, which is what the host's Python costs; `--json` writes the same numbers, with the
-thread count numba used, for benchmarks/thread_sweep.py.
+stages' medians cover) and, per stage, the time outside the loops, which is what the host's
+Python costs; `--json` writes the same numbers, with the thread count numba used, for
+benchmarks/thread_sweep.py.
 """
 
 from __future__ import annotations
