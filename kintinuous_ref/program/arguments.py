@@ -354,6 +354,28 @@ def add_warmup(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return parser
 
 
+def add_course(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    parser = commands.add_parser(
+        "course",
+        help="the lessons of notebooks/ as executed notebooks (.ipynb) and HTML pages with "
+        "their figures",
+    )
+    parser.add_argument("out", type=Path, metavar="DIR", help="folder to write the lessons into")
+    parser.add_argument(
+        "--lessons",
+        type=lambda text: [key.strip() for key in text.split(",") if key.strip()],
+        help="comma-separated lesson numbers or names, e.g. 01,03 (default: all)",
+    )
+    parser.add_argument("--no-html", action="store_true", help="write the .ipynb files only")
+    parser.add_argument(
+        "--notebooks",
+        type=Path,
+        metavar="FOLDER",
+        help="the lessons' folder (default: notebooks/ of the source checkout)",
+    )
+    return parser
+
+
 def add_info(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
     parser = commands.add_parser("info", help="which compute backends work on this machine")
     return parser

@@ -74,6 +74,7 @@ COMMANDS = (
     (arguments.add_warmup, commands.run_warmup),
     (arguments.add_convert, commands.run_convert),
     (arguments.add_download, commands.run_download),
+    (arguments.add_course, commands.run_course),
 )
 
 

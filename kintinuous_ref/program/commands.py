@@ -303,6 +303,12 @@ def run_warmup(args: argparse.Namespace) -> None:
     print(strict_dumps(report) if args.json else warmup.format_report(report, args.kernels))
 
 
+def run_course(args: argparse.Namespace) -> int:
+    from kintinuous_ref.program import course
+
+    return course.run(args.out, args.lessons, args.notebooks, html=not args.no_html)
+
+
 def run_info(args: argparse.Namespace) -> None:
     from kintinuous_ref.backend import backend_status, load_backend
 

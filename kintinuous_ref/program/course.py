@@ -1,0 +1,266 @@
+"""`kintinuous course DIR`: the lessons of notebooks/ as notebooks with their outputs.
+
+The lessons are stored as jupytext percent-format `.py` files, so that their diffs stay
+readable; Jupyter without the jupytext extension shows them as scripts, and nobody sees a figure
+before running them. This converts each lesson to an `.ipynb` in DIR, executes it there in a
+fresh kernel of this interpreter (the environment tests/test_notebooks.py checks them in), and
+renders it to an HTML page with its figures embedded, which any browser opens. The tests build
+the course through build_course, so that CI runs each lesson once, as a student does.
+
+The lessons ship with the source, not in the wheel: they are found beside the package (an
+editable install), in the current folder or one above it (a source checkout), or in the folder
+given with --notebooks.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from kintinuous_ref.datasets import DATA_VARIABLE
+from kintinuous_ref.errors import KintinuousError
+
+if TYPE_CHECKING:
+    from nbformat import NotebookNode
+
+LESSON_PATTERN = "[0-9][0-9]_*.py"
+# Per cell: the slowest cell of a lesson takes seconds once the numba kernels are compiled, and
+# under a minute while the first lesson compiles them; a hang still ends.
+CELL_TIMEOUT_S = 600
+NEEDED_MODULES = ("jupytext", "nbclient", "nbconvert", "ipykernel")
+
+
+@dataclass
+class LessonResult:
+    """One lesson built: where its notebook and page are, how long it ran, why it failed."""
+
+    name: str
+    seconds: float
+    notebook: Path
+    html: Path | None
+    error: str | None = None  # one line naming the failing cell; None when every cell ran
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+def find_notebooks(folder: Path | None = None) -> Path:
+    """The folder holding the lessons: `folder` if given, else notebooks/ beside the package (an
+    editable install) or in the current folder or one above it (a source checkout)."""
+    if folder is not None:
+        if not _holds_lessons(folder):
+            raise KintinuousError(f"{folder}: no lessons (NN_name.py files) in this folder")
+        return folder
+    package_checkout = Path(__file__).resolve().parents[2]
+    here = Path.cwd().resolve()
+    for root in (package_checkout, here, *here.parents):
+        if _holds_lessons(root / "notebooks"):
+            return root / "notebooks"
+    raise KintinuousError(
+        "the lessons (notebooks/*.py) are not in the installed package, they come with the "
+        "source: run `kintinuous course DIR` inside a source checkout of kintinuous, or name "
+        "its notebooks folder with --notebooks FOLDER"
+    )
+
+
+def _holds_lessons(folder: Path) -> bool:
+    return folder.is_dir() and any(folder.glob(LESSON_PATTERN))
+
+
+def select_lessons(notebooks: Path, wanted: Sequence[str] | None = None) -> list[Path]:
+    """The lesson files in course order; `wanted` picks some by number ("03") or name."""
+    paths = sorted(notebooks.glob(LESSON_PATTERN))
+    if not wanted:
+        return paths
+    chosen = []
+    for key in wanted:
+        matches = [path for path in paths if key in (path.stem, path.stem[:2])]
+        if not matches:
+            names = ", ".join(path.stem for path in paths)
+            raise KintinuousError(f"no lesson {key!r} in {notebooks} (the lessons: {names})")
+        chosen += [path for path in matches if path not in chosen]
+    return sorted(chosen)
+
+
+def lesson_environment(notebooks: Path) -> dict[str, str]:
+    """The kernel's environment: the one the tests check the lessons in (one numba thread for
+    their small arrays, off-screen VTK, Agg standing for whatever backend a user has set, which
+    the lessons' `%matplotlib inline` replaces), with the real data beside the source checkout
+    the lessons were taken from."""
+    env = dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")
+    env.setdefault("NUMBA_NUM_THREADS", "1")
+    shared_data = notebooks.resolve().parent.parent / "shared" / "data"
+    if shared_data.is_dir():
+        env.setdefault(DATA_VARIABLE, str(shared_data))
+    return env
+
+
+def check_tools() -> None:
+    """One line naming what to install when the notebook tools are missing."""
+    import importlib.util
+
+    missing = [name for name in NEEDED_MODULES if importlib.util.find_spec(name) is None]
+    if missing:
+        raise KintinuousError(
+            f"kintinuous course needs {', '.join(missing)}: pip install {' '.join(missing)} "
+            "(or reinstall kintinuous, which depends on them)"
+        )
+
+
+def build_course(
+    out: Path,
+    lessons: Sequence[str] | None = None,
+    *,
+    notebooks: Path | None = None,
+    html: bool = True,
+    timeout_s: float = CELL_TIMEOUT_S,
+    progress: Callable[[str], None] | None = None,
+) -> list[LessonResult]:
+    """Convert, execute and render the chosen lessons into `out`, one after the other; a lesson
+    that fails is reported in its result and the others still run."""
+    check_tools()
+    folder = find_notebooks(notebooks)
+    paths = select_lessons(folder, lessons)
+    out.mkdir(parents=True, exist_ok=True)
+    env = lesson_environment(folder)
+    results = []
+    for number, path in enumerate(paths, start=1):
+        result = build_lesson(path, out, env, html=html, timeout_s=timeout_s)
+        results.append(result)
+        if progress is not None:
+            progress(f"[{number}/{len(paths)}] {lesson_line(result)}")
+            if not result.ok:
+                progress(f"kintinuous: lesson {result.name} failed in {result.error}")
+    return results
+
+
+def build_lesson(
+    path: Path, out: Path, env: dict[str, str], *, html: bool = True, timeout_s: float
+) -> LessonResult:
+    """One lesson: its notebook executed in `out` (kept with the outputs up to a failing cell,
+    whose traceback is the student's best lead) and its HTML page."""
+    import jupytext
+    import nbformat
+
+    notebook = jupytext.read(path)
+    # a standalone notebook: the jupytext extension would otherwise pair it with a new .py
+    notebook.metadata.pop("jupytext", None)
+    started = time.perf_counter()
+    error = execute(notebook, out, env, timeout_s)
+    seconds = time.perf_counter() - started
+    target = out / f"{path.stem}.ipynb"
+    nbformat.write(notebook, target)
+    page = write_html(notebook, out / f"{path.stem}.html") if html else None
+    return LessonResult(path.stem, seconds, target, page, error)
+
+
+def execute(
+    notebook: NotebookNode, folder: Path, env: dict[str, str], timeout_s: float
+) -> str | None:
+    """Run every cell in a fresh kernel of this interpreter with `folder` as the working
+    folder; None, or one line naming the failing cell and the error."""
+    from nbclient import NotebookClient
+
+    cells: list[int] = []
+    client = NotebookClient(
+        notebook,
+        timeout=timeout_s,
+        km=this_interpreter_kernel(),
+        resources={"metadata": {"path": str(folder)}},
+        on_cell_start=lambda cell, cell_index: cells.append(cell_index),
+    )
+    try:
+        client.execute(env=env)
+    except Exception as err:  # the lesson's own error (or a dead kernel): reported, not raised
+        return failure_line(notebook, cells[-1] if cells else None, err)
+    return None
+
+
+def this_interpreter_kernel() -> Any:
+    """A kernel manager whose `python3` kernel is this interpreter: a kernel spec installed for
+    the user (another Python, perhaps without kintinuous) would otherwise win."""
+    import zmq
+    from ipykernel.kernelspec import get_kernel_dict
+    from jupyter_client.kernelspec import KernelSpec, KernelSpecManager
+    from jupyter_client.manager import AsyncKernelManager
+
+    class ThisInterpreter(KernelSpecManager):
+        def get_kernel_spec(self, kernel_name: str) -> KernelSpec:
+            spec = get_kernel_dict()
+            fields = ("argv", "display_name", "language", "metadata")
+            return KernelSpec(resource_dir="", **{key: spec[key] for key in fields if key in spec})
+
+    manager = AsyncKernelManager(kernel_name="python3", kernel_spec_manager=ThisInterpreter())
+    if manager.has_trait("transport_encryption") and zmq.has("curve"):
+        # the kernel's TCP traffic encrypted (and no warning that it is not)
+        manager.transport_encryption = "auto"
+    return manager
+
+
+def failure_line(notebook: NotebookNode, index: int | None, err: Exception) -> str:
+    """The failing cell's number and first line, and the error's type and first line."""
+    kind = getattr(err, "ename", None) or type(err).__name__
+    message = getattr(err, "evalue", None)
+    if message is None:
+        message = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    if index is None:
+        return f"{kind}: {message}"
+    source = notebook.cells[index].source.strip().splitlines()
+    first = source[0] if source else ""
+    code_number = sum(cell.cell_type == "code" for cell in notebook.cells[: index + 1])
+    return f"code cell {code_number} ({first}): {kind}: {message}"
+
+
+def write_html(notebook: NotebookNode, target: Path) -> Path:
+    """The executed notebook as one HTML file, its figures embedded as data URIs."""
+    from nbconvert import HTMLExporter
+
+    exporter = HTMLExporter()
+    exporter.embed_images = True
+    body, _ = exporter.from_notebook_node(notebook, resources={"metadata": {"path": "."}})
+    target.write_text(body, encoding="utf-8")
+    return target
+
+
+def figure_count(notebook: NotebookNode) -> int:
+    """The pictures a notebook shows: its outputs holding a PNG."""
+    return sum(
+        "image/png" in output.get("data", {})
+        for cell in notebook.cells
+        if cell.cell_type == "code"
+        for output in cell.get("outputs", [])
+    )
+
+
+def lesson_line(result: LessonResult) -> str:
+    """One progress line: the lesson, its time, and its failure when it failed."""
+    if result.ok:
+        return f"{result.name}: {result.seconds:.1f} s"
+    return f"{result.name}: FAILED after {result.seconds:.1f} s"
+
+
+def run(out: Path, lessons: Sequence[str] | None, notebooks: Path | None, *, html: bool) -> int:
+    """The command: progress and failures on stderr, a summary on stdout; 1 when a lesson
+    failed."""
+    started = time.perf_counter()
+    results = build_course(
+        out,
+        lessons,
+        notebooks=notebooks,
+        html=html,
+        progress=lambda line: print(line, file=sys.stderr, flush=True),
+    )
+    failed = [result.name for result in results if not result.ok]
+    kinds = ".ipynb and .html" if html else ".ipynb"
+    print(
+        f"{len(results) - len(failed)} of {len(results)} lessons ran in "
+        f"{time.perf_counter() - started:.0f} s; wrote their {kinds} files to {out}"
+        + (f"; failed: {', '.join(failed)}" if failed else "")
+    )
+    return 1 if failed else 0
