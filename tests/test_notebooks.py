@@ -1,25 +1,31 @@
-"""Execute every lesson in notebooks/ top to bottom; any error fails the test.
+"""The course builds the README's way, and every lesson in it runs without an error.
 
-The notebooks are stored as jupytext percent-format .py files (readable diffs); each is converted
-in memory to a notebook and run by nbclient in a fresh kernel. The numbers each notebook shows are
-checked inside the notebook itself (assert cells against synthetic ground truth, and
-np.testing.assert_allclose of kintinuous_fast against kintinuous_ref), so executing them is the
-test; on top, each must show at least two pictures (under MPLBACKEND=Agg, which would drop them
-if a notebook relied on the user's backend) and end with a summary and exercises.
+The lessons are jupytext percent-format .py files (readable diffs). The module builds the course
+once, with `kintinuous course`'s own function (kintinuous_ref.program.course.build_course): each
+lesson converted to an .ipynb in a temporary folder, executed there by nbclient in a fresh
+kernel and rendered to HTML, so that CI runs each lesson once, as a student does. The tests then
+read what it wrote. The numbers each notebook shows are checked inside the notebook itself
+(assert cells against synthetic ground truth, and np.testing.assert_allclose of kintinuous_fast
+against kintinuous_ref), so any error output fails its lesson; on top, each must show at least
+two pictures, in the .ipynb and in its HTML page (under MPLBACKEND=Agg, which would drop them if
+a notebook relied on the user's backend), and end with a summary and exercises.
+Only the lessons whose tests are selected are built: `pytest tests/test_notebooks.py -k 03`
+builds lesson 3 alone.
 Budget: each lesson runs warm in well under 90 s on the 2-core machine (notebooks/README.md
 lists the measured times: 157 s for all nine on a shared, loaded machine).
 """
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
+import nbformat
 import pytest
 
-jupytext = pytest.importorskip("jupytext")
-nbclient = pytest.importorskip("nbclient")
+from kintinuous_ref.errors import KintinuousError
+from kintinuous_ref.program import course
+from kintinuous_ref.program.course import LessonResult, build_course, figure_count
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 # Per-notebook limit: generous against a loaded machine, small enough that a hang is caught.
@@ -63,28 +69,105 @@ def test_lesson_ends_with_summary_and_exercises(path: Path):
     assert absolute is None, f"{path.name} names an absolute path ({absolute.group(1)})"
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("path", notebook_paths(), ids=lambda path: path.stem)
-def test_notebook_runs(path: Path):
-    notebook = jupytext.read(path)
-    # The kernel runs this interpreter's environment. One numba thread: the arrays are small
-    # (160x120 images, 128^3 volumes) and on a shared 2-core machine spinning worker threads
-    # cost more than they gain.
-    # MPLBACKEND=Agg stands for any backend a user may have set: the notebooks choose the inline
-    # one themselves, so their pictures must still come out.
-    env = dict(os.environ, NUMBA_NUM_THREADS="1", PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")
-    client = nbclient.NotebookClient(
-        notebook,
-        timeout=TIMEOUT_S,
-        kernel_name="python3",
-        resources={"metadata": {"path": str(NOTEBOOKS)}},
+def selected_lessons(request: pytest.FixtureRequest) -> list[str]:
+    """The lessons of the tests pytest is about to run that need the built course."""
+    return sorted(
+        {
+            item.callspec.params["lesson"]
+            for item in request.session.items
+            if "built_course" in getattr(item, "fixturenames", ())
+            and Path(item.path) == Path(__file__)
+        }
     )
-    client.execute(env=env)
-    pictures = [
+
+
+@pytest.fixture(scope="module")
+def built_course(request, tmp_path_factory) -> dict[str, LessonResult]:
+    """The selected lessons built once into a temporary folder, as `kintinuous course` builds
+    them; a hang is caught by the per-cell limit."""
+    out = tmp_path_factory.mktemp("course")
+    results = build_course(
+        out, selected_lessons(request), notebooks=NOTEBOOKS, timeout_s=TIMEOUT_S, progress=print
+    )
+    return {result.name: result for result in results}
+
+
+LESSON_IDS = [path.stem for path in notebook_paths()]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("lesson", LESSON_IDS)
+def test_lesson_runs_without_an_error(built_course, lesson: str):
+    result = built_course[lesson]
+    assert result.ok, f"{lesson} failed in {result.error}"
+    notebook = nbformat.read(result.notebook, as_version=4)
+    errors = [
         output
         for cell in notebook.cells
         if cell.cell_type == "code"
         for output in cell.get("outputs", [])
-        if "image/png" in output.get("data", {})
+        if output.get("output_type") == "error"
     ]
-    assert len(pictures) >= 2, f"{path.name} showed {len(pictures)} pictures"
+    assert not errors, f"{lesson} shows an error: {errors[0].get('ename')}"
+    assert result.seconds < TIMEOUT_S, f"{lesson} took {result.seconds:.0f} s"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("lesson", LESSON_IDS)
+def test_lesson_shows_its_figures_in_the_notebook_and_the_page(built_course, lesson: str):
+    result = built_course[lesson]
+    pictures = figure_count(nbformat.read(result.notebook, as_version=4))
+    assert pictures >= 2, f"{lesson} showed {pictures} pictures"
+    page = result.html.read_text(encoding="utf-8")
+    embedded = page.count("data:image/png;base64,")
+    assert embedded >= pictures, f"{lesson}.html embeds {embedded} of {pictures} pictures"
+
+
+LESSON_WITH_A_FIGURE = """# %%
+# %matplotlib inline
+import matplotlib.pyplot as plt
+
+plt.plot([0, 1])
+"""
+
+FAILING_LESSON = """# %%
+x = 1
+
+# %%
+assert x == 2, "x is not two"
+"""
+
+
+@pytest.mark.slow
+def test_a_failing_lesson_is_named_with_its_cell_and_the_others_still_run(tmp_path, capsys):
+    lessons = tmp_path / "notebooks"
+    lessons.mkdir()
+    (lessons / "01_fails.py").write_text(FAILING_LESSON)
+    (lessons / "02_draws.py").write_text(LESSON_WITH_A_FIGURE)
+    status = course.run(tmp_path / "out", None, lessons, html=True)
+    assert status == 1
+    stderr = capsys.readouterr().err
+    assert (
+        'lesson 01_fails failed in code cell 2 (assert x == 2, "x is not two"): '
+        "AssertionError: x is not two"
+    ) in stderr
+    assert "[2/2] 02_draws: " in stderr
+    assert (tmp_path / "out" / "01_fails.ipynb").exists()  # its traceback, for the student
+    drawn = nbformat.read(tmp_path / "out" / "02_draws.ipynb", as_version=4)
+    assert figure_count(drawn) == 1
+    assert "data:image/png;base64," in (tmp_path / "out" / "02_draws.html").read_text()
+
+
+def test_lessons_not_found_says_what_would_work(tmp_path, monkeypatch):
+    """An installed wheel holds no notebooks/: outside a checkout, one line names the ways."""
+    monkeypatch.setattr(course, "__file__", str(tmp_path / "site" / "kintinuous_ref" / "x.py"))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(KintinuousError, match="source checkout.*--notebooks FOLDER"):
+        course.find_notebooks()
+
+
+def test_lessons_are_chosen_by_number_or_name():
+    chosen = course.select_lessons(NOTEBOOKS, ["05", "01_tsdf_fusion"])
+    assert [path.stem for path in chosen] == ["01_tsdf_fusion", "05_icp"]
+    with pytest.raises(KintinuousError, match="no lesson '99'"):
+        course.select_lessons(NOTEBOOKS, ["99"])
