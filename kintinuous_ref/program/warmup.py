@@ -120,6 +120,9 @@ def warm_up(
                 if stage != "total" and result.timings_ms[stage]:
                     slowest = max(result.timings_ms[stage]) / 1000.0
                     report.stage_seconds[stage] = report.stage_seconds.get(stage, 0.0) + slowest
+            report.stage_seconds["mesh"] = report.stage_seconds.get("mesh", 0.0) + _mesh_warmup(
+                backend, result
+            )
             if progress is not None:
                 progress(method)
     backend.record_warm_up(tracking)
@@ -127,6 +130,16 @@ def warm_up(
     compiled.update(kernels)
     report.kernel_seconds = dict(sorted(compiled.items(), key=lambda item: -item[1]))
     return report
+
+
+def _mesh_warmup(backend: Backend, result: Any) -> float:
+    """Seconds to mesh the warm-up's volume with the backend's marching cubes (compiling them
+    the first time), so that a run's first mesh does not compile."""
+    from kintinuous_ref.mesh import extract_mesh
+
+    start = time.perf_counter()
+    extract_mesh(backend.host_volume(result.volume), contour=backend.mesh.marching_cubes)
+    return time.perf_counter() - start
 
 
 def _run_warmup(backend: Backend, config: Config, method: str) -> Any:
@@ -138,11 +151,11 @@ def _run_warmup(backend: Backend, config: Config, method: str) -> Any:
 
 
 # The two halves of a cold warm-up, each compiled in its own child process: the model (the
-# volume and the raycast that reads it) and the tracking (preprocessing, and the odometry and
-# colour weights that read its pyramids). Their compile times are close (about 33 s each on the
-# 2-core machine), and each half takes the other's stages from the reference, whose outputs have
-# the types the fast stages take in a real run (NumPy arrays, float32 maps), so nothing is
-# compiled for the wrong types.
+# volume, the raycast that reads it and its mesh) and the tracking (preprocessing, and the
+# odometry and colour weights that read its pyramids). Their compile times are close (about 33 s
+# each on the 2-core machine), and each half takes the other's stages from the reference, whose
+# outputs have the types the fast stages take in a real run (NumPy arrays, float32 maps), so
+# nothing is compiled for the wrong types.
 MODEL, TRACKING = "model", "tracking"
 PARTS = (MODEL, TRACKING)
 
@@ -169,7 +182,9 @@ def _compile_part(backend_name: str, config: Config, methods: list[str], part: s
         mixed = _WithTracking(reference, tracking=backend)
     with compile_events() as kernels:
         for method in methods:
-            _run_warmup(mixed, config, method)  # type: ignore[arg-type]
+            result = _run_warmup(mixed, config, method)  # type: ignore[arg-type]
+            if part == MODEL:  # the volume's mesh belongs with the volume
+                _mesh_warmup(mixed, result)  # type: ignore[arg-type]
     return kernels
 
 
