@@ -14,6 +14,7 @@ given with --notebooks.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import sys
 import time
@@ -24,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from kintinuous_ref.datasets import DATA_VARIABLE
 from kintinuous_ref.errors import KintinuousError
+from kintinuous_ref.signals import Interrupted
 
 if TYPE_CHECKING:
     from nbformat import NotebookNode
@@ -178,8 +180,22 @@ def execute(
     try:
         client.execute(env=env)
     except Exception as err:  # the lesson's own error (or a dead kernel): reported, not raised
+        if cancelled(err):
+            raise Interrupted("SIGINT", f"interrupted; the lessons done are in {folder}") from err
         return failure_line(notebook, cells[-1] if cells else None, err)
     return None
+
+
+def cancelled(err: BaseException) -> bool:
+    """Whether a lesson's failure comes from a signal to this process: nbclient answers SIGINT
+    and SIGTERM by shutting the kernel down, and the lesson then ends with a dead kernel, raised
+    while its pending task was cancelled. Going on to the next lesson would ignore the signal."""
+    cause: BaseException | None = err
+    while cause is not None:
+        if isinstance(cause, (asyncio.CancelledError, KeyboardInterrupt)):
+            return True
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 def this_interpreter_kernel() -> Any:
