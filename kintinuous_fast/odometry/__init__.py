@@ -47,6 +47,16 @@ TRACKER_NAMES = [
     "TrackingResult",
     "stale_input",
 ]
+# What each stage module exports: those, and the functions each target computes itself (on the
+# cpu, the reference's own where the frames are NumPy arrays).
+STAGE_NAMES = [
+    *TRACKER_NAMES,
+    "estimate_dense",
+    "fovis_images",
+    "is_repeated_frame",
+    "make_tracker",
+    "repeated_streams",
+]
 
 
 def check_map(name: str, array: Any, camera: Intrinsics) -> None:

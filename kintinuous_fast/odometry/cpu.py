@@ -11,21 +11,18 @@ from __future__ import annotations
 
 import sys
 
-from kintinuous_fast.odometry import TRACKER_NAMES
+from kintinuous_fast.odometry import STAGE_NAMES
 from kintinuous_ref import odometry as _reference
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.odometry import DenseTracker as DenseTracker
 from kintinuous_ref.odometry import FovisTracker as FovisTracker
-from kintinuous_ref.odometry import (
-    Systems,
-    Tracker,
-    estimate_dense,
-    fovis_images,
-    is_repeated_frame,
-    repeated_streams,
-)
+from kintinuous_ref.odometry import Systems, Tracker
 from kintinuous_ref.odometry import TrackingResult as TrackingResult
+from kintinuous_ref.odometry import estimate_dense as estimate_dense
+from kintinuous_ref.odometry import fovis_images as fovis_images
+from kintinuous_ref.odometry import is_repeated_frame as is_repeated_frame
+from kintinuous_ref.odometry import repeated_streams as repeated_streams
 from kintinuous_ref.odometry import stale_input as stale_input
 from kintinuous_ref.preprocess import model_pyramid as model_pyramid
 
@@ -34,18 +31,11 @@ from .icp.cpu import IcpProblem as IcpProblem
 from .rgbd.cpu import RgbdProblem as RgbdProblem
 from .solve import refine as refine
 
-# __all__: the reference's objects both targets export (TRACKER_NAMES) and this module's
+# __all__ (STAGE_NAMES): the reference's objects both targets export and this module's
 # functions. Beside them, the members of Systems (kintinuous_ref.odometry.Systems) that
 # kintinuous_ref.odometry imports rather than defines are imported here too: IcpProblem,
 # RgbdProblem, CombinedProblem, model_pyramid and refine.
-__all__ = [
-    *TRACKER_NAMES,
-    "estimate_dense",
-    "fovis_images",
-    "is_repeated_frame",
-    "make_tracker",
-    "repeated_streams",
-]
+__all__ = STAGE_NAMES
 
 
 def make_tracker(

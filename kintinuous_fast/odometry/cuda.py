@@ -16,7 +16,7 @@ import sys
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.odometry import TRACKER_NAMES
+from kintinuous_fast.odometry import STAGE_NAMES
 from kintinuous_fast.odometry.frame_on_device import estimate_on_device, repeats_kernel
 from kintinuous_fast.odometry.sums.cuda import stage
 from kintinuous_fast.preprocess.cuda import model_pyramid as model_pyramid
@@ -38,18 +38,11 @@ from .icp.cuda import IcpProblem as IcpProblem
 from .rgbd.cuda import RgbdProblem as RgbdProblem
 from .solve import refine as refine
 
-# __all__: the reference's objects both targets export (TRACKER_NAMES) and this module's
+# __all__ (STAGE_NAMES): the reference's objects both targets export and this module's
 # functions. Beside them, the members of Systems (kintinuous_ref.odometry.Systems) that
 # kintinuous_ref.odometry imports rather than defines are imported here too: IcpProblem,
 # RgbdProblem, CombinedProblem, model_pyramid and refine.
-__all__ = [
-    *TRACKER_NAMES,
-    "estimate_dense",
-    "fovis_images",
-    "is_repeated_frame",
-    "make_tracker",
-    "repeated_streams",
-]
+__all__ = STAGE_NAMES
 
 
 def repeated_streams(

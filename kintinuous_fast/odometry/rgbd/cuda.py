@@ -328,9 +328,7 @@ def _interest_list(dx, dy, depth, min_gradient: float, max_depth: float):
 def interest_points(intensity_dx, intensity_dy, min_gradient: float):
     """Algorithm 1: flat indices of the pixels with dx^2 + dy^2 >= g^2 (atomic order)."""
     check_image("intensity_dy", intensity_dy, intensity_dx.shape)
-    indices, _, _ = _interest_list(
-        stage(intensity_dx), stage(intensity_dy), None, min_gradient, 0
-    )
+    indices, _, _ = _interest_list(stage(intensity_dx), stage(intensity_dy), None, min_gradient, 0)
     return like_input(indices, intensity_dx)
 
 
