@@ -8,7 +8,9 @@ surfaces in voxels, and the time each takes.
 The volume is the scenario fused with its true poses by the cpu backend, seen as the
 reference's TsdfVolume (Backend.host_volume). VTK's mesh is filtered by the rule of ours (a
 vertex kept when both voxels of its edge are observed), so both describe observed space only.
-Times are the best of --repeat runs after one warm-up call (numba compiles on its first).
+Times are the best of --repeat rounds after one warm-up call each (numba compiles on its
+first); each round runs every method once, in turn, so that on a busy machine all see the same
+load. The load average (1, 5, 15 minutes) before and after the timings is part of the output.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import platform
 import time
 from pathlib import Path
@@ -77,14 +80,19 @@ def vtk_marching_cubes(tsdf: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray
     return points, triangles[keep[triangles].all(axis=1)]
 
 
-def best_ms(function: object, *args: object, repeat: int) -> float:
-    function(*args)  # warm-up: numba compiles, caches settle
-    times = []
-    for _ in range(repeat):
-        started = time.perf_counter()
+def best_ms(calls: dict[str, tuple], repeat: int) -> dict[str, float]:
+    """The best time (ms) of each of `calls` (name: (function, *args)) over `repeat` rounds,
+    after one warm-up call each (numba compiles, caches settle). Each round calls every
+    function once, in turn, so that on a busy machine all of them see the same load."""
+    for function, *args in calls.values():
         function(*args)
-        times.append(time.perf_counter() - started)
-    return 1000 * min(times)
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(repeat):
+        for name, (function, *args) in calls.items():
+            started = time.perf_counter()
+            function(*args)
+            times[name].append(time.perf_counter() - started)
+    return {name: 1000 * min(taken) for name, taken in times.items()}
 
 
 def mean_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> float:
@@ -95,6 +103,16 @@ def mean_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarra
     surface = pyvista.PolyData(vertices, cells)
     _, closest = surface.find_closest_cell(chosen, return_closest_point=True)
     return float(np.linalg.norm(chosen - closest, axis=1).mean())
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo) and how many CPUs this process may use."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        model = next(line.split(":", 1)[1].strip() for line in lines if "model name" in line)
+    except (OSError, StopIteration):
+        model = platform.processor() or platform.machine()
+    return f"{model}, {len(os.sched_getaffinity(0))} CPUs"
 
 
 def used_points(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -120,7 +138,7 @@ def main() -> None:
     theirs = vtk_marching_cubes(tsdf, weight)
     results = {
         "date": datetime.date.today().isoformat(),
-        "machine": platform.processor() or platform.machine(),
+        "machine": cpu_model(),
         "threads": numba.get_num_threads(),
         "scenario": args.scenario,
         "frames": args.frames,
@@ -134,13 +152,18 @@ def main() -> None:
             "ref_to_vtk": mean_distance(used_points(*ours), *theirs),
             "vtk_to_ref": mean_distance(used_points(*theirs), *ours),
         },
-        "ms": {
-            "ref": best_ms(reference.marching_cubes, tsdf, weight, 0.0, repeat=args.repeat),
-            "cpu": best_ms(cpu_mesh.marching_cubes, tsdf, weight, 0.0, repeat=args.repeat),
-            "vtk": best_ms(vtk_marching_cubes, tsdf, weight, repeat=args.repeat),
-            "vtk_contour_only": best_ms(vtk_contour, vtk_grid(tsdf), repeat=args.repeat),
-        },
     }
+    results["load_average_before"] = os.getloadavg()
+    results["ms"] = best_ms(
+        {
+            "ref": (reference.marching_cubes, tsdf, weight, 0.0),
+            "cpu": (cpu_mesh.marching_cubes, tsdf, weight, 0.0),
+            "vtk": (vtk_marching_cubes, tsdf, weight),
+            "vtk_contour_only": (vtk_contour, vtk_grid(tsdf)),
+        },
+        args.repeat,
+    )
+    results["load_average_after"] = os.getloadavg()
     print(json.dumps(results, indent=2))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")

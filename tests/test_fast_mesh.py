@@ -59,6 +59,48 @@ def test_cpu_marching_cubes_equals_the_reference(case):
     check_equal(cpu.marching_cubes, case, 20)
 
 
+def half_spaces(n):
+    """Rows of voxels without a crossing whose neighbours have the other sign (the x plane:
+    rows of cubes that hold surface from end to end), beside a z plane (every row crossed
+    at the same place) and a row crossed at its two ends only."""
+    i, _, k = np.indices((n, n - 2, n + 3))
+    field = np.where(k < n // 2, i - n / 3 - 0.25, k - n / 2 - 0.4).astype(np.float32)
+    field[n - 3, 2] = 1.0
+    field[n - 3, 2, [0, -1]] = -1.0
+    return field, np.ones_like(field), 0.0
+
+
+def signed_zeros(n):
+    """Zeros of both signs (both count as outside) among +-1, with unobserved voxels."""
+    rng = np.random.default_rng(n + 2)
+    field = rng.choice(np.array([-1.0, -0.0, 0.0, 1.0], np.float32), (n, n - 1, n + 1))
+    weight = np.where(rng.random(field.shape) < 0.9, 2.0, 0.0).astype(np.float32)
+    return field, weight, 0.0
+
+
+@pytest.mark.parametrize("case", [half_spaces, signed_zeros], ids=lambda case: case.__name__)
+def test_cpu_marching_cubes_trims_equal_the_reference(case):
+    """Rows trimmed to the crossings of their four rows of voxels, and widened to their ends
+    where those differ in sign there, lose no cube."""
+    from kintinuous_fast.mesh import cpu
+
+    check_equal(cpu.marching_cubes, case, 17)
+
+
+@pytest.mark.parametrize("shape", [(2, 2, 2), (5, 2, 2), (2, 3, 7), (4, 6, 2), (3, 9, 40)])
+def test_cpu_marching_cubes_of_thin_volumes(shape):
+    from kintinuous_fast.mesh import cpu
+
+    rng = np.random.default_rng(sum(shape))
+    for _ in range(20):
+        field = rng.standard_normal(shape).astype(np.float32)
+        weight = rng.random(shape).astype(np.float32)
+        expected = reference.marching_cubes(field, weight, 0.1)
+        vertices, triangles = cpu.marching_cubes(field, weight, 0.1)
+        np.testing.assert_array_equal(vertices, expected[0])
+        np.testing.assert_array_equal(triangles, expected[1])
+
+
 def test_cpu_marching_cubes_of_nothing():
     from kintinuous_fast.mesh import cpu
 
