@@ -127,7 +127,7 @@ def extract_box(
 ) -> SliceMesh:
     """Marching cubes (`contour`) over the logical voxel box [lo, hi) of the window whose
     logical voxel 0 is global voxel `corner`: every cube with all 8 voxels in the box,
-    triangulated once, with keys; a vertex kept when its edge's voxels have weight >=
+    triangulated once, with keys; a vertex kept when both voxels of its edge have weight >=
     min_weight (module docstring)."""
     lo, hi = np.asarray(lo, dtype=np.int64), np.asarray(hi, dtype=np.int64)
     box_lo, box_hi = corner + lo, corner + hi
@@ -156,6 +156,21 @@ def extract_box(
     upper = lower.copy()
     upper[along, axis[along]] += 1
     upper = np.minimum(upper, np.array(shape) - 1)
+
+    # The slices keep a vertex only where BOTH voxels of its edge are confidently observed,
+    # whatever share each has in its position: stricter than the contour's rule (which reads
+    # only the voxels the position interpolates from), so that a slice holds no surface next
+    # to voxels seen fewer than min_weight times (docs/parameters.md).
+    w_lower = weight[lower[:, 0], lower[:, 1], lower[:, 2]]
+    w_upper = weight[upper[:, 0], upper[:, 1], upper[:, 2]]
+    keep = (w_lower >= min_weight) & (w_upper >= min_weight)
+    triangles = triangles[keep[triangles].all(axis=1)]
+    if len(triangles) == 0:
+        return empty_slice(box_lo, box_hi)
+    used = np.zeros(len(local), dtype=bool)
+    used[triangles.ravel()] = True
+    local, lower, upper, axis = local[used], lower[used], upper[used], axis[used]
+    triangles = (np.cumsum(used) - 1)[triangles]
 
     colours = _edge_colours(volume, cells, local, lower, upper, axis)
     keys = np.column_stack([box_lo + lower, axis]).astype(np.int32)
