@@ -346,6 +346,7 @@ class _Level:
     gradient: Any = None
     pairs: Any = None
     rgbd_partials: Any = None
+    count: Any = None  # the level's slot of Workspace.counts (its interest points)
 
 
 class Workspace:
@@ -361,6 +362,8 @@ class Workspace:
         self.tally = cuda.to_device(np.zeros(2))
         self.no_partials = cuda.to_device(np.zeros((1, NV)))
         self.levels = [self._level(h * w, uses_icp, uses_rgbd) for h, w in shapes]
+        for index, level in enumerate(self.levels):  # a view made once: numba's cost per view
+            level.count = self.counts[index : index + 1]
 
     def _level(self, pixels: int, uses_icp: bool, uses_rgbd: bool) -> _Level:
         blocks = reduction_blocks(pixels)
@@ -445,6 +448,7 @@ class FrameOnDevice:
         self.space = workspace(shapes, self.icp is not None, self.rgbd is not None)
         self.previous, self.current = previous, current
         self.settings = _settings(tracker, problem)
+        self._arguments: dict[int, tuple] = {}  # per level: (ICP's, RGB-D's) kernel arguments
 
     def run(self, previous_pose: np.ndarray) -> np.ndarray:
         """The frame's record (32 numbers, the module's slots) for an estimate started at
@@ -504,7 +508,8 @@ class FrameOnDevice:
         if self.rgbd is None:
             return
         rgbd, image = self.rgbd, self.levels[level]
-        buffers, count = self.space.levels[level], self.space.counts[level : level + 1]
+        buffers = self.space.levels[level]
+        count = buffers.count
         threshold = rgbd.min_gradient[min(level, len(rgbd.min_gradient) - 1)]
         depth, dx, dy = stage(image.depth), stage(image.intensity_dx), stage(image.intensity_dy)
         pixels = image.depth.shape[0] * image.depth.shape[1]
@@ -522,34 +527,47 @@ class FrameOnDevice:
         at `level` for the estimate on the device; `gate_level` = the level whose convergence
         skips them, ANY_LEVEL for the inlier check."""
         space, buffers = self.space, self.space.levels[level]
-        camera = self.levels[level].camera
-        pixels = camera.height * camera.width
-        if self.icp is not None:
-            icp = self.icp
-            limits = icp.constants(np.eye(4))[2:]  # (squared distance, cos angle)
+        pixels = self.levels[level].camera.height * self.levels[level].camera.width
+        icp_arguments, rgbd_arguments = self.arguments(level)
+        if icp_arguments is not None:
             icp_kernel[reduction_blocks(pixels), BLOCK, self.stream](
-                *icp.points(level), space.icp_poses, *icp.model(level), pinhole(camera), limits,
-                icp.robust, buffers.icp_partials, space.state, gate_level,
-            )  # fmt: skip
-        if self.rgbd is None:
+                *icp_arguments, space.state, gate_level
+            )
+        if rgbd_arguments is None:
             return
-        interest = (buffers.points, space.counts[level : level + 1])
-        interest += (buffers.values, buffers.gradient)
-        arguments = pair_arguments(
-            interest,
-            space.rgbd_poses,
-            self.rgbd.previous(level),
-            self.rgbd.previous_levels[level].camera,
-            self.rgbd.max_depth_change,
-        )
         correspond_kernel[grid_1d(pixels, BLOCK), BLOCK, self.stream](
-            *arguments, space.tally, buffers.pairs, space.state, gate_level
+            *rgbd_arguments, space.tally, buffers.pairs, space.state, gate_level
         )
         if rows:
             rows_kernel[reduction_blocks(pixels), BLOCK, self.stream](
-                buffers.pairs, space.tally, *arguments, buffers.rgbd_partials, space.state,
+                buffers.pairs, space.tally, *rgbd_arguments, buffers.rgbd_partials, space.state,
                 gate_level,
             )  # fmt: skip
+
+    def arguments(self, level: int) -> tuple:
+        """(ICP kernel's arguments but the gate, RGB-D's pair arguments) at `level`, None for
+        an estimator the method lacks: staged and assembled once per frame, not per step."""
+        if level not in self._arguments:
+            space, buffers = self.space, self.space.levels[level]
+            icp_arguments = rgbd_arguments = None
+            if self.icp is not None:
+                icp, camera = self.icp, self.levels[level].camera
+                limits = icp.constants(np.eye(4))[2:]  # (squared distance, cos angle)
+                icp_arguments = (
+                    *icp.points(level), space.icp_poses, *icp.model(level), pinhole(camera),
+                    limits, icp.robust, buffers.icp_partials,
+                )  # fmt: skip
+            if self.rgbd is not None:
+                interest = (buffers.points, buffers.count, buffers.values, buffers.gradient)
+                rgbd_arguments = pair_arguments(
+                    interest,
+                    space.rgbd_poses,
+                    self.rgbd.previous(level),
+                    self.rgbd.previous_levels[level].camera,
+                    self.rgbd.max_depth_change,
+                )
+            self._arguments[level] = (icp_arguments, rgbd_arguments)
+        return self._arguments[level]
 
 
 def read_record(tracker: Any, record: np.ndarray, previous_pose: np.ndarray) -> tuple:
