@@ -297,7 +297,7 @@ assert errors[-1][1] < 1.5e-3  # "within about a millimetre" (summary)
 #
 # For display and export the zero level set is triangulated by marching cubes
 # (`mesh.extract_mesh`, VTK's flying edges), keeping only triangles between observed voxels;
-# vertex colours come from the colour volume (notebook 4).
+# vertex colours come from the colour volume (lesson 9).
 
 # %%
 import pyvista as pv
@@ -336,7 +336,7 @@ plt.show()
 # `kintinuous_fast` compiles the same per-voxel and per-ray arithmetic with numba (CPU loops
 # on all threads here; CUDA kernels where a GPU is present) and stores 8 bytes per voxel: 4 for
 # the surface (the TSDF as int16 scaled by 32767 and the weight as int16) and 4 for the colour
-# (R, G, B and its weight, one byte each; notebook 4). So the fast volume equals the reference
+# (R, G, B and its weight, one byte each; lesson 9). So the fast volume equals the reference
 # up to the rounding of each update, at most half a step of 1/32767 per fused frame.
 
 # %%

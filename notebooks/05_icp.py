@@ -14,9 +14,9 @@
 # %% [markdown]
 # # 5. ICP alone: projective association and point-to-plane
 #
-# Before Kintinuous adds colour to the tracking (notebooks 2 and 3), it inherits KinectFusion's
+# Before Kintinuous adds colour to the tracking (lessons 3 and 6), it inherits KinectFusion's
 # geometric tracker: **iterative closest point** (ICP) between the current depth frame and the
-# model surface predicted by raycasting the TSDF (notebook 1). The paper writes its cost in
+# model surface predicted by raycasting the TSDF (lesson 1). The paper writes its cost in
 # section V-B (eq. 6-10), where it is summed with the RGB-D cost; this lesson takes it alone.
 #
 # 1. projective data association: pairs without any search, and the two rejection tests,
@@ -25,7 +25,7 @@
 # 3. recovering a known motion coarse to fine, against a model raycast from a fused volume,
 # 4. where ICP is blind: the normal equations of a corridor have a (nearly) empty direction.
 #
-# Prerequisites: notebook 1 (the volume and its raycast). About 5 s warm.
+# Prerequisites: lesson 1 (the volume and its raycast). About 5 s warm.
 
 # %%
 # %matplotlib inline
@@ -381,8 +381,8 @@ assert condition["corridor"] > 10 * condition["desk"]
 # %% [markdown]
 # The corridor's weakest translation is its own axis, measured more than a thousand times more
 # weakly than the other two: exactly the motion ICP cannot see. The other estimators of the
-# paper exist for this case: RGB-D odometry sees the wall texture move (notebooks 2 and 3),
-# FOVIS tracks features on it (notebook 7).
+# paper exist for this case: RGB-D odometry sees the wall texture move (lessons 3 and 6),
+# FOVIS tracks features on it (lesson 7).
 #
 # ## Summary
 #

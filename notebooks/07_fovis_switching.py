@@ -14,18 +14,18 @@
 # %% [markdown]
 # # 7. FOVIS and the switching strategy
 #
-# The dense trackers of notebooks 2, 3 and 5 use every pixel. Section V-A of the paper adds a
+# The dense trackers of lessons 3, 5 and 6 use every pixel. Section V-A of the paper adds a
 # **sparse** one: FOVIS (Huang et al., ISRR 2011), visual odometry from FAST corners, run on the
 # CPU. The paper does not fuse it with the dense costs; it **switches**: each frame, whichever
 # of the two increments the rule below picks is used. The reason is ICP's blind direction in
-# corridors (notebook 5): ICP "slips", FOVIS, which follows the texture, rarely does.
+# corridors (lesson 5): ICP "slips", FOVIS, which follows the texture, rarely does.
 #
 # 1. FOVIS step by step on one frame pair: corners, matches, the consistency clique, the motion,
 # 2. the switching rule (mu = 3 cm) with the package's source,
 # 3. a second and a half of corridor, pair by pair: ICP, FOVIS, and the switched choice against
 #    the truth, and what the rule catches and what it lets through.
 #
-# Prerequisites: notebook 5 (ICP), notebook 8's measures are used informally. About 15 s warm.
+# Prerequisites: lesson 5 (ICP), lesson 11's measures are used informally. About 15 s warm.
 
 # %%
 # %matplotlib inline

@@ -75,7 +75,7 @@ The other weightings:
   rgbd_weight = 0.1. Run to convergence the two reach the same poses; s only changes the step
   (a tenth of the Gauss-Newton step where ICP's information dominates, the same step where
   RGB-D's does), and so the path, the speed of convergence and what a fixed 10 / 5 / 4
-  iterations reach (notebooks/03_combined_cost.py measures both).
+  iterations reach (notebooks/06_combined_cost.py measures both).
 - "elasticfusion": ElasticFusion's combination, which is the same formula with its own ICP
   weight of 10: the same system as "original-code".
 - "huber", "tukey": "degeneracy-aware" with the ICP rows robustly weighted by that M-estimator

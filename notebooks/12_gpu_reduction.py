@@ -20,14 +20,14 @@
 # followed by Cholesky factorization of the linear system on the CPU" (IV-A.3). This lesson
 # reads the package's CUDA kernel for ICP (`kintinuous_fast.odometry.icp.cuda`), runs it **without
 # a GPU** under numba's CUDA simulator (each CUDA thread becomes a Python thread) on a tiny
-# 80x60 frame, and checks it against the NumPy reference of notebook 5.
+# 80x60 frame, and checks it against the NumPy reference of lesson 5.
 #
 # 1. the kernel: a grid-stride loop over pixels, a local accumulator, a tree in shared memory,
 # 2. a plain-Python emulation of the block's tree, checked equal to a plain sum,
 # 3. the simulated kernel's 6x6 system against the reference, and the block partials it leaves,
 # 4. the grid-stride loop looping: fewer threads than pixels, each thread taking several.
 #
-# Prerequisites: notebook 5 (ICP). About 20 s warm; the simulator is thousands of times slower
+# Prerequisites: lesson 5 (ICP). About 20 s warm; the simulator is thousands of times slower
 # than a GPU, which is why the frame is tiny. The simulator must be switched on before numba is
 # first imported, hence the first cell.
 
@@ -62,7 +62,7 @@ camera, poses = scene.camera, scene.trajectory.poses
 # $i, i + G, i + 2G, \ldots$ ($G$ = the number of threads in the grid: a *grid-stride loop*, so
 # any image size works with a bounded grid), and for each valid pixel it
 #
-# 1. associates the vertex projectively with the model (`icp_match`, notebook 5's `associate`),
+# 1. associates the vertex projectively with the model (`icp_match`, lesson 5's `associate`),
 # 2. forms the row of eq. 9 (`point_to_plane_row`),
 # 3. adds the 29 numbers $w\,[J^\top J \text{ (21 numbers of the upper triangle)},
 #    J^\top r \text{ (6)}, r^2, 1]$ into a private accumulator of float64 numbers (`add_row`).
@@ -122,7 +122,7 @@ plt.show()
 #
 # Frame 11 of the desk against a perfect model seen from frame 10's pose (the exact surface),
 # evaluated at the true pose: the simulated CUDA kernel's system and the NumPy reference's
-# `icp.icp_system` (notebook 5) must agree to rounding (float64 sums in another order).
+# `icp.icp_system` (lesson 5) must agree to rounding (float64 sums in another order).
 
 # %%
 previous_pose, current_pose = poses[10], poses[11]

@@ -28,7 +28,7 @@
 # 5. checks that `kintinuous_fast` gives the same systems, and how much faster.
 #
 # Along the way: the cost that Gauss-Newton lowers is not the error, which can rise while the cost
-# falls. Prerequisites: notebook 1 (the camera model and poses). About 10 s warm.
+# falls. Prerequisites: lesson 1 (the camera model and poses). About 10 s warm.
 
 # %%
 # %matplotlib inline
@@ -440,7 +440,7 @@ assert np.isfinite(errors[0]) and not np.isfinite(errors[-1])
 # seconds. The timings below exclude that (one untimed run first) and give the median and the
 # interquartile range of 7 runs, with the machine and numba's thread count: on a shared machine
 # a single best-of number can mislead by an order of magnitude. At 160x120 the arrays are small,
-# so the fast backend's lead is modest; notebook 1's size sweep shows how it grows with size.
+# so the fast backend's lead is modest; lesson 1's size sweep shows how it grows with size.
 
 # %%
 from kintinuous_fast import load_backend

@@ -23,7 +23,7 @@
 # 3. reproduces the rank-score columns of the paper's Table I from its published errors,
 # 4. scores runs of three trackers on two synthetic scenes, and ranks them with eq. 16.
 #
-# Prerequisites: notebooks 2, 3 and 5 (the trackers).
+# Prerequisites: lessons 3, 5 and 6 (the trackers).
 
 # %%
 # %matplotlib inline
@@ -357,7 +357,7 @@ plt.show()
 #   where in Table I FOVIS/RGB-D ranks first. Its largest frame-to-frame error, 11.6 mm, is its
 #   first frame in the corridor: it estimated 0.1 mm of the camera's 11.3 mm step along the
 #   corridor, where RGB-D alone was 1.4 mm off, so the ICP half of its cost held the camera back
-#   along ICP's blind direction (notebook 3 weighs the two halves).
+#   along ICP's blind direction (lesson 6 weighs the two halves).
 #
 # Two scenes of about a second are far too few to rank trackers seriously: the point is the
 # procedure, which the package's evaluation runs on the TUM sequences of the paper.

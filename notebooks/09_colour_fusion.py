@@ -16,7 +16,7 @@
 #
 # Section VI of the paper: instead of colouring the map from keyframes, Kintinuous keeps a
 # **colour volume** beside the TSDF and averages colour into it frame by frame, the way depth is
-# averaged (notebook 1). Two small changes (VI-B) remove most of the "bloom" and "colour bleed"
+# averaged (lesson 1). Two small changes (VI-B) remove most of the "bloom" and "colour bleed"
 # around object edges: colours measured near depth discontinuities are not fused at all, and the
 # others are weighted by the angle they were seen at.
 #
@@ -28,7 +28,7 @@
 # a case of its own in which the angle weighting alone has something to correct (fine texture
 # seen first at a grazing angle, then head-on) and measures it there.
 #
-# Prerequisites: notebook 1. About 30 s warm.
+# Prerequisites: lesson 1. About 30 s warm.
 
 # %%
 # %matplotlib inline

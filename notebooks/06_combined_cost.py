@@ -15,7 +15,7 @@
 # # 3. The combined ICP + RGB-D cost
 #
 # Section V-B of the paper: KinectFusion's ICP uses only geometry, Steinbruecker's RGB-D odometry
-# (notebook 2) only photoconsistency. Both are linearised in the same twist $\xi$, so they can be
+# (lesson 3) only photoconsistency. Both are linearised in the same twist $\xi$, so they can be
 # minimised **together**, one joint Gauss-Newton system per iteration. Where the geometry does
 # not constrain the motion (a corridor: every wall, floor and ceiling normal is perpendicular to
 # the walking direction, so ICP "slips") the texture should take over, and where the texture
@@ -28,7 +28,7 @@
 # ends with whole runs over the corridor and a *desk* scene, to see what each weighting costs
 # over a sequence.
 #
-# Prerequisites: notebooks 2 and 5 (RGB-D and ICP alone).
+# Prerequisites: lessons 3 and 5 (RGB-D and ICP alone).
 
 # %%
 # %matplotlib inline
@@ -118,7 +118,7 @@ plt.show()
 # of every row is a surface normal.** If no normal has a component along some direction, no row
 # can see a translation along it: $J_{icp}^\top J_{icp}$ is singular there.
 #
-# **RGB-D**: $J_{rgbd}$, $r_{rgbd}$ are the robustly weighted photometric rows of notebook 2.
+# **RGB-D**: $J_{rgbd}$, $r_{rgbd}$ are the robustly weighted photometric rows of lesson 3.
 #
 # ## Their weighted sum
 #
@@ -135,7 +135,7 @@ plt.show()
 # = -\left( J_{icp}^\top r_{icp} + w\, J_{rgbd}^\top r_{rgbd} \right). \qquad (13) $$
 #
 # **What $w$ converts.** ICP's residuals are metres; the robustly weighted photometric residuals
-# $r/(\sigma' + |r|)$ of notebook 2 are dimensionless. So $w$ converts between the two
+# $r/(\sigma' + |r|)$ of lesson 3 are dimensionless. So $w$ converts between the two
 # "metrics", and its value means nothing until the units of $E_{icp}$ are fixed. The paper sets
 # $w = 0.1$ empirically and does not say in which units $E_{icp}$ is summed. The authors'
 # released code answers it: it adds $A_{rgbd} + 100 A_{icp}$ and $b_{rgbd} + 10 b_{icp}$
@@ -161,7 +161,7 @@ plt.show()
 # The information a system holds about a translation along a unit direction $\mathbf{d}$ is
 # $\mathbf{d}^\top A_{uu} \mathbf{d}$, $A_{uu}$ the translation block of $A = J^\top J$. Below, one
 # frame pair, the model raycast from a TSDF fused at the ground-truth poses (kintinuous_fast,
-# the same volume as the reference: notebook 1), the systems at the true pose.
+# the same volume as the reference: lesson 1), the systems at the true pose.
 
 # %%
 fast = kintinuous_fast.load_backend("cpu")
@@ -621,7 +621,7 @@ for value, text in zip(across, (1.1, 1.1, 1.2, 0.45), strict=True):
 # and tracks the next one against that model, so errors add up. Here the full pipeline
 # (`pipeline.run` with the `kintinuous_fast` CPU backend: track, fuse, raycast) runs 36 frames
 # (1.2 s) of the corridor and of the desk with RGB-D alone, the authors' weighting and the
-# package's default, each started at the true first pose. No alignment is needed (notebook 8):
+# package's default, each started at the true first pose. No alignment is needed (lesson 11):
 # the error of each frame is the distance of its estimated camera position from the true one.
 
 # %%
