@@ -119,8 +119,11 @@ class RgbdConfig:
 
 @dataclass(frozen=True)
 class CombinedConfig:
-    # the paper's w in eq. 11, on terms each divided by its own noise (odometry/combined.py: the
-    # paper's 0.1 converted between its units; the normalised terms need none)
+    # the weight of the RGB-D term against the ICP term as `weighting` scales them: with "paper"
+    # and its variants both terms are divided by their own noise, so 1 balances them, and this is
+    # not the paper's w. The paper's w = 0.1 belongs to ICP in metres ("paper-metres" with 0.1),
+    # the sum whose stationary point the authors' 100/10 weighting ("original-code") reaches
+    # (odometry/combined.py; lesson 06 shows the two converge to the same poses)
     rgbd_weight: float = 1.0
     # "huber" (default): "degeneracy-aware" on Huber-weighted ICP rows (odometry/icp.py);
     # "tukey": the same with Tukey's biweight;
