@@ -91,6 +91,23 @@ class FastBackend:
 
         cache.record_warm_up(cache.STAGES if tracking else cache.MAPPING_STAGES)
 
+    def compile_seconds(self, part: str) -> float | None:
+        """For cpu: the compile time of `part` last measured into numba's on-disk cache here
+        (targets/cache.py); None for cuda, whose kernels compile in every process."""
+        if self.name != "cpu":
+            return None
+        from kintinuous_fast.targets import cache
+
+        return cache.measured_compile_seconds(part)
+
+    def record_compile_seconds(self, part: str, seconds: float) -> None:
+        """For cpu: keep `seconds` beside the cached kernels for compile_seconds."""
+        if self.name != "cpu":
+            return
+        from kintinuous_fast.targets import cache
+
+        cache.record_compile_seconds(part, seconds)
+
     def __repr__(self) -> str:
         return f"FastBackend({self.name!r})"
 

@@ -118,6 +118,15 @@ class Backend(Protocol):
         kernel it calls: from then on kernels_cached says so, in other processes too."""
         ...
 
+    def compile_seconds(self, part: str) -> float | None:
+        """How long compiling `part` of the kernels (kintinuous_ref.program.warmup's
+        COMPILE_PARTS) took when last measured on this machine; None where it never was."""
+        ...
+
+    def record_compile_seconds(self, part: str, seconds: float) -> None:
+        """Keep a measured compile time of `part` for compile_seconds, in other processes too."""
+        ...
+
 
 class ReferenceBackend:
     """The reference implements the protocol with its own modules (NumPy on the host)."""
@@ -161,6 +170,12 @@ class ReferenceBackend:
         return True  # NumPy: nothing to compile
 
     def record_warm_up(self, tracking: bool = True) -> None:
+        return None
+
+    def compile_seconds(self, part: str) -> float | None:
+        return None  # NumPy: nothing is compiled
+
+    def record_compile_seconds(self, part: str, seconds: float) -> None:
         return None
 
     def __repr__(self) -> str:

@@ -86,7 +86,7 @@ def test_reconstruct_prepares_the_kernels_before_its_progress_bar(
     if cached:
         assert "compiling" not in err
     else:
-        assert err.index("compiling the cpu kernels, once per installation") < err.index("WARM-UP")
+        assert err.index("compiling the cpu kernels for mapping") < err.index("WARM-UP")
 
 
 def test_two_processes_compile_the_model_and_the_tracking_apart():

@@ -18,9 +18,14 @@ record of the sources and numba it compiled in each folder of the stages it ran
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib
+import json
+import math
+import os
 import sys
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -155,3 +160,64 @@ def drop_stale_kernels(folders: list[Path] | None = None, stamp: str | None = No
         except OSError:
             continue
     return dropped
+
+
+# How long compiling took on this machine, per part of the kernels (kintinuous_ref.program.warmup
+# names the parts), kept as a small JSON object {"<part>": seconds} in the folder of the stage
+# every run calls. numba's cache files are dropped when the sources change, this file is not: it
+# says how long the next compile will take after an update, a wiped cache or a new installation
+# into the same cache folder.
+ESTIMATE_NAME = "kintinuous_compile_seconds.json"
+ESTIMATE_STAGE = "preprocess"
+
+
+def estimate_file(folder: Path | None = None) -> Path:
+    """The compile-time record: in `folder`, by default the cache folder of ESTIMATE_STAGE."""
+    if folder is None:
+        folder = stage_folders((ESTIMATE_STAGE,))[ESTIMATE_STAGE]
+    return folder / ESTIMATE_NAME
+
+
+def measured_compile_seconds(part: str, folder: Path | None = None) -> float | None:
+    """The seconds the last measured compile of `part` took here; None where none was measured
+    or the record cannot be read (missing, corrupt, another layout): then nothing is known."""
+    try:
+        record = json.loads(estimate_file(folder).read_text())
+        seconds = float(record[part])
+    except (OSError, ValueError, TypeError, KeyError, LookupError):
+        return None
+    return seconds if math.isfinite(seconds) and seconds > 0 else None
+
+
+def record_compile_seconds(part: str, seconds: float, folder: Path | None = None) -> None:
+    """Keep `seconds` as the compile time of `part`, beside the other parts' times. The record
+    is replaced whole, so that a reader never sees half of it; a folder that cannot be written
+    is left as it is (the next compile is then announced by the known range)."""
+    path = estimate_file(folder)
+    record: dict[str, float] = {}
+    with contextlib.suppress(OSError, ValueError):
+        loaded = json.loads(path.read_text())
+        if isinstance(loaded, dict):
+            record = {key: value for key, value in loaded.items() if _is_seconds(value)}
+    record[part] = round(float(seconds), 1)
+    with contextlib.suppress(OSError):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _replace_atomically(path, json.dumps(record, sort_keys=True) + "\n")
+
+
+def _is_seconds(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _replace_atomically(path: Path, text: str) -> None:
+    """Write `text` to a temporary file beside `path` (mode 0644, as the cache's other files),
+    then rename it over `path`: one step on a POSIX file system."""
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(descriptor, "w") as stream:
+            stream.write(text)
+        os.chmod(temporary, 0o644)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise

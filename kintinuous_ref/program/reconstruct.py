@@ -33,7 +33,7 @@ from kintinuous_ref.program.output_folder import (
     waiting_lock,
     write_text_atomic,
 )
-from kintinuous_ref.program.warmup import warm_up
+from kintinuous_ref.program.warmup import compile_estimate, kernels_to_compile, warm_up
 from kintinuous_ref.signals import Interrupted
 from kintinuous_ref.strict_json import dumps as strict_dumps
 
@@ -413,23 +413,31 @@ _PREPARED: set[tuple[str, str]] = set()
 
 def prepare_kernels(backend: Backend, config: Config, odometry: str) -> None:
     """Compile (or load from numba's cache) the kernels the run will call, before its progress
-    bar starts, so that the bar's rate and time left count frames only. A compilation is said,
-    with how long it took; loading from the cache takes about a second and is not."""
+    bar starts, so that the bar's rate and time left count frames only. A compile is one line
+    on stderr: announced with how long it will take (compile_estimate) where numba's cache lacks
+    the kernels, and ended with how long it took; loading from the cache takes about a second
+    and says nothing."""
     if backend.name == REFERENCE or (backend.name, odometry) in _PREPARED:
         return
-    tracking = odometry != GROUNDTRUTH
-    if not backend.kernels_cached(tracking=tracking):
-        # the cold warm-up's wall time on the 2-core machine (docs/benchmarks.md)
-        wait = "25" if tracking else "12"
+    part = kernels_to_compile(backend, tracking=odometry != GROUNDTRUTH)
+    if part is not None:
         print(
-            f"compiling the {backend.name} kernels, once per installation (about {wait} s on "
-            "2 cores; later runs load them in seconds)...",
+            f"compiling the {backend.name} kernels for {part}, not yet in numba's cache "
+            f"({compile_estimate(backend, part)}; later runs load them in seconds)...",
+            end="",
             file=sys.stderr,
             flush=True,
         )
-    report = warm_up(backend, config, odometry)
+    try:
+        report = warm_up(backend, config, odometry)
+    except BaseException:
+        if part is not None:  # the error on a line of its own
+            print(file=sys.stderr, flush=True)
+        raise
     _PREPARED.add((backend.name, odometry))
-    if report.kernel_seconds:
+    if part is not None:
+        print(f" done in {report.seconds:.0f} s", file=sys.stderr, flush=True)
+    elif report.kernel_seconds:  # compiled in this process alone (cuda), or a stale record
         count = len(report.kernel_seconds)
         print(f"compiled {count} kernels in {report.seconds:.0f} s", file=sys.stderr, flush=True)
 

@@ -44,6 +44,19 @@ from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.odometry import DENSE_METHODS, METHODS
 from kintinuous_ref.pipeline import GROUNDTRUTH, STAGES, run
 
+# What a run still has to compile, by what it calls and what numba's cache holds: the kernels of
+# a run with known poses (preprocessing, integration, colour), those a tracked run adds to them
+# (raycast, odometry) when the first are cached, or both.
+COMPILE_MAPPING, COMPILE_TRACKING, COMPILE_ALL = "mapping", "tracking", "mapping and tracking"
+COMPILE_PARTS = (COMPILE_MAPPING, COMPILE_TRACKING, COMPILE_ALL)
+# Wall seconds of each part's compile on the 2-core machine, idle and under the other users'
+# load (docs/reliability.md): what is said before a compile on a machine that never measured one.
+KNOWN_COMPILE_SECONDS = {
+    COMPILE_MAPPING: (11, 51),
+    COMPILE_TRACKING: (16, 78),
+    COMPILE_ALL: (25, 80),
+}
+
 FRAMES = 3  # the first fuses, the second tracks, the third tracks against a raycast model
 WIDTH, HEIGHT = 160, 120
 RESOLUTION = 64
@@ -106,12 +119,14 @@ def warm_up(
     return how long each stage and each compiled kernel took. `progress(method)` is called after
     each method. With `parallel` and a cpu backend on two or more cores, two child processes
     compile first (see the module docstring); their kernels' times are in the report. At the
-    end the backend records the warm-up, so that its kernels_cached says so from then on."""
+    end the backend records the warm-up, so that its kernels_cached says so from then on, and
+    where this call compiled what the cache lacked, its wall time (compile_estimate reads it)."""
     report = WarmupReport(backend.name, methods=methods_for(odometry))
     start = time.perf_counter()
     compiled: dict[str, float] = {}
     tracking = report.methods != [GROUNDTRUTH]
-    if parallel and (os.cpu_count() or 1) >= 2 and not backend.kernels_cached(tracking):
+    part = kernels_to_compile(backend, tracking)
+    if parallel and (os.cpu_count() or 1) >= 2 and part is not None:
         compiled = compile_in_two_processes(backend.name, config, report.methods)
     with compile_events() as kernels:
         for method in report.methods:
@@ -129,7 +144,29 @@ def warm_up(
     report.seconds = time.perf_counter() - start
     compiled.update(kernels)
     report.kernel_seconds = dict(sorted(compiled.items(), key=lambda item: -item[1]))
+    if part is not None and report.kernel_seconds and parallel:
+        backend.record_compile_seconds(part, report.seconds)  # what the next such compile takes
     return report
+
+
+def kernels_to_compile(backend: Backend, tracking: bool) -> str | None:
+    """Which of COMPILE_PARTS a run (with or without `tracking`) on `backend` would compile
+    first; None when numba's cache holds them all (or the backend compiles nothing ahead)."""
+    if backend.kernels_cached(tracking):
+        return None
+    if not tracking:
+        return COMPILE_MAPPING
+    return COMPILE_TRACKING if backend.kernels_cached(False) else COMPILE_ALL
+
+
+def compile_estimate(backend: Backend, part: str) -> str:
+    """How long compiling `part` will take: the last such compile measured here, else the range
+    measured on the 2-core machine."""
+    measured = backend.compile_seconds(part)
+    if measured is not None:
+        return f"about {measured:.0f} s, as measured on this machine"
+    idle, busy = KNOWN_COMPILE_SECONDS[part]
+    return f"{idle}-{busy} s on 2 cores, idle to busy; not yet measured here"
 
 
 def _mesh_warmup(backend: Backend, result: Any) -> float:
@@ -280,7 +317,11 @@ def warm_up_from_empty_cache(
     if child.returncode != 0:
         lines = stderr.strip().splitlines() or ["no output"]
         raise KintinuousError(f"the warm-up from an empty cache failed: {lines[-1]}")
-    return json.loads(stdout.strip().splitlines()[-1])
+    report = json.loads(stdout.strip().splitlines()[-1])
+    if not serial:  # what a fresh installation's compile takes here, kept for the next one
+        part = COMPILE_MAPPING if odometry == GROUNDTRUTH else COMPILE_ALL
+        load_backend(backend).record_compile_seconds(part, report["seconds"])
+    return report
 
 
 def end_process_group(child: subprocess.Popen, grace: float = 5.0) -> None:
