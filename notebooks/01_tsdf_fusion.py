@@ -27,15 +27,17 @@
 # 3. fuses a few frames of the synthetic *desk* scene and watches the surface appear and the
 #    noise average out (measured against the exact, noise-free depth),
 # 4. renders the mesh, and checks that `kintinuous_fast` computes the same volume,
-# 5. times both backends honestly (median and spread, the machine, a size sweep).
+# 5. fuses a few real frames of the 7-Scenes kitchen, where they are present.
+#
+# It starts with the whole method in one dimension, a row of voxels along one ray, written from
+# scratch in a dozen lines. How fast each backend is (and how that grows with the volume) is
+# measured in lesson 15, the speed appendix.
 #
 # Prerequisites: none; this is the first lesson. About 20 s warm (the first run of the course
 # also compiles the numba kernels: one to two minutes, once).
 
 # %%
 # %matplotlib inline
-import functools
-
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -103,6 +105,71 @@ plt.show()
 #
 # For a static surface and independent depth noise the average of $n$ observations has
 # $1/\sqrt{n}$ of the noise: fusion is a denoiser.
+#
+### A 1-D TSDF from scratch
+#
+# Before the package's functions, (T1)-(T3) on a single ray: a row of voxels at distances $x$
+# from the camera, a surface at $d = 1$ m, and $n$ noisy depth readings $d_k$. Inside the band,
+# (T2) is linear in $d_k$, so the running average (T3) of $n$ readings is
+# $F(x) = (\bar d - x)/\mu$: its zero crossing is **exactly the mean of the readings**, whose
+# error shrinks as $\sigma/\sqrt{n}$. The cell checks both against those closed forms.
+
+
+# %%
+def fuse_ray(voxels: np.ndarray, readings: np.ndarray, mu: float) -> tuple[np.ndarray, np.ndarray]:
+    """(T1)-(T3) on one ray: each reading updates the voxels less than mu behind it."""
+    F, W = np.zeros_like(voxels), np.zeros_like(voxels)
+    for depth in readings:
+        sdf = depth - voxels  # (T1), the ray is the x axis
+        seen = sdf >= -mu  # (T2): no update far behind the surface
+        F[seen] = (W[seen] * F[seen] + np.minimum(1.0, sdf[seen] / mu)) / (W[seen] + 1)  # (T3)
+        W[seen] += 1
+    return F, W
+
+
+def zero_crossing(voxels: np.ndarray, F: np.ndarray) -> float:
+    """The surface between the last positive and the first negative voxel (linear, as T4)."""
+    k = int(np.nonzero((F[:-1] > 0) & (F[1:] <= 0))[0][0])
+    return float(voxels[k] - F[k] * (voxels[k + 1] - voxels[k]) / (F[k + 1] - F[k]))
+
+
+rng = np.random.default_rng(1)
+ray_voxels = np.arange(0.5, 1.5, 0.01)  # 1 cm voxels along the ray
+mu_1d, sigma_1d, surface_1d = 0.05, 0.01, 1.0
+readings_1d = surface_1d + sigma_1d * rng.standard_normal(50)
+F_1d, W_1d = fuse_ray(ray_voxels, readings_1d, mu_1d)
+found_1d = zero_crossing(ray_voxels, F_1d)
+print(f"50 readings, sigma {1000 * sigma_1d:.0f} mm: zero crossing {1000 * (found_1d - 1):+.2f} mm "
+      f"from the surface, mean reading {1000 * (readings_1d.mean() - 1):+.2f} mm")  # fmt: skip
+assert abs(found_1d - readings_1d.mean()) < 1e-9  # the crossing IS the mean of the readings
+
+# The error of the fused surface against n, over 200 repetitions: sigma / sqrt(n).
+counts_1d = np.array([1, 2, 5, 10, 20, 50])
+rms_1d = np.array([
+    np.sqrt(np.mean([(zero_crossing(ray_voxels, fuse_ray(ray_voxels, surface_1d + sigma_1d
+     * rng.standard_normal(n), mu_1d)[0]) - surface_1d) ** 2 for _ in range(200)]))
+    for n in counts_1d
+])  # fmt: skip
+np.testing.assert_allclose(rms_1d, sigma_1d / np.sqrt(counts_1d), rtol=0.15)
+
+fig, axes = plt.subplots(1, 2, figsize=(11, 3.2))
+for n in (1, 5, 50):
+    axes[0].plot(ray_voxels, fuse_ray(ray_voxels, readings_1d[:n], mu_1d)[0], ".-", ms=3,
+                 label=f"{n} reading(s)")  # fmt: skip
+axes[0].axvline(surface_1d, color="k", lw=0.5)
+axes[0].set_xlabel("distance along the ray x (m)")
+axes[0].set_ylabel("F")
+axes[0].set_title("1-D TSDF: unobserved (0) beyond x = d + mu")
+axes[0].legend()
+axes[1].loglog(counts_1d, 1000 * rms_1d, "o", label="fused zero crossing (RMS of 200)")
+axes[1].loglog(counts_1d, 1000 * sigma_1d / np.sqrt(counts_1d), "k--", label="sigma / sqrt(n)")
+axes[1].set_xlabel("readings fused n")
+axes[1].set_ylabel("surface error (mm)")
+axes[1].legend()
+plt.show()
+
+# %% [markdown]
+# ### The same in 3-D
 #
 # Below: one exact (noise-free) depth map fused into an empty volume, then the TSDF sampled
 # (trilinearly) along the ray of a pixel on a smooth patch of surface, against the closed form
@@ -380,77 +447,9 @@ np.testing.assert_allclose([median, p99], 0.0, atol=1e-3)
 
 
 # %% [markdown]
-# ## How fast, and how it scales
+# How fast each backend fuses and raycasts, and how its lead grows with the volume and the
+# image, is measured in lesson 15 (the speed appendix), with the machine and the spread of runs.
 #
-# **First run.** The first run in a fresh environment compiles the numba kernels: one to two
-# minutes on a 2-core machine, once (numba caches them on disk, so later runs load them in
-# seconds). Every timing below runs the function once untimed first, so compilation is excluded.
-#
-# **Honest numbers.** On a shared machine the same cell's speed-up has varied by an order of
-# magnitude from run to run, so a single best-of number says little. Below: the median and the
-# interquartile range [25th-75th percentile] of 7 runs, the machine, and numba's thread count
-# (the notebook tests run with one thread). Then a **size sweep**, as in the Triton tutorials:
-# the same operation at growing sizes, since the compiled loops' lead grows with the work per
-# call (fixed Python overheads matter less).
-
-
-# %%
-from kintinuous_ref.program.benchmark import machine_line, speed_line, timed
-
-frame = frames[fused_indices[-1]]
-pose = poses[fused_indices[-1]]
-print(machine_line())
-print(
-    speed_line(
-        "integrate, 128^3",
-        timed(lambda: tsdf.integrate(volume, frame.depth, pose, camera)),
-        timed(lambda: fast.tsdf.integrate(fast_volume, frame.depth, pose, camera)),
-    )
-)
-print(
-    speed_line(
-        "raycast, 160x120",
-        timed(lambda: raycast.raycast(volume, pose, camera)),
-        timed(lambda: fast.raycast.raycast(fast_volume, pose, camera)),
-    )
-)
-
-# %%
-sweep_rows = []
-for resolution in (64, 96, 128, 160):
-    sized = with_overrides(config, {"volume.resolution": resolution}).volume
-    reference_volume = tsdf.make_volume(sized, poses[0])
-    compiled_volume = fast.tsdf.make_volume(sized, poses[0])
-    sweep_rows.append((
-        "integrate", f"{resolution}^3", resolution**3,
-        timed(functools.partial(tsdf.integrate, reference_volume, frame.depth, pose, camera), 5),
-        timed(functools.partial(fast.tsdf.integrate, compiled_volume, frame.depth, pose, camera),
-              5),
-    ))  # fmt: skip
-for width in (80, 160, 320):
-    sized_camera = camera.resized(width, width * 3 // 4)
-    sweep_rows.append((
-        "raycast", f"{width}x{width * 3 // 4}", width * width * 3 // 4,
-        timed(functools.partial(raycast.raycast, volume, pose, sized_camera), 3),
-        timed(functools.partial(fast.raycast.raycast, fast_volume, pose, sized_camera), 3),
-    ))  # fmt: skip
-fig, axes = plt.subplots(1, 2, figsize=(12, 3.6))
-for ax, stage, unit in zip(axes, ("integrate", "raycast"), ("voxels", "pixels"), strict=True):
-    rows = [row for row in sweep_rows if row[0] == stage]
-    sizes = [row[2] for row in rows]
-    for column, label in ((3, "reference (NumPy)"), (4, "fast (numba cpu)")):
-        quartiles = np.array([1000 * np.percentile(row[column], [25, 50, 75]) for row in rows])
-        ax.loglog(sizes, quartiles[:, 1], "o-", label=label)
-        ax.fill_between(sizes, quartiles[:, 0], quartiles[:, 2], alpha=0.3)
-    ax.set_xlabel(unit)
-    ax.set_ylabel("ms per call (median, IQR shaded)")
-    ax.set_title(stage)
-    ax.legend()
-plt.show()
-for stage, size, _, reference_times, fast_times in sweep_rows:
-    print(speed_line(f"{stage:9s} {size:8s}", reference_times, fast_times))
-
-# %% [markdown]
 # ## Real data (optional)
 #
 # If the 7-Scenes *redkitchen* frames are present, fuse ten of them (downsized to 160x120) at their
@@ -496,8 +495,10 @@ else:
 #   TSDF gradient (T5).
 # - After 15 noisy frames the raycast surface is within about a millimetre of the truth (the
 #   median printed above).
-# - `kintinuous_fast` computes the same volume (to int16 rounding) and the same raycast; its
-#   lead over the NumPy reference grows with the size of the problem (the sweep above).
+# - On one ray the fused zero crossing is exactly the mean of the readings, so its error falls
+#   as sigma / sqrt(n) (the 1-D TSDF above).
+# - `kintinuous_fast` computes the same volume (to int16 rounding) and the same raycast; how
+#   much faster it is, lesson 15 measures.
 #
 # ## Exercises
 #
@@ -507,17 +508,20 @@ else:
 #    noisy depth? Set `your_median_mm` to a dict from the truncation (m) to your median.
 # 2. **Weights.** After fusing frame 0 twice at the same pose, what is the largest voxel weight?
 #    Set `your_weight`.
-# 3. **Scaling.** From the sweep, estimate the exponent $k$ in time $\propto$ voxels$^k$ of the
-#    reference integration. Is it near 1 (the work is per voxel)? (Check: a straight line
-#    through the sweep's log-log medians, `np.polyfit`.)
+# 3. **The band on one ray.** With `fuse_ray` above, fuse the 50 readings with $\mu$ = 2 cm
+#    instead of 5 cm. Readings more than $\mu$ in front of a voxel now clip at $F = 1$, so the
+#    zero crossing is no longer exactly their mean. How far (mm) is it from the true surface at
+#    1 m? Set `your_narrow_error_mm` (signed, crossing minus surface).
 #
 # Your answers go into the next cell (`None` until you have them). The check cell compares each
-# with a truth it computes by its own route (exercise 2 with the fast backend), and says which
+# with a truth it computes by its own route (exercise 2 with the fast backend, exercise 3 from
+# the closed-form average of the clipped readings), and says which
 # are still open; it does not print the answers.
 
 # %%
 your_median_mm = None  # exercise 1: {0.01: ..., 0.10: ...}
 your_weight = None  # exercise 2
+your_narrow_error_mm = None  # exercise 3
 
 
 # %%
@@ -556,5 +560,19 @@ def check_exercise_2(weight: float | None) -> None:
     print("exercise 2 correct")
 
 
+def check_exercise_3(error_mm: float | None) -> None:
+    if error_mm is None:
+        print("exercise 3: not answered yet (fill in your_narrow_error_mm above)")
+        return
+    sdf = readings_1d[:, None] - ray_voxels[None, :]  # every reading against every voxel (T1)
+    seen = sdf >= -0.02  # (T2) with mu = 2 cm
+    clipped = np.where(seen, np.minimum(1.0, sdf / 0.02), 0.0)
+    average = clipped.sum(axis=0) / np.maximum(seen.sum(axis=0), 1)  # (T3) in closed form
+    truth = 1000 * (zero_crossing(ray_voxels, average) - surface_1d)
+    assert abs(error_mm - truth) < 0.01, "fuse the same 50 readings with mu = 0.02"
+    print("exercise 3 correct")
+
+
 check_exercise_1(your_median_mm)
 check_exercise_2(your_weight)
+check_exercise_3(your_narrow_error_mm)
