@@ -1,6 +1,8 @@
 """ROS1 and ROS2 bags: written here with rosbags' own writers from data/tiny_desk, read back and
 reconstructed; the truth is the TUM folder they were made from."""
 
+import struct
+
 import numpy as np
 import pytest
 from tiny_desk import TINY, tum_frames
@@ -252,3 +254,132 @@ def test_a_bag_whose_last_images_are_cut_reads_the_frames_before(tmp_path, capsy
     assert str(excinfo.value) == (
         f"{middle}: {depth}: message 4 cannot be read (Invalid sequence length 76800 at offset 48.)"
     )
+
+
+def message_ends(path):
+    """Per frame of a whole ROS1 bag, the file offset where the later of its colour and depth
+    messages ends: found by searching the file for each message's bytes as rosbags reads them
+    (every message differs, by its stamp at least), not by parsing the bag's records."""
+    from rosbags.rosbag1 import Reader
+
+    data = path.read_bytes()
+    ends = {}
+    with Reader(path) as reader:
+        for connection, time, raw in reader.messages():
+            start = data.find(raw)
+            assert start > 0 and data.find(raw, start + 1) < 0  # found once
+            ends[connection.topic, time] = start + len(raw)
+    sequence = bag.open_bag(path)
+    frames = [
+        max(ends[TUM_TOPICS[0], colour], ends[TUM_TOPICS[1], depth])
+        for colour, depth, _ in sequence._pairs
+    ]
+    sequence.close()
+    return frames
+
+
+@pytest.fixture(scope="module")
+def whole_ros1_bag(tmp_path_factory):
+    return write_bag(tmp_path_factory.mktemp("whole") / "whole.bag")
+
+
+def ros1_cuts(path):
+    """Where a recording may stop: inside frame 3's last message (first chunk), inside frame
+    9's (second chunk), just after the last chunk's data, and inside the index that ends the
+    file."""
+    from rosbags.rosbag1 import Reader
+
+    ends, size = message_ends(path), path.stat().st_size
+    with Reader(path) as reader:
+        chunks = sorted(reader.chunks.values(), key=lambda chunk: chunk.datapos)
+    assert len(chunks) == 2 and ends[7] < chunks[1].datapos < ends[8]  # frames 8, 9 in chunk 2
+    last_chunk_end = chunks[-1].datapos + chunks[-1].datasize
+    return {
+        "inside the first chunk": ends[3] - 1000,
+        "inside the second chunk": ends[9] - 1,
+        "after the last chunk": last_chunk_end + 10,
+        "inside the index": size - 100,
+    }
+
+
+@pytest.mark.parametrize(
+    "where",
+    [
+        "inside the first chunk",
+        "inside the second chunk",
+        "after the last chunk",
+        "inside the index",
+    ],
+)
+def test_a_ros1_bag_cut_short_reads_its_intact_frames_bit_for_bit(
+    whole_ros1_bag, tmp_path, capsys, where
+):
+    cut = ros1_cuts(whole_ros1_bag)[where]
+    kept = sum(end <= cut for end in message_ends(whole_ros1_bag))
+    assert kept == {"inside the first chunk": 3, "inside the second chunk": 9}.get(where, 10)
+    path = tmp_path / "cut.bag"
+    path.write_bytes(whole_ros1_bag.read_bytes()[:cut])
+    from rosbags.rosbag1 import Reader, ReaderError
+
+    with pytest.raises(ReaderError), Reader(path):  # what rosbags alone makes of it
+        pass
+
+    sequence = bag.open_bag(path)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"kintinuous: warning: {path}: ")
+    assert err.endswith(
+        f"; reading the {kept} frames whose messages lie before it (0..{kept - 1})\n"
+    )
+    whole = bag.open_bag(whole_ros1_bag)
+    assert len(sequence) == kept and sequence.camera == whole.camera
+    np.testing.assert_array_equal(sequence.timestamps, whole.timestamps[:kept])
+    for i in range(kept):
+        ours, truth = sequence[i], whole[i]
+        np.testing.assert_array_equal(ours.colour, truth.colour)
+        np.testing.assert_array_equal(ours.depth, truth.depth)
+    sequence.close()
+    whole.close()
+
+
+def test_a_ros1_bag_cut_before_its_first_message_is_refused_in_one_line(
+    whole_ros1_bag, tmp_path, capsys
+):
+    path = tmp_path / "header.bag"
+    path.write_bytes(whole_ros1_bag.read_bytes()[:3000])  # inside the bag header's padding
+    assert main(["convert", str(path), str(tmp_path / "folder")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"kintinuous: error: {path}: cannot open as a ROS bag (")
+    assert err.count("\n") == 1 and not (tmp_path / "folder").exists()
+
+
+def test_a_cut_ros1_bag_converts_to_its_intact_frames(whole_ros1_bag, tmp_path, capsys):
+    cut = ros1_cuts(whole_ros1_bag)["inside the second chunk"]
+    path = tmp_path / "cut.bag"
+    path.write_bytes(whole_ros1_bag.read_bytes()[:cut])
+    assert main(["convert", str(path), str(tmp_path / "folder")]) == 0
+    assert "reading the 9 frames" in capsys.readouterr().err
+    folder = tum.open_sequence(tmp_path / "folder")
+    truth = tum.open_sequence(TINY)
+    assert len(folder) == 9
+    np.testing.assert_array_equal(folder[8].colour, truth[8].colour)
+    np.testing.assert_array_equal(folder[8].depth, truth[8].depth)
+
+
+def test_a_ros1_bag_never_indexed_reads_every_frame(whole_ros1_bag, tmp_path, capsys):
+    """A recorder killed before it closed the bag leaves index_pos 0 in the bag header and no
+    index: rosbags asks for a reindex, the frames are read from the chunks."""
+    data = bytearray(whole_ros1_bag.read_bytes())
+    field = data.index(b"index_pos=") + len(b"index_pos=")
+    (index_start,) = struct.unpack("<Q", data[field : field + 8])
+    data[field : field + 8] = bytes(8)
+    path = tmp_path / "unindexed.bag"
+    path.write_bytes(bytes(data[:index_start]))
+    sequence = bag.open_bag(path)
+    assert capsys.readouterr().err == (
+        f"kintinuous: warning: {path}: it was never indexed (its recording did not end); "
+        "reading the 10 frames whose messages lie before it (0..9)\n"
+    )
+    whole = bag.open_bag(whole_ros1_bag)
+    for i in (0, 9):
+        np.testing.assert_array_equal(sequence[i].depth, whole[i].depth)
+        np.testing.assert_array_equal(sequence[i].colour, whole[i].colour)

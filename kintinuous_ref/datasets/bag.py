@@ -5,6 +5,13 @@ TUM's associate.py pairs its lists, within 0.02 s); the camera comes from the fi
 message. Opening a bag reads every image message once for its stamp and keeps only the stamps;
 frames are then read one at a time from the bag.
 
+A ROS1 bag whose recording was cut off (the file ends inside a chunk, or in the index that
+closes it, or the index was never written) cannot be opened by rosbags, which reads the index
+first. Its records are then read in order from the start (the bag format 2.0: records of a
+header and data, chunks of connection and message records, SalvagedBag below): every message
+whose record is whole is used, and one warning line names the file, where it ends and how many
+frames were kept, as the .klg reader does with a log cut short.
+
 Colour: rgb8, bgr8, rgba8, bgra8 or mono8. Depth: 32FC1 metres (NaN: no measurement) or 16UC1
 millimetres. Topics default to those of the TUM RGB-D bags, then to those of the RealSense ROS
 driver with depth aligned to colour; other names are given as `rgb,depth,info`.
@@ -12,9 +19,13 @@ driver with depth aligned to colour; other names are given as `rgb,depth,info`.
 
 from __future__ import annotations
 
+import bz2
+import mmap
+import struct
 import sys
+from collections.abc import Collection, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -123,11 +134,13 @@ def open_bag(
         raise DatasetError(f"{path}: bag not found")
     bag_path = path.parent if path.suffix in (".db3", ".mcap") else path
     try:
-        reader = AnyReader([bag_path])
+        reader: Any = AnyReader([bag_path])
         reader.open()
     except (AnyReaderError, OSError, ValueError) as err:
         message = " ".join(str(err).split())
-        raise DatasetError(f"{path}: cannot open as a ROS bag ({message})") from None
+        reader = SalvagedBag.of(path) if path.suffix == ".bag" else None
+        if reader is None:
+            raise DatasetError(f"{path}: cannot open as a ROS bag ({message})") from None
     try:
         colour_topic, depth_topic, info_topic = _choose_topics(path, reader, topics)
         _check_types(path, reader, (colour_topic, depth_topic, info_topic), camera is None)
@@ -149,6 +162,11 @@ def open_bag(
             (stamps[colour_topic][i][0], stamps[depth_topic][j][0], float(colour_stamps[i]))
             for i, j in zip(colour_index, depth_index, strict=True)
         ]
+        if isinstance(reader, SalvagedBag):
+            warn(
+                f"{path}: {reader.damage}; reading the {len(pairs)} frames whose messages lie "
+                f"before it (0..{len(pairs) - 1})"
+            )
     except BaseException:
         reader.close()
         raise
@@ -315,3 +333,251 @@ def _depth_image(message: Any, path: Path, index: int) -> np.ndarray:
             "(32FC1 metres, 16UC1 millimetres)"
         )
     return np.ascontiguousarray(depth, dtype=np.float32)
+
+
+# The ROS1 bag format 2.0 (wiki.ros.org/Bags/Format/2.0): after the line "#ROSBAG V2.0", records
+# of a header (a uint32 length, then fields of a uint32 length and "name=value") and data (a
+# uint32 length, then the bytes). The header's "op" field says what a record is.
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+OP_MESSAGE, OP_BAG_HEADER, OP_CHUNK, OP_CONNECTION = 2, 3, 5, 7
+_UINT32 = struct.Struct("<I")
+_TIME = struct.Struct("<II")  # seconds, nanoseconds
+
+
+class Record(NamedTuple):
+    fields: dict[str, bytes]
+    data_start: int
+    data_end: int  # as the record declares it: past the end of a record cut short
+
+
+class Connection(NamedTuple):
+    id: int
+    topic: str
+    msgtype: str
+    msgdef: str
+
+
+class Message(NamedTuple):
+    time: int  # bag time, ns
+    connection: int
+    chunk: int  # index into SalvagedBag's chunks
+    start: int  # the message's bytes within its chunk's data
+    end: int
+
+
+def record_at(buffer: Any, position: int) -> Record | None:
+    """The record starting at `position` in `buffer`, or None when its header is not whole or
+    not a header (the buffer ends, or holds something else, there)."""
+    if position + 4 > len(buffer):
+        return None
+    (header_size,) = _UINT32.unpack_from(buffer, position)
+    data_start = position + 4 + header_size + 4
+    if data_start > len(buffer):
+        return None
+    fields = header_fields(bytes(buffer[position + 4 : data_start - 4]))
+    if fields is None or len(fields.get("op", b"")) != 1:
+        return None
+    (data_size,) = _UINT32.unpack_from(buffer, data_start - 4)
+    return Record(fields, data_start, data_start + data_size)
+
+
+def header_fields(blob: bytes) -> dict[str, bytes] | None:
+    """A record header's fields by name; None when `blob` is not one."""
+    fields, position = {}, 0
+    while position < len(blob):
+        if position + 4 > len(blob):
+            return None
+        (size,) = _UINT32.unpack_from(blob, position)
+        name, equals, value = blob[position + 4 : position + 4 + size].partition(b"=")
+        if not equals or position + 4 + size > len(blob):
+            return None
+        fields[name.decode("latin-1")] = value
+        position += 4 + size
+    return fields
+
+
+def whole_records(buffer: Any, position: int = 0) -> Iterator[Record]:
+    """The records from `position` on, up to the first that is not whole."""
+    while (record := record_at(buffer, position)) is not None and record.data_end <= len(buffer):
+        yield record
+        position = record.data_end
+
+
+def _chunk_data(buffer: Any, record: Record) -> bytes | None:
+    """A chunk record's records as bytes: decompressed when the chunk is whole, its bytes up to
+    the end of the file when an uncompressed chunk is cut short (the records before the cut are
+    whole), None for a compressed chunk cut short (nothing in it can be read)."""
+    compression = record.fields.get("compression", b"none")
+    whole = record.data_end <= len(buffer)
+    data = bytes(buffer[record.data_start : min(record.data_end, len(buffer))])
+    if compression == b"none":
+        return data
+    if not whole:
+        return None
+    if compression == b"bz2":
+        return bz2.decompress(data)
+    if compression == b"lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    return None
+
+
+def _normal_topic(topic: str) -> str:
+    """A topic as rosbags names it: one slash between the parts, one in front."""
+    return "/" + "/".join(part for part in topic.split("/") if part)
+
+
+class SalvagedBag:
+    """The whole messages of a ROS1 bag that rosbags cannot open, read record by record from its
+    start. It offers what BagSequence calls of rosbags' AnyReader: connections, messages (in bag
+    time order) and deserialize; `damage` says where the bag ends."""
+
+    def __init__(self, path: Path, file: Any, buffer: Any) -> None:
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path, self._file, self._buffer = path, file, buffer
+        self.damage = "its index at the end is missing or cut short"
+        self._chunks: list[bytes | None] = []
+        found: dict[int, Connection] = {}
+        messages: list[Message] = []
+        for record in self._chunk_records():
+            data = _chunk_data(buffer, record)
+            self._chunks.append(data)
+            if data is not None:
+                messages += self._read_chunk(len(self._chunks) - 1, data, found)
+        self.connections = list(found.values())
+        self._messages = sorted(messages, key=lambda message: message.time)  # stable
+        self._by_id = found
+        self._typestore = get_typestore(Stores.EMPTY)
+        for connection in found.values():
+            self._typestore.register(_types_of(connection))
+        self._cached: tuple[int, bytes] = (-1, b"")
+
+    @classmethod
+    def of(cls, path: Path) -> SalvagedBag | None:
+        """The bag at `path` read record by record, or None when it is no ROS1 bag 2.0 or holds
+        no whole message."""
+        try:
+            file = open(path, "rb")  # noqa: SIM115 (closed by close())
+        except OSError:
+            return None
+        try:
+            buffer = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
+        except (OSError, ValueError):  # an empty file cannot be mapped
+            file.close()
+            return None
+        bag = None
+        if buffer[: len(ROS1_MAGIC)] == ROS1_MAGIC:
+            bag = cls(path, file, buffer)
+        if bag is None or not bag._messages:
+            buffer.close()
+            file.close()
+            return None
+        return bag
+
+    def _chunk_records(self) -> Iterator[Record]:
+        """The chunk records in file order, the last maybe cut short; then `damage` says where
+        the reading stopped."""
+        buffer, position, index_start = self._buffer, len(ROS1_MAGIC), None
+        while (record := record_at(buffer, position)) is not None:
+            op = record.fields["op"][0]
+            if op == OP_BAG_HEADER:
+                index_start = _index_position(record)
+            elif op == OP_CHUNK:
+                yield record
+            if record.data_end > len(buffer):
+                break
+            position = record.data_end
+        self.damage = _where_it_ends(buffer, position, index_start)
+
+    def _read_chunk(
+        self, chunk: int, data: bytes, connections: dict[int, Connection]
+    ) -> list[Message]:
+        """The whole message records of one chunk's data; its connection records go into
+        `connections`."""
+        messages = []
+        for record in whole_records(data):
+            op, fields = record.fields["op"][0], record.fields
+            if op == OP_CONNECTION:
+                connection = _connection(fields, data[record.data_start : record.data_end])
+                if connection is not None:
+                    connections.setdefault(connection.id, connection)
+            elif op == OP_MESSAGE and "conn" in fields and "time" in fields:
+                (number,) = _UINT32.unpack(fields["conn"])
+                seconds, nanoseconds = _TIME.unpack(fields["time"])
+                time = seconds * 1_000_000_000 + nanoseconds
+                messages.append(Message(time, number, chunk, record.data_start, record.data_end))
+        return [message for message in messages if message.connection in connections]
+
+    def messages(
+        self, connections: Collection[Any] = (), start: int | None = None, stop: int | None = None
+    ) -> Iterator[tuple[Connection, int, bytes]]:
+        """(connection, bag time ns, message bytes) of `connections`' messages (all when none
+        is given) with start <= time < stop, in time order."""
+        wanted = {connection.id for connection in connections} or set(self._by_id)
+        for message in self._messages:
+            if message.connection not in wanted:
+                continue
+            if (start is not None and message.time < start) or (
+                stop is not None and message.time >= stop
+            ):
+                continue
+            raw = self._chunk(message.chunk)[message.start : message.end]
+            yield self._by_id[message.connection], message.time, raw
+
+    def _chunk(self, number: int) -> bytes:
+        if self._cached[0] != number:
+            data = self._chunks[number]
+            assert data is not None  # messages come from readable chunks only
+            self._cached = (number, data)
+        return self._cached[1]
+
+    def deserialize(self, raw: bytes, msgtype: str) -> Any:
+        return self._typestore.deserialize_ros1(raw, msgtype)
+
+    def close(self) -> None:
+        self._buffer.close()
+        self._file.close()
+
+
+def _where_it_ends(buffer: Any, stop: int, index_start: int | None) -> str:
+    """Why the records end at `stop`: the file cut short inside a chunk or the index (which
+    starts at `index_start`, 0 when it was never written), or an index rosbags cannot read."""
+    size = len(buffer)
+    if index_start == 0:
+        return "it was never indexed (its recording did not end)"
+    if stop >= size:
+        return "its index cannot be read"
+    if index_start is not None and stop >= index_start:
+        return f"the file is cut short at byte {size}, inside its index (from byte {index_start})"
+    record = record_at(buffer, stop)
+    inside = "a chunk" if record is not None and record.fields["op"][0] == OP_CHUNK else "a record"
+    return f"the file is cut short at byte {size}, inside {inside} (from byte {stop})"
+
+
+def _index_position(bag_header: Record) -> int | None:
+    value = bag_header.fields.get("index_pos", b"")
+    return struct.unpack("<Q", value)[0] if len(value) == 8 else None
+
+
+def _connection(fields: dict[str, bytes], data: bytes) -> Connection | None:
+    """A connection record: its number and topic in the header, its type and message
+    definition in a header-like block of fields in the data."""
+    from rosbags.typesys.msg import normalize_msgtype
+
+    described = header_fields(data)
+    if described is None or "conn" not in fields or "type" not in described:
+        return None
+    (number,) = _UINT32.unpack(fields["conn"])
+    topic = fields.get("topic", b"").decode()
+    definition = described.get("message_definition", b"").decode()
+    return Connection(
+        number, _normal_topic(topic), normalize_msgtype(described["type"].decode()), definition
+    )
+
+
+def _types_of(connection: Connection) -> Any:
+    from rosbags.typesys import get_types_from_msg
+
+    return get_types_from_msg(connection.msgdef, connection.msgtype)
