@@ -5,6 +5,8 @@ import struct
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from tiny_desk import TINY, tum_frames
 
 from kintinuous_ref.camera import load_intrinsics_json
@@ -383,3 +385,22 @@ def test_a_ros1_bag_never_indexed_reads_every_frame(whole_ros1_bag, tmp_path, ca
     for i in (0, 9):
         np.testing.assert_array_equal(sequence[i].depth, whole[i].depth)
         np.testing.assert_array_equal(sequence[i].colour, whole[i].colour)
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(data=st.data())
+def test_a_damaged_and_cut_ros1_bag_opens_or_is_refused_in_one_line(whole_ros1_bag, tmp_path, data):
+    """Bytes overwritten at random places, then the bag cut at a random length: opened (its
+    whole messages read) or refused with a DatasetError, never another exception."""
+    damaged = bytearray(whole_ros1_bag.read_bytes())
+    for _ in range(data.draw(st.integers(0, 8))):
+        at = data.draw(st.integers(0, len(damaged) - 1))
+        damaged[at] = data.draw(st.integers(0, 255))
+    path = tmp_path / "damaged.bag"
+    path.write_bytes(bytes(damaged[: data.draw(st.integers(0, len(damaged)))]))
+    try:
+        bag.open_bag(path).close()
+    except DatasetError:
+        pass

@@ -457,7 +457,14 @@ class SalvagedBag:
     @classmethod
     def of(cls, path: Path) -> SalvagedBag | None:
         """The bag at `path` read record by record, or None when it is no ROS1 bag 2.0 or holds
-        no whole message."""
+        no whole message, or when rosbags reads its index (then what it refused lies elsewhere)."""
+        from rosbags.rosbag1 import Reader
+
+        try:
+            with Reader(path):
+                return None
+        except Exception:  # rosbags' ReaderError, or what its parsing raises on damaged bytes
+            pass
         try:
             file = open(path, "rb")  # noqa: SIM115 (closed by close())
         except OSError:
@@ -469,7 +476,10 @@ class SalvagedBag:
             return None
         bag = None
         if buffer[: len(ROS1_MAGIC)] == ROS1_MAGIC:
-            bag = cls(path, file, buffer)
+            try:
+                bag = cls(path, file, buffer)
+            except Exception:  # damaged beyond what is read here: refused as rosbags refused it
+                bag = None
         if bag is None or not bag._messages:
             buffer.close()
             file.close()
@@ -503,7 +513,11 @@ class SalvagedBag:
                 connection = _connection(fields, data[record.data_start : record.data_end])
                 if connection is not None:
                     connections.setdefault(connection.id, connection)
-            elif op == OP_MESSAGE and "conn" in fields and "time" in fields:
+            elif (
+                op == OP_MESSAGE
+                and len(fields.get("conn", b"")) == 4
+                and len(fields.get("time", b"")) == 8
+            ):
                 (number,) = _UINT32.unpack(fields["conn"])
                 seconds, nanoseconds = _TIME.unpack(fields["time"])
                 time = seconds * 1_000_000_000 + nanoseconds
@@ -567,7 +581,7 @@ def _connection(fields: dict[str, bytes], data: bytes) -> Connection | None:
     from rosbags.typesys.msg import normalize_msgtype
 
     described = header_fields(data)
-    if described is None or "conn" not in fields or "type" not in described:
+    if described is None or len(fields.get("conn", b"")) != 4 or "type" not in described:
         return None
     (number,) = _UINT32.unpack(fields["conn"])
     topic = fields.get("topic", b"").decode()
