@@ -8,6 +8,10 @@ numba's own parallel loops (`parallel=True`, prange) would do the same, but thei
 transformation and the second compilation of each loop body cost about half of every kernel's
 compile time (docs/benchmarks.md). The claims and the waits are atomic operations on a small
 int64 array, so a thread that waits for another needs neither the GIL nor a wake-up.
+
+How many threads join a loop follows its work, measured as the loops run (`threads_for`): a
+loop too small to repay waking and joining a helper runs on the calling thread alone, so that
+more threads never make a stage slower. Its results are the same either way.
 """
 
 import itertools
@@ -106,6 +110,16 @@ def _spin_below(array: Any, index: int, target: int, spins: int) -> int:
     return value
 
 
+@numba.njit(nogil=True, cache=True)
+def await_parts(claims: Any, parts: int) -> None:
+    """Inside a loop: wait until every one of its `parts` is done (the loop's threads have
+    left `claimed_items`), so that a second pass over its results may start. The parts still
+    running are held by threads that run, so the wait ends; it spins, as the waits are about
+    one part long."""
+    while _load(claims, PARTS_DONE) < parts:
+        pass
+
+
 # Parts a loop is cut into per thread, by default: with a few each, a thread that starts late,
 # finishes early or is descheduled evens out.
 PARTS_PER_THREAD = 4
@@ -116,25 +130,77 @@ SPINS = 200_000
 
 
 def threads() -> int:
-    """The threads run_parallel runs a loop on (numba's thread count: NUMBA_NUM_THREADS or
-    numba.set_num_threads)."""
+    """The threads run_parallel may run a loop on (numba's thread count: NUMBA_NUM_THREADS or
+    numba.set_num_threads); a loop with little work runs on fewer (`threads_for`)."""
     return numba.get_num_threads()
 
 
-def run_parallel(loop: Any, *args: Any, parts: int | None = None) -> None:
-    """loop(claims, parts, *args) on threads() threads, the calling one among them, each calling
-    it once; returns once every part (PARTS_PER_THREAD per thread unless told) is done. The
-    loops write disjoint parts of their outputs, so no result depends on the number of threads."""
-    team_size = threads()
+# The least work, in seconds on one thread, that a thread joins a loop for. Waking a helper and
+# joining it costs 12-18 microseconds on an idle 2-core VM (benchmarks/parallel_call_overhead.py:
+# a loop of 16 microseconds takes 21 on two threads, one of 170 takes 103) and more on a busy
+# machine or a larger team; with at least 50 microseconds each, a thread that joins costs at
+# most about a third of what it does, and a loop of under 100 microseconds runs on the calling
+# thread alone.
+MIN_SECONDS_PER_THREAD = 50e-6
+
+
+def threads_for(seconds: float | None, team_size: int) -> int:
+    """How many threads (1..team_size) run a loop of `seconds` of work on one thread: one per
+    MIN_SECONDS_PER_THREAD of it; all of them while its work is not yet known (None)."""
+    if seconds is None:
+        return team_size
+    return max(1, min(team_size, int(seconds / MIN_SECONDS_PER_THREAD)))
+
+
+class LoopCosts:
+    """Each loop's measured cost: seconds of work on one thread per item, from its last call.
+    A call on the calling thread alone is timed whole; on n threads the calling thread's own
+    time (it claims parts until none is left) times n, which a helper that joins late makes
+    too large, never too small, so a loop once found worth sharing stays shared."""
+
+    def __init__(self) -> None:
+        self.per_item: dict[Any, float] = {}
+
+    def seconds(self, loop: Any, items: int) -> float | None:
+        """The work of a call of `loop` over `items` items, on one thread; None before its
+        first call."""
+        rate = self.per_item.get(loop)
+        return None if rate is None else rate * max(items, 1)
+
+    def record(self, loop: Any, items: int, seconds: float) -> None:
+        self.per_item[loop] = seconds / max(items, 1)
+
+
+LOOP_COSTS = LoopCosts()
+
+
+def work_items(args: tuple) -> int:
+    """A loop's size where its caller gives none: the elements of its largest array argument
+    (its image, its points or its volume), to which its work is about proportional."""
+    return max((arg.size for arg in args if isinstance(arg, np.ndarray)), default=1)
+
+
+def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | None = None) -> None:
+    """loop(claims, parts, *args) on up to threads() threads, the calling one among them, each
+    calling it once; returns once every part (PARTS_PER_THREAD per thread unless told) is done.
+    How many threads join follows the loop's measured work (`threads_for`, LOOP_COSTS: per
+    item of `items`, or of `work_items`), so a small loop runs on the calling thread alone.
+    The loops write disjoint parts of their outputs, and their sums go into fixed chunks, so no
+    result depends on the number of threads or parts."""
+    items = work_items(args) if items is None else items
+    team_size = threads_for(LOOP_COSTS.seconds(loop, items), threads())
     parts = PARTS_PER_THREAD * team_size if parts is None else parts
     claims = np.zeros(3, dtype=np.int64)
     helpers = min(parts, team_size) - 1
+    started = time.perf_counter()
     if helpers <= 0:
         loop(claims, parts, *args)
+        LOOP_COSTS.record(loop, items, time.perf_counter() - started)
         return
     job = _Job(loop, claims, parts, args, helpers)
     _team().post(job)
     loop(claims, parts, *args)
+    LOOP_COSTS.record(loop, items, (time.perf_counter() - started) * (helpers + 1))
     _wait_for_parts(job)
 
 
@@ -219,10 +285,10 @@ os.register_at_fork(after_in_child=_team.cache_clear)
 
 
 def run_parallel_above(minimum: int, loop: Any, count: int, *args: Any) -> None:
-    """run_parallel(loop, *args) for `count` >= `minimum` items, else in one part on the
-    calling thread: waking the other threads costs more than a small loop, and on a busy
-    machine a parallel loop waits for its slowest (descheduled) thread."""
-    run_parallel(loop, *args, parts=None if count >= minimum else 1)
+    """run_parallel(loop, *args) over `count` items, and below `minimum` items in one part on
+    the calling thread whatever the loop's measured cost: for loops whose size alone says that
+    waking the other threads costs more than they share."""
+    run_parallel(loop, *args, parts=None if count >= minimum else 1, items=count)
 
 
 @intrinsic

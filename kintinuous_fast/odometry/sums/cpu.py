@@ -20,7 +20,7 @@ import numpy as np
 
 from kintinuous_fast.odometry import ops as geometry_ops
 from kintinuous_fast.targets import to_host
-from kintinuous_fast.targets.cpu import parallel_part, run_parallel_above
+from kintinuous_fast.targets.cpu import parallel_part, run_parallel
 
 from . import NV, SLOT_B, SLOT_COST, SLOT_COUNT, chunks_for
 from .ops import build_ops
@@ -32,7 +32,6 @@ __all__ = [
     "GEOMETRY",
     "INLINE",
     "LOOP",
-    "PARALLEL_MIN",
     "add_block",
     "add_column",
     "add_row",
@@ -44,10 +43,6 @@ __all__ = [
 # Chunks per reduction loop: enough to keep every core busy, few enough that the partials cost
 # nothing to add up. Fixed, so that the order of summation never depends on the thread count.
 CHUNKS = 64
-# Loops over fewer items than this run on the calling thread only (see `run`). At 10 000 the
-# RGB-D systems (~35 000 interest points at level 0) and the coarse levels run on every core,
-# while the small loops of the coarsest levels do not wait for woken threads.
-PARALLEL_MIN = 10_000
 # Points per block of the ICP and RGB-D loops: a block's projections are computed first, in a
 # loop that vectorises (divisions and roundings 8 at a time), into a buffer that stays in L1.
 BLOCK = 128
@@ -116,11 +111,10 @@ def stage(array: Any) -> Any:
 
 
 def run(loop: Any, count: int, *args: Any) -> None:
-    """run_parallel a loop; below PARALLEL_MIN items on the calling thread alone. Waking the other
-    threads costs more than such a loop, and on a busy machine a parallel loop waits for its
-    slowest (descheduled) thread, which costs a loop of a few thousand points many times its
-    own time."""
-    run_parallel_above(PARALLEL_MIN, loop, count, *args)
+    """run_parallel a loop over `count` items: on as many threads as its measured work per item
+    repays (kintinuous_fast.targets.cpu.threads_for), the calling thread alone for the small
+    loops of the coarse levels."""
+    run_parallel(loop, *args, items=count)
 
 
 def partials(count: int) -> np.ndarray:
