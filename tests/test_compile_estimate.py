@@ -172,3 +172,37 @@ def test_an_error_during_the_compile_ends_the_notice_line(tmp_path, monkeypatch,
     err = capsys.readouterr().err
     assert err.endswith("later runs load them in seconds)...\n")
     assert "for mapping and tracking" in err and "25-80 s on 2 cores" in err
+
+
+@pytest.mark.parametrize(
+    ("odometry", "serial", "part"),
+    [("all", False, "mapping and tracking"), (GROUNDTRUTH, False, "mapping"), ("all", True, None)],
+)
+def test_warmup_from_an_empty_cache_keeps_its_time_for_this_installation(
+    tmp_path, monkeypatch, odometry, serial, part
+):
+    """`warmup --empty-cache` measures a fresh installation's compile in a child process with a
+    temporary cache; its wall time is kept in this installation's record (a serial one is not
+    what a run pays, and is not kept). The child is replaced by its report."""
+    backend = CachingBackend(tmp_path)
+    report = {"backend": "cpu", "seconds": 61.25, "methods": [], "stage_seconds": {}}
+
+    class Child:
+        returncode, pid = 0, 0
+        stdout = stderr = None
+
+        def __init__(self, command, **options):
+            assert options["env"]["NUMBA_CACHE_DIR"] != str(tmp_path)  # its own, empty
+
+        def communicate(self, timeout=None):
+            return "progress\n" + json.dumps(report) + "\n", ""
+
+    monkeypatch.setattr(warmup.subprocess, "Popen", Child)
+    monkeypatch.setattr(warmup, "end_process_group", lambda child: None)
+    monkeypatch.setattr(warmup, "load_backend", lambda name: backend)
+    assert warmup.warm_up_from_empty_cache("cpu", odometry, serial=serial) == report
+    if part is None:
+        assert not (tmp_path / cache.ESTIMATE_NAME).exists()
+    else:
+        assert backend.compile_seconds(part) == 61.2  # kept to a tenth of a second
+        assert warmup.compile_estimate(backend, part) == "about 61 s, as measured on this machine"
