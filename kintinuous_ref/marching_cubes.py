@@ -33,7 +33,14 @@ three vertices are; vertices that no kept triangle uses are dropped.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+from kintinuous_ref.box_surface import BoxSurface, box_surface
+
+if TYPE_CHECKING:
+    from kintinuous_ref.tsdf import TsdfVolume
 
 # A voxel whose share of a vertex's interpolation is below this does not decide whether the
 # vertex is kept.
@@ -230,3 +237,14 @@ def marching_cubes(
     unique, corners = np.unique(ids, return_inverse=True)
     positions, _ = _edge_crossings(tsdf, weight, min_weight, unique)
     return positions, corners.reshape(-1, 3).astype(np.int64)
+
+
+def mesh_box(
+    volume: TsdfVolume, lo: tuple[int, int, int], hi: tuple[int, int, int], min_weight: float
+) -> BoxSurface:
+    """The surface of the logical voxel box [lo, hi) of `volume` (it may wrap around the
+    cyclical buffer) by this marching cubes and the moving volume's slice rules
+    (box_surface.py): a vertex kept where both voxels of its edge have weight >= min_weight,
+    with its colour and grid edge. Each backend's mesh stage has one, computed where its
+    volume lies (the cuda backend's on the device, downloading the surface only)."""
+    return box_surface(volume, lo, hi, min_weight, marching_cubes)

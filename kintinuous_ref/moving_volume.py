@@ -27,7 +27,9 @@ triangulated exactly once and neighbouring slices share the vertices on their co
 lies on a grid edge; its KEY is the edge (global index of its lower voxel + axis), so the final mesh
 merges seam vertices exactly by key. A vertex is kept when both voxels of its edge have weight >=
 min_extract_weight (8: docs/parameters.md; fewer while fewer frames have been fused), a triangle
-when its three vertices are kept.
+when its three vertices are kept. The box's surface is the backend's mesh stage's (`mesh_box`,
+box_surface.py's rules): the cuda backend meshes the box where the volume lies, on the device, and
+downloads only the surface; this module names its vertices by key and places them in the world.
 
 The slices, their files and the one mesh they make at the end are slices.py's. One caveat: a
 straddling cube is triangulated with the staying layer's values at the time it left; if later
@@ -36,17 +38,19 @@ different edge (a crack one voxel long). With a static scene and weights >= 8 th
 in practice (tests/test_moving_volume.py counts the open edges).
 
     moving_volume.py  when and how far to shift, extracting the cubes that leave, MovingVolume
+    box_surface.py    the surface of a box of the volume by the slices' rules (the mesh stages')
     slices.py         the slices' mesh and keys, their files, the one mesh assembled from them
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
-from kintinuous_ref import se3
+from kintinuous_ref import marching_cubes, se3
+from kintinuous_ref.box_surface import BoxSurface
 from kintinuous_ref.config import VolumeConfig
-from kintinuous_ref.marching_cubes import marching_cubes
-from kintinuous_ref.mesh import Contour
 from kintinuous_ref.slices import (
     ON_VOXEL,
     SLICE_NAME,
@@ -66,6 +70,7 @@ from kintinuous_ref.tsdf import TsdfVolume
 __all__ = [
     "ON_VOXEL",
     "SLICE_NAME",
+    "BoxMesher",
     "MovingVolume",
     "SliceMesh",
     "SliceStore",
@@ -82,7 +87,8 @@ __all__ = [
     "write_slice",
 ]
 
-_ON_EDGE = 1e-3  # voxels: a vertex coordinate closer than this to an integer lies on it
+# A mesh stage's mesh_box: (volume, lo, hi, min_weight) -> the box's BoxSurface.
+BoxMesher = Callable[[TsdfVolume, tuple, tuple, float], BoxSurface]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -123,95 +129,28 @@ def extract_box(
     hi: tuple[int, int, int],
     corner: np.ndarray,
     min_weight: float,
-    contour: Contour = marching_cubes,
+    mesh_box: BoxMesher = marching_cubes.mesh_box,
 ) -> SliceMesh:
-    """Marching cubes (`contour`) over the logical voxel box [lo, hi) of the window whose
-    logical voxel 0 is global voxel `corner`: every cube with all 8 voxels in the box,
-    triangulated once, with keys; a vertex kept when both voxels of its edge have weight >=
-    min_weight (module docstring)."""
+    """The slice of the logical voxel box [lo, hi) of the window whose logical voxel 0 is global
+    voxel `corner`: the box's surface by `mesh_box` (a backend's mesh stage's; box_surface.py:
+    every cube with all 8 voxels in the box triangulated once, a vertex kept when both voxels of
+    its edge have weight >= min_weight), its vertices in world coordinates and keyed by their
+    global grid edge (module docstring)."""
     lo, hi = np.asarray(lo, dtype=np.int64), np.asarray(hi, dtype=np.int64)
     box_lo, box_hi = corner + lo, corner + hi
-    cells = volume.cells(tuple(lo), tuple(hi))
-    weight = volume.weight[cells]
-    shape = weight.shape
-    if min(shape) < 2 or not (weight >= min_weight).any():
+    surface = mesh_box(volume, tuple(int(x) for x in lo), tuple(int(x) for x in hi), min_weight)
+    if len(surface.triangles) == 0:
         return empty_slice(box_lo, box_hi)
-    # The box in its own index units: vertex coordinates stay small and exact enough to name
-    # their edge (world coordinates could be kilometres). weight >= m is weight > the float
-    # below m, the contour's rule.
-    below = float(np.nextafter(min_weight, -np.inf))
-    local, triangles = contour(volume.tsdf[cells], weight, below)
-    if len(triangles) == 0:
-        return empty_slice(box_lo, box_hi)
-
-    # Which grid edge each vertex lies on: two coordinates are whole numbers, the third is not
-    # (or none is: the vertex sits on a voxel).
-    distance = np.abs(local - np.rint(local))
-    axis = np.argmax(distance, axis=1)
-    axis[distance.max(axis=1) < _ON_EDGE] = ON_VOXEL
-    lower = np.rint(local).astype(np.int64)
-    along = np.flatnonzero(axis < 3)
-    lower[along, axis[along]] = np.floor(local[along, axis[along]]).astype(np.int64)
-    lower = np.clip(lower, 0, np.array(shape) - 1)
-    upper = lower.copy()
-    upper[along, axis[along]] += 1
-    upper = np.minimum(upper, np.array(shape) - 1)
-
-    # The slices keep a vertex only where BOTH voxels of its edge are confidently observed,
-    # whatever share each has in its position: stricter than the contour's rule (which reads
-    # only the voxels the position interpolates from), so that a slice holds no surface next
-    # to voxels seen fewer than min_weight times (docs/parameters.md).
-    w_lower = weight[lower[:, 0], lower[:, 1], lower[:, 2]]
-    w_upper = weight[upper[:, 0], upper[:, 1], upper[:, 2]]
-    keep = (w_lower >= min_weight) & (w_upper >= min_weight)
-    triangles = triangles[keep[triangles].all(axis=1)]
-    if len(triangles) == 0:
-        return empty_slice(box_lo, box_hi)
-    used = np.zeros(len(local), dtype=bool)
-    used[triangles.ravel()] = True
-    local, lower, upper, axis = local[used], lower[used], upper[used], axis[used]
-    triangles = (np.cumsum(used) - 1)[triangles]
-
-    colours = _edge_colours(volume, cells, local, lower, upper, axis)
-    keys = np.column_stack([box_lo + lower, axis]).astype(np.int32)
-    points = volume.voxel_to_world(lo + local)
+    keys = np.column_stack([box_lo + surface.edges[:, :3], surface.edges[:, 3]])
+    points = volume.voxel_to_world(lo + surface.vertices)
     return SliceMesh(
         points=points.astype(np.float32),
-        triangles=triangles,
-        colours=colours,
-        keys=keys,
+        triangles=surface.triangles,
+        colours=surface.colours,
+        keys=keys.astype(np.int32),
         box_lo=box_lo,
         box_hi=box_hi,
     )
-
-
-def _edge_colours(
-    volume: TsdfVolume,
-    cells: tuple,
-    local: np.ndarray,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    axis: np.ndarray,
-) -> np.ndarray:
-    """RGB of vertices on grid edges: linear interpolation of the edge's two voxels over those
-    that received colour (colour.surface_colour restricted to an edge); black if neither did."""
-    colours = np.zeros((len(local), 3), dtype=np.uint8)
-    if volume.colour is None or len(local) == 0:
-        return colours
-    rgb, weight = volume.colour[cells], volume.colour_weight[cells]
-    t = np.zeros(len(local))
-    along = np.flatnonzero(axis < 3)
-    t[along] = local[along, axis[along]] - lower[along, axis[along]]
-    total = np.zeros((len(local), 3))
-    coverage = np.zeros(len(local))
-    for end, w in ((lower, 1.0 - t), (upper, t)):
-        i, j, k = end.T
-        w = w * (weight[i, j, k] > 0)
-        total += w[:, None] * rgb[i, j, k]
-        coverage += w
-    coloured = coverage > 1e-6
-    colours[coloured] = np.clip(np.rint(total[coloured] / coverage[coloured, None]), 0, 255)
-    return colours
 
 
 def clear_box(volume: TsdfVolume, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> None:
@@ -239,10 +178,12 @@ class MovingVolume:
         first_pose: np.ndarray,
         config: VolumeConfig,
         store: SliceStore | None = None,
-        contour: Contour = marching_cubes,
+        mesh_box: BoxMesher = marching_cubes.mesh_box,
     ) -> None:
         self.volume = volume
-        self.contour = contour  # the slices' marching cubes (a backend's, or the reference's)
+        # The slices' surfaces: the backend's mesh stage's (cuda's on the device, where
+        # `volume` lies), or the reference's.
+        self.mesh_box = mesh_box
         self.threshold = config.shift_threshold
         self.min_weight = config.min_extract_weight
         self.store = store if store is not None else SliceStore()
@@ -289,7 +230,7 @@ class MovingVolume:
             leave_lo[axis] = n + voxels
             lo[axis] = max(n + voxels - 1, 0)
         mesh = extract_box(
-            self.volume, tuple(lo), tuple(hi), self.corner, self.extract_weight, self.contour
+            self.volume, tuple(lo), tuple(hi), self.corner, self.extract_weight, self.mesh_box
         )
         if len(mesh.triangles):
             self.store.add(mesh)
@@ -305,7 +246,7 @@ class MovingVolume:
         so that the followed point of `pose` is at its centre."""
         n = self.volume.resolution
         mesh = extract_box(
-            self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight, self.contour
+            self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight, self.mesh_box
         )
         if len(mesh.triangles):
             self.store.add(mesh)
@@ -324,7 +265,7 @@ class MovingVolume:
             return
         n = self.volume.resolution
         mesh = extract_box(
-            self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight, self.contour
+            self.volume, (0, 0, 0), (n, n, n), self.corner, self.extract_weight, self.mesh_box
         )
         if len(mesh.triangles):
             self.store.add(mesh)

@@ -243,7 +243,7 @@ def run(
                         pose,
                         config.volume,
                         SliceStore(slices),
-                        contour=backend.mesh.marching_cubes,
+                        mesh_box=backend.mesh.mesh_box,
                     )
                 result.host_volume = backend.host_volume
                 result.contour = backend.mesh.marching_cubes

@@ -23,8 +23,11 @@ from kintinuous_fast.mesh.ops import build_ops
 from kintinuous_fast.targets import cpu_jit_numpy_errors
 from kintinuous_fast.targets.cache import drop_stale_kernels
 from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel, threads
+from kintinuous_fast.tsdf.volume import FastTsdfVolume, slab_view
+from kintinuous_ref.box_surface import BoxSurface, box_surface
+from kintinuous_ref.tsdf import TsdfVolume
 
-__all__ = ["marching_cubes"]
+__all__ = ["marching_cubes", "mesh_box"]
 
 _ops = build_ops(cpu_jit_numpy_errors)
 row_trim, cube_row_range = _ops.row_trim, _ops.cube_row_range
@@ -148,6 +151,21 @@ def marching_cubes(
     found = (ranges, entries, starts[1], triangles, ids, starts[0])
     run_parallel(_triangle_loop, shape, *found, parts=parts)
     return vertices, triangles
+
+
+def mesh_box(
+    volume: TsdfVolume | FastTsdfVolume,
+    lo: tuple[int, int, int],
+    hi: tuple[int, int, int],
+    min_weight: float,
+) -> BoxSurface:
+    """kintinuous_ref.marching_cubes.mesh_box with these loops' marching cubes: the surface of
+    the logical box [lo, hi) by the slices' rules (kintinuous_ref.box_surface, in NumPy: per
+    vertex, little work beside the marching cubes). A fast volume is read through its
+    SlabView (the box's cells, dequantised)."""
+    if isinstance(volume, FastTsdfVolume):
+        volume = slab_view(volume)
+    return box_surface(volume, lo, hi, min_weight, marching_cubes)
 
 
 # numba checks a cached loop against its own file only, and these inline mesh/ops.py: the
