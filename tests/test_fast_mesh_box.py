@@ -118,27 +118,33 @@ def test_cpu_mesh_box_equals_the_reference(colour):
     assert_same_surface(found, reference_surface(fast, *whole))
 
 
+def moving_volume_slices(volume, mesh_box) -> list:
+    """The slices of a shift by 4 voxels along x, then of the rest of the window, with the
+    moving volume extracting them through `mesh_box`."""
+    config = VolumeConfig(resolution=N, size=0.12, shift_threshold=2, min_extract_weight=4.0)
+    moving = MovingVolume(volume, np.eye(4), config, mesh_box=mesh_box)
+    moving.fused = 8
+    moving.shift_axis(0, 4)
+    moving.finish()
+    return list(moving.store)
+
+
+def assert_same_slices(found: list, expected: list) -> None:
+    assert len(found) == len(expected) == 2
+    for mesh, truth in zip(found, expected, strict=True):
+        for name in ("points", "keys", "triangles", "colours", "box_lo", "box_hi"):
+            np.testing.assert_array_equal(getattr(mesh, name), getattr(truth, name), name)
+
+
 def test_moving_volume_slices_use_the_backends_mesh_box():
-    """A shift through MovingVolume with the cpu mesh stage's mesh_box gives the slice the
-    reference's gives (world points and keys from the same surface)."""
+    """A shift and the last slice through MovingVolume with the cpu mesh stage's mesh_box on a
+    fast volume give the slices of the reference's on the same values (world points and keys
+    from the same surface)."""
     from kintinuous_fast.mesh import cpu
 
-    config = VolumeConfig(resolution=N, size=0.12, shift_threshold=2, min_extract_weight=4.0)
-    slices_made = []
-    for mesh_box, volume in (
-        (reference.mesh_box, to_reference_volume(sphere_volume(WRAPS))),
-        (cpu.mesh_box, slab_view(sphere_volume(WRAPS))),
-    ):
-        moving = MovingVolume(volume, np.eye(4), config, mesh_box=mesh_box)
-        moving.fused = 8
-        moving.shift_axis(0, 4)
-        moving.finish()
-        slices_made.append(list(moving.store))
-    assert len(slices_made[0]) == len(slices_made[1]) == 2
-    for expected, found in zip(*slices_made, strict=True):
-        np.testing.assert_array_equal(found.points, expected.points)
-        np.testing.assert_array_equal(found.keys, expected.keys)
-        np.testing.assert_array_equal(found.triangles, expected.triangles)
+    expected = moving_volume_slices(to_reference_volume(sphere_volume(WRAPS)), reference.mesh_box)
+    found = moving_volume_slices(slab_view(sphere_volume(WRAPS)), cpu.mesh_box)
+    assert_same_slices(found, expected)
 
 
 @pytest.mark.skipif(not cuda_status(), reason="CUDA works here: the tests run in this process")
@@ -193,3 +199,19 @@ def test_cuda_mesh_box_of_the_whole_volume_without_colour():
     assert not found.colours.any()
     downloaded = TRAFFIC.bytes_to_host - before
     assert downloaded == 32 + 24 * len(found.vertices) + 24 * len(found.triangles)
+
+
+@on_device
+def test_cuda_moving_volume_slices_equal_the_references():
+    """The moving volume on a device volume (its SlabView, as the pipeline gives it) with the
+    cuda mesh_box: the reference's slices, and the shift clears the leaving cells on the
+    device (no download beyond the two slices' surfaces)."""
+    from kintinuous_fast.mesh import cuda
+    from kintinuous_fast.targets import TRAFFIC
+
+    expected = moving_volume_slices(to_reference_volume(sphere_volume(WRAPS)), reference.mesh_box)
+    before = TRAFFIC.bytes_to_host
+    found = moving_volume_slices(slab_view(device_volume(sphere_volume(WRAPS))), cuda.mesh_box)
+    assert_same_slices(found, expected)
+    surfaces = sum(32 + 27 * len(mesh.points) + 24 * len(mesh.triangles) for mesh in found)
+    assert TRAFFIC.bytes_to_host - before == surfaces

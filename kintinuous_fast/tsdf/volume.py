@@ -324,11 +324,9 @@ class _Field:
         array, _ = self._source()  # clearing: every channel of the voxel
         self.volume.forget_negative_masks()
         for _, src in _blocks(cells):
-            if hasattr(array, "copy_to_device"):
-                block = array[src]
-                block.copy_to_device(np.zeros(block.shape, dtype=block.dtype))
-            else:
-                array[src] = 0
+            # A device array assigns the scalar by a kernel, strided blocks too (a block of a
+            # box that wraps along y or z is not contiguous, and copy_to_device refuses it).
+            array[src] = 0
 
 
 class SlabView:
