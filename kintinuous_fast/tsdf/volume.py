@@ -333,7 +333,9 @@ class SlabView:
     """A FastTsdfVolume seen through kintinuous_ref.tsdf.TsdfVolume's interface as far as the
     moving volume (kintinuous_ref.moving_volume) uses it: resolution, voxel_size, origin and
     offset (shared with the volume: shifting the view shifts the volume), cells(), and the four
-    fields, read and cleared per box of cells (only the leaving slab crosses from a GPU)."""
+    fields, read and cleared per box of cells. The cpu mesh stage reads a slice's box through
+    the fields; the cuda one meshes the view's volume on the device (mesh/cuda.py mesh_box),
+    so nothing of the box crosses from a GPU, and clearing runs there too."""
 
     def __init__(self, volume: FastTsdfVolume) -> None:
         self.fast = volume
