@@ -29,7 +29,8 @@
 #    problem in 3-D solved by the package's 6x6 ICP system on a synthetic scene with a known pose,
 # 6. the from-scratch loop on two real redkitchen frames.
 #
-# Prerequisites: linear algebra (matrix products, eigenvalues, least squares). About 5 s warm.
+# Prerequisites: linear algebra (matrix products, eigenvalues, least squares). About 20 s warm
+# on the shared 2-core machine.
 
 # %%
 # %matplotlib inline
@@ -61,12 +62,12 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 # %% [markdown]
 # ## Rotations, twists and the exponential map (eq. 4-5)
 #
-# A pose $T = \begin{bmatrix} R & \mathbf{t} \\ 0 & 1 \end{bmatrix}$ maps camera coordinates to
-# world coordinates (eq. 1): $R$ is a rotation ($R^\top R = I$, $\det R = 1$), $\mathbf{t}$ the
-# camera centre in the world. Rotations are not a vector space (the sum of two rotation matrices
-# is not a rotation), so Gauss-Newton cannot add a step to $R$. Instead it works with a
-# **twist** $\xi = [\omega^\top\ \mathbf{u}^\top]^\top \in \mathbb{R}^6$, the paper's order
-# (rotation first), and its $4\times4$ matrix
+# A pose $T = \begin{bmatrix} R & \mathbf{t} \\ 0 & 1 \end{bmatrix}$ (the form of the paper's
+# eq. 1) maps camera coordinates to world coordinates: $R$ is a rotation ($R^\top R = I$,
+# $\det R = 1$), $\mathbf{t}$ the camera centre in the world. Rotations are not a vector space (the
+# sum of two rotation matrices is not a rotation), so Gauss-Newton cannot add a step to $R$. Instead
+# it works with a **twist** $\xi = [\omega^\top\ \mathbf{u}^\top]^\top \in \mathbb{R}^6$, the
+# paper's order (rotation first), and its $4\times4$ matrix
 #
 # $$ \hat\xi = \begin{bmatrix} [\omega]_\times & \mathbf{u} \\ 0\;0\;0 & 0 \end{bmatrix},
 # \qquad [\omega]_\times \mathbf{v} = \omega \times \mathbf{v}, \qquad (5) $$
@@ -77,8 +78,8 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 #
 # $$ \exp(\hat\xi) = \begin{bmatrix} R & V\mathbf{u} \\ 0 & 1 \end{bmatrix},\quad
 # R = I + \frac{\sin\theta}{\theta}[\omega]_\times + \frac{1-\cos\theta}{\theta^2}[\omega]_\times^2,
-# \quad V = I + \frac{1-\cos\theta}{\theta^2}[\omega]_\times
-# + \frac{\theta-\sin\theta}{\theta^3}[\omega]_\times^2. $$
+# \quad V = I + \frac{1-\cos\theta}{\theta^2}[\omega]_\times +
+# \frac{\theta-\sin\theta}{\theta^3}[\omega]_\times^2. $$
 #
 # $\omega$ is the axis times the angle; $\mathbf{u}$ is *not* the translation (that is
 # $V\mathbf{u}$): a twist is a screw motion, a rotation about an axis while moving along it.

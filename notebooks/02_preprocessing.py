@@ -33,7 +33,8 @@
 # 6. `kintinuous_fast` against the reference, within the tolerances of the tests,
 # 7. a real redkitchen frame.
 #
-# Prerequisites: lesson 0 (poses), lesson 1 (the camera model). About 10 s warm.
+# Prerequisites: lesson 0 (poses), lesson 1 (the camera model). About 25 s warm on the shared
+# 2-core machine (most of it loading `kintinuous_fast`'s compiled kernels).
 
 # %%
 # %matplotlib inline
@@ -42,7 +43,7 @@ import inspect
 import matplotlib.pyplot as plt
 import numpy as np
 
-import kintinuous_fast
+from kintinuous_fast.preprocess import cpu as kintinuous_fast_preprocess_cpu
 from kintinuous_ref import preprocess
 from kintinuous_ref.camera import axial_noise
 from kintinuous_ref.config import Config
@@ -135,10 +136,10 @@ assert round(100 * axial_noise(6.0)) == 6
 # \qquad w_s(d) = e^{-d^2/2\sigma_s^2},\quad w_r(\delta) = e^{-\delta^2/2\sigma_r^2}, $$
 #
 # over a $(2r+1)^2$ window. Neighbours across a depth step have $w_r \approx 0$ and do not count.
-# The values are those of the open-source KinectFusion (PCL's KinFu), not of the paper:
-# $\sigma_s$ = 4.5 pixels, $\sigma_r$ = 3 cm, $r$ = 6 (13x13). Pixels without depth neither
-# give nor receive a value. The package writes the sum as shifted copies of the image (one
-# array operation per offset):
+# The paper gives no values; the package's defaults, $\sigma_s$ = 4.5 pixels, $\sigma_r$ = 3 cm,
+# $r$ = 6 (13x13), are those of the open-source KinectFusion (PCL's KinFu). Pixels without
+# depth neither give nor receive a value. The package writes the sum as shifted copies of the image
+# (one array operation per offset):
 
 # %%
 print(inspect.getsource(preprocess.bilateral_filter))
@@ -349,11 +350,11 @@ assert np.median(coarse_error) < medians[1]
 # The RGB-D tracker (lesson 3) compares grey values, $I = 0.299R + 0.587G + 0.114B$ (IV-A.1), and
 # its Jacobian needs $\partial I/\partial u$ and $\partial I/\partial v$: a 3x3 Gaussian blur with
 # $\sigma = 0.8$ and then the 3x3 Sobel operator, as the paper says. The code scales the Sobel
-# response by $1/8$ (its weights sum to 8 across the two columns), so that it reads **intensity
-# units per pixel**; the paper does not state a scale, and the RGB-D tracker's minimum gradients
-# (12 / 5 / 3 / 1, lesson 3) are in these units. Both kernels are symmetric and sum to one (the
-# blur) or measure the slope (the Sobel), so on a linear ramp $I = a u + b v + c$ the result is
-# exactly $(a, b)$ away from the border, a closed-form check:
+# response by $1/8$ (a ramp rising by one per pixel gives the raw Sobel response 8), so that it
+# reads **intensity units per pixel**; the paper does not state a scale, and the RGB-D
+# tracker's minimum gradients (12 / 5 / 3 / 1, lesson 3) are in these units. Both kernels are
+# symmetric and sum to one (the blur) or measure the slope (the Sobel), so on a linear ramp
+# $I = a u + b v + c$ the result is exactly $(a, b)$ away from the border, a closed-form check:
 
 # %%
 print(inspect.getsource(preprocess.intensity_gradients))
@@ -395,7 +396,8 @@ print(f"{(magnitude >= 12).sum()} level-0 pixels reach the RGB-D tracker's g = 1
 # the synthetic frame, every level:
 
 # %%
-fast = kintinuous_fast.load_backend("cpu").preprocess
+# The cpu backend's preprocessing alone (what load_backend("cpu").preprocess holds).
+fast = kintinuous_fast_preprocess_cpu
 
 
 def assert_frames_equal(fast_frame, reference) -> None:  # noqa: ANN001
