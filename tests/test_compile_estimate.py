@@ -76,8 +76,9 @@ def test_an_unreadable_record_says_nothing_is_known_and_is_replaced(tmp_path, te
     (tmp_path / cache.ESTIMATE_NAME).write_text(text)
     assert cache.measured_compile_seconds("mapping", tmp_path) is None
     backend = CachingBackend(tmp_path)
+    idle, busy = warmup.KNOWN_COMPILE_SECONDS["mapping"]
     assert warmup.compile_estimate(backend, "mapping") == (
-        "11-51 s on 2 cores, idle to busy; not yet measured here"
+        f"{idle}-{busy} s on 2 cores, idle to a load of 10; not yet measured here"
     )
     cache.record_compile_seconds("tracking", 20.0, tmp_path)
     assert cache.measured_compile_seconds("tracking", tmp_path) == 20.0
@@ -127,9 +128,11 @@ def test_a_compile_is_measured_and_announced_the_next_time(
     reconstruct.prepare_kernels(backend, Config(), GROUNDTRUTH)
     first = compile_lines(capsys.readouterr().err)
     assert len(first) == 1 and compile_workers == [[GROUNDTRUTH]]
+    idle, busy = warmup.KNOWN_COMPILE_SECONDS["mapping"]
     assert first[0].startswith(
-        "compiling the cached kernels for mapping, not yet in numba's cache (11-51 s on 2 cores, "
-        "idle to busy; not yet measured here; later runs load them in seconds)... done in "
+        f"compiling the cached kernels for mapping, not yet in numba's cache ({idle}-{busy} s on "
+        "2 cores, idle to a load of 10; not yet measured here; later runs load them in "
+        "seconds)... done in "
     )
     took = float(first[0].rsplit(" done in ", 1)[1].removesuffix(" s"))
     measured = backend.compile_seconds(warmup.COMPILE_MAPPING)
@@ -171,7 +174,8 @@ def test_an_error_during_the_compile_ends_the_notice_line(tmp_path, monkeypatch,
         reconstruct.prepare_kernels(CachingBackend(tmp_path), Config(), "icp")
     err = capsys.readouterr().err
     assert err.endswith("later runs load them in seconds)...\n")
-    assert "for mapping and tracking" in err and "25-80 s on 2 cores" in err
+    idle, busy = warmup.KNOWN_COMPILE_SECONDS["mapping and tracking"]
+    assert "for mapping and tracking" in err and f"({idle}-{busy} s on 2 cores" in err
 
 
 @pytest.mark.parametrize(

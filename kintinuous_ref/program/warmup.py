@@ -49,12 +49,13 @@ from kintinuous_ref.pipeline import GROUNDTRUTH, STAGES, run
 # (raycast, odometry) when the first are cached, or both.
 COMPILE_MAPPING, COMPILE_TRACKING, COMPILE_ALL = "mapping", "tracking", "mapping and tracking"
 COMPILE_PARTS = (COMPILE_MAPPING, COMPILE_TRACKING, COMPILE_ALL)
-# Wall seconds of each part's compile on the 2-core machine, idle and under the other users'
-# load (docs/reliability.md): what is said before a compile on a machine that never measured one.
+# Wall seconds of each part's compile on the 2-core machine, idle and under a load average of
+# about 10 from other users' work (docs/reliability.md, "The first run"): what is said before a
+# compile on a machine that never measured one.
 KNOWN_COMPILE_SECONDS = {
-    COMPILE_MAPPING: (11, 51),
-    COMPILE_TRACKING: (16, 78),
-    COMPILE_ALL: (25, 80),
+    COMPILE_MAPPING: (11, 189),
+    COMPILE_TRACKING: (16, 334),
+    COMPILE_ALL: (25, 570),
 }
 
 FRAMES = 3  # the first fuses, the second tracks, the third tracks against a raycast model
@@ -166,7 +167,7 @@ def compile_estimate(backend: Backend, part: str) -> str:
     if measured is not None:
         return f"about {measured:.0f} s, as measured on this machine"
     idle, busy = KNOWN_COMPILE_SECONDS[part]
-    return f"{idle}-{busy} s on 2 cores, idle to busy; not yet measured here"
+    return f"{idle}-{busy} s on 2 cores, idle to a load of 10; not yet measured here"
 
 
 def _mesh_warmup(backend: Backend, result: Any) -> float:
