@@ -19,9 +19,18 @@ OTHER_TOPICS = ("/cam/colour", "/cam/depth_mm", "/cam/info")
 DEPTH_DELAY = 0.004  # depth stamped 4 ms after colour, as the Kinect's streams are not in step
 
 
-def write_bag(path, ros2=False, topics=TUM_TOPICS, depth_encoding="32FC1", colour="rgb8", pad=0):
+def write_bag(
+    path,
+    ros2=False,
+    topics=TUM_TOPICS,
+    depth_encoding="32FC1",
+    colour="rgb8",
+    pad=0,
+    compression=None,
+):
     """A bag of tiny_desk: colour, depth (32FC1 metres with NaN holes, or 16UC1 millimetres with
-    `pad` bytes at the end of each row), camera info and an unrelated topic."""
+    `pad` bytes at the end of each row), camera info and an unrelated topic. `compression`
+    ("BZ2", "LZ4") compresses a ROS1 bag's chunks."""
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
@@ -35,6 +44,8 @@ def write_bag(path, ros2=False, topics=TUM_TOPICS, depth_encoding="32FC1", colou
         from rosbags.rosbag1 import Writer
 
         writer, serialize = Writer(path), store.serialize_ros1
+        if compression is not None:
+            writer.set_compression(getattr(Writer.CompressionFormat, compression))
 
     def header(stamp):
         seconds = int(np.floor(stamp))
@@ -404,3 +415,27 @@ def test_a_damaged_and_cut_ros1_bag_opens_or_is_refused_in_one_line(whole_ros1_b
         bag.open_bag(path).close()
     except DatasetError:
         pass
+
+
+@pytest.mark.parametrize("compression", ["BZ2", "LZ4"])
+def test_a_compressed_ros1_bag_cut_in_its_last_chunk_reads_the_chunks_before(
+    tmp_path, capsys, compression
+):
+    """A compressed chunk cut short cannot be decompressed: the frames of the whole chunks
+    before it are read (frames 0..7, as in the uncompressed bag: chunks close at the same
+    uncompressed size)."""
+    from rosbags.rosbag1 import Reader
+
+    whole = write_bag(tmp_path / "whole.bag", compression=compression)
+    with Reader(whole) as reader:
+        last = max(reader.chunks.values(), key=lambda chunk: chunk.datapos)
+        assert len(reader.chunks) == 2
+    path = tmp_path / "cut.bag"
+    path.write_bytes(whole.read_bytes()[: last.datapos + last.datasize // 2])
+    sequence = bag.open_bag(path)
+    assert "reading the 8 frames whose messages lie before it (0..7)" in capsys.readouterr().err
+    intact = bag.open_bag(whole)
+    assert len(sequence) == 8
+    for i in (0, 7):
+        np.testing.assert_array_equal(sequence[i].colour, intact[i].colour)
+        np.testing.assert_array_equal(sequence[i].depth, intact[i].depth)

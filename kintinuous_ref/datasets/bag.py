@@ -437,13 +437,14 @@ class SalvagedBag:
         from rosbags.typesys import Stores, get_typestore
 
         self.path, self._file, self._buffer = path, file, buffer
-        self.damage = "its index at the end is missing or cut short"
-        self._chunks: list[bytes | None] = []
+        self.damage = ""  # where the records end, once they are read
+        self._chunks: list[Record] = []  # read from the file again when a frame needs them
+        self._cached: tuple[int, bytes | None] = (-1, None)
         found: dict[int, Connection] = {}
         messages: list[Message] = []
         for record in self._chunk_records():
-            data = _chunk_data(buffer, record)
-            self._chunks.append(data)
+            self._chunks.append(record)
+            data = self._chunk(len(self._chunks) - 1)
             if data is not None:
                 messages += self._read_chunk(len(self._chunks) - 1, data, found)
         self.connections = list(found.values())
@@ -452,7 +453,6 @@ class SalvagedBag:
         self._typestore = get_typestore(Stores.EMPTY)
         for connection in found.values():
             self._typestore.register(_types_of(connection))
-        self._cached: tuple[int, bytes] = (-1, b"")
 
     @classmethod
     def of(cls, path: Path) -> SalvagedBag | None:
@@ -537,14 +537,15 @@ class SalvagedBag:
                 stop is not None and message.time >= stop
             ):
                 continue
-            raw = self._chunk(message.chunk)[message.start : message.end]
-            yield self._by_id[message.connection], message.time, raw
-
-    def _chunk(self, number: int) -> bytes:
-        if self._cached[0] != number:
-            data = self._chunks[number]
+            data = self._chunk(message.chunk)
             assert data is not None  # messages come from readable chunks only
-            self._cached = (number, data)
+            yield self._by_id[message.connection], message.time, data[message.start : message.end]
+
+    def _chunk(self, number: int) -> bytes | None:
+        """Chunk `number`'s records (_chunk_data), the last one asked for kept: frames are read
+        in order, so a chunk is read once while its frames are."""
+        if self._cached[0] != number:
+            self._cached = (number, _chunk_data(self._buffer, self._chunks[number]))
         return self._cached[1]
 
     def deserialize(self, raw: bytes, msgtype: str) -> Any:
