@@ -35,8 +35,8 @@
 # only relations measured in the same run that hold by a wide margin.
 #
 # Prerequisites: the lessons whose code is timed (1, 3, 6, 9; 8 for the seven trackers). About
-# 50 s warm; the images are 160x120, so the numbers say how the code scales on this machine, not
-# what a 640x480 Kinect stream costs.
+# 60 s warm; the images are 160x120 or smaller, so the numbers say how the code scales on this
+# machine, not what a 640x480 Kinect stream costs.
 
 # %%
 # %matplotlib inline
@@ -205,20 +205,20 @@ print(
 # pipeline, in milliseconds per frame (average, minimum, maximum, standard deviation). Here the
 # same per-frame statistics (and the median) come from `pipeline.run`'s own per-stage clocks
 # (`timings_ms["odometry"]` and `timings_ms["total"]`), over the frames after the first (which
-# is placed, not tracked), on the synthetic desk at 160x120 with a 64^3 volume, for each backend
+# is placed, not tracked), on the synthetic desk at 120x90 with a 64^3 volume, for each backend
 # that runs here. With a compiled backend each configuration is run once over two frames untimed
 # first (the kernels load or compile), then timed. The reference, which compiles nothing, is
-# timed over two frames only (its raycast alone takes a large part of a second per frame): it is
-# the readable NumPy specification, not a fast path. The table also counts each run's failed
+# timed over three frames only (its raycast alone takes a good part of a second per frame): it
+# is the readable NumPy specification, not a fast path. The table also counts each run's failed
 # frames, since a failed frame is not fused and costs less.
 
 # %%
 table_config = with_overrides(Config(), {"volume.resolution": 64, "volume.size": 3.0})
-table_scene = scenario
+table_scene = make_scenario("desk", frames=9, width=120, height=90, seed=0, noise=True)
 desk_frames = [
     Frame(i, float(table_scene.trajectory.timestamps[i]), *table_scene.render(i)) for i in range(9)
 ]
-backends = {"ref": 3, "cpu": 9, "cuda": 9}  # frames per run (the first is not timed)
+backends = {"ref": 4, "cpu": 9, "cuda": 9}  # frames per run (the first is not timed)
 available = {}
 for name in backends:
     try:
@@ -278,8 +278,8 @@ print_table("VI", 1, paper.PIPELINE_MS)
 # %% [markdown]
 # The medians side by side, on a logarithmic axis (the backends differ by orders of magnitude),
 # with the paper's averages (quoted) for reference. The paper's GPU ran 640x480 frames; ours
-# are a sixteenth of that, so only the shape of the chart compares: which configurations cost
-# more than which.
+# have about a twenty-eighth of their pixels, so only the shape of the chart compares: which
+# configurations cost more than which.
 
 # %%
 fig, axes = plt.subplots(1, 2, figsize=(14, 4), sharey=True)
@@ -309,7 +309,7 @@ plt.show()
 # next cell, measured in the same run; the numbers themselves are only printed):
 #
 # - the CPU backend's pipeline is faster than the reference's for every configuration,
-# - with a compiled backend (medians over eight frames; the reference's two are too
+# - with a compiled backend (medians over eight frames; the reference's three are too
 #   noisy for any ranking), a `fovis/X` configuration's tracker takes longer than `X`'s alone,
 #   since the switch runs FOVIS *and* `X` on every frame; the paper's Table V (quoted) has each
 #   `fovis/X` above its `X` too, though its `fovis/icp` averages less than its `fovis` alone,
