@@ -112,9 +112,9 @@ print(f"{len(reference_list)} interest points with depth among {WIDTH * HEIGHT} 
 # *every* thread of the block. So the loop runs over the block's rounds,
 # `range(block_start, n, grid)`, the same for all its threads, and the test `i < n` guards only
 # the work: a loop `for i in range(g, n, G)` would let the last round's threads past the image
-# skip a barrier the others wait at (undefined on a GPU, a deadlock or an error in the
-# simulator). Each thread also counts the pixels it took, so the loop's going round can be
-# checked.
+# skip a barrier the others wait at, which CUDA leaves undefined (exercise 2 asks what the
+# simulator makes of it). Each thread also counts the pixels it took, so the loop's going round
+# can be checked.
 
 
 # %%

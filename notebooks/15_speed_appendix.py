@@ -162,6 +162,7 @@ def rgbd_track(module: object) -> None:
     refine(poses[8].copy(), problem.system, config.rgbd.iterations)
 
 
+assert sum(config.rgbd.iterations) == 31  # the RGB-D track's steps at most, over all levels
 reference_tracker = make_tracker("icp+rgbd", config, camera)
 cpu_tracker = fast_odometry.make_tracker("icp+rgbd", config, camera)
 reference_pose = reference_tracker.track(previous, current, model, poses[8]).pose
