@@ -3,12 +3,15 @@
 
 Same public names, signatures and results as the reference module (tests/test_fast_odometry.py
 states the tolerances; the names it does not compute itself are the reference's own objects).
-An iteration's system takes two passes over the interest points: the correspondences and their
-sum of r^2 (sigma'), then the robustly weighted rows summed block by block into fixed-chunk
-partial sums (odometry/sums/cpu.py). Lists come out in the reference's order.
+An iteration's system takes two passes over the interest points, in one parallel call: the
+correspondences and their sum of r^2 (sigma'), then, once every chunk's sum is in, the robustly
+weighted rows summed block by block into fixed-chunk partial sums (odometry/sums/cpu.py). Lists
+come out in the reference's order.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numba
 import numpy as np
@@ -28,7 +31,14 @@ from kintinuous_fast.odometry.sums.cpu import (
     stage,
 )
 from kintinuous_fast.targets import pinhole
-from kintinuous_fast.targets.cpu import claim_slot, claimed_items, threads
+from kintinuous_fast.targets.cpu import (
+    PARTS_PER_THREAD,
+    await_parts,
+    claim_slot,
+    claimed_items,
+    run_parallel,
+    threads,
+)
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.odometry import rgbd as reference
 from kintinuous_ref.odometry.rgbd import Correspondences, InterestPoints
@@ -95,59 +105,53 @@ def _warp_block(points, start, stop, relative, camera, warp):
         warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i] = x, y, z, u, v
 
 
-@LOOP
-def _correspond_loop(
-    claims,
-    parts,
-    points,
-    intensity,
-    gradient,
-    relative,
-    pose,
-    previous,
-    warped,
-    camera,
-    max_change,
-    pairs,
-    sums,
-    warps,
-):
-    """Algorithm 2 per interest point k: pairs[:, k] = (residual, NaN = not kept; world point;
-    warped point; gradient), what J needs; sums[c] = (sum r^2, count) of chunk c for sigma'.
-    Each block's warps first, in a loop that vectorises. `previous` = (depth, intensity, dx,
-    dy) images of the previous frame; `warps` (threads, 5, BLOCK): each thread's work array."""
+@LOOP  # compiled as the loops are: no reference counts around its accesses
+def _correspond_chunk(c, points, intensity, gradient, warp_terms, pairs, sums, warp):
+    """Algorithm 2 for chunk c of the interest points (of sums.shape[0]): pairs[:, k] =
+    (residual, NaN = not kept; world point; warped point; gradient), what J needs, and sums[c] =
+    (sum r^2, count) for sigma'. Each block's warps first, in a loop that vectorises;
+    `warp_terms` = (relative, pose, previous, warped, camera, max_change), `previous` = the
+    (depth, intensity, dx, dy) images of the previous frame; `warp` this thread's work array."""
+    relative, pose, previous, warped, camera, max_change = warp_terms
     depth, prev_i, prev_dx, prev_dy = previous
     n = pairs.shape[1]
     chunks = sums.shape[0]
+    start, stop = c * n // chunks, (c + 1) * n // chunks
+    for block in range(start, stop, BLOCK):
+        end = min(block + BLOCK, stop)
+        _warp_block(points, block, end, relative, camera, warp)
+        for k in range(block, end):
+            i = k - block
+            sample = (warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i])
+            ok, r, wx, wy, wz, x, y, z, gx, gy = _warp_sample(
+                points,
+                intensity,
+                gradient,
+                k,
+                sample,
+                pose,
+                depth,
+                prev_i,
+                prev_dx,
+                prev_dy,
+                warped,
+                max_change,
+            )
+            pairs[0, k], pairs[1, k], pairs[2, k], pairs[3, k] = r, wx, wy, wz
+            pairs[4, k], pairs[5, k], pairs[6, k] = x, y, z
+            pairs[7, k], pairs[8, k] = gx, gy
+            if ok:
+                sums[c, 0] += r * r
+                sums[c, 1] += 1.0
+
+
+@LOOP
+def _correspond_loop(claims, parts, points, intensity, gradient, warp_terms, pairs, sums, warps):
+    """_correspond_chunk of every chunk; `warps` (threads, 5, BLOCK): each thread's work
+    array."""
     warp = warps[claim_slot(claims)]
-    for c in claimed_items(claims, chunks, parts):
-        start, stop = c * n // chunks, (c + 1) * n // chunks
-        for block in range(start, stop, BLOCK):
-            end = min(block + BLOCK, stop)
-            _warp_block(points, block, end, relative, camera, warp)
-            for k in range(block, end):
-                i = k - block
-                sample = (warp[0, i], warp[1, i], warp[2, i], warp[3, i], warp[4, i])
-                ok, r, wx, wy, wz, x, y, z, gx, gy = _warp_sample(
-                    points,
-                    intensity,
-                    gradient,
-                    k,
-                    sample,
-                    pose,
-                    depth,
-                    prev_i,
-                    prev_dx,
-                    prev_dy,
-                    warped,
-                    max_change,
-                )
-                pairs[0, k], pairs[1, k], pairs[2, k], pairs[3, k] = r, wx, wy, wz
-                pairs[4, k], pairs[5, k], pairs[6, k] = x, y, z
-                pairs[7, k], pairs[8, k] = gx, gy
-                if ok:
-                    sums[c, 0] += r * r
-                    sums[c, 1] += 1.0
+    for c in claimed_items(claims, sums.shape[0], parts):
+        _correspond_chunk(c, points, intensity, gradient, warp_terms, pairs, sums, warp)
 
 
 @LOOP
@@ -196,21 +200,51 @@ def _weighted_rows_block(pairs, start, stop, previous_pose, focal, sigma, rows):
 
 
 @ALLOCATING_LOOP
-def _rgbd_rows_loop(claims, parts, pairs, previous_pose, focal, sigma, out):
-    """Robustly weighted photometric rows of the kept pairs, summed per chunk (block by block:
-    the rows, then their sums, each in a loop that vectorises)."""
+def _rows_chunk(c, pairs, previous_pose, focal, sigma, out):
+    """out[c] = the robustly weighted photometric rows of chunk c's kept pairs (of
+    out.shape[0]), summed block by block: the rows, then their sums, each in a loop that
+    vectorises."""
     n = pairs.shape[1]
     chunks = out.shape[0]
-    for c in claimed_items(claims, chunks, parts):
-        acc = np.zeros(NV)
-        rows = np.empty(15 * BLOCK)
-        matrix = rows.reshape((15, BLOCK))
-        start, stop = c * n // chunks, (c + 1) * n // chunks
-        for block in range(start, stop, BLOCK):
-            end = min(block + BLOCK, stop)
-            _weighted_rows_block(pairs, block, end, previous_pose, focal, sigma, rows)
-            add_block(acc, matrix[8:], matrix[:8], end - block)
-        out[c] = acc
+    acc = np.zeros(NV)
+    rows = np.empty(15 * BLOCK)
+    matrix = rows.reshape((15, BLOCK))
+    start, stop = c * n // chunks, (c + 1) * n // chunks
+    for block in range(start, stop, BLOCK):
+        end = min(block + BLOCK, stop)
+        _weighted_rows_block(pairs, block, end, previous_pose, focal, sigma, rows)
+        add_block(acc, matrix[8:], matrix[:8], end - block)
+    out[c] = acc
+
+
+@ALLOCATING_LOOP
+def _rgbd_system_loop(
+    claims, parts, points, intensity, gradient, warp_terms, row_terms, pairs, sums, warps, out
+):
+    """One iteration's system in one call, its `parts` (even) half for each pass: items
+    0..chunks-1 are _correspond_chunk's chunks, chunks..2 chunks-1 _rows_chunk's. The parts are
+    claimed in order, so a thread that reaches the second pass waits only for the first pass's
+    parts to be done (await_parts), then takes sigma' from their sums added in chunk order;
+    and the call returns once every part of both passes is. `row_terms` = (previous pose,
+    focal). The two passes share one wake-up of the threads and no Python between them."""
+    previous_pose, focal = row_terms
+    chunks = sums.shape[0]
+    warp = warps[claim_slot(claims)]
+    sigma, has_pairs = -1.0, False
+    for item in claimed_items(claims, 2 * chunks, parts):
+        if item < chunks:
+            _correspond_chunk(item, points, intensity, gradient, warp_terms, pairs, sums, warp)
+            continue
+        if sigma < 0.0:  # this thread's first chunk of the second pass
+            await_parts(claims, parts // 2)
+            squares, count = 0.0, 0.0
+            for c in range(chunks):
+                squares += sums[c, 0]
+                count += sums[c, 1]
+            has_pairs = count > 0.0  # else no rows: the host returns an empty system
+            sigma = np.sqrt(squares / count) if has_pairs else 0.0
+        if has_pairs:
+            _rows_chunk(item - chunks, pairs, previous_pose, focal, sigma, out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -276,31 +310,64 @@ def _previous_images(depth, intensity, dx, dy, camera) -> tuple[tuple, bool]:
     return (depth, intensity, dx, dy), warped
 
 
-def _correspond_all(points, pose, previous_pose, previous, camera, max_depth_change):
-    """Per interest point: ((9, n) pairs as _correspond_loop writes them, (sum r^2, count));
-    `previous` = the previous frame's (depth, intensity, dx, dy), dx and dy None but in
-    "warped" mode."""
-    images, warped = _previous_images(*previous, camera)
-    n = points.points.shape[1]
-    pairs = np.empty((9, n))
-    sums = np.zeros((chunks_for(n, CHUNKS), 2))
-    run(
-        _correspond_loop,
-        n,
+def _point_columns(points: InterestPoints) -> tuple:
+    """The interest points' (points, intensity, gradient) as the loops read them."""
+    return (
         np.ascontiguousarray(points.points, dtype=np.float64),
         np.ascontiguousarray(points.intensity, dtype=np.float64),
         np.ascontiguousarray(points.gradient, dtype=np.float64),
-        relative_pose(pose, previous_pose),
-        np.ascontiguousarray(pose, dtype=np.float64),
-        images,
-        warped,
-        pinhole(camera),
-        float(max_depth_change),
-        pairs,
-        sums,
-        np.empty((threads(), 5, BLOCK)),
     )
+
+
+def _level_terms(points, previous_pose, previous, camera, max_depth_change) -> tuple:
+    """What every iteration at a level passes the loops, made once per level: the interest
+    points' columns (_point_columns), and a function of the pose giving the warp terms of
+    _correspond_chunk; `previous` = the previous frame's (depth, intensity, dx, dy), dx and dy
+    None but in "warped" mode."""
+    images, warped = _previous_images(*previous, camera)
+    intrinsics, max_change = pinhole(camera), float(max_depth_change)
+
+    def warp_terms(pose: np.ndarray) -> tuple:
+        relative = relative_pose(pose, previous_pose)
+        pose = np.ascontiguousarray(pose, dtype=np.float64)
+        return (relative, pose, images, warped, intrinsics, max_change)
+
+    return _point_columns(points), warp_terms
+
+
+def _focal(camera: Intrinsics) -> tuple[float, float]:
+    return (float(camera.fx), float(camera.fy))
+
+
+def _work(n: int) -> tuple:
+    """A pass's outputs over n interest points: (9, n) pairs, per-chunk (sum r^2, count) and
+    each thread's warp work array."""
+    return np.empty((9, n)), np.zeros((chunks_for(n, CHUNKS), 2)), np.empty((threads(), 5, BLOCK))
+
+
+def _correspond_all(points, pose, previous_pose, previous, camera, max_depth_change):
+    """Per interest point: ((9, n) pairs as _correspond_chunk writes them, (sum r^2, count));
+    `previous` = the previous frame's (depth, intensity, dx, dy), dx and dy None but in
+    "warped" mode."""
+    columns, warp_terms = _level_terms(points, previous_pose, previous, camera, max_depth_change)
+    n = columns[0].shape[1]
+    pairs, sums, warps = _work(n)
+    run(_correspond_loop, n, *columns, warp_terms(pose), pairs, sums, warps)
     return pairs, sums.sum(axis=0)
+
+
+def _system(columns, terms, previous_pose, focal) -> LinearSystem:
+    """rgbd_system of the interest points' `columns` (_point_columns) and warp `terms`
+    (_correspond_chunk's): both passes in one call of _rgbd_system_loop."""
+    n = columns[0].shape[1]
+    pairs, sums, warps = _work(n)
+    out = partials(n)
+    both_passes = 2 * PARTS_PER_THREAD * threads()
+    arguments = (*columns, terms, (previous_pose, focal), pairs, sums, warps, out)
+    run_parallel(_rgbd_system_loop, *arguments, parts=both_passes, items=n)
+    if sums.sum(axis=0)[1] == 0:
+        return LinearSystem.empty()
+    return sum_partials(out)[0]
 
 
 def correspond(
@@ -362,27 +429,31 @@ def rgbd_system(
     """The 6x6 normal equations of one RGB-D iteration at one level, robustly weighted: pass 1
     finds the pairs and sum r^2 (sigma'), pass 2 sums the weighted rows."""
     previous = (previous_depth, previous_intensity, previous_dx, previous_dy)
-    arguments = (points, pose, previous_pose, previous, camera, max_depth_change)
-    pairs, (squares, count) = _correspond_all(*arguments)
-    if count == 0:
-        return LinearSystem.empty()
-    sigma = float(np.sqrt(squares / count))
-    out = partials(pairs.shape[1])
-    run(
-        _rgbd_rows_loop,
-        pairs.shape[1],
-        pairs,
-        np.ascontiguousarray(previous_pose, dtype=np.float64),
-        (float(camera.fx), float(camera.fy)),
-        sigma,
-        out,
-    )
-    return sum_partials(out)[0]
+    arguments = (points, previous_pose, previous, camera, max_depth_change)
+    columns, warp_terms = _level_terms(*arguments)
+    row_terms = (np.ascontiguousarray(previous_pose, dtype=np.float64), _focal(camera))
+    return _system(columns, warp_terms(pose), *row_terms)
 
 
 class RgbdProblem(reference.RgbdProblem):
-    """kintinuous_ref.odometry.rgbd.RgbdProblem with the CPU loops underneath."""
+    """kintinuous_ref.odometry.rgbd.RgbdProblem with the CPU loops underneath; what a level's
+    iterations share (the points' columns, the staged previous images) is made once per level."""
 
     stage = staticmethod(stage)
     prepare_level = staticmethod(prepare_level)
     rgbd_system = staticmethod(rgbd_system)
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._levels: dict[int, tuple] = {}
+
+    def system(self, level: int, pose: np.ndarray) -> LinearSystem:
+        """rgbd_system of the level at `pose`, from the terms its iterations share."""
+        if level not in self._levels:
+            camera = self.previous_levels[level].camera
+            arguments = (self.previous_pose, self.previous(level), camera, self.max_depth_change)
+            columns, warp_terms = _level_terms(self.points(level), *arguments)
+            row_terms = (np.ascontiguousarray(self.previous_pose, dtype=np.float64), _focal(camera))
+            self._levels[level] = (columns, warp_terms, row_terms)
+        columns, warp_terms, row_terms = self._levels[level]
+        return _system(columns, warp_terms(pose), *row_terms)
