@@ -73,6 +73,10 @@ def pytest_configure(config: pytest.Config) -> None:
         "markers",
         f"{SIMULATOR_MARK}(test_file, *arguments): the test waits for that CUDA simulator child",
     )
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
+        from quick_simulator import install
+
+        install()  # the same kernels and results, scheduled without busy polling
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
