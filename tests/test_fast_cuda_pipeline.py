@@ -270,8 +270,8 @@ class Crossings:
         return operator
 
 
-def desk_frames(count: int = FRAMES) -> tuple:
-    desk = make_scenario("desk", frames=count, width=WIDTH, height=HEIGHT)
+def desk_frames(count: int = FRAMES, size: tuple[int, int] = (WIDTH, HEIGHT)) -> tuple:
+    desk = make_scenario("desk", frames=count, width=size[0], height=size[1])
     frames = [
         Frame(index, float(desk.trajectory.timestamps[index]), *desk.render(index))
         for index in range(count)
@@ -284,9 +284,10 @@ def is_small(shape: tuple[int, ...]) -> bool:
     return (len(shape) == 2 and shape[1] == NV) or int(np.prod(shape)) <= SMALL
 
 
-def image_like(shape: tuple[int, ...]) -> bool:
-    """An image or map of some pyramid level, or a volume."""
-    levels = {(HEIGHT >> level, WIDTH >> level) for level in range(len(CONFIG.rgbd.iterations))}
+def image_like(shape: tuple[int, ...], size: tuple[int, int] = (WIDTH, HEIGHT)) -> bool:
+    """An image or map of some pyramid level of `size` (width, height), or a volume."""
+    width, height = size
+    levels = {(height >> level, width >> level) for level in range(len(CONFIG.rgbd.iterations))}
     return (
         tuple(shape[:2]) in levels or len(shape) >= 3 and min(shape[:3]) >= CONFIG.volume.resolution
     )
