@@ -20,7 +20,7 @@
 # is read back by **raycasting** the zero crossing. The paper cites KinectFusion for these steps
 # rather than numbering equations, so the equations below are labelled (T1)-(T5).
 #
-# What this notebook does, in about half a minute on a laptop:
+# What this notebook does:
 #
 # 1. derives the signed distance along a ray and checks it on one pixel of a fused frame,
 # 2. shows the truncation band in a slice through the volume,
@@ -33,7 +33,7 @@
 # scratch in a dozen lines. How fast each backend is (and how that grows with the volume) is
 # measured in lesson 15, the speed appendix.
 #
-# Prerequisites: none; this is the first lesson. About 20 s warm (the first run of the course
+# Prerequisites: none; this is the first lesson. About 25 s warm (the first run of the course
 # also compiles the numba kernels: one to two minutes, once).
 
 # %%

@@ -30,7 +30,7 @@
 #
 # Along the way: the cost that Gauss-Newton lowers is not the error, which can rise while the cost
 # falls. Prerequisites: lessons 0 (the twist), 1 (the camera model) and 2 (the pyramid).
-# About 10 s warm.
+# About 15 s warm (notebooks/README.md lists each lesson's measured time).
 
 # %%
 # %matplotlib inline

@@ -29,7 +29,7 @@
 # 5. two real kitchen frames registered the same way.
 #
 # Prerequisites: lessons 0 (the twist, Gauss-Newton) and 1 (the volume and its raycast).
-# About 5 s warm.
+# About 16 s warm (notebooks/README.md lists each lesson's measured time).
 
 # %%
 # %matplotlib inline
