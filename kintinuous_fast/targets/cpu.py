@@ -110,14 +110,30 @@ def _spin_below(array: Any, index: int, target: int, spins: int) -> int:
     return value
 
 
-@numba.njit(nogil=True, cache=True)
-def await_parts(claims: Any, parts: int) -> None:
-    """Inside a loop: wait until every one of its `parts` is done (the loop's threads have
-    left `claimed_items`), so that a second pass over its results may start. The parts still
-    running are held by threads that run, so the wait ends; it spins, as the waits are about
-    one part long."""
-    while _load(claims, PARTS_DONE) < parts:
-        pass
+# Not cached, as claimed_items.
+@numba.njit
+def claimed_items_in_passes(claims: Any, count: int, parts: int, first: int, spins: int) -> Any:
+    """claimed_items(claims, count, parts) for a loop of two passes, its parts from `first` on
+    the second pass, which reads what the first wrote: they are claimed only once the first
+    pass's parts are done. A thread that would wait for them longer than `spins` atomic loads
+    (a thread of the first pass descheduled on a busy machine) leaves the loop instead, so that
+    it does not hold a core that thread needs; the thread that finishes the first pass's last
+    part always goes on to the second, so every part is done."""
+    while True:
+        if (
+            _load(claims, NEXT_PART) >= first
+            and _spin_below(claims, PARTS_DONE, first, spins) < first
+        ):
+            return
+        part = _fetch_add(claims, NEXT_PART)
+        if part >= parts:
+            return
+        if part >= first:  # claimed between the look above and now: it must wait
+            while _spin_below(claims, PARTS_DONE, first, spins) < first:
+                pass
+        for item in range(count * part // parts, count * (part + 1) // parts):  # noqa: UP028
+            yield item
+        _fetch_add(claims, PARTS_DONE)
 
 
 # Parts a loop is cut into per thread, by default: with a few each, a thread that starts late,

@@ -33,9 +33,10 @@ from kintinuous_fast.odometry.sums.cpu import (
 from kintinuous_fast.targets import pinhole
 from kintinuous_fast.targets.cpu import (
     PARTS_PER_THREAD,
-    await_parts,
+    SPINS,
     claim_slot,
     claimed_items,
+    claimed_items_in_passes,
     run_parallel,
     threads,
 )
@@ -222,21 +223,20 @@ def _rgbd_system_loop(
     claims, parts, points, intensity, gradient, warp_terms, row_terms, pairs, sums, warps, out
 ):
     """One iteration's system in one call, its `parts` (even) half for each pass: items
-    0..chunks-1 are _correspond_chunk's chunks, chunks..2 chunks-1 _rows_chunk's. The parts are
-    claimed in order, so a thread that reaches the second pass waits only for the first pass's
-    parts to be done (await_parts), then takes sigma' from their sums added in chunk order;
-    and the call returns once every part of both passes is. `row_terms` = (previous pose,
-    focal). The two passes share one wake-up of the threads and no Python between them."""
+    0..chunks-1 are _correspond_chunk's chunks, chunks..2 chunks-1 _rows_chunk's, the second
+    pass's parts claimed once the first's are done (claimed_items_in_passes). A thread's first
+    chunk of the second pass takes sigma' from the first pass's sums added in chunk order.
+    `row_terms` = (previous pose, focal). The two passes share one wake-up of the threads and
+    no Python between them; the call returns once every part of both is done."""
     previous_pose, focal = row_terms
     chunks = sums.shape[0]
     warp = warps[claim_slot(claims)]
     sigma, has_pairs = -1.0, False
-    for item in claimed_items(claims, 2 * chunks, parts):
+    for item in claimed_items_in_passes(claims, 2 * chunks, parts, parts // 2, SPINS):
         if item < chunks:
             _correspond_chunk(item, points, intensity, gradient, warp_terms, pairs, sums, warp)
             continue
         if sigma < 0.0:  # this thread's first chunk of the second pass
-            await_parts(claims, parts // 2)
             squares, count = 0.0, 0.0
             for c in range(chunks):
                 squares += sums[c, 0]
