@@ -18,6 +18,7 @@ lists the measured times and the load average they were measured under).
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -103,6 +104,14 @@ def test_lesson_runs_without_an_error(built_course, lesson: str):
         if output.get("output_type") == "error"
     ]
     assert not errors, f"{lesson} shows an error: {errors[0].get('ename')}"
+    warnings = [
+        output["text"].strip().splitlines()[0]
+        for cell in notebook.cells
+        if cell.cell_type == "code"
+        for output in cell.get("outputs", [])
+        if output.get("output_type") == "stream" and output.get("name") == "stderr"
+    ]
+    assert not warnings, f"{lesson} writes to stderr (a warning the student sees): {warnings[0]}"
     assert result.seconds < TIMEOUT_S, f"{lesson} took {result.seconds:.0f} s"
 
 
@@ -132,6 +141,20 @@ assert x == 2, "x is not two"
 """
 
 
+def kernels_left() -> list[int]:
+    """Process ids of this process's children that run a Jupyter kernel (read from /proc)."""
+    children = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            command = (stat.parent / "cmdline").read_bytes()
+        except OSError:  # the process ended meanwhile
+            continue
+        if int(fields[1]) == os.getpid() and b"ipykernel" in command:
+            children.append(int(stat.parent.name))
+    return children
+
+
 @pytest.mark.slow
 def test_a_failing_lesson_is_named_with_its_cell_and_the_others_still_run(tmp_path, capsys):
     lessons = tmp_path / "notebooks"
@@ -147,6 +170,7 @@ def test_a_failing_lesson_is_named_with_its_cell_and_the_others_still_run(tmp_pa
     ) in stderr
     assert "[2/2] 02_draws: " in stderr
     assert (tmp_path / "out" / "01_fails.ipynb").exists()  # its traceback, for the student
+    assert kernels_left() == [], "a lesson's kernel outlived its lesson"
     drawn = nbformat.read(tmp_path / "out" / "02_draws.ipynb", as_version=4)
     assert figure_count(drawn) == 1
     assert "data:image/png;base64," in (tmp_path / "out" / "02_draws.html").read_text()

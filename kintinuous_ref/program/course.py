@@ -170,10 +170,11 @@ def execute(
     from nbclient import NotebookClient
 
     cells: list[int] = []
+    kernel = this_interpreter_kernel()
     client = NotebookClient(
         notebook,
         timeout=timeout_s,
-        km=this_interpreter_kernel(),
+        km=kernel,
         resources={"metadata": {"path": str(folder)}},
         on_cell_start=lambda cell, cell_index: cells.append(cell_index),
     )
@@ -183,7 +184,18 @@ def execute(
         if cancelled(err):
             raise Interrupted("SIGINT", f"interrupted; the lessons done are in {folder}") from err
         return failure_line(notebook, cells[-1] if cells else None, err)
+    finally:
+        shut_down(kernel)
     return None
+
+
+def shut_down(kernel: Any) -> None:
+    """End a lesson's kernel with its lesson: nbclient leaves a kernel it was handed running,
+    and a course would otherwise keep one process per lesson until it exits."""
+    from nbclient.util import run_sync
+
+    if kernel.has_kernel:
+        run_sync(kernel.shutdown_kernel)(now=True)
 
 
 def cancelled(err: BaseException) -> bool:
