@@ -29,8 +29,8 @@
 #    problem in 3-D solved by the package's 6x6 ICP system on a synthetic scene with a known pose,
 # 6. the from-scratch loop on two real redkitchen frames.
 #
-# Prerequisites: linear algebra (matrix products, eigenvalues, least squares). About 20 s warm
-# on the shared 2-core machine.
+# Prerequisites: linear algebra (matrix products, eigenvalues, least squares). About 10 s warm
+# (notebooks/README.md lists each lesson's measured time).
 
 # %%
 # %matplotlib inline

@@ -33,7 +33,7 @@
 # scratch in a dozen lines. How fast each backend is (and how that grows with the volume) is
 # measured in lesson 15, the speed appendix.
 #
-# Prerequisites: none; this is the first lesson. About 25 s warm (the first run of the course
+# Prerequisites: none; this is the first lesson. About 15 s warm (the first run of the course
 # also compiles the numba kernels: one to two minutes, once).
 
 # %%

@@ -33,8 +33,8 @@
 # 6. `kintinuous_fast` against the reference, within the tolerances of the tests,
 # 7. a real redkitchen frame.
 #
-# Prerequisites: lesson 0 (poses), lesson 1 (the camera model). About 25 s warm on the shared
-# 2-core machine (most of it loading `kintinuous_fast`'s compiled kernels).
+# Prerequisites: lesson 0 (poses), lesson 1 (the camera model). About 10 s warm
+# (notebooks/README.md lists each lesson's measured time).
 
 # %%
 # %matplotlib inline

@@ -31,7 +31,7 @@
 # 5. the distribution of RGB-D residuals on a real redkitchen pair and the weights they get.
 #
 # Prerequisites: lesson 0 (Gauss-Newton, normal equations), lesson 3 (RGB-D residuals) helps.
-# About 20 s warm on the shared 2-core machine.
+# About 10 s warm (notebooks/README.md lists each lesson's measured time).
 
 # %%
 # %matplotlib inline

@@ -25,7 +25,7 @@
 # 3. a second and a half of corridor, pair by pair: ICP, FOVIS, and the switched choice against
 #    the truth, and what the rule catches and what it lets through.
 #
-# Prerequisites: lesson 5 (ICP), lesson 11's measures are used informally. About 30 s warm.
+# Prerequisites: lesson 5 (ICP), lesson 11's measures are used informally. About 15 s warm.
 
 # %%
 # %matplotlib inline

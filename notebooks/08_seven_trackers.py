@@ -39,7 +39,7 @@
 # 4. the same on real frames (the shared redkitchen frames, where present).
 #
 # Prerequisites: lessons 3, 5, 6, 7 (the trackers) and 11 (the metrics; its ranking score is
-# eq. 16). About 55 s warm: each run is the whole pipeline (track, fuse, raycast) with the
+# eq. 16). About 20 s warm: each run is the whole pipeline (track, fuse, raycast) with the
 # `kintinuous_fast` CPU backend, which computes what the reference computes.
 
 # %%

@@ -28,7 +28,7 @@
 # a case of its own in which the angle weighting alone has something to correct (fine texture
 # seen first at a grazing angle, then head-on) and measures it there.
 #
-# Prerequisites: lesson 1. About 75 s warm on the shared 2-core machine.
+# Prerequisites: lesson 1. About 45 s warm on the shared 2-core machine.
 
 # %%
 # %matplotlib inline

@@ -27,7 +27,7 @@
 # 4. the slices merged into one mesh, seams joined exactly, checked against the true surface and
 #    against a fixed volume that loses what leaves it.
 #
-# Prerequisites: lesson 1 (TSDF fusion). About 70 s warm on the shared 2-core machine.
+# Prerequisites: lesson 1 (TSDF fusion). About 45 s warm on the shared 2-core machine.
 
 # %%
 # %matplotlib inline

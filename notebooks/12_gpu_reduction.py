@@ -27,7 +27,7 @@
 # 3. the simulated kernel's 6x6 system against the reference, and the block partials it leaves,
 # 4. the grid-stride loop looping: fewer threads than pixels, each thread taking several.
 #
-# Prerequisites: lesson 5 (ICP). About 35 s warm; the simulator is thousands of times slower
+# Prerequisites: lesson 5 (ICP). About 20 s warm; the simulator is thousands of times slower
 # than a GPU, which is why the frame is tiny. The simulator must be switched on before numba is
 # first imported, hence the first cell.
 

@@ -34,7 +34,7 @@
 # 5. the same kernels on real frames.
 #
 # Prerequisites: lessons 3 (RGB-D odometry: interest points, warp, weights) and 12 (a reduction
-# kernel, the simulator). About 45 s warm; the simulator runs each CUDA thread as a Python thread,
+# kernel, the simulator). About 30 s warm; the simulator runs each CUDA thread as a Python thread,
 # which is why the frames are tiny. It must be switched on before numba is first imported, hence
 # the first cell.
 

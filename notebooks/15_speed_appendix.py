@@ -35,7 +35,7 @@
 # only relations measured in the same run that hold by a wide margin.
 #
 # Prerequisites: the lessons whose code is timed (1, 3, 6, 9; 8 for the seven trackers). About
-# 60 s warm; the images are 160x120 or smaller, so the numbers say how the code scales on this
+# 20 s warm; the images are 160x120 or smaller, so the numbers say how the code scales on this
 # machine, not what a 640x480 Kinect stream costs.
 
 # %%
