@@ -41,9 +41,9 @@ class FastBackend:
     def upload(self, array: np.ndarray) -> Any:
         if self.name != "cuda":
             return array
-        from kintinuous_fast.targets.cuda import to_device
+        from kintinuous_fast.targets.cuda import upload_image
 
-        return to_device(array)
+        return upload_image(array)
 
     def predict_surface(
         self, volume: Any, pose: np.ndarray, camera: Intrinsics, stride: int = 1

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kintinuous_fast import cuda_is_simulated, cuda_status
+from kintinuous_fast import cuda_is_simulated, cuda_status, load_backend
 from kintinuous_ref.colour import colour_weights as ref_colour_weights
 from kintinuous_ref.config import (
     ColourConfig,
@@ -122,6 +122,23 @@ def test_equivalence_cuda_colour_weights(host_frames, angle, check):
     on_gpu = colour.colour_weights(uploaded(frame), config)  # device in: device out
     assert is_device(on_gpu)
     np.testing.assert_array_equal(on_gpu.copy_to_host(), want)
+
+
+@on_device
+def test_raw_images_go_up_through_one_pinned_buffer_per_shape():
+    from kintinuous_fast.targets import cuda as target
+
+    backend = load_backend("cuda")
+    rng = np.random.default_rng(7)
+    depths = [rng.integers(0, 60000, (HEIGHT, WIDTH), dtype=np.uint16) for _ in range(2)]
+    colour = rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
+    before = dict(target._STAGING)
+    uploaded = [backend.upload(image) for image in (*depths, colour)]
+    for device, host in zip(uploaded, (*depths, colour), strict=True):
+        np.testing.assert_array_equal(device.copy_to_host(), host)
+    added = {key: buffer for key, buffer in target._STAGING.items() if key not in before}
+    assert len(target._STAGING) - len(before) <= 2  # the second depth reuses the first's buffer
+    assert all(buffer.shape[:2] == (HEIGHT, WIDTH) for buffer in added.values())
 
 
 @on_device

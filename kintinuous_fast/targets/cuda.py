@@ -73,6 +73,25 @@ def to_device(array: Any, dtype: Any = None) -> Any:
     return cuda.to_device(host)
 
 
+# Page-locked host buffers for the frames' raw images, one per shape and dtype (a frame's depth
+# and colour), kept for the process: the copy engine reads pinned memory directly, where a copy
+# from pageable memory first goes through a staging copy of the driver's.
+_STAGING: dict[tuple[tuple[int, ...], str], np.ndarray] = {}
+
+
+def upload_image(image: np.ndarray) -> Any:
+    """A raw frame image on the device, copied up through this shape's pinned buffer. The copy
+    is synchronous, so the buffer is free for the next frame when this returns."""
+    if is_device(image):
+        return image
+    key = (image.shape, image.dtype.str)
+    if key not in _STAGING:
+        _STAGING[key] = cuda.pinned_array(image.shape, dtype=image.dtype)
+    staging = _STAGING[key]
+    staging[...] = image
+    return cuda.to_device(staging)
+
+
 def like_input(result: Any, given: Any) -> Any:
     """`result` (a device array) back on the host when the caller gave a host array."""
     return result if is_device(given) else to_host(result)
