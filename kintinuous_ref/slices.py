@@ -90,6 +90,14 @@ _SLICE_VERTEX = np.dtype(
 _FACE = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
 
 
+def new_file_mode() -> int:
+    """The mode `open()` gives a new file under this process's umask (0644 under the usual
+    022), where a temporary file is created 0600."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def write_slice(path: Path, mesh: SliceMesh) -> None:
     """A slice as binary PLY: position, colour and edge key per vertex, triangles; the box in a
     comment. Written under a temporary name and renamed: a crash never leaves half a file."""
@@ -118,6 +126,7 @@ def write_slice(path: Path, mesh: SliceMesh) -> None:
             out.write(header.encode("ascii"))
             out.write(vertex.tobytes())
             out.write(face.tobytes())
+        os.chmod(out.name, new_file_mode())  # a temporary file is private; a result is not
         os.replace(out.name, path)
     except BaseException:  # a full disk, a signal: no .part file stays behind
         Path(out.name).unlink(missing_ok=True)

@@ -106,7 +106,7 @@ def test_a_signal_at_frame_3_keeps_the_work(tmp_path, number, status):
     assert 3 <= done < FRAMES and report["last_frame"] == done - 1
     assert _poses(out) == done
     assert _vertices(out) == report["mesh"]["vertices"] > 0
-    assert f"saving {done} frames..." in stderr
+    assert f"writing the results of {done} frames (trajectory, mesh, report)..." in stderr
     assert _last_line(stderr) == (
         f"kintinuous: interrupted by {name} after frame {done - 1}: the {done} frames done are "
         f"saved in {out}"

@@ -4,6 +4,9 @@ move when the volume does, each marching cube is extracted exactly once with clo
 shift rule of docs/parameters.md, and slices on disk that survive a crash."""
 
 import json
+import os
+import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -297,10 +300,25 @@ def test_reconstruct_command_reports_shifts_and_slices(corridor, tmp_path):
     report = json.loads((tmp_path / "a" / "report.json").read_text())
     assert report["moving_volume"] and report["shifts"] >= 2
     assert report["slices"] == len(list((tmp_path / "a" / "slices").glob("slice_*.ply"))) >= 1
+    assert_modes_like_every_output(tmp_path / "a")
     assert main([*common, "--out", str(tmp_path / "b"), "--fixed-volume"]) == 0
     report = json.loads((tmp_path / "b" / "report.json").read_text())
     assert not report["moving_volume"] and report["shifts"] == report["slices"] == 0
     assert main([*common, "--out", str(tmp_path / "c"), "--shift-threshold", "17"]) == 2
+
+
+def assert_modes_like_every_output(out: Path) -> None:
+    """Every file of a run, the slices included, has the mode `open()` gives under this
+    process's umask (a temporary file is created 0600)."""
+    files = [path for path in out.iterdir() if path.is_file()] + list(out.glob("slices/*.ply"))
+    modes = {path.name: stat.S_IMODE(path.stat().st_mode) for path in files}
+    assert set(modes.values()) == {0o666 & ~current_umask()}, modes
+
+
+def current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def test_recentre_keeps_the_surface_as_a_slice_and_moves_the_window():

@@ -541,7 +541,11 @@ def reconstruct(
         try:
             if bar is not None:
                 bar.close()  # the one-line messages below start on a line of their own
-            print(f"saving {result.frames} frames...", file=sys.stderr, flush=True)
+            print(
+                f"writing the results of {result.frames} frames (trajectory, mesh, report)...",
+                file=sys.stderr,
+                flush=True,
+            )
             expected = KintinuousError | OSError | MemoryError  # one line, no crash.log
             if result.error is not None and not isinstance(result.error, expected):
                 write_text_atomic(out / "crash.log", result.error_traceback)
