@@ -11,8 +11,6 @@ come out in the reference's order.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numba
 import numpy as np
 
@@ -443,17 +441,15 @@ class RgbdProblem(reference.RgbdProblem):
     prepare_level = staticmethod(prepare_level)
     rgbd_system = staticmethod(rgbd_system)
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._levels: dict[int, tuple] = {}
-
     def system(self, level: int, pose: np.ndarray) -> LinearSystem:
-        """rgbd_system of the level at `pose`, from the terms its iterations share."""
-        if level not in self._levels:
+        """rgbd_system of the level at `pose`, from the terms its iterations share (kept per
+        level on the problem, which keeps the reference's constructor)."""
+        levels: dict[int, tuple] = self.__dict__.setdefault("_levels", {})
+        if level not in levels:
             camera = self.previous_levels[level].camera
             arguments = (self.previous_pose, self.previous(level), camera, self.max_depth_change)
             columns, warp_terms = _level_terms(self.points(level), *arguments)
             row_terms = (np.ascontiguousarray(self.previous_pose, dtype=np.float64), _focal(camera))
-            self._levels[level] = (columns, warp_terms, row_terms)
-        columns, warp_terms, row_terms = self._levels[level]
+            levels[level] = (columns, warp_terms, row_terms)
+        columns, warp_terms, row_terms = levels[level]
         return _system(columns, warp_terms(pose), *row_terms)
