@@ -160,3 +160,18 @@ def test_the_cache_stamp_matches_these_sources_after_loading_the_cpu_backend():
     load_backend("cpu")
     for folder in cache.cache_folders():
         assert (folder / cache.STAMP_NAME).read_text() == cache.sources_stamp()
+
+
+def test_the_stage_table_adds_up_to_the_wait():
+    """A cold warm-up spends its time in the two compiling processes, and its stages then load
+    their kernels: the table has a line for each, and the rest, so that it adds up."""
+    report = {
+        "backend": "cpu",
+        "seconds": 38.8,
+        "methods": ["icp"],
+        "stage_seconds": {warmup.COMPILING: 36.2, "preprocess": 0.1, "odometry": 0.3},
+        "kernel_seconds": {},
+    }
+    rows = warmup.format_report(report).splitlines()[2:-1]
+    assert [row.split()[0] for row in rows] == [warmup.COMPILING, "preprocess", "odometry", "rest"]
+    assert sum(float(row.split()[-1]) for row in rows) == pytest.approx(38.8, abs=0.1)
