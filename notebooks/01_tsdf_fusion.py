@@ -363,8 +363,9 @@ assert errors[-1][1] < 1.5e-3  # "within about a millimetre" (summary)
 # ## The mesh
 #
 # For display and export the zero level set is triangulated by marching cubes
-# (`mesh.extract_mesh`, VTK's flying edges), keeping only triangles between observed voxels;
-# vertex colours come from the colour volume (lesson 9).
+# (`mesh.extract_mesh`, with the package's own marching cubes, `kintinuous_ref/marching_cubes.py`),
+# keeping only triangles between observed voxels; vertex colours come from the colour volume
+# (lesson 9). pyvista (VTK) only draws the picture.
 
 # %%
 import pyvista as pv
