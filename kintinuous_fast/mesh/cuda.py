@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.mesh.ops import build_ops, build_slice_ops
+from kintinuous_fast.mesh.ops import build_ops
+from kintinuous_fast.mesh.slice_ops import build_slice_ops
 from kintinuous_fast.targets import cuda_device_jit, to_host
 from kintinuous_fast.targets.cuda import BLOCK_1D, grid_1d, kernel, to_device
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, SlabView
