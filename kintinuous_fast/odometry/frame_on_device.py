@@ -2,7 +2,7 @@
 """One dense estimate on the device: kintinuous_ref.odometry.estimate_dense's steps (the
 stale-stream test, coarse-to-fine Gauss-Newton, the inlier count at the finest level) as a
 fixed sequence of CUDA kernels, each leaving its result where the next one reads it. The host
-launches the sequence and waits once, for a record of 80 numbers: the pose, how the frame
+launches the sequence and waits once, for a record of 32 numbers: the pose, how the frame
 ended and the counts the inlier check needs. The reference's loop (solve.refine) downloads
 each iteration's system, solves it on the host and uploads the next pose: two waits and a
 dozen launches' worth of Python per iteration, which on a GPU cost more than the kernels.
