@@ -165,3 +165,111 @@ def test_the_pipeline_gives_the_same_bits_on_1_2_and_7_threads():
     for name, digests in runs.items():
         assert digests == first, name
     assert cpu.MIN_SECONDS_PER_THREAD == MIN_SECONDS_PER_THREAD  # the child's change stays there
+
+
+# The child: the joint ICP + RGB-D system of the analytic room (160x120, three levels, three
+# poses) from the fused loop (icp/cpu_joint.py, what CombinedProblem.system runs on the CPU) and
+# from the two problems' separate systems summed by combined.joint_system, on each thread count
+# and once with every loop forced onto all 7; prints each run's systems as SHA-256 digests of
+# their bytes, and each problem's RGB-D inlier fraction beside the base class's.
+JOINT_CHILD = textwrap.dedent(
+    """
+    import hashlib, json, sys, numba
+    import numpy as np
+    sys.path.insert(0, sys.argv[1])
+    import test_fast_odometry_cases as cases
+    from kintinuous_fast.odometry import combined, cpu as odometry
+    from kintinuous_fast.targets import cpu
+    from kintinuous_ref.odometry.rgbd import RgbdProblem
+    from kintinuous_ref.preprocess import model_pyramid
+
+    camera, previous, current, previous_frame, frame, rendered = cases.room(160, 120)
+    model = model_pyramid(*rendered[0], 3)
+
+    def problems():
+        icp = odometry.IcpProblem(frame.levels, model, previous, 0.1, 20.0, "huber", 0.01)
+        return icp, odometry.RgbdProblem(previous_frame.levels, frame.levels, previous)
+
+    def digest(system):
+        parts = (system.A, system.b, np.array([system.count, system.cost]))
+        return hashlib.sha256(b"".join(p.tobytes() for p in parts)).hexdigest()
+
+    def systems(threads, minimum):
+        numba.set_num_threads(threads)
+        cpu.MIN_SECONDS_PER_THREAD = minimum
+        fused, separate, fractions = [], [], []
+        joint = combined.CombinedProblem(*problems(), 0.3, "huber")
+        for pose in cases.poses_to_try(previous, current):
+            for level in range(3):
+                for _ in range(2):  # the level's work arrays serve every iteration
+                    fused.append(digest(joint.system(level, pose)))
+                icp, rgbd = problems()
+                summed = combined.joint_system(
+                    icp.system(level, pose), rgbd.system(level, pose), 0.3, "huber", 10.0,
+                    pose[:3, 3], joint.degeneracy_threshold,
+                )
+                separate.append(digest(summed))
+                base = RgbdProblem.inlier_fraction(rgbd, pose, level)
+                fractions.append((rgbd.inlier_fraction(pose, level), base))
+        return {"fused": fused, "separate": separate, "fractions": fractions}
+
+    minimum = cpu.MIN_SECONDS_PER_THREAD
+    runs = {f"{n} threads": systems(n, minimum) for n in (1, 2, 7)}
+    runs["7 threads, every loop shared"] = systems(7, 1e-12)
+    print(json.dumps(runs))
+    """
+)
+
+
+def test_the_joint_loop_gives_the_separate_systems_bits_on_1_2_and_7_threads():
+    tests = os.path.dirname(os.path.abspath(__file__))
+    environment = {**os.environ, "NUMBA_NUM_THREADS": "7"}
+    child = subprocess.run(
+        [sys.executable, "-c", JOINT_CHILD, tests],
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+        check=False,
+    )
+    assert child.returncode == 0, child.stderr[-3000:]
+    runs = json.loads(child.stdout.strip().splitlines()[-1])
+    first = runs["1 threads"]
+    for name, run in runs.items():
+        # two calls at each pose and level, and the separate systems' sum once
+        assert run["fused"][::2] == run["fused"][1::2] == run["separate"], name
+        assert run == first, name
+        for fast, base in run["fractions"]:
+            assert fast == base and 0.5 < fast <= 1.0, name
+
+
+def test_the_joint_system_is_the_references():
+    """The fused loop's joint system against kintinuous_ref's CombinedProblem, an independent
+    implementation (NumPy products and sums), at every level and pose, to the summation
+    tolerances of tests/test_fast_odometry_cases.py."""
+    import test_fast_odometry_cases as cases
+
+    from kintinuous_fast.odometry import cpu as odometry
+    from kintinuous_ref.odometry import combined, icp, rgbd
+    from kintinuous_ref.preprocess import model_pyramid
+
+    camera, previous, current, previous_frame, frame, rendered = cases.room(160, 120)
+    model = model_pyramid(*rendered[0], 3)
+    icp_arguments = (frame.levels, model, previous, 0.1, 20.0, "huber", 0.01)
+    rgbd_arguments = (previous_frame.levels, frame.levels, previous)
+    fast = odometry.CombinedProblem(
+        odometry.IcpProblem(*icp_arguments), odometry.RgbdProblem(*rgbd_arguments), 0.3, "huber"
+    )
+    reference = combined.CombinedProblem(
+        icp.IcpProblem(*icp_arguments), rgbd.RgbdProblem(*rgbd_arguments), 0.3, "huber"
+    )
+    for pose in cases.poses_to_try(previous, current):
+        for level in range(3):
+            expected = reference.system(level, pose)
+            assert expected.count > 100
+            cases.assert_systems_close(
+                f"level {level}",
+                fast.system(level, pose),
+                expected,
+                residual_atol=cases.INTENSITY_ATOL,
+            )

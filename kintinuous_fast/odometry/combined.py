@@ -1,7 +1,8 @@
 """kintinuous_ref.odometry.combined with the joint system compiled for the host (both backends
 solve on the host, paper IV-A.3): the "degeneracy-aware" weightings (the default among them)
 as one compiled function, the others (a scaling and a sum of LinearSystems) the reference's.
-The per-frame CombinedProblem sums a fast backend's ICP and RGB-D problems (either target).
+The per-frame CombinedProblem sums a fast backend's ICP and RGB-D problems (either target);
+the CPU's ICP problem computes both systems and their sum itself (icp/cpu_joint.py).
 """
 
 from __future__ import annotations
@@ -148,3 +149,14 @@ class CombinedProblem(reference.CombinedProblem):
     the compiled joint system."""
 
     joint_system = staticmethod(joint_system)
+
+    def system(self, level: int, pose: np.ndarray) -> LinearSystem:
+        """The reference's joint system at `pose`; where the ICP problem sums both terms itself
+        (the CPU's: one parallel call for both, icp/cpu_joint.py), the same system from it."""
+        fused = getattr(self.icp, "joint_system_with", None)
+        if fused is not None and type(self).joint_system is joint_system:
+            arguments = (self.rgbd_weight, self.weighting, self.degeneracy_threshold)
+            system = fused(self.rgbd, level, pose, *arguments)
+            if system is not None:
+                return system
+        return super().system(level, pose)

@@ -11,16 +11,18 @@ order.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from kintinuous_fast.odometry import check_image
-from kintinuous_fast.odometry.sums import NV, chunks_for, sum_partials
+from kintinuous_fast.odometry.rgbd.cpu import RgbdProblem
+from kintinuous_fast.odometry.sums import chunks_for, sum_partials
 from kintinuous_fast.odometry.sums.cpu import (
     ALLOCATING_LOOP,
     BLOCK,
     CHUNKS,
     LOOP,
-    add_block,
     partials,
     run,
     stage,
@@ -43,7 +45,8 @@ from kintinuous_ref.odometry.solve import LinearSystem
 from . import NO_WEIGHTS as _NO_WEIGHTS
 from . import REFERENCE_NAMES, TARGET_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
 from .cpu_block import OPS as _OPS
-from .cpu_block import _block_work, _pair_rows_block
+from .cpu_block import _block_work, _pair_rows_block, icp_chunk
+from .cpu_joint import FUSED_WEIGHTINGS, joint_system
 
 # The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
 # listed in icp/__init__.py.
@@ -88,26 +91,10 @@ def _compact_loop(claims, parts, vertices, normals, starts, points):
 @ALLOCATING_LOOP
 def _icp_loop(claims, parts, points, pose, to_model, mv, mn, camera, limits, robust, out):
     """Association + point-to-plane row + accumulation over the valid current points (6, n);
-    out[c] collects chunk c's rows (slot NV-1: the chunk's valid current points). `robust` =
-    robust_terms: the weights of the rows."""
-    n = points.shape[1]
-    chunks = out.shape[0]
-    for c in claimed_items(claims, chunks, parts):
-        acc = np.zeros(NV)
-        work = _block_work(mv.dtype)
-        pair_matrix = work[3].reshape((8, BLOCK))
-        # Least squares weighs every row by 1: its rows are their own weighted rows.
-        weighs = _weighs_pairs(robust)
-        weighted_matrix = work[4].reshape((7, BLOCK)) if weighs else pair_matrix
-        start, stop = c * n // chunks, (c + 1) * n // chunks
-        acc[NV - 1] += stop - start
-        for block in range(start, stop, BLOCK):
-            end = min(block + BLOCK, stop)
-            _pair_rows_block(
-                points, block, end, pose, to_model, mv, mn, camera, limits, robust, work
-            )
-            add_block(acc, weighted_matrix, pair_matrix, end - block)
-        out[c] = acc
+    out[c] collects chunk c's rows (icp_chunk). `robust` = robust_terms: the weights of the
+    rows."""
+    for c in claimed_items(claims, out.shape[0], parts):
+        icp_chunk(c, points, pose, to_model, mv, mn, camera, limits, robust, out)
 
 
 @ALLOCATING_LOOP
@@ -305,6 +292,22 @@ class IcpProblem(_IcpProblem):
         return _points_system(
             self.points(level), self.model(level), camera, self.constants(pose), self.robust
         )
+
+    def joint_system_with(
+        self,
+        rgbd: Any,
+        level: int,
+        pose: np.ndarray,
+        rgbd_weight: float,
+        weighting: str,
+        degeneracy_threshold: float,
+    ) -> LinearSystem | None:
+        """combined.joint_system of this problem's and `rgbd`'s systems at `pose` (the camera
+        position pose[:3, 3]) in one parallel call (icp/cpu_joint.py), where `rgbd` is the
+        CPU's RgbdProblem and the weighting a degeneracy-aware one; None elsewhere."""
+        if weighting not in FUSED_WEIGHTINGS or not isinstance(rgbd, RgbdProblem):
+            return None
+        return joint_system(self, rgbd, level, pose, rgbd_weight, degeneracy_threshold)
 
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
         """As the base class, from the pair count alone (_points_pairs): no sums for this one

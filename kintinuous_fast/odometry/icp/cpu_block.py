@@ -1,19 +1,21 @@
 # ruff: noqa: ANN001, ANN201  (numba functions: argument types come from the call)
 """One block of ICP pairs on the CPU (icp/cpu.py's loops run it BLOCK points at a time): the
 projections, the gathers of the model pixels and the rows, each in a loop of its own so that
-all but the gathers vectorise. Also here: the ICP ops compiled once for the CPU (OPS), which
-icp/cpu.py's loops call too."""
+all but the gathers vectorise; and one chunk of them summed (`icp_chunk`, what every ICP loop
+runs per chunk). Also here: the ICP ops compiled once for the CPU (OPS), which icp/cpu.py's
+loops call too."""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
 
-from kintinuous_fast.odometry.sums.cpu import BLOCK, GEOMETRY, INLINE
+from kintinuous_fast.odometry.sums import NV
+from kintinuous_fast.odometry.sums.cpu import ALLOCATING_LOOP, BLOCK, GEOMETRY, INLINE, add_block
 
 from .ops import build_ops
 
-__all__ = ["OPS"]
+__all__ = ["OPS", "icp_chunk"]
 
 OPS = build_ops(INLINE, GEOMETRY)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
@@ -116,3 +118,25 @@ def _block_work(dtype):
         np.empty(8 * BLOCK),
         np.empty(7 * BLOCK),
     )
+
+
+@ALLOCATING_LOOP  # compiled as the loops are: no reference counts around its accesses
+def icp_chunk(c, points, pose, to_model, mv, mn, camera, limits, robust, out):
+    """Association + point-to-plane row + accumulation over chunk c (of out.shape[0]) of the
+    valid current points (6, n): out[c] = the chunk's summed rows (slot NV-1: its valid
+    current points). `robust` = robust_terms: the weights of the rows."""
+    n = points.shape[1]
+    chunks = out.shape[0]
+    acc = np.zeros(NV)
+    work = _block_work(mv.dtype)
+    pair_matrix = work[3].reshape((8, BLOCK))
+    # Least squares weighs every row by 1: its rows are their own weighted rows.
+    weighs = _weighs_pairs(robust)
+    weighted_matrix = work[4].reshape((7, BLOCK)) if weighs else pair_matrix
+    start, stop = c * n // chunks, (c + 1) * n // chunks
+    acc[NV - 1] += stop - start
+    for block in range(start, stop, BLOCK):
+        end = min(block + BLOCK, stop)
+        _pair_rows_block(points, block, end, pose, to_model, mv, mn, camera, limits, robust, work)
+        add_block(acc, weighted_matrix, pair_matrix, end - block)
+    out[c] = acc

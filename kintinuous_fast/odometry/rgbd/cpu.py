@@ -116,6 +116,7 @@ def _correspond_chunk(c, points, intensity, gradient, warp_terms, pairs, sums, w
     n = pairs.shape[1]
     chunks = sums.shape[0]
     start, stop = c * n // chunks, (c + 1) * n // chunks
+    sums[c, 0], sums[c, 1] = 0.0, 0.0  # a level's work arrays serve all of its iterations
     for block in range(start, stop, BLOCK):
         end = min(block + BLOCK, stop)
         _warp_block(points, block, end, relative, camera, warp)
@@ -216,6 +217,19 @@ def _rows_chunk(c, pairs, previous_pose, focal, sigma, out):
     out[c] = acc
 
 
+@numba.njit(cache=True)
+def _robust_scale(sums):
+    """(whether there are pairs, sigma') from the first pass's per-chunk (sum r^2, count),
+    added in chunk order; sigma' 0 without pairs (no rows: the host returns an empty
+    system)."""
+    squares, count = 0.0, 0.0
+    for c in range(sums.shape[0]):
+        squares += sums[c, 0]
+        count += sums[c, 1]
+    has_pairs = count > 0.0
+    return has_pairs, np.sqrt(squares / count) if has_pairs else 0.0
+
+
 @ALLOCATING_LOOP
 def _rgbd_system_loop(
     claims, parts, points, intensity, gradient, warp_terms, row_terms, pairs, sums, warps, out
@@ -235,12 +249,7 @@ def _rgbd_system_loop(
             _correspond_chunk(item, points, intensity, gradient, warp_terms, pairs, sums, warp)
             continue
         if sigma < 0.0:  # this thread's first chunk of the second pass
-            squares, count = 0.0, 0.0
-            for c in range(chunks):
-                squares += sums[c, 0]
-                count += sums[c, 1]
-            has_pairs = count > 0.0  # else no rows: the host returns an empty system
-            sigma = np.sqrt(squares / count) if has_pairs else 0.0
+            has_pairs, sigma = _robust_scale(sums)
         if has_pairs:
             _rows_chunk(item - chunks, pairs, previous_pose, focal, sigma, out)
 
@@ -441,9 +450,11 @@ class RgbdProblem(reference.RgbdProblem):
     prepare_level = staticmethod(prepare_level)
     rgbd_system = staticmethod(rgbd_system)
 
-    def system(self, level: int, pose: np.ndarray) -> LinearSystem:
-        """rgbd_system of the level at `pose`, from the terms its iterations share (kept per
-        level on the problem, which keeps the reference's constructor)."""
+    def level_terms(self, level: int) -> tuple:
+        """(columns, warp_terms, row_terms) of the level, what its iterations share: the interest
+        points' columns (_point_columns), the function of the pose giving _correspond_chunk's
+        warp terms, and (previous pose, focal); made once per level and kept on the problem,
+        which keeps the reference's constructor."""
         levels: dict[int, tuple] = self.__dict__.setdefault("_levels", {})
         if level not in levels:
             camera = self.previous_levels[level].camera
@@ -451,5 +462,20 @@ class RgbdProblem(reference.RgbdProblem):
             columns, warp_terms = _level_terms(self.points(level), *arguments)
             row_terms = (np.ascontiguousarray(self.previous_pose, dtype=np.float64), _focal(camera))
             levels[level] = (columns, warp_terms, row_terms)
-        columns, warp_terms, row_terms = levels[level]
+        return levels[level]
+
+    def system(self, level: int, pose: np.ndarray) -> LinearSystem:
+        """rgbd_system of the level at `pose`, from the terms its iterations share."""
+        columns, warp_terms, row_terms = self.level_terms(level)
         return _system(columns, warp_terms(pose), *row_terms)
+
+    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+        """As the base class, from the correspondences alone (the first pass): the system's
+        count is the number of pairs kept there, and its sums are not needed for one look."""
+        columns, warp_terms, _ = self.level_terms(level)
+        n = columns[0].shape[1]
+        if n == 0:
+            return 0.0
+        pairs, sums, warps = _work(n)
+        run(_correspond_loop, n, *columns, warp_terms(pose), pairs, sums, warps)
+        return int(sums.sum(axis=0)[1]) / n

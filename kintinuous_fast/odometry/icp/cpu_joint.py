@@ -1,0 +1,204 @@
+# ruff: noqa: ANN001, ANN201  (numba loops: argument types come from the call)
+"""One iteration of the joint ICP + RGB-D estimate on the CPU (combined.CombinedProblem.system
+over the CPU's problems): both systems in one parallel call, and their sums, the ICP scale and
+the degeneracy-aware joint system (combined.joint_system's default weightings) in one compiled
+function.
+
+Called apart, the two problems cost two wake-ups of the helper threads per iteration, and about
+forty NumPy and Python calls between them (partials made and added up, LinearSystems unpacked,
+scaled and summed) that each take microseconds for nanoseconds of arithmetic. Here the ICP
+chunks and the RGB-D correspondence chunks are the first pass of one loop, the RGB-D rows its
+second (rgbd/cpu.py's two passes), and a level's work arrays are made once for all of its
+iterations. The chunks and the order of every sum are those of the separate calls, so the
+system is the same, bit for bit, on any number of threads.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from kintinuous_fast.odometry.combined import _discounted_joint
+from kintinuous_fast.odometry.rgbd.cpu import (
+    _correspond_chunk,
+    _robust_scale,
+    _rows_chunk,
+    _work,
+)
+from kintinuous_fast.odometry.sums import NV, SLOT_B, SLOT_COST, SLOT_COUNT
+from kintinuous_fast.odometry.sums.cpu import ALLOCATING_LOOP, partials
+from kintinuous_fast.targets import pinhole
+from kintinuous_fast.targets.cpu import SPINS, claim_slot, claimed_items_in_passes, run_parallel
+from kintinuous_ref.odometry.combined import MIN_ICP_SCALE
+from kintinuous_ref.odometry.solve import LinearSystem
+from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS
+
+from .cpu_block import icp_chunk
+
+__all__ = ["FUSED_WEIGHTINGS", "JointLevel", "joint_system"]
+
+# The weightings whose joint system is computed here: the degeneracy-aware ones (the default
+# among them); the others are a scaling and a sum, left to the reference's joint_system.
+FUSED_WEIGHTINGS = ("degeneracy-aware", *ROBUST_WEIGHTINGS)
+
+
+# ----------------------------------------------------------------------------------------------
+# The loop
+
+
+@ALLOCATING_LOOP
+def _joint_loop(claims, parts, icp_terms, icp_out, rgbd_terms, pairs, sums, warps, rgbd_out):
+    """One item per part: the first pass's items are the ICP chunks (icp_chunk into icp_out)
+    and then the RGB-D correspondence chunks (_correspond_chunk), the second pass's the RGB-D
+    rows chunks (_rows_chunk), claimed once every chunk of the first is done
+    (claimed_items_in_passes); a thread's first chunk of the second takes sigma' from the
+    first pass's sums. `icp_terms` = (points, pose, current to model camera, model vertices,
+    model normals, camera, limits, robust) as icp/cpu.py's loops take them, `rgbd_terms` =
+    (the interest points' columns, warp terms, (previous pose, focal)) as rgbd/cpu.py's."""
+    points, pose, to_model, mv, mn, camera, limits, robust = icp_terms
+    columns, warp_terms, row_terms = rgbd_terms
+    interest, intensity, gradient = columns
+    previous_pose, focal = row_terms
+    icp_chunks = icp_out.shape[0]
+    first = icp_chunks + sums.shape[0]
+    warp = warps[claim_slot(claims)]
+    sigma, has_pairs = -1.0, False
+    for item in claimed_items_in_passes(claims, parts, parts, first, SPINS):
+        if item < icp_chunks:
+            icp_chunk(item, points, pose, to_model, mv, mn, camera, limits, robust, icp_out)
+        elif item < first:
+            c = item - icp_chunks
+            _correspond_chunk(c, interest, intensity, gradient, warp_terms, pairs, sums, warp)
+        else:
+            if sigma < 0.0:  # this thread's first chunk of the second pass
+                has_pairs, sigma = _robust_scale(sums)
+            if has_pairs:
+                _rows_chunk(item - first, pairs, previous_pose, focal, sigma, rgbd_out)
+
+
+# ----------------------------------------------------------------------------------------------
+# The sums
+
+
+@numba.njit(cache=True)
+def _added_chunks(out):
+    """The rows of `out` (chunks, NV) added in order, as NumPy adds them along axis 0
+    (sums.sum_partials): each entry's sum runs over the chunks one after another."""
+    total = np.zeros(out.shape[1])
+    for c in range(out.shape[0]):
+        for k in range(out.shape[1]):
+            total[k] += out[c, k]
+    return total
+
+
+@numba.njit(cache=True)
+def _unpacked(total):
+    """(A, b, count, cost) of an NV vector, as sums.unpack."""
+    a = np.empty((6, 6))
+    slot = 0
+    for i in range(6):
+        for j in range(i, 6):
+            a[i, j] = a[j, i] = total[slot]
+            slot += 1
+    return a, total[SLOT_B : SLOT_B + 6].copy(), int(np.rint(total[SLOT_COUNT])), total[SLOT_COST]
+
+
+@numba.njit(cache=True)
+def _icp_weight(count, cost):
+    """1 / combined.icp_scale^2 of an ICP system, as the reference computes it (Python's
+    max keeps its first argument unless the second is larger: a NaN scale stays NaN)."""
+    if count == 0:
+        return 1.0
+    scale = math.sqrt(cost / count)
+    scale = MIN_ICP_SCALE if MIN_ICP_SCALE > scale else scale
+    return 1.0 / scale**2
+
+
+@numba.njit(cache=True)
+def _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold):
+    """(A, b, count, cost) of combined.joint_system's degeneracy-aware branch over the two
+    loops' partial sums: the ICP system from icp_out, the RGB-D one from rgbd_out (empty where
+    the first pass kept no pair: `sums`' counts), as the separate calls unpack them."""
+    icp_a, icp_b, icp_count, icp_cost = _unpacked(_added_chunks(icp_out))
+    pairs = 0.0
+    for c in range(sums.shape[0]):
+        pairs += sums[c, 1]
+    rgbd_total = _added_chunks(rgbd_out) if pairs != 0.0 else np.zeros(NV)
+    rgbd_a, rgbd_b, rgbd_count, rgbd_cost = _unpacked(rgbd_total)
+    icp_weight = _icp_weight(icp_count, icp_cost)
+    a, b = _discounted_joint(
+        icp_a, icp_b, icp_count, icp_weight, rgbd_a, rgbd_b, rgbd_weight, centre, threshold
+    )
+    cost = icp_cost * icp_weight + rgbd_cost * rgbd_weight
+    return a, b, icp_count + rgbd_count, cost
+
+
+# ----------------------------------------------------------------------------------------------
+# Host side
+
+
+class JointLevel:
+    """What every iteration at one level passes the joint loop: the ICP problem's points, model
+    maps and camera, the RGB-D problem's level terms, and the work arrays both write, made once
+    for all of the level's iterations."""
+
+    def __init__(self, icp, rgbd, level: int) -> None:  # noqa: ANN001 (the CPU's problems)
+        self.icp = icp
+        self.points = icp.points(level)
+        self.model = icp.model(level)
+        self.camera = pinhole(icp.current_levels[level].camera)
+        self.columns, self.warp_terms, self.row_terms = rgbd.level_terms(level)
+        self.icp_out = partials(self.points.shape[1])
+        interest = self.columns[0].shape[1]
+        self.pairs, self.sums, self.warps = _work(interest)
+        self.rgbd_out = partials(interest)
+        self.parts = self.icp_out.shape[0] + 2 * self.sums.shape[0]
+        self.items = self.points.shape[1] + interest
+
+    def system(self, pose: np.ndarray, rgbd_weight: float, threshold: float) -> LinearSystem:
+        """The joint system at `pose` (combined.joint_system's degeneracy-aware branch)."""
+        pose, to_model, dist2, cos_min = self.icp.constants(pose)
+        limits = (dist2, cos_min)
+        icp_terms = (self.points, pose, to_model, *self.model, self.camera, limits, self.icp.robust)
+        rgbd_terms = (self.columns, self.warp_terms(pose), self.row_terms)
+        run_parallel(
+            _joint_loop,
+            icp_terms,
+            self.icp_out,
+            rgbd_terms,
+            self.pairs,
+            self.sums,
+            self.warps,
+            self.rgbd_out,
+            parts=self.parts,
+            items=self.items,
+        )
+        centre = np.ascontiguousarray(pose[:3, 3], dtype=np.float64)
+        a, b, count, cost = _joint_sums(
+            self.icp_out,
+            self.sums,
+            self.rgbd_out,
+            float(rgbd_weight),
+            centre,
+            float(threshold),
+        )
+        return LinearSystem(a, b, count, cost)
+
+
+def joint_system(
+    icp,  # noqa: ANN001 (the CPU's IcpProblem)
+    rgbd,  # noqa: ANN001 (the CPU's RgbdProblem)
+    level: int,
+    pose: np.ndarray,
+    rgbd_weight: float,
+    threshold: float,
+) -> LinearSystem:
+    """combined.joint_system(icp.system(level, pose), rgbd.system(level, pose), rgbd_weight,
+    a degeneracy-aware weighting, camera position pose[:3, 3], threshold), computed in one
+    parallel call and one compiled function; the level's JointLevel is kept on `icp`."""
+    levels: dict[int, JointLevel] = icp.__dict__.setdefault("_joint_levels", {})
+    if level not in levels:
+        levels[level] = JointLevel(icp, rgbd, level)
+    return levels[level].system(pose, rgbd_weight, threshold)
