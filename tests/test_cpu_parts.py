@@ -1,8 +1,10 @@
 """How many threads a cpu loop runs on follows its work (kintinuous_fast.targets.cpu): the rule
 in closed form, a loop below its work threshold seen to run on the calling thread alone (the
 threads that ran its parts recorded), one above it shared, each loop's cost measured as it
-runs; and the pipeline's poses and volume the same bits on 1, 2 and 7 threads, and with every
-loop forced onto all 7."""
+runs; the pipeline's poses and volume the same bits on 1, 2 and 7 threads, and with every
+loop forced onto all 7; and the joint ICP + RGB-D loop (one parallel call per iteration) the same
+bits as the two problems' separate systems summed, on each of those, and close to the
+reference's joint system."""
 
 import json
 import os
