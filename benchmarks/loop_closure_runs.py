@@ -1,7 +1,7 @@
 """Loop closure against the same tracker without it, and against known poses (docs/loop_closure.md).
 
     python benchmarks/loop_closure_runs.py DATASET OUT [--frames N] [--volume-size S]
-        [--resolution N] [--backend cpu] [--set KEY=VALUE ...]
+        [--resolution N] [--backend cpu] [--no-open3d] [--set KEY=VALUE ...]
 
 DATASET is a TUM folder (a synthetic scenario written by `kintinuous synth`, or real data). Runs
 `reconstruct` three times into OUT/closure, OUT/plain and (when the dataset has a scene.ply, the
@@ -94,6 +94,7 @@ def main() -> None:
     parser.add_argument("--volume-size", type=float, default=4.0)
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--backend", default="cpu")
+    parser.add_argument("--no-open3d", action="store_true", help="our two runs only")
     parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="a configuration value"
     )
@@ -132,7 +133,8 @@ def main() -> None:
         write_summary(args.out, summary)
     # Open3D's default band (8 voxels) and ours (config.volume.truncation)
     our_band = config.volume.truncation / config.volume.voxel_size
-    for name, band_voxels in (("open3d", 8.0), ("open3d_our_band", our_band)):
+    bands = () if args.no_open3d else (("open3d", 8.0), ("open3d_our_band", our_band))
+    for name, band_voxels in bands:
         entry = run_open3d(sequence, config, args.frames, args.out / name, scene, band_voxels)
         if entry is not None:
             summary[name] = entry

@@ -56,11 +56,22 @@ class Verdict:
     reason: str = ""  # one of REASONS when rejected
     matches: int = 0  # ratio-test ORB matches
     ransac_inliers: int = 0
+    ransac_share: float | None = None  # RANSAC inliers per match
     icp_rmse: float | None = None  # metres
-    icp_inlier_share: float | None = None
+    icp_inlier_share: float | None = None  # paired points per valid point of the query
+    visible_share: float | None = None  # query points the match's view holds (`Overlap`)
+    icp_overlap_share: float | None = None  # paired points per visible point
     photometric_share: float | None = None
     correction: float | None = None  # metres the loop moves the new keyframe from odometry's pose
     relative: np.ndarray | None = None  # (4, 4) pose of the query in the match's camera frame
+    dense_pose: np.ndarray | None = None  # (4, 4) what the dense alignment found, accepted or not
+
+    @property
+    def dense_angle_deg(self) -> float | None:
+        """Degrees between the two views' directions at the dense alignment's pose."""
+        if self.dense_pose is None:
+            return None
+        return float(np.degrees(se3.rotation_angle(self.dense_pose[:3, :3])))
 
     def as_dict(self) -> dict:
         """The numbers for report.json (no arrays)."""
@@ -71,8 +82,11 @@ class Verdict:
             "reason": self.reason or None,
             "matches": self.matches,
             "ransac_inliers": self.ransac_inliers,
+            "ransac_share": self.ransac_share,
             "icp_rmse_m": self.icp_rmse,
             "icp_inlier_share": self.icp_inlier_share,
+            "visible_share": self.visible_share,
+            "icp_overlap_share": self.icp_overlap_share,
             "photometric_share": self.photometric_share,
             "correction_m": self.correction,
         }
@@ -180,22 +194,43 @@ def dense_alignment(
         return pose, reason, float("inf"), 0.0
     # The acceptance numbers use a tight association: the pairs a correct loop would give.
     tight = IcpProblem(query.levels[:1], [(match.levels[0].vertices, match.levels[0].normals)],
-                       np.eye(4), distance_threshold=0.03, angle_threshold_deg=20.0)  # fmt: skip
+                       np.eye(4), distance_threshold=config.pair_distance,
+                       angle_threshold_deg=20.0)  # fmt: skip
     system = tight.system(0, pose)
     rmse = float(np.sqrt(system.cost / system.count)) if system.count else float("inf")
     return pose, "", rmse, tight.inlier_fraction(pose, 0)
 
 
-def photometric_share(
-    query: Keyframe, match: Keyframe, pose: np.ndarray, tolerance: float
-) -> float:
-    """Of the query's finest kept points that land on a surface point of the match (within 3 cm
-    in depth), the share whose intensities differ by less than `tolerance` levels."""
+@dataclass
+class Overlap:
+    """Where the query's finest kept points land in the match's view at a pose."""
+
+    valid: int  # query points with a vertex
+    visible: np.ndarray  # (valid,) bool: in front of the match's camera, on a pixel with a vertex
+    paired: np.ndarray  # (valid,) bool: visible and within the pairing distance in depth
+    query_intensity: np.ndarray  # (paired,) the paired points' intensities in the query
+    match_intensity: np.ndarray  # (paired,) and at the pixels they land on in the match
+    match_gradient: np.ndarray  # (paired,) the match's intensity gradient there (per pixel)
+
+    @property
+    def visible_share(self) -> float:
+        """The share of the query's points that the match's view holds at all: what a perfect
+        alignment could pair (the view's overlap, less what the match has no depth for)."""
+        return float(self.visible.mean()) if self.valid else 0.0
+
+    @property
+    def paired_share(self) -> float:
+        return float(self.paired.mean()) if self.valid else 0.0
+
+
+def overlap(query: Keyframe, match: Keyframe, pose: np.ndarray, pair_distance: float) -> Overlap:
+    """The query's finest kept points moved by `pose` (the query in the match's camera frame)
+    and projected into the match's finest kept level (nearest pixel)."""
     level_q, level_m = query.levels[0], match.levels[0]
     points = level_q.vertices.reshape(-1, 3)
     intensity = level_q.intensity.reshape(-1)
     valid = np.all(np.isfinite(points), axis=1)
-    points, intensity = points[valid], intensity[valid]
+    points, intensity = points[valid].astype(np.float64), intensity[valid]
     moved = points @ pose[:3, :3].T + pose[:3, 3]
     camera = level_m.camera
     z = moved[:, 2]
@@ -203,13 +238,69 @@ def photometric_share(
         u = np.rint(camera.fx * moved[:, 0] / z + camera.cx)
         v = np.rint(camera.fy * moved[:, 1] / z + camera.cy)
     inside = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    u, v = u[inside].astype(np.int64), v[inside].astype(np.int64)
+    u = np.where(inside, u, 0).astype(np.int64)
+    v = np.where(inside, v, 0).astype(np.int64)
     surface = level_m.vertices[v, u, 2]
-    paired = np.isfinite(surface) & (np.abs(surface - z[inside]) < 0.03)
-    if not paired.any():
+    visible = inside & np.isfinite(surface)
+    with np.errstate(invalid="ignore"):
+        paired = visible & (np.abs(surface - z) < pair_distance)
+    gradient = np.hypot(level_m.intensity_dx[v, u], level_m.intensity_dy[v, u])
+    return Overlap(
+        valid=int(len(points)),
+        visible=visible,
+        paired=paired,
+        query_intensity=intensity[paired].astype(np.float64),
+        match_intensity=level_m.intensity[v, u][paired].astype(np.float64),
+        match_gradient=gradient[paired].astype(np.float64),
+    )
+
+
+def exposure_fit(
+    query_intensity: np.ndarray, match_intensity: np.ndarray, tolerance: float
+) -> tuple[float, float]:
+    """(gain, offset) with match ~ gain * query + offset: least squares over the pairs within
+    `tolerance` of the current fit, from the median difference, three rounds. Real cameras
+    change their exposure as they go; a gain and an offset over the whole view are what that
+    change can do, and no more (a different texture does not become the same by it)."""
+    gain, offset = 1.0, float(np.median(match_intensity - query_intensity))
+    for _ in range(3):
+        residual = match_intensity - (gain * query_intensity + offset)
+        near = np.abs(residual) < tolerance
+        if near.sum() < 10 or np.ptp(query_intensity[near]) < 1.0:
+            break
+        gain, offset = np.polyfit(query_intensity[near], match_intensity[near], 1)
+        gain = float(np.clip(gain, *EXPOSURE_GAINS))
+        offset = float(np.median(match_intensity[near] - gain * query_intensity[near]))
+    return gain, offset
+
+
+# The gains exposure_fit may find: auto exposure changes a Kinect's brightness by tens of per
+# cent between views of one place, not by factors.
+EXPOSURE_GAINS = (0.7, 1.4)
+
+
+def photometric_share(
+    paired: Overlap, tolerance: float, misregistration_px: float = 0.0, exposure: bool = False
+) -> float:
+    """Of the paired points, the share whose intensities agree: within `tolerance` levels plus
+    what a misregistration of `misregistration_px` pixels makes of the match's gradient there
+    (a texture edge a pixel off differs by its gradient), after an exposure change is taken off
+    (`exposure_fit`) when `exposure`."""
+    if not len(paired.query_intensity):
         return 0.0
-    difference = np.abs(level_m.intensity[v, u][paired] - intensity[inside][paired])
-    return float(np.mean(difference < tolerance))
+    query, match = paired.query_intensity, paired.match_intensity
+    allowed = tolerance + misregistration_px * paired.match_gradient
+    gain, offset = exposure_fit(query, match, tolerance) if exposure else (1.0, 0.0)
+    return float(np.mean(np.abs(match - (gain * query + offset)) < allowed))
+
+
+def required_photometric_share(pose: np.ndarray, config: LoopClosureConfig) -> float:
+    """The photometric share a true revisit seen from `pose` (the query in the match's camera
+    frame) is asked for: less the further apart the two views' directions (LoopClosureConfig
+    says why and by how much)."""
+    degrees = float(np.degrees(se3.rotation_angle(pose[:3, :3])))
+    required = config.min_photometric_share - config.photometric_share_per_degree * degrees
+    return max(config.photometric_share_floor, required)
 
 
 def verify(
@@ -218,11 +309,19 @@ def verify(
     config: LoopClosureConfig,
     rng: np.random.Generator,
     matches: tuple[np.ndarray, np.ndarray] | None = None,
+    every_check: bool = False,
 ) -> Verdict:
-    """Stages 1-4 of the module docstring for one candidate pair."""
+    """Stages 1-4 of the module docstring for one candidate pair. The first stage that fails
+    rejects it and, unless `every_check` (for calibration: every statistic measured), the rest
+    are not run."""
     iq, im = matches or match_descriptors(query.descriptors, match.descriptors, config.match_ratio)
     verdict = Verdict(query.node, match.node, False, matches=len(iq))
-    if len(iq) < config.min_matches:
+
+    def reject(reason: str) -> bool:
+        verdict.reason = verdict.reason or reason
+        return not every_check
+
+    if len(iq) < config.min_matches and (reject("few matches") or len(iq) < 3):
         verdict.reason = "few matches"
         return verdict
     source, target = query.points[iq], match.points[im]
@@ -231,20 +330,31 @@ def verify(
         source[both], target[both], config.ransac_iterations, config.ransac_inlier_distance, rng
     )
     verdict.ransac_inliers = int(inliers.sum())
+    verdict.ransac_share = verdict.ransac_inliers / max(len(iq), 1)
     if (
         verdict.ransac_inliers < config.min_ransac_inliers
-        or verdict.ransac_inliers < config.min_ransac_share * len(iq)
-    ):
-        verdict.reason = "geometry"
+        or verdict.ransac_share < config.min_ransac_share
+    ) and reject("geometry"):
         return verdict
     pose, failure, rmse, share = dense_alignment(query, match, motion, config)
+    verdict.dense_pose = pose
+    seen = overlap(query, match, pose, config.pair_distance)
     verdict.icp_rmse, verdict.icp_inlier_share = rmse, share
-    if failure or rmse > config.max_icp_rmse or share < config.min_icp_inlier_share:
-        verdict.reason = "dense"
+    verdict.visible_share = seen.visible_share
+    verdict.icp_overlap_share = share / seen.visible_share if seen.visible_share else 0.0
+    if (
+        failure
+        or rmse > config.max_icp_rmse
+        or verdict.icp_overlap_share < config.min_icp_overlap_share
+        or verdict.visible_share < config.min_visible_share
+    ) and reject("dense"):
         return verdict
-    verdict.photometric_share = photometric_share(query, match, pose, config.photometric_tolerance)
-    if verdict.photometric_share < config.min_photometric_share:
-        verdict.reason = "photometric"
+    verdict.photometric_share = photometric_share(
+        seen, config.photometric_tolerance, config.misregistration_px, exposure=True
+    )
+    if verdict.photometric_share < required_photometric_share(pose, config) and reject(
+        "photometric"
+    ):
         return verdict
     verdict.relative = pose
     odometry = se3.inverse(match.pose) @ query.pose
@@ -252,10 +362,9 @@ def verify(
     allowed = config.max_correction + config.max_correction_per_metre * abs(
         query.travelled - match.travelled
     )
-    if verdict.correction > allowed:
-        verdict.reason = "implausible correction"
+    if verdict.correction > allowed and reject("implausible correction"):
         return verdict
-    verdict.accepted = True
+    verdict.accepted = not verdict.reason
     return verdict
 
 
