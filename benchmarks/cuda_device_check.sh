@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
 # The checks that need a GPU, in one go: the CUDA equivalence tests on the device (sizes of the
-# CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 256^3 and 512^3
-# (its JSON has the launches, host waits and bytes to the host per frame and per stage).
+# CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 512^3, with each
+# launch dispatched by Python and with repeating launches replayed as CUDA graphs
+# (KINTINUOUS_CUDA_GRAPHS=1, kintinuous_fast/targets/cuda_graphs.py); its JSON has the
+# launches, host waits and bytes to the host per frame and per stage.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
-# Writes cuda_tests.log, bench_cuda_{256,512}.json, bench_cuda_moving.json, graph_frame.json, ate_cuda.json, profile.txt,
-# cuda_warm.prof and bench_ref_256.json into OUT_DIR (default: the current folder).
+# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_moving.json, ate_cuda.json,
+# profile.txt, cuda_warm.prof and bench_ref_256.json into OUT_DIR (default: the current folder).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
@@ -32,17 +34,18 @@ date -u
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', numpy.__version__)"
 python3 -m kintinuous_ref.program.cli info
-timeout 200 python3 -m pytest -q -p no:cacheprovider --continue-on-collection-errors -k cuda \
+timeout 200 python3 -m pytest -q -p no:cacheprovider --continue-on-collection-errors -k "cuda or graph or pool" \
     tests/test_fast_cuda.py tests/test_fast_cuda_pipeline.py tests/test_fast_odometry_cuda.py \
-    tests/test_cuda_frame_budget.py tests/test_fast_solve_ops.py \
+    tests/test_cuda_frame_budget.py tests/test_cuda_graphs.py tests/test_fast_solve_ops.py \
     tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \
     2>&1 | tee "$out/cuda_tests.log" | tail -40
-for resolution in 256 512; do
+for graphs in 0 1; do
+    name=bench_cuda_512$([ "$graphs" = 1 ] && echo _graphs)
     start=$(date +%s)
-    timeout 100 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend cuda "${@:3}" \
-        --resolution "$resolution" --frames 100 --json >"$out/bench_cuda_$resolution.json"
-    echo "benchmark $resolution^3: exit $?, $(($(date +%s) - start)) s wall, compilation included"
-    python3 -m json.tool "$out/bench_cuda_$resolution.json" | head -60
+    KINTINUOUS_CUDA_GRAPHS=$graphs timeout 100 python3 -m kintinuous_ref.program.cli benchmark \
+        "$data" --backend cuda "${@:3}" --resolution 512 --frames 100 --json >"$out/$name.json"
+    echo "$name: exit $?, $(($(date +%s) - start)) s wall, compilation included"
+    python3 -m json.tool "$out/$name.json" | head -60
 done
 # Kintinuous proper: the moving volume at the defaults (its slices meshed by our own marching
 # cubes on the device, no VTK needed); the "shift" stage is the shift-and-extract time
@@ -51,8 +54,6 @@ timeout 100 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend cu
     --set volume.moving=true --frames 100 --json >"$out/bench_cuda_moving.json"
 echo "benchmark moving volume: exit $?, $(($(date +%s) - start)) s wall, compilation included"
 python3 -m json.tool "$out/bench_cuda_moving.json" | grep -B1 -A4 '"shift"'
-# one frame's estimate launched by Python against the same kernels replayed as a CUDA graph
-timeout 120 python3 benchmarks/cuda_graph_frame.py "$data" --json "$out/graph_frame.json" | tail -12
 # the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
 timeout 150 python3 benchmarks/combined_weightings.py "$data" --size 640x480 --resolution 256 \
     --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3

@@ -156,7 +156,12 @@ def cuda_backend() -> Backend:
     reason = numba_status() or cuda_status()
     if reason:
         raise BackendUnavailable(f"backend 'cuda' does not work on this machine: {reason}")
-    note = (
-        "numba's CUDA simulator (NUMBA_ENABLE_CUDASIM=1), very slow" if cuda_is_simulated() else ""
-    )
-    return FastBackend("cuda", note)
+    from kintinuous_fast.targets import cuda_graphs
+
+    notes = [
+        "numba's CUDA simulator (NUMBA_ENABLE_CUDASIM=1), very slow" if cuda_is_simulated() else "",
+        f"repeating launches replayed as CUDA graphs ({cuda_graphs.ENVIRONMENT}=1)"
+        if cuda_graphs.enabled()
+        else "",
+    ]
+    return FastBackend("cuda", "; ".join(note for note in notes if note))

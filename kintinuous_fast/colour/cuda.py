@@ -11,7 +11,15 @@ import numpy as np
 from numba import cuda
 
 from kintinuous_fast.targets import cuda_device_jit
-from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, kernel, like_input, to_device
+from kintinuous_fast.targets.cuda import (
+    BLOCK_2D,
+    grid_2d,
+    kernel,
+    like_input,
+    pooled_array,
+    to_device,
+)
+from kintinuous_fast.targets.cuda_graphs import segment
 from kintinuous_fast.tsdf.ops import build_colour_weight
 from kintinuous_ref.colour import angle_weight
 from kintinuous_ref.config import ColourConfig
@@ -29,10 +37,11 @@ def _weights_kernel(depth, mask, normals, use_mask, use_angle, out):
         out[v, u] = colour_weight(depth[v, u], mask[v, u], normals[v, u, 2], use_mask, use_angle)
 
 
+@segment
 def colour_weights(frame: PreprocessedFrame, config: ColourConfig):
     """Weight (H, W) float32 of each pixel's colour update; 0 = do not update (paper VI-B)."""
     depth = to_device(frame.depth, np.float32)
-    out = cuda.device_array(depth.shape, dtype=np.float32)
+    out = pooled_array("colour weights", depth.shape, np.float32)
     _weights_kernel[grid_2d(*depth.shape), BLOCK_2D](
         depth,
         to_device(frame.colour_mask, np.bool_),

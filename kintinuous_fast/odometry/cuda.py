@@ -22,6 +22,7 @@ from kintinuous_fast.odometry.sums.cuda import stage
 from kintinuous_fast.preprocess.cuda import model_pyramid as model_pyramid
 from kintinuous_fast.targets import is_device, to_host
 from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d
+from kintinuous_fast.targets.cuda_graphs import segment
 from kintinuous_ref import odometry as _reference
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
@@ -88,6 +89,7 @@ def fovis_images(frame: PreprocessedFrame) -> PreprocessedFrame:
     return PreprocessedFrame(colour=None, depth=levels[0].depth, levels=levels, colour_mask=None)
 
 
+@segment
 def estimate_dense(
     tracker: DenseTracker,
     previous: PreprocessedFrame,

@@ -86,7 +86,7 @@ from kintinuous_fast.odometry.sums.cuda import (
     reduction_blocks,
     stage,
 )
-from kintinuous_fast.targets import pinhole, to_host
+from kintinuous_fast.targets import cuda_graphs, pinhole, to_host
 from kintinuous_fast.targets.cuda import BLOCK_2D, grid_1d, grid_2d
 
 # ----------------------------------------------------------------------------------------------
@@ -193,14 +193,12 @@ def _initial_poses(previous_pose: np.ndarray, icp: IcpProblem | None) -> np.ndar
 class FrameOnDevice:
     """estimate_dense's launches for one frame (the module docstring's sequence): `upload` the
     previous pose, `launch` the kernels, download the `record`. `launch` copies nothing and
-    waits for nothing, and its buffers are the workspace's and the frames' own, so its kernels
-    can be captured on a stream as a CUDA graph and replayed (benchmarks/cuda_graph_frame.py).
-    `stream`: numba's stream for every launch (0: the default stream)."""
+    waits for nothing, and its buffers are the workspace's and the frames' own, so from one frame
+    to the next (the frames' buffers pooled) its launches repeat and, with graphs on, replay as
+    one CUDA graph (targets.cuda_graphs)."""
 
-    def __init__(
-        self, tracker: Any, problem: Any, previous: Any, current: Any, stream: Any = 0
-    ) -> None:
-        self.tracker, self.problem, self.stream = tracker, problem, stream
+    def __init__(self, tracker: Any, problem: Any, previous: Any, current: Any) -> None:
+        self.tracker, self.problem = tracker, problem
         self.icp, self.rgbd = _parts(problem)
         self.levels = current.levels[: len(tracker.iterations)]
         shapes = tuple(tuple(level.depth.shape) for level in self.levels)
@@ -219,22 +217,23 @@ class FrameOnDevice:
     def upload(self, previous_pose: np.ndarray) -> None:
         """The frame's poses (_initial_poses) into the workspace."""
         poses = _initial_poses(previous_pose, self.icp)
-        self.space.poses.copy_to_device(poses, stream=self.stream)
+        cuda_graphs.flush()  # launches recorded before the copy run before it
+        self.space.poses.copy_to_device(poses)
 
     def record(self) -> np.ndarray:
         """The state vector on the host: the one wait for the device."""
         return to_host(self.space.state)
 
     def launch(self) -> None:
-        """Every kernel of the frame, in order, on the stream."""
-        space, stream = self.space, self.stream
-        begin_kernel[1, 1, stream](space.state, space.flags, space.counts, space.tally)
+        """Every kernel of the frame, in order."""
+        space = self.space
+        begin_kernel[1, 1](space.state, space.flags, space.counts, space.tally)
         before, now = self.previous.levels[0], self.current.levels[0]
-        repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D, stream](
+        repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D](
             stage(before.depth), now.depth, stage(before.intensity), now.intensity, space.flags
         )
         method = METHOD_MODES[self.tracker.method]
-        mode_kernel[1, 1, stream](space.flags, space.state, method)
+        mode_kernel[1, 1](space.flags, space.state, method)
         iterations = self.tracker.iterations
         finest = self.tracker.finest_level
         for level in reversed(range(len(iterations))):
@@ -243,7 +242,7 @@ class FrameOnDevice:
             for _ in range(iterations[level]):
                 self._systems(level, level)
                 partials = space.levels[level]
-                solve_kernel[1, SOLVE_THREADS, stream](
+                solve_kernel[1, SOLVE_THREADS](
                     partials.icp_partials,
                     partials.rgbd_partials,
                     space.tally,
@@ -253,7 +252,7 @@ class FrameOnDevice:
                     level,
                 )
         self._systems(finest, ANY_LEVEL, rows=False)
-        finish_kernel[1, 1, stream](
+        finish_kernel[1, 1](
             space.levels[finest].icp_partials,
             space.tally,
             space.counts,
@@ -272,11 +271,11 @@ class FrameOnDevice:
         threshold = rgbd.min_gradient[min(level, len(rgbd.min_gradient) - 1)]
         depth, dx, dy = stage(image.depth), stage(image.intensity_dx), stage(image.intensity_dy)
         pixels = image.depth.shape[0] * image.depth.shape[1]
-        interest_kernel[grid_1d(pixels, BLOCK), BLOCK, self.stream](
+        interest_kernel[grid_1d(pixels, BLOCK), BLOCK](
             dx, dy, depth, float(threshold) ** 2, True, float(rgbd.max_depth), count,
             buffers.indices,
         )  # fmt: skip
-        interest_data_kernel[grid_1d(pixels, BLOCK), BLOCK, self.stream](
+        interest_data_kernel[grid_1d(pixels, BLOCK), BLOCK](
             buffers.indices, count, depth, stage(image.intensity), dx, dy,
             pinhole(image.camera), buffers.points, buffers.values, buffers.gradient,
         )  # fmt: skip
@@ -289,16 +288,14 @@ class FrameOnDevice:
         pixels = self.levels[level].camera.height * self.levels[level].camera.width
         icp_arguments, rgbd_arguments = self.arguments(level)
         if icp_arguments is not None:
-            icp_kernel[reduction_blocks(pixels), BLOCK, self.stream](
-                *icp_arguments, space.state, gate_level
-            )
+            icp_kernel[reduction_blocks(pixels), BLOCK](*icp_arguments, space.state, gate_level)
         if rgbd_arguments is None:
             return
-        correspond_kernel[grid_1d(pixels, BLOCK), BLOCK, self.stream](
+        correspond_kernel[grid_1d(pixels, BLOCK), BLOCK](
             *rgbd_arguments, space.tally, buffers.pairs, space.state, gate_level
         )
         if rows:
-            rows_kernel[reduction_blocks(pixels), BLOCK, self.stream](
+            rows_kernel[reduction_blocks(pixels), BLOCK](
                 buffers.pairs, space.tally, *rgbd_arguments, buffers.rgbd_partials, space.state,
                 gate_level,
             )  # fmt: skip

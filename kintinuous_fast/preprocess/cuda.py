@@ -28,7 +28,15 @@ from kintinuous_fast.preprocess.host import (
 )
 from kintinuous_fast.preprocess.ops import build_ops
 from kintinuous_fast.targets import cuda_device_jit, is_device, pinhole, to_host
-from kintinuous_fast.targets.cuda import BLOCK_2D, grid_2d, kernel, like_input, to_device
+from kintinuous_fast.targets.cuda import (
+    BLOCK_2D,
+    grid_2d,
+    kernel,
+    like_input,
+    pooled_array,
+    to_device,
+)
+from kintinuous_fast.targets.cuda_graphs import segment
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import PreprocessConfig
 from kintinuous_ref.preprocess import PreprocessedFrame, PyramidLevel, check_frame_inputs
@@ -197,7 +205,7 @@ def model_pyramid(vertices: Any, normals: Any, levels: int) -> list[tuple[Any, A
 
 def _every_other_pixel(source: Any) -> Any:
     height, width = source.shape[0] // 2, source.shape[1] // 2
-    out = cuda.device_array((height, width, source.shape[2]), dtype=source.dtype)
+    out = pooled_array("preprocess", (height, width, source.shape[2]), dtype=source.dtype)
     _launch(_subsample_kernel, (height, width), source, out)
     return out
 
@@ -206,7 +214,7 @@ def metric_depth(depth: Any, max_depth: float, depth_scale: float = 5000.0) -> A
     """float32 metres, 0 where NaN, <= 0 or farther than max_depth (integers: raw units)."""
     integer = bool(np.issubdtype(depth.dtype, np.integer))
     raw = to_device(depth, None if integer else np.float32)
-    out = cuda.device_array(depth.shape, dtype=np.float32)
+    out = pooled_array("preprocess", depth.shape, dtype=np.float32)
     _launch(
         _metric_depth_kernel,
         depth.shape,
@@ -222,7 +230,7 @@ def metric_depth(depth: Any, max_depth: float, depth_scale: float = 5000.0) -> A
 def bilateral_filter(depth: Any, sigma_space: float, sigma_depth: float, radius: int) -> Any:
     """Edge-preserving smoothing of a depth map; holes stay holes (see the reference)."""
     d_depth = to_device(depth, np.float32)
-    out = cuda.device_array(depth.shape, dtype=np.float32)
+    out = pooled_array("preprocess", depth.shape, dtype=np.float32)
     spatial = _spatial_table(float(sigma_space), int(radius))
     inv_two_sigma2 = inverse_two_variance(sigma_depth)
     _launch(_bilateral_kernel, depth.shape, d_depth, spatial, int(radius), inv_two_sigma2, out)
@@ -232,7 +240,7 @@ def bilateral_filter(depth: Any, sigma_space: float, sigma_depth: float, radius:
 def pyramid_down_depth(depth: Any, cutoff: float) -> Any:
     """Half-size depth by the edge-aware 5x5 Gaussian centred on each even pixel."""
     shape = (depth.shape[0] // 2, depth.shape[1] // 2)
-    out = cuda.device_array(shape, dtype=np.float32)
+    out = pooled_array("preprocess", shape, dtype=np.float32)
     _launch(_pyrdown_depth_kernel, shape, to_device(depth, np.float32), float(cutoff), out)
     return like_input(out, depth)
 
@@ -240,28 +248,28 @@ def pyramid_down_depth(depth: Any, cutoff: float) -> Any:
 def pyramid_down_intensity(image: Any) -> Any:
     """Half-size image by the 5x5 Gaussian, weights renormalised at the border."""
     shape = (image.shape[0] // 2, image.shape[1] // 2)
-    out = cuda.device_array(shape, dtype=np.float32)
+    out = pooled_array("preprocess", shape, dtype=np.float32)
     _launch(_pyrdown_intensity_kernel, shape, to_device(image, np.float32), out)
     return like_input(out, image)
 
 
 def vertex_map(depth: Any, camera: Intrinsics) -> Any:
     """Camera-frame points D K^-1 [u, v, 1]; NaN where D <= 0."""
-    out = cuda.device_array((*depth.shape, 3), dtype=np.float32)
+    out = pooled_array("preprocess", (*depth.shape, 3), dtype=np.float32)
     _launch(_vertex_kernel, depth.shape, to_device(depth, np.float32), pinhole(camera), out)
     return like_input(out, depth)
 
 
 def normal_map(vertices: Any) -> Any:
     """Unit normals from neighbour differences, pointing to the camera; NaN where undefined."""
-    out = cuda.device_array(vertices.shape, dtype=np.float32)
+    out = pooled_array("preprocess", vertices.shape, dtype=np.float32)
     _launch(_normal_kernel, vertices.shape, to_device(vertices, np.float32), out)
     return like_input(out, vertices)
 
 
 def intensity_image(colour: Any) -> Any:
     """I = 0.299 R + 0.587 G + 0.114 B, float32 in 0..255."""
-    out = cuda.device_array(colour.shape[:2], dtype=np.float32)
+    out = pooled_array("preprocess", colour.shape[:2], dtype=np.float32)
     _launch(_intensity_kernel, colour.shape, to_device(colour), out)
     return like_input(out, colour)
 
@@ -269,9 +277,9 @@ def intensity_image(colour: Any) -> Any:
 def intensity_gradients(intensity: Any, blur_sigma: float) -> tuple[Any, Any]:
     """dI/du, dI/dv: 3x3 Gaussian blur then 3x3 Sobel / 8, replicated borders."""
     shape = intensity.shape
-    blurred = cuda.device_array(shape, dtype=np.float64)
-    dx = cuda.device_array(shape, dtype=np.float32)
-    dy = cuda.device_array(shape, dtype=np.float32)
+    blurred = pooled_array("preprocess", shape, dtype=np.float64)
+    dx = pooled_array("preprocess", shape, dtype=np.float32)
+    dy = pooled_array("preprocess", shape, dtype=np.float32)
     gaussian = _gaussian_table(float(blur_sigma))
     _launch(_correlate_kernel, shape, to_device(intensity, np.float32), gaussian, blurred)
     _launch(_sobel_kernel, shape, blurred, *_sobel_tables(), dx, dy)
@@ -280,7 +288,7 @@ def intensity_gradients(intensity: Any, blur_sigma: float) -> tuple[Any, Any]:
 
 def discontinuity_mask(depth: Any, window: int, jump: float, max_bad: int) -> Any:
     """True where colour may be fused (paper VI-B's 7x7 check; see the reference)."""
-    out = cuda.device_array(depth.shape, dtype=np.bool_)
+    out = pooled_array("preprocess", depth.shape, dtype=np.bool_)
     _launch(
         _discontinuity_kernel,
         depth.shape,
@@ -293,6 +301,7 @@ def discontinuity_mask(depth: Any, window: int, jump: float, max_bad: int) -> An
     return like_input(out, depth)
 
 
+@segment
 def preprocess_frame(
     colour: Any, depth: Any, camera: Intrinsics, config: PreprocessConfig
 ) -> PreprocessedFrame:

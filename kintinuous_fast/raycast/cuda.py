@@ -16,7 +16,15 @@ from numba import cuda
 
 from kintinuous_fast.raycast import ops as raycast_ops
 from kintinuous_fast.targets import cuda_device_jit, to_host
-from kintinuous_fast.targets.cuda import BLOCK_1D, BLOCK_2D, grid_1d, grid_2d, kernel
+from kintinuous_fast.targets.cuda import (
+    BLOCK_1D,
+    BLOCK_2D,
+    grid_1d,
+    grid_2d,
+    kernel,
+    pooled_array,
+)
+from kintinuous_fast.targets.cuda_graphs import segment
 from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.cuda import matrix_to_device
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
@@ -64,8 +72,8 @@ def empty_space(volume: FastTsdfVolume) -> Any:
     chessboard distance to them, one axis at a time (the max-norm distance is separable), less
     the one brick by which the reference grows them."""
     bricks = -(-volume.resolution // BRICK)
-    distance = cuda.device_array((bricks,) * 3, dtype=np.int64)
-    scratch = cuda.device_array((bricks,) * 3, dtype=np.int64)
+    distance = pooled_array("empty space", (bricks,) * 3, np.int64)
+    scratch = pooled_array("empty space", (bricks,) * 3, np.int64)
     blocks = grid_1d(bricks**3)
     _negative_brick_kernel[blocks, BLOCK_1D](volume.tsdf_weight, *volume.offsets(), distance)
     for axis in range(3):
@@ -199,6 +207,7 @@ def raycast(
     )
 
 
+@segment
 def predict_surface(
     volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics, stride: int = 1
 ) -> ModelPrediction:
@@ -218,9 +227,9 @@ def _cast(
     """raycast's maps as device arrays."""
     check_stride(stride)
     shape = (camera.height, camera.width)
-    vertices = cuda.device_array((*shape, 3), dtype=np.float32)
-    normals = cuda.device_array((*shape, 3), dtype=np.float32)
-    colours = cuda.device_array((*shape, 3), dtype=np.uint8)
+    vertices = pooled_array("raycast", (*shape, 3), np.float32)
+    normals = pooled_array("raycast", (*shape, 3), np.float32)
+    colours = pooled_array("raycast", (*shape, 3), np.uint8)
     if stride > 1:  # the pixels cast are all written; only those left out need clearing
         _clear_kernel[grid_2d(*shape), BLOCK_2D](vertices, normals, colours)
     has_colour = colour and volume.colour is not None

@@ -22,6 +22,8 @@ from typing import Any
 import numba
 import numpy as np
 
+from kintinuous_fast.targets import cuda_graphs
+
 # The CPU decorator: compiled on first use and cached on disk (compile time counts in the tests).
 cpu_jit: Callable[[Any], Any] = numba.njit(cache=True)
 # The same with NumPy's error model: a float division by zero gives inf/NaN instead of a Python
@@ -101,6 +103,7 @@ def to_host(array: Any) -> Any:
     place where a stage downloads what a cuda kernel left on the device (counted in TRAFFIC)."""
     if not is_device(array):
         return array
+    cuda_graphs.flush()  # the launches recorded so far write what is read here
     host = array.copy_to_host()
     TRAFFIC.host_waits += 1
     TRAFFIC.bytes_to_host += host.nbytes

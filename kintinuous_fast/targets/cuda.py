@@ -9,13 +9,15 @@ tests use). Runs on numba's CUDA simulator too (NUMBA_ENABLE_CUDASIM=1), very sl
 
 from __future__ import annotations
 
+import sys
 import warnings
 from typing import Any
 
 import numpy as np
+from numba import config as numba_config
 from numba import cuda
 
-from kintinuous_fast.targets import TRAFFIC, is_device, to_host
+from kintinuous_fast.targets import TRAFFIC, cuda_graphs, is_device, to_host
 
 # Threads per block of the per-pixel kernels: 16 x 16, x along image rows (coalesced reads).
 BLOCK_2D = (16, 16)
@@ -38,18 +40,20 @@ quiet_small_grids()
 
 
 class CountedKernel:
-    """A numba.cuda kernel whose launches are counted in targets.TRAFFIC: `kernel[grid, block]`
-    and every attribute are the kernel's own; only the launch goes through here."""
+    """A numba.cuda kernel whose launches are counted in targets.TRAFFIC (and recorded for a
+    graph inside a segment, targets.cuda_graphs): `kernel[grid, block]` and every attribute are
+    the kernel's own; only the launch goes through here."""
 
     def __init__(self, dispatcher: Any) -> None:
         self.dispatcher = dispatcher
 
     def __getitem__(self, configuration: Any) -> Any:
-        launch = self.dispatcher[configuration]
-
         def counted_launch(*arguments: Any) -> None:
             TRAFFIC.launches += 1
-            launch(*arguments)
+            if cuda_graphs.recording():
+                cuda_graphs.record(self.dispatcher, configuration, arguments)
+            else:
+                self.dispatcher[configuration](*arguments)
 
         return counted_launch
 
@@ -73,6 +77,41 @@ def to_device(array: Any, dtype: Any = None) -> Any:
     return cuda.to_device(host)
 
 
+# Device buffers kept for reuse, per role, shape and type: a stage that takes its outputs from
+# here gets the same addresses frame after frame, so its launches repeat exactly and can be
+# replayed as a graph (targets.cuda_graphs), and the host makes no allocation per frame.
+_POOL: dict[tuple, list[Any]] = {}
+_POOL_BASELINES: dict[tuple, list[tuple[int, int]]] = {}
+
+
+def pooled_array(role: str, shape: tuple[int, ...], dtype: Any) -> Any:
+    """A device array for `role` of this shape and type, its contents undefined: one made
+    before and no longer referred to (by a frame, a view of it or a recorded launch), else a
+    new one. Safe to reuse: every kernel and copy runs in the one stream order, so writes to a
+    reused buffer wait for the reads queued before them."""
+    key = (role, tuple(int(n) for n in shape), np.dtype(dtype).str)
+    arrays = _POOL.setdefault(key, [])
+    baselines = _POOL_BASELINES.setdefault(key, [])
+    for index in range(len(arrays)):
+        if _references(arrays, index) == baselines[index]:
+            return arrays[index]
+    arrays.append(cuda.device_array(key[1], dtype=key[2]))
+    baselines.append(_references(arrays, len(arrays) - 1))
+    return arrays[-1]
+
+
+def _references(arrays: list[Any], index: int) -> tuple[int, int]:
+    """How many references the array and its memory have: measured once when only the pool
+    holds it (the baseline), then compared. A view refers to the memory, not to the array."""
+    return sys.getrefcount(arrays[index]), sys.getrefcount(_memory(arrays[index]))
+
+
+def _memory(array: Any) -> Any:
+    """The object a device array's views keep alive: numba's memory pointer, or the NumPy
+    buffer of a simulated array."""
+    return array._ary if numba_config.ENABLE_CUDASIM else array.gpu_data
+
+
 # Page-locked host buffers for the frames' raw images, one per shape and dtype (a frame's depth
 # and colour), kept for the process: the copy engine reads pinned memory directly, where a copy
 # from pageable memory first goes through a staging copy of the driver's.
@@ -89,7 +128,10 @@ def upload_image(image: np.ndarray) -> Any:
         _STAGING[key] = cuda.pinned_array(image.shape, dtype=image.dtype)
     staging = _STAGING[key]
     staging[...] = image
-    return cuda.to_device(staging)
+    device = pooled_array("raw image", image.shape, image.dtype)
+    cuda_graphs.flush()
+    device.copy_to_device(staging)
+    return device
 
 
 def like_input(result: Any, given: Any) -> Any:

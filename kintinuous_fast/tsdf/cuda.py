@@ -27,8 +27,10 @@ from kintinuous_fast.targets.cuda import (
     grid_2d,
     kernel,
     like_input,
+    pooled_array,
     to_device,
 )
+from kintinuous_fast.targets.cuda_graphs import segment
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.volume import (
@@ -217,7 +219,7 @@ def _placeholder(shape: tuple[int, ...], dtype: str) -> Any:
 def matrix_to_device(matrix: np.ndarray) -> Any:
     """A 3x3 matrix as a new device array of its dtype, written by a one-thread kernel from
     launch parameters: unlike cuda.to_device, nothing waits for the device's queued work."""
-    out = cuda.device_array((3, 3), dtype=matrix.dtype)
+    out = pooled_array("matrix", (3, 3), matrix.dtype)
     rows = tuple(tuple(row) for row in matrix)
     _matrix_kernel[1, 1](rows, out)
     return out
@@ -270,6 +272,7 @@ def make_volume(
     )
 
 
+@segment
 def integrate(
     volume: FastTsdfVolume,
     depth: Any,
@@ -310,7 +313,7 @@ def integrate_in_box(
     """integrate's fusion of a device depth map over the voxel index box [lo, hi) = `box`,
     each column bounded by z <= largest[0] + mu where `largest` (a (1,) float32 device array)
     is given; None visits every voxel of the box (what the tests compare with)."""
-    ray_distance = cuda.device_array(camera.height * camera.width + 1, dtype=np.float32)
+    ray_distance = pooled_array("ray distance", (camera.height * camera.width + 1,), np.float32)
     grid = grid_2d(camera.height, camera.width)
     _ray_distance_kernel[grid, BLOCK_2D](depth, pinhole(camera), ray_distance)
     fuse_colour, colour, colour_weights, colour_volume = _colour_arguments(
@@ -352,7 +355,7 @@ def _colour_arguments(
     if colour is None or volume.colour is None:
         return False, _placeholder((1, 3), "uint8"), _placeholder((1,), "float32"), colour_volume
     if colour_weights is None:
-        colour_weights = cuda.device_array(depth.size, dtype=np.float32)
+        colour_weights = pooled_array("colour weights", (depth.size,), np.float32)
         _depth_weights_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, colour_weights)
     colour = to_device(colour, np.uint8).reshape(-1, 3)
     colour_weights = to_device(colour_weights, np.float32).reshape(-1)

@@ -19,7 +19,7 @@ import numpy as np
 from numba import cuda
 
 from kintinuous_fast.odometry import ops as geometry_ops
-from kintinuous_fast.targets import cuda_device_jit
+from kintinuous_fast.targets import cuda_device_jit, cuda_graphs
 from kintinuous_fast.targets.cuda import BLOCK_1D, grid_1d, to_device
 
 from . import NV
@@ -141,6 +141,7 @@ def scratch(name: str, shape: tuple[int, ...], dtype: Any = np.float64) -> Any:
 def upload(name: str, array: np.ndarray) -> Any:
     """`array` copied into the scratch device array `name` of its shape and type."""
     device = scratch(name, array.shape, array.dtype)
+    cuda_graphs.flush()  # launches recorded before the copy run before it
     device.copy_to_device(np.ascontiguousarray(array))
     return device
 

@@ -1,0 +1,335 @@
+"""A stage's kernel launches replayed as one CUDA graph, so the host's cost of a frame stops
+growing with its number of kernels.
+
+A numba launch costs the host tens of microseconds of Python dispatch (docs/benchmarks.md), and
+a frame makes over a hundred of them. A CUDA graph replays a captured sequence of launches with
+one driver call. Here each public function of the cuda backend is a *segment* (`segment`): while
+graphs are on (`enable`), its kernels (targets.cuda.kernel) are recorded instead of launched, and
+when the outermost segment returns, or before anything crosses between host and device, the
+recorded launches run:
+
+- their *key* (each kernel, grid, block and argument: a device array by its address, shape,
+  strides and type, a number by its value) seen for the first time: launched one by one, as
+  without graphs (this also compiles the kernels);
+- seen before: captured on the graph stream into a graph once, then replayed by one launch.
+
+A graph replays the same kernels with the same argument values and reads device memory as it is
+at the replay, so equal keys mean equal work. Keys repeat only where a stage reuses its buffers
+(targets.cuda.pooled_array); a segment with a host array argument is never captured, since numba
+copies such an argument for each launch.
+
+numba's simulator has no graphs: there the "graph" of a key is the list of its launches, replayed
+by launching them again with the segment's arguments (the same, by the key). So the bookkeeping
+(which segments replay, their launches, their results) is tested without a GPU.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+# Keys remembered, and graphs kept, at most: a few per stage and frame parity.
+MAX_KEYS = 256
+MAX_GRAPHS = 64
+# The environment variable that turns graphs on for a process ("1").
+ENVIRONMENT = "KINTINUOUS_CUDA_GRAPHS"
+
+
+class NotCapturable(Exception):
+    """A launch argument a graph cannot hold (a host array, a record, an unknown object)."""
+
+
+@dataclass
+class Launch:
+    """One recorded kernel launch."""
+
+    dispatcher: Any
+    grid: Any
+    block: Any
+    shared_memory: int
+    arguments: tuple
+
+
+@dataclass
+class GraphStatistics:
+    """Recorded segments by what ran them, and the kernels each way (since the process began)."""
+
+    launched_segments: int = 0
+    captured_segments: int = 0
+    replayed_segments: int = 0
+    launched_kernels: int = 0
+    replayed_kernels: int = 0
+    # per segment (its function's name): [launched, captured, replayed] segments
+    by_segment: dict[str, list[int]] = field(default_factory=dict)
+
+    def count(self, name: str, way: int, kernels: int) -> None:
+        """One segment of `kernels` launches run `way` (0 launched, 1 captured, 2 replayed)."""
+        self.by_segment.setdefault(name, [0, 0, 0])[way] += 1
+        if way == 0:
+            self.launched_segments += 1
+            self.launched_kernels += kernels
+        else:
+            self.captured_segments += way == 1
+            self.replayed_segments += way == 2
+            self.replayed_kernels += kernels
+
+
+@dataclass
+class _Recorder:
+    enabled: bool = False
+    depth: int = 0  # segments entered and not yet left
+    name: str = ""  # the outermost segment's function
+    pending: list[Launch] = field(default_factory=list)
+    seen: OrderedDict = field(default_factory=OrderedDict)
+    graphs: OrderedDict = field(default_factory=OrderedDict)
+    statistics: GraphStatistics = field(default_factory=GraphStatistics)
+    stream: Any = None  # the graph stream, made on first capture
+
+
+RECORDER = _Recorder(enabled=os.environ.get(ENVIRONMENT, "0") == "1")
+
+
+def enable(on: bool = True) -> None:
+    """Record and replay from now on (`on`), or launch every kernel at once (the default)."""
+    flush()
+    RECORDER.enabled = on
+
+
+def enabled() -> bool:
+    return RECORDER.enabled
+
+
+def statistics() -> GraphStatistics:
+    return RECORDER.statistics
+
+
+def forget() -> None:
+    """Drop every key and graph (tests; a new device context)."""
+    flush()
+    RECORDER.seen.clear()
+    RECORDER.graphs.clear()
+
+
+def segment(function: Callable) -> Callable:
+    """Decorator: `function`'s launches (and its callees') are one segment, run when it returns."""
+
+    @functools.wraps(function)
+    def recorded(*arguments: Any, **keywords: Any) -> Any:
+        RECORDER.depth += 1
+        if RECORDER.depth == 1:
+            RECORDER.name = function.__qualname__
+        try:
+            return function(*arguments, **keywords)
+        finally:
+            RECORDER.depth -= 1
+            if RECORDER.depth == 0:
+                flush()
+
+    return recorded
+
+
+def recording() -> bool:
+    """True while launches are to be recorded rather than made."""
+    return RECORDER.enabled and RECORDER.depth > 0
+
+
+def record(dispatcher: Any, configuration: Any, arguments: tuple) -> None:
+    """Keep one launch (`kernel[configuration](*arguments)`) for the segment's end."""
+    grid, block, shared_memory = _unpack(configuration)
+    RECORDER.pending.append(Launch(dispatcher, grid, block, shared_memory, arguments))
+
+
+def flush() -> None:
+    """Run the recorded launches (the module docstring's rules). Called at a segment's end and
+    before every copy between host and device, which must see the launches made before it."""
+    launches, RECORDER.pending = RECORDER.pending, []
+    if not launches:
+        return
+    count = functools.partial(RECORDER.statistics.count, RECORDER.name, kernels=len(launches))
+    try:
+        key = _key(launches)
+    except NotCapturable:
+        key = None
+    if key is not None and key in RECORDER.graphs:
+        RECORDER.graphs.move_to_end(key)
+        _replay(RECORDER.graphs[key], launches)
+        count(2)
+    elif key is not None and key in RECORDER.seen:
+        _remember(RECORDER.graphs, key, _capture(launches), MAX_GRAPHS)
+        _replay(RECORDER.graphs[key], launches)
+        count(1)
+    else:
+        if key is not None:
+            _remember(RECORDER.seen, key, True, MAX_KEYS)
+        _launch_each(launches)
+        count(0)
+
+
+def _launch_each(launches: list[Launch]) -> None:
+    """The launches one by one on the default stream, through numba's dispatch."""
+    for launch in launches:
+        launch.dispatcher[launch.grid, launch.block, 0, launch.shared_memory](*launch.arguments)
+
+
+def _remember(table: OrderedDict, key: Any, value: Any, limit: int) -> None:
+    table[key] = value
+    table.move_to_end(key)
+    while len(table) > limit:
+        table.popitem(last=False)
+
+
+def _unpack(configuration: Any) -> tuple[Any, Any, int]:
+    """(grid, block, dynamic shared memory) of `kernel[...]`'s configuration; a stream given
+    there is dropped: recorded launches run in order on the default or the graph stream."""
+    if not isinstance(configuration, tuple) or len(configuration) < 2:
+        raise TypeError(f"a launch needs [grid, block], got {configuration!r}")
+    shared_memory = configuration[3] if len(configuration) > 3 else 0
+    return configuration[0], configuration[1], int(shared_memory)
+
+
+# ----------------------------------------------------------------------------------------------
+# Keys
+
+
+def _key(launches: list[Launch]) -> tuple:
+    return tuple(
+        (
+            id(launch.dispatcher),
+            _shape(launch.grid),
+            _shape(launch.block),
+            launch.shared_memory,
+            tuple(_argument_key(argument) for argument in launch.arguments),
+        )
+        for launch in launches
+    )
+
+
+def _shape(dimensions: Any) -> tuple:
+    return tuple(dimensions) if isinstance(dimensions, tuple) else (int(dimensions),)
+
+
+def _argument_key(argument: Any) -> Any:
+    """What a graph holds of one argument: a device array's address, shape, strides and type;
+    a number's type and value; a tuple's items."""
+    if isinstance(argument, (bool, int, float, np.bool_, np.integer, np.floating)):
+        return (type(argument).__name__, argument)
+    if isinstance(argument, tuple):
+        return tuple(_argument_key(item) for item in argument)
+    if isinstance(argument, np.ndarray) or not hasattr(argument, "copy_to_host"):
+        raise NotCapturable(type(argument).__name__)
+    return _array_key(argument)
+
+
+def _array_key(array: Any) -> tuple:
+    """A device array's key, kept on the array: none of its parts ever changes, and reading a
+    numba array's address makes a ctypes object each time."""
+    kept = getattr(array, "__dict__", {})
+    if "_graph_key" not in kept:
+        kept["_graph_key"] = (device_address(array), array.shape, array.strides, array.dtype.str)
+    return kept["_graph_key"]
+
+
+def device_address(array: Any) -> int:
+    """The address of a device array's first element (the simulator's: its NumPy buffer's)."""
+    if _simulated():
+        return int(array._ary.__array_interface__["data"][0])
+    return int(array.device_ctypes_pointer.value or 0)
+
+
+@functools.cache
+def _simulated() -> bool:
+    from numba import config
+
+    return bool(config.ENABLE_CUDASIM)
+
+
+# ----------------------------------------------------------------------------------------------
+# Capture and replay
+
+
+def _capture(launches: list[Launch]) -> Any:
+    """An executable graph of `launches` (a GPU), or the launches themselves (the simulator)."""
+    if _simulated():
+        return len(launches)
+    from cuda.bindings import driver
+    from numba import cuda
+
+    if RECORDER.stream is None:
+        RECORDER.stream = cuda.stream()
+    stream = RECORDER.stream
+    handle = _driver_stream(stream)
+    mode = driver.CUstreamCaptureMode.CU_STREAM_CAPTURE_MODE_RELAXED
+    with cuda.defer_cleanup():  # no memory is freed while the stream is being captured
+        _check(driver.cuStreamBeginCapture(handle, mode))
+        try:
+            for launch in launches:
+                launch.dispatcher[launch.grid, launch.block, stream, launch.shared_memory](
+                    *launch.arguments
+                )
+        finally:
+            error, graph = driver.cuStreamEndCapture(handle)
+        _check((error,))
+    error, executable = driver.cuGraphInstantiate(graph, 0)
+    _check((error,))
+    return _Graph(graph, executable, handle)
+
+
+@dataclass
+class _Graph:
+    graph: Any
+    executable: Any
+    stream: Any
+
+    def __del__(self) -> None:
+        try:
+            from cuda.bindings import driver
+
+            driver.cuGraphExecDestroy(self.executable)
+            driver.cuGraphDestroy(self.graph)
+        except Exception:  # interpreter shutdown: the driver frees them with the context
+            pass
+
+
+def _replay(graph: Any, launches: list[Launch]) -> None:
+    if isinstance(graph, int):  # the simulator: the same launches again
+        _launch_each(launches)
+        return
+    from cuda.bindings import driver
+
+    _check(driver.cuGraphLaunch(graph.executable, graph.stream))
+
+
+def _driver_stream(stream: Any) -> Any:
+    from cuda.bindings import driver
+
+    handle = stream.handle
+    return driver.CUstream(int(handle.value if hasattr(handle, "value") else handle))
+
+
+def _check(result: tuple) -> None:
+    from cuda.bindings import driver
+
+    if result[0] != driver.CUresult.CUDA_SUCCESS:
+        raise RuntimeError(f"CUDA graph call failed: {result[0]}")
+
+
+__all__ = [
+    "ENVIRONMENT",
+    "GraphStatistics",
+    "NotCapturable",
+    "device_address",
+    "enable",
+    "enabled",
+    "flush",
+    "forget",
+    "record",
+    "recording",
+    "segment",
+    "statistics",
+]

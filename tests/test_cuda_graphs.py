@@ -1,0 +1,186 @@
+"""The cuda backend's launches recorded per segment and replayed (kintinuous_fast/targets/
+cuda_graphs.py), and the pooled device buffers that make a frame's launches repeat
+(targets.cuda.pooled_array).
+
+Truths: a replay runs the same kernels with the same arguments as launching them one by one, so
+results with graphs equal those without, bit for bit in the simulator (which runs blocks in a
+fixed order); a segment replays only when every kernel, grid and argument repeats; a pooled
+buffer is handed out again only when nothing refers to it. The pipeline test runs the desk at
+40x30 and counts, frame by frame, how each stage's segment ran: once the two alternating frame
+buffers exist, preprocessing, the dense estimate and the colour weights replay every frame, and
+the pool stops growing. Integration and the raycast take the frame's pose as launch
+parameters, so their segments never repeat and are launched as before.
+
+Without a GPU the tests run in a child process with numba's CUDA simulator, whose "graphs" are
+the recorded launches launched again (cuda_graphs' docstring).
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numba import cuda
+
+from kintinuous_fast import cuda_status, load_backend
+from kintinuous_fast.targets.cuda import kernel
+
+on_device = pytest.mark.skipif(
+    bool(cuda_status()), reason="no CUDA GPU: runs in the simulator subprocess below"
+)
+
+
+@pytest.mark.skipif(not cuda_status(), reason="CUDA works here: the tests run in this process")
+@pytest.mark.cuda_simulator(Path(__file__), "-k", "not in_simulator")
+def test_cuda_graphs_in_simulator(cuda_simulator):
+    cuda_simulator()
+
+
+@pytest.fixture
+def graphs():
+    """Graphs on for the test, every key forgotten before and after."""
+    from kintinuous_fast.targets import cuda_graphs
+
+    cuda_graphs.forget()
+    cuda_graphs.enable(True)
+    yield cuda_graphs
+    cuda_graphs.enable(False)
+    cuda_graphs.forget()
+
+
+@kernel
+def _add(values, amount):
+    i = cuda.grid(1)
+    if i < values.shape[0]:
+        values[i] += amount
+
+
+@on_device
+def test_pooled_array_is_reused_only_when_unreferenced():
+    from kintinuous_fast.targets.cuda import pooled_array
+
+    def take():
+        return pooled_array("test pool", (4, 3), np.float32)
+
+    first = take()
+    second = take()
+    assert second is not first  # the first is still held
+    first_id = id(first)
+    view = first[1:2]
+    del first
+    third = take()
+    assert id(third) != first_id  # its view keeps the first's memory in use
+    del view, third
+    assert id(take()) == first_id  # nothing refers to it any more
+
+
+@on_device
+def test_segment_launches_then_captures_then_replays(graphs):
+    from kintinuous_fast.targets import to_host
+
+    add = _add
+    values = cuda.to_device(np.zeros(8))
+
+    @graphs.segment
+    def twice(amount):
+        add[1, 8](values, amount)
+        add[1, 8](values, 2 * amount)
+
+    before = graphs.statistics().by_segment.get(twice.__qualname__, [0, 0, 0]).copy()
+    for _ in range(4):
+        twice(1.0)
+    twice(5.0)  # another scalar: another key, launched
+    counts = np.subtract(graphs.statistics().by_segment[twice.__qualname__], before)
+    assert counts.tolist() == [2, 1, 2]
+    assert np.array_equal(to_host(values), np.full(8, 4 * 3.0 + 15.0))
+
+
+@on_device
+def test_a_download_inside_a_segment_sees_the_launches_before_it(graphs):
+    from kintinuous_fast.targets import to_host
+
+    add = _add
+    values = cuda.to_device(np.zeros(4))
+
+    @graphs.segment
+    def add_and_read():
+        add[1, 4](values, 1.0)
+        seen = to_host(values)
+        add[1, 4](values, 1.0)
+        return seen
+
+    assert np.array_equal(add_and_read(), np.ones(4))
+    assert np.array_equal(to_host(values), np.full(4, 2.0))
+
+
+@on_device
+def test_a_host_array_argument_is_never_captured(graphs):
+    add = _add
+    values = np.zeros(4)
+
+    @graphs.segment
+    def add_to_host_array():
+        add[1, 4](values, 1.0)
+
+    for _ in range(3):
+        add_to_host_array()
+    assert graphs.statistics().by_segment[add_to_host_array.__qualname__] == [3, 0, 0]
+    assert np.array_equal(values, np.full(4, 3.0))  # numba copied it back each time
+
+
+def _run_desk(frames_count: int, with_graphs: bool) -> tuple:
+    """(poses, per frame {segment: (launched, captured, replayed)}, pool sizes per frame)."""
+    from test_fast_cuda_pipeline import CONFIG, desk_frames
+
+    from kintinuous_fast.targets import cuda_graphs
+    from kintinuous_fast.targets.cuda import _POOL
+    from kintinuous_ref import pipeline
+
+    cuda_graphs.forget()
+    cuda_graphs.enable(with_graphs)
+    desk, frames = desk_frames(frames_count, (40, 30))
+    ways: list[dict] = []
+    pooled: list[int] = []
+
+    def after_frame(_result: object) -> None:
+        totals = cuda_graphs.statistics().by_segment
+        ways.append({name: tuple(counts) for name, counts in totals.items()})
+        pooled.append(sum(len(arrays) for arrays in _POOL.values()))
+
+    try:
+        result = pipeline.run(
+            frames,
+            desk.camera,
+            CONFIG,
+            "icp+rgbd",
+            desk.trajectory,
+            backend=load_backend("cuda"),
+            progress=after_frame,
+        )
+    finally:
+        cuda_graphs.enable(False)
+    return result, ways, pooled
+
+
+@on_device
+def test_pipeline_replays_its_repeating_stages_and_equals_launching():
+    frames_count = 8
+    plain, _, _ = _run_desk(frames_count, with_graphs=False)
+    replayed, ways, pooled = _run_desk(frames_count, with_graphs=True)
+    assert replayed.fused == plain.fused == [True] * frames_count, replayed.failure_reasons
+    for a, b in zip(replayed.poses, plain.poses, strict=True):
+        assert np.array_equal(a, b)
+    assert np.linalg.norm(plain.poses[-1][:3, 3] - plain.poses[0][:3, 3]) > 0.005  # a motion
+
+    def per_frame(name: str, frame: int) -> tuple:
+        now = ways[frame].get(name, (0, 0, 0))
+        before = ways[frame - 1].get(name, (0, 0, 0))
+        return tuple(int(a - b) for a, b in zip(now, before, strict=True))
+
+    last = frames_count - 1
+    for stage in ("preprocess_frame", "estimate_dense", "colour_weights"):
+        assert per_frame(stage, last)[:2] == (0, 0), (stage, ways)
+        assert per_frame(stage, last - 1)[:2] == (0, 0), (stage, ways)
+        assert per_frame(stage, last)[2] >= 1
+    for stage in ("integrate", "predict_surface"):  # the pose is a launch parameter there
+        assert per_frame(stage, last) == (1, 0, 0), (stage, ways)
+    assert pooled[-1] == pooled[-3], pooled  # no buffer made in the last frames
