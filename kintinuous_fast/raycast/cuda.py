@@ -26,7 +26,7 @@ from kintinuous_fast.targets.cuda import (
 )
 from kintinuous_fast.targets.cuda_graphs import segment
 from kintinuous_fast.tsdf import voxel
-from kintinuous_fast.tsdf.cuda import matrix_to_device
+from kintinuous_fast.tsdf.cuda import constants_to_device
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_fast.tsdf.voxel import BRICK
 from kintinuous_ref.camera import Intrinsics
@@ -150,8 +150,7 @@ def _raycast_kernel(
     empty,
     fine_distance,
     camera,
-    rotation,
-    origin,
+    pose,
     volume_origin,
     voxel_size,
     step,
@@ -160,7 +159,9 @@ def _raycast_kernel(
     colours,
     stride,
 ):
-    # one thread per pixel cast: (u, v) multiples of the stride
+    # one thread per pixel cast: (u, v) multiples of the stride; `pose` (4, 3) float64: the
+    # rotation (rows 0-2) and the camera centre (row 3), read from device memory
+    rotation, origin = pose, (pose[3, 0], pose[3, 1], pose[3, 2])
     cast_u, cast_v = cuda.grid(2)
     u, v = cast_u * stride, cast_v * stride
     if v < vertices.shape[0] and u < vertices.shape[1]:
@@ -261,13 +262,12 @@ def _view_arguments(
     volume_origin: np.ndarray,
     voxel_size: float,
 ) -> tuple:
-    """view_constants as the kernel takes them: the vectors as tuples of floats (launch
-    parameters), the rotation, which the ray ops index [row, column], as a device matrix
-    written from launch parameters (matrix_to_device)."""
+    """view_constants as the kernel takes them: the intrinsics and the volume's origin as
+    tuples of floats (launch parameters, fixed between shifts), the pose's rotation and centre
+    as one (4, 3) device matrix (constants_to_device), which changes every frame."""
     return (
         tuple(float(x) for x in camera),
-        matrix_to_device(rotation),
-        tuple(float(x) for x in origin),
+        constants_to_device("raycast pose", np.vstack([rotation, origin])),
         tuple(float(x) for x in volume_origin),
         voxel_size,
     )

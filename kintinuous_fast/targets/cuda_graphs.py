@@ -57,30 +57,6 @@ class Launch:
 
 
 @dataclass
-class GraphStatistics:
-    """Recorded segments by what ran them, and the kernels each way (since the process began)."""
-
-    launched_segments: int = 0
-    captured_segments: int = 0
-    replayed_segments: int = 0
-    launched_kernels: int = 0
-    replayed_kernels: int = 0
-    # per segment (its function's name): [launched, captured, replayed] segments
-    by_segment: dict[str, list[int]] = field(default_factory=dict)
-
-    def count(self, name: str, way: int, kernels: int) -> None:
-        """One segment of `kernels` launches run `way` (0 launched, 1 captured, 2 replayed)."""
-        self.by_segment.setdefault(name, [0, 0, 0])[way] += 1
-        if way == 0:
-            self.launched_segments += 1
-            self.launched_kernels += kernels
-        else:
-            self.captured_segments += way == 1
-            self.replayed_segments += way == 2
-            self.replayed_kernels += kernels
-
-
-@dataclass
 class _Recorder:
     enabled: bool = False
     depth: int = 0  # segments entered and not yet left
@@ -88,7 +64,8 @@ class _Recorder:
     pending: list[Launch] = field(default_factory=list)
     seen: OrderedDict = field(default_factory=OrderedDict)
     graphs: OrderedDict = field(default_factory=OrderedDict)
-    statistics: GraphStatistics = field(default_factory=GraphStatistics)
+    # per segment (its outermost function's name): [launched, captured, replayed] counts
+    counts: dict[str, list[int]] = field(default_factory=dict)
     stream: Any = None  # the graph stream, made on first capture
 
 
@@ -105,8 +82,10 @@ def enabled() -> bool:
     return RECORDER.enabled
 
 
-def statistics() -> GraphStatistics:
-    return RECORDER.statistics
+def segment_counts() -> dict[str, list[int]]:
+    """Per segment (its function's name), how often since the process began it was launched
+    kernel by kernel, captured into a graph, and replayed."""
+    return RECORDER.counts
 
 
 def forget() -> None:
@@ -151,7 +130,7 @@ def flush() -> None:
     launches, RECORDER.pending = RECORDER.pending, []
     if not launches:
         return
-    count = functools.partial(RECORDER.statistics.count, RECORDER.name, kernels=len(launches))
+    counts = RECORDER.counts.setdefault(RECORDER.name, [0, 0, 0])
     try:
         key = _key(launches)
     except NotCapturable:
@@ -159,16 +138,16 @@ def flush() -> None:
     if key is not None and key in RECORDER.graphs:
         RECORDER.graphs.move_to_end(key)
         _replay(RECORDER.graphs[key], launches)
-        count(2)
+        counts[2] += 1
     elif key is not None and key in RECORDER.seen:
         _remember(RECORDER.graphs, key, _capture(launches), MAX_GRAPHS)
         _replay(RECORDER.graphs[key], launches)
-        count(1)
+        counts[1] += 1
     else:
         if key is not None:
             _remember(RECORDER.seen, key, True, MAX_KEYS)
         _launch_each(launches)
-        count(0)
+        counts[0] += 1
 
 
 def _launch_each(launches: list[Launch]) -> None:
@@ -321,7 +300,6 @@ def _check(result: tuple) -> None:
 
 __all__ = [
     "ENVIRONMENT",
-    "GraphStatistics",
     "NotCapturable",
     "device_address",
     "enable",
@@ -331,5 +309,5 @@ __all__ = [
     "record",
     "recording",
     "segment",
-    "statistics",
+    "segment_counts",
 ]

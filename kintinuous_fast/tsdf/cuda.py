@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import cuda_device_jit, pinhole
+from kintinuous_fast.targets import cuda_device_jit, cuda_graphs, pinhole
 from kintinuous_fast.targets.cuda import (
     BLOCK_1D,
     BLOCK_2D,
@@ -109,15 +109,6 @@ def _depth_weights_kernel(depth, out):
 
 
 @kernel
-def _matrix_kernel(rows, out):
-    # out (3, 3) <- `rows`, three tuples of three values that came as launch parameters
-    if cuda.grid(1) == 0:
-        out[0, 0], out[0, 1], out[0, 2] = rows[0]
-        out[1, 0], out[1, 1], out[1, 2] = rows[1]
-        out[2, 0], out[2, 1], out[2, 2] = rows[2]
-
-
-@kernel
 def _ray_distance_kernel(depth, camera, out):
     # flat, with -inf in the "no pixel" slot one past the image (tsdf.ops.project_voxel)
     u, v = cuda.grid(2)
@@ -148,11 +139,9 @@ def _integrate_kernel(
     tsdf_weight,
     colour_volume,
     offsets,
-    box,
+    frame,
     largest,
     bounded,
-    base,
-    steps,
     intrinsics,
     image_size,
     ray_distance,
@@ -161,13 +150,15 @@ def _integrate_kernel(
     colour_weights,
     fuse_colour,
 ):
-    # `box` = (lo, hi): voxel indices [lo, hi); if `bounded`, each column only where z <= the
-    # frame's largest depth (1,) `largest` + mu, as frustum_box; `limits` = fuse_voxel's
-    lo, hi = box
-    dk, dj = cuda.grid(2)
-    k, j = lo[2] + dk, lo[1] + dj
-    if k < hi[2] and j < hi[1]:
-        first, end = lo[0], hi[0]
+    # `frame` (6, 3) float32 (frame_constants): rows 0-2 the voxel steps, row 3 the base, rows
+    # 4-5 the box [lo, hi) of voxel indices; one thread per column (j, k) of the volume, those
+    # outside the box return. If `bounded`, each column only where z <= the frame's largest
+    # depth (1,) `largest` + mu, as frustum_box; `limits` = fuse_voxel's
+    steps, base = frame, frame[3]
+    k, j = cuda.grid(2)
+    inside_k = int(frame[4, 2]) <= k and k < int(frame[5, 2])
+    if inside_k and int(frame[4, 1]) <= j and j < int(frame[5, 1]):
+        first, end = int(frame[4, 0]), int(frame[5, 0])
         if bounded:
             far = float(largest[0]) + float(limits[0])
             n = tsdf_weight.shape[0]
@@ -216,18 +207,21 @@ def _placeholder(shape: tuple[int, ...], dtype: str) -> Any:
     return cuda.to_device(np.zeros(shape, dtype=dtype))
 
 
-def matrix_to_device(matrix: np.ndarray) -> Any:
-    """A 3x3 matrix as a new device array of its dtype, written by a one-thread kernel from
-    launch parameters: unlike cuda.to_device, nothing waits for the device's queued work."""
-    out = pooled_array("matrix", (3, 3), matrix.dtype)
-    rows = tuple(tuple(row) for row in matrix)
-    _matrix_kernel[1, 1](rows, out)
+def constants_to_device(role: str, rows: np.ndarray) -> Any:
+    """A frame's pose-dependent constants (a small matrix) in a pooled device array. Kernels
+    read them there rather than as launch parameters, so that their launches repeat from frame
+    to frame and replay as a graph (targets.cuda_graphs). The copy waits for the device's
+    queued work, and runs after the launches recorded before it."""
+    out = pooled_array(role, rows.shape, rows.dtype)
+    cuda_graphs.flush()
+    out.copy_to_device(np.ascontiguousarray(rows))
     return out
 
 
 def largest_depth(depth: Any) -> Any:
     """The largest valid depth of a device depth map as a (1,) device array (0 without any)."""
-    largest = _zeros((1,), np.float32)
+    largest = pooled_array("largest depth", (1,), np.float32)
+    _fill_kernel[1, 1](largest, 0)
     _max_depth_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, largest)
     return largest
 
@@ -300,6 +294,16 @@ def integrate(
     )
 
 
+def frame_constants(volume: FastTsdfVolume, pose: np.ndarray, box: tuple) -> Any:
+    """The integration kernel's per-frame constants on the device: (6, 3) float32 with the
+    voxel steps (camera_frame_steps, rows 0-2), the base (row 3) and the box [lo, hi) (rows
+    4-5; voxel indices, exact in float32)."""
+    base, steps = camera_frame_steps(volume, pose)
+    lo, hi = index_box(box)
+    rows = np.vstack([steps, base, lo, hi]).astype(np.float32)
+    return constants_to_device("integration constants", rows)
+
+
 def integrate_in_box(
     volume: FastTsdfVolume,
     depth: Any,
@@ -319,18 +323,14 @@ def integrate_in_box(
     fuse_colour, colour, colour_weights, colour_volume = _colour_arguments(
         volume, depth, colour, colour_weights
     )
-    base, steps = camera_frame_steps(volume, pose)
-    lo, hi = index_box(box)
-    threads = grid_2d(hi[1] - lo[1], hi[2] - lo[2])  # x: k (contiguous in memory), y: j
-    _integrate_kernel[threads, BLOCK_2D](
+    n = volume.resolution
+    _integrate_kernel[grid_2d(n, n), BLOCK_2D](  # x: k (contiguous in memory), y: j
         volume.tsdf_weight,
         colour_volume,
         volume.offsets(),
-        (lo, hi),
+        frame_constants(volume, pose, box),
         _placeholder((1,), "float32") if largest is None else largest,
         largest is not None,
-        tuple(base),
-        matrix_to_device(steps),
         tuple(projection_constants(camera)),
         image_size(camera),
         ray_distance,
