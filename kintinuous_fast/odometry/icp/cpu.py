@@ -42,10 +42,9 @@ from kintinuous_ref.odometry.icp import valid_points as valid_points
 from kintinuous_ref.odometry.icp import voxel_noise as voxel_noise
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import NO_WEIGHTS as _NO_WEIGHTS
 from . import REFERENCE_NAMES, TARGET_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
 from .cpu_block import OPS as _OPS
-from .cpu_block import _block_work, _pair_rows_block, icp_chunk
+from .cpu_block import _block_work, icp_chunk, kept_pairs
 from .cpu_joint import FUSED_WEIGHTINGS, joint_system
 
 # The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
@@ -105,15 +104,11 @@ def _icp_pairs_loop(claims, parts, points, pose, to_model, mv, mn, camera, limit
     chunks = out.shape[0]
     for c in claimed_items(claims, chunks, parts):
         work = _block_work(mv.dtype)
-        kept = work[3][7 * BLOCK :]
         start, stop = c * n // chunks, (c + 1) * n // chunks
-        pairs = 0.0
+        pairs = 0
         for block in range(start, stop, BLOCK):
             end = min(block + BLOCK, stop)
-            _pair_rows_block(
-                points, block, end, pose, to_model, mv, mn, camera, limits, _NO_WEIGHTS, work
-            )
-            pairs += kept[: end - block].sum()
+            pairs += kept_pairs(points, block, end, pose, to_model, mv, mn, camera, limits, work)
         out[c, 0] = stop - start
         out[c, 1] = pairs
 

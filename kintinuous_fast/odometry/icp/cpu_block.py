@@ -15,7 +15,7 @@ from kintinuous_fast.odometry.sums.cpu import ALLOCATING_LOOP, BLOCK, GEOMETRY, 
 
 from .ops import build_ops
 
-__all__ = ["OPS", "icp_chunk"]
+__all__ = ["OPS", "icp_chunk", "kept_pairs"]
 
 OPS = build_ops(INLINE, GEOMETRY)
 # Module-level names: numba resolves the scalar functions as globals of the loops below.
@@ -91,6 +91,34 @@ def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out,
             weighted[4 * BLOCK + m] = w * j4 if kept else 0.0
             weighted[5 * BLOCK + m] = w * j5 if kept else 0.0
             weighted[6 * BLOCK + m] = w * r if kept else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _kept_pairs_block(points, start, stop, pose, rows, model, limits):
+    """How many of points[:, start:stop] _icp_rows_block keeps (the same tests on the same
+    values), without their rows: what the inlier fraction counts."""
+    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
+    nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
+    kept = 0
+    for m in range(stop - start):
+        qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
+        ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
+        uz = float(model[5 * BLOCK + m])
+        world = _transform(pose, x[m], y[m], z[m])
+        g = _rotate(pose, nx[m], ny[m], nz[m])
+        vertex, normal = (qx, qy, qz), (ux, uy, uz)
+        kept += (rows[m] >= 0) & _is_compatible(world, g, vertex, normal, limits)
+    return kept
+
+
+@numba.njit(cache=True)
+def kept_pairs(points, start, stop, pose, to_model, mv, mn, camera, limits, work):
+    """The ICP pairs among points[:, start:stop] (_pair_rows_block's kept ones), counted in
+    its projection and gather loops and a test loop that vectorises."""
+    rows, cols, model = work[0], work[1], work[2]
+    _project_block(points, start, stop, to_model, camera, (mv.shape[1], mv.shape[0]), rows, cols)
+    _gather_model_block(rows, cols, stop - start, mv, mn, model)
+    return _kept_pairs_block(points, start, stop, pose, rows, model, limits)
 
 
 @numba.njit(cache=True)

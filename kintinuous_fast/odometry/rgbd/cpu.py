@@ -47,7 +47,7 @@ from kintinuous_ref.odometry.rgbd import robust_row_weights as robust_row_weight
 from kintinuous_ref.odometry.rgbd import sample_bilinear as sample_bilinear
 from kintinuous_ref.odometry.solve import LinearSystem
 
-from . import REFERENCE_NAMES, TARGET_NAMES, check_images, relative_pose
+from . import REFERENCE_NAMES, TARGET_NAMES, check_images
 from .ops import build_ops
 
 # The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
@@ -333,9 +333,11 @@ def _level_terms(points, previous_pose, previous, camera, max_depth_change) -> t
     None but in "warped" mode."""
     images, warped = _previous_images(*previous, camera)
     intrinsics, max_change = pinhole(camera), float(max_depth_change)
+    # relative_pose's inverse, computed once: the same matrix at every iteration
+    to_previous = np.linalg.inv(previous_pose)
 
     def warp_terms(pose: np.ndarray) -> tuple:
-        relative = relative_pose(pose, previous_pose)
+        relative = np.ascontiguousarray(to_previous @ pose, dtype=np.float64)
         pose = np.ascontiguousarray(pose, dtype=np.float64)
         return (relative, pose, images, warped, intrinsics, max_change)
 
