@@ -31,7 +31,7 @@
 #    known plane normals of a synthetic frame with exact geometry,
 # 5. intensity from RGB and the Sobel gradients of the RGB-D tracker, checked on a ramp,
 # 6. `kintinuous_fast` against the reference, within the tolerances of the tests,
-# 7. a real redkitchen frame.
+# 7. a real frame (redkitchen, or a TUM sequence you have).
 #
 # Prerequisites: lesson 0 (poses), lesson 1 (the camera model). About 10 s warm
 # (notebooks/README.md lists each lesson's measured time).
@@ -47,7 +47,7 @@ from kintinuous_fast.preprocess import cpu as kintinuous_fast_preprocess_cpu
 from kintinuous_ref import preprocess
 from kintinuous_ref.camera import axial_noise
 from kintinuous_ref.config import Config
-from kintinuous_ref.datasets import data_folder, real_dataset
+from kintinuous_ref.datasets.course_data import load_course_data, skip_line
 from kintinuous_ref.datasets.synthetic import KINECT_CAMERA
 
 WIDTH, HEIGHT = 160, 120
@@ -416,27 +416,27 @@ assert_frames_equal(fast.preprocess_frame(colour, raw_depth, camera, settings), 
 print("kintinuous_fast (cpu) == kintinuous_ref on every level of the synthetic frame")
 
 # %% [markdown]
-# ## 7. Real data: a redkitchen frame
+# ## 7. Real data: a real frame
 #
-# Frame 100 of the shared 7-Scenes redkitchen sequence, downsized to 160x120 (depth by nearest
-# neighbour, so that no depth is invented between surfaces). Real Kinect depth has holes (black)
-# at shiny and dark surfaces and along depth edges, where the projector's pattern is shadowed;
-# the filter leaves them holes. The numbers printed are this frame's.
+# Frame 100 of a real sequence, downsized to 160x120 (depth by nearest neighbour, so that no
+# depth is invented between surfaces). Real Kinect depth has holes (black) at shiny and dark
+# surfaces and along depth edges, where the projector's pattern is shadowed; the filter leaves
+# them holes. The frame comes from the course's one loader, `load_course_data()`
+# (notebooks/README.md): the shared 7-Scenes redkitchen frames, or a TUM RGB-D sequence you
+# have; without either the cell prints one line and skips. The numbers printed are this
+# frame's; they are asserted for redkitchen, and on any sequence the cell checks that the fast
+# backend equals the reference and that holes stay holes.
 
 # %%
-REDKITCHEN = real_dataset("redkitchen")
-if REDKITCHEN is not None:
-    import cv2
-
-    from kintinuous_ref.datasets.tum import open_sequence
-
-    sequence = open_sequence(REDKITCHEN)
-    small = sequence.camera.resized(WIDTH, HEIGHT)
-    kitchen = sequence[100]
-    kitchen_colour = cv2.resize(kitchen.colour, (WIDTH, HEIGHT), interpolation=cv2.INTER_AREA)
-    kitchen_depth = cv2.resize(kitchen.depth, (WIDTH, HEIGHT), interpolation=cv2.INTER_NEAREST)
-    real = preprocess.preprocess_frame(kitchen_colour, kitchen_depth, small, settings)
-    assert_frames_equal(fast.preprocess_frame(kitchen_colour, kitchen_depth, small, settings), real)
+# $KINTINUOUS_COURSE_DATA, else the shared redkitchen, else a downloaded TUM sequence
+REAL = load_course_data()
+print(REAL.describe() if REAL is not None else skip_line())
+if REAL is not None:
+    small = REAL.camera_at(WIDTH, HEIGHT)
+    real_image = REAL.frame(100, WIDTH, HEIGHT)
+    real_colour, real_depth = real_image.colour, real_image.depth
+    real = preprocess.preprocess_frame(real_colour, real_depth, small, settings)
+    assert_frames_equal(fast.preprocess_frame(real_colour, real_depth, small, settings), real)
     real_filtered = preprocess.bilateral_filter(real.depth, 4.5, 0.03, 6)
     has_depth = real.depth > 0
     change_mm = 1000 * np.abs(real_filtered - real.depth)[has_depth]
@@ -446,9 +446,13 @@ if REDKITCHEN is not None:
         f"{np.median(change_mm):.1f} mm (median); {(real_magnitude >= 12).sum()} pixels reach "
         "g = 12; kintinuous_fast == reference"
     )
-    assert np.all(real_filtered[~has_depth] == 0)  # holes stay holes
+    assert np.all(real_filtered[~has_depth] == 0)  # any sequence: holes stay holes
+    if REAL.is_redkitchen:  # this frame's numbers, as printed
+        assert abs(100 * (1 - has_depth.mean()) - 10.5) < 0.1
+        assert abs(np.median(change_mm) - 2.0) < 0.1
+        assert abs((real_magnitude >= 12).sum() - 3552) < 36
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.2))
-    axes[0].imshow(kitchen_colour)
+    axes[0].imshow(real_colour)
     axes[0].set_title("colour")
     axes[1].imshow(np.where(has_depth, real.depth, np.nan), cmap="viridis")
     axes[1].set_title("raw depth (holes blank)")
@@ -459,8 +463,6 @@ if REDKITCHEN is not None:
     for ax in axes:
         ax.axis("off")
     plt.show()
-else:
-    print(f"redkitchen not found in {data_folder()}: skipping the real-data example")
 
 # %% [markdown]
 # ## Summary

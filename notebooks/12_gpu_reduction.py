@@ -47,7 +47,7 @@ from kintinuous_fast.odometry.icp import cuda as gpu
 from kintinuous_fast.odometry.sums import cuda as reduction
 from kintinuous_ref import preprocess
 from kintinuous_ref.config import Config
-from kintinuous_ref.datasets import data_folder, real_dataset
+from kintinuous_ref.datasets.course_data import load_course_data, skip_line
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.odometry import icp
 
@@ -232,72 +232,66 @@ print(
 )
 
 # %% [markdown]
-# ## Real data: the kernel on a kitchen pair
+# ## Real data: the kernel on a real pair
 #
-# The same simulated kernel on real depth: 7-Scenes *redkitchen* frame 101 against frame 100's
-# own vertices and normals (carried into the world at its ground-truth pose), at 40x30 (a
-# quarter of the threads: the simulator runs each as a Python thread), evaluated at frame
-# 101's ground-truth pose. Real depth has holes and noise, so fewer pixels pair; the kernel's
-# system must still equal the reference's to rounding. Skipped with one line where the frames
-# are absent.
+# The same simulated kernel on real depth: real frame 101 against frame 100's own vertices and
+# normals (carried into the world at its ground-truth pose), at 40x30 (a quarter of the
+# threads: the simulator runs each as a Python thread), evaluated at frame 101's ground-truth
+# pose. Real depth has holes and noise, so fewer pixels pair; the kernel's system must still
+# equal the reference's to rounding, on any sequence. The frames come from the course's one
+# loader, `load_course_data()` (notebooks/README.md): the shared 7-Scenes redkitchen frames, or
+# a TUM RGB-D sequence you have; without either the cell prints one line and skips.
 
 # %%
-# The folder named by $KINTINUOUS_DATA, else ../shared/data beside the repository; None if absent.
-REDKITCHEN = real_dataset("redkitchen")
-if REDKITCHEN is not None:
-    import cv2
-
-    from kintinuous_ref.datasets.tum import open_sequence
-
-    sequence = open_sequence(REDKITCHEN)
-    KITCHEN_SIZE = (40, 30)
-    kitchen_camera = sequence.camera.resized(*KITCHEN_SIZE)
-    kitchen_truth = sequence.groundtruth_for_frames().poses
-    kitchen = {}
-    for index in (100, 101):
-        image = sequence[index]
-        kitchen[index] = preprocess.preprocess_frame(
-            cv2.resize(image.colour, KITCHEN_SIZE, interpolation=cv2.INTER_AREA),
-            cv2.resize(image.depth, KITCHEN_SIZE, interpolation=cv2.INTER_NEAREST),
-            kitchen_camera,
-            config.preprocess,
+# $KINTINUOUS_COURSE_DATA, else the shared redkitchen, else a downloaded TUM sequence
+REAL = load_course_data()
+print(REAL.describe() if REAL is not None else skip_line())
+if REAL is not None:
+    REAL_SIZE = (40, 30)
+    real_camera = REAL.camera_at(*REAL_SIZE)
+    real_truth = REAL.groundtruth.poses
+    real_images = {image.index: image for image in REAL.frames([100, 101], *REAL_SIZE)}
+    real_frames = {
+        index: preprocess.preprocess_frame(
+            image.colour, image.depth, real_camera, config.preprocess
         ).levels[0]
-    earlier_pose, later_pose = kitchen_truth[100], kitchen_truth[101]
-    kitchen_arguments = (
-        kitchen[101].vertices,
-        kitchen[101].normals,
+        for index, image in real_images.items()
+    }
+    earlier_pose, later_pose = real_truth[100], real_truth[101]
+    earlier_rotation = earlier_pose[:3, :3]
+    real_arguments = (
+        real_frames[101].vertices,
+        real_frames[101].normals,
         later_pose,
-        (kitchen[100].vertices @ earlier_pose[:3, :3].T + earlier_pose[:3, 3]).astype(np.float32),
-        (kitchen[100].normals @ earlier_pose[:3, :3].T).astype(np.float32),
+        (real_frames[100].vertices @ earlier_rotation.T + earlier_pose[:3, 3]).astype(np.float32),
+        (real_frames[100].normals @ earlier_rotation.T).astype(np.float32),
         earlier_pose,
-        kitchen_camera,
+        real_camera,
     )
-    kitchen_simulated = gpu.icp_system(*kitchen_arguments)
-    kitchen_reference = icp.icp_system(*kitchen_arguments)
-    kitchen_scale = np.abs(kitchen_reference.A).max()
-    kitchen_difference = np.abs(kitchen_simulated.A - kitchen_reference.A).max() / kitchen_scale
-    has_depth = np.isfinite(kitchen[101].vertices).all(-1)
+    real_simulated = gpu.icp_system(*real_arguments)
+    real_reference = icp.icp_system(*real_arguments)
+    real_scale = np.abs(real_reference.A).max()
+    real_difference = np.abs(real_simulated.A - real_reference.A).max() / real_scale
+    has_depth = np.isfinite(real_frames[101].vertices).all(-1)
     print(
-        f"{has_depth.sum()} of {has_depth.size} pixels with depth, {kitchen_simulated.count} "
-        f"paired (reference {kitchen_reference.count}); largest |A_sim - A_ref| / max |A_ref| = "
-        f"{kitchen_difference:.1e}"
+        f"{has_depth.sum()} of {has_depth.size} pixels with depth, {real_simulated.count} "
+        f"paired (reference {real_reference.count}); largest |A_sim - A_ref| / max |A_ref| = "
+        f"{real_difference:.1e}"
     )
     fig, axes = plt.subplots(1, 2, figsize=(9, 3))
-    axes[0].imshow(cv2.resize(sequence[101].colour, KITCHEN_SIZE))
-    axes[0].set_title("redkitchen frame 101, 40x30")
-    axes[1].imshow(np.where(has_depth, kitchen[101].vertices[..., 2], np.nan), cmap="viridis")
+    axes[0].imshow(real_images[101].colour)
+    axes[0].set_title(f"{REAL.name} frame 101, 40x30")
+    axes[1].imshow(np.where(has_depth, real_frames[101].vertices[..., 2], np.nan), cmap="viridis")
     axes[1].set_title("its depth (m); white: none")
     for ax in axes:
         ax.axis("off")
     plt.show()
-    assert kitchen_simulated.count == kitchen_reference.count > 0
-    assert kitchen_difference < 1e-12  # rounding: float64 sums in another order
+    assert real_simulated.count == real_reference.count > 0
+    assert real_difference < 1e-12  # rounding: float64 sums in another order
     np.testing.assert_allclose(
-        kitchen_simulated.b, kitchen_reference.b, rtol=0,
-        atol=1e-10 * np.abs(kitchen_reference.b).max(),
+        real_simulated.b, real_reference.b, rtol=0,
+        atol=1e-10 * np.abs(real_reference.b).max(),
     )  # fmt: skip
-else:
-    print(f"redkitchen not found in {data_folder()}: skipping the real-data example")
 
 # %% [markdown]
 # ## Summary

@@ -55,7 +55,7 @@ from kintinuous_fast.odometry.sums import NV, sum_partials
 from kintinuous_fast.odometry.sums.cuda import BLOCK, MAX_BLOCKS, add_row, block_reduce, zero
 from kintinuous_ref import preprocess, se3
 from kintinuous_ref.config import Config
-from kintinuous_ref.datasets import data_folder, real_dataset
+from kintinuous_ref.datasets.course_data import load_course_data, skip_line
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.odometry import rgbd
 from kintinuous_ref.odometry.solve import solve
@@ -480,61 +480,57 @@ plt.show()
 # %% [markdown]
 # ## Real frames (optional)
 #
-# Two redkitchen frames five apart (1/6 s), downsized to 80x60: the same kernels against the
-# reference, now on a real image's gradients and a Kinect's holes.
+# Two real frames five apart (1/6 s), downsized to 80x60: the same kernels against the
+# reference, now on a real image's gradients and a Kinect's holes; they must agree on any
+# sequence. The frames come from the course's one loader, `load_course_data()`
+# (notebooks/README.md): the shared 7-Scenes redkitchen frames, or a TUM RGB-D sequence you
+# have; without either the cell prints one line and skips.
 
 # %%
-# The folder named by $KINTINUOUS_DATA, else ../shared/data beside the repository; None if absent.
-REDKITCHEN = real_dataset("redkitchen")
-if REDKITCHEN is not None:
-    import cv2
-
-    from kintinuous_ref.datasets.tum import open_sequence
-
-    sequence = open_sequence(REDKITCHEN)
-    small_camera = sequence.camera.resized(WIDTH, HEIGHT)
-    truth = sequence.groundtruth_for_frames()
-    kitchen = []
-    for frame_index in (100, 105):
-        frame = sequence[frame_index]
-        colour = cv2.resize(frame.colour, (WIDTH, HEIGHT), interpolation=cv2.INTER_AREA)
-        depth = cv2.resize(frame.depth, (WIDTH, HEIGHT), interpolation=cv2.INTER_NEAREST)
-        level = preprocess.preprocess_frame(colour, depth, small_camera, config.preprocess)
-        kitchen.append(level.levels[0])
-    kitchen_list, _, _ = interest_list(kitchen[1], BLOCKS)
-    kitchen_points = rgbd.prepare_level(
-        kitchen[1].depth,
-        kitchen[1].intensity,
-        kitchen[1].intensity_dx,
-        kitchen[1].intensity_dy,
+# $KINTINUOUS_COURSE_DATA, else the shared redkitchen, else a downloaded TUM sequence
+REAL = load_course_data()
+print(REAL.describe() if REAL is not None else skip_line())
+if REAL is not None:
+    small_camera = REAL.camera_at(WIDTH, HEIGHT)
+    truth = REAL.groundtruth
+    real_frames = [
+        preprocess.preprocess_frame(
+            frame.colour, frame.depth, small_camera, config.preprocess
+        ).levels[0]
+        for frame in REAL.frames([100, 105], WIDTH, HEIGHT)
+    ]
+    real_list, _, _ = interest_list(real_frames[1], BLOCKS)
+    real_points = rgbd.prepare_level(
+        real_frames[1].depth,
+        real_frames[1].intensity,
+        real_frames[1].intensity_dx,
+        real_frames[1].intensity_dy,
         small_camera,
         MIN_GRADIENT,
         config.rgbd.max_depth,
     )
-    np.testing.assert_array_equal(np.sort(kitchen_list), kitchen_points.indices)
+    np.testing.assert_array_equal(np.sort(real_list), real_points.indices)
     start = truth.poses[100]
-    kitchen_system, kitchen_pairs, _, _, _ = rgbd_system_by_lists(
-        kitchen_points, start, start, kitchen[0], PAIR_BLOCKS
+    real_system, real_pairs, _, _, _ = rgbd_system_by_lists(
+        real_points, start, start, real_frames[0], PAIR_BLOCKS
     )
-    kitchen_reference = rgbd.rgbd_system(
-        kitchen_points, start, start, kitchen[0].depth, kitchen[0].intensity, small_camera
+    real_reference = rgbd.rgbd_system(
+        real_points, start, start, real_frames[0].depth, real_frames[0].intensity, small_camera
     )
-    assert kitchen_system.count == kitchen_reference.count
-    kitchen_scale = np.abs(kitchen_reference.A).max()
-    np.testing.assert_allclose(kitchen_system.A, kitchen_reference.A, atol=1e-10 * kitchen_scale)
+    assert real_system.count == real_reference.count
+    real_scale = np.abs(real_reference.A).max()
+    np.testing.assert_allclose(real_system.A, real_reference.A, atol=1e-10 * real_scale)
     print(
-        f"redkitchen 105 against 100: {len(kitchen_list)} interest points, "
-        f"{kitchen_system.count} pairs; lists and system equal to the reference's"
+        f"{REAL.name} 105 against 100: {len(real_list)} interest points, "
+        f"{real_system.count} pairs; lists and system equal to the reference's"
     )
     fig, ax = plt.subplots(figsize=(4.5, 3.4))
-    ax.imshow(kitchen[1].intensity, cmap="gray")
-    v, u = np.divmod(kitchen_list, WIDTH)
+    ax.imshow(real_frames[1].intensity, cmap="gray")
+    v, u = np.divmod(real_list, WIDTH)
     ax.plot(u, v, "r.", ms=2)
-    ax.set_title("redkitchen: the kernel's interest points")
+    ax.set_title(f"{REAL.name}: the kernel's interest points")
     ax.axis("off")
     plt.show()
-else:
-    print(f"redkitchen not found in {data_folder()}: skipping the real-data example")
 
 # %% [markdown]
 # ## Summary
