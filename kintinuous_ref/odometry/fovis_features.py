@@ -33,8 +33,17 @@ _SUBPIXEL_REACH = 2
 # Bilinear depth at a sub-pixel position only where the 4 neighbours agree to this fraction; across
 # a depth edge the interpolated depth belongs to neither surface.
 _DEPTH_AGREEMENT = 0.03
-# An initial rotation estimate larger than this (radians) is implausible at 30 Hz: ignore it.
+# An initial rotation estimate larger than this (radians, 20 degrees) is implausible even between
+# frames a second apart: ignore it.
 _MAX_INITIAL_ROTATION = 0.35
+# The initial rotation starts on the coarsest level halved this many more times, down to images
+# no smaller than _MIN_ROTATION_IMAGE_SIDE pixels a side (estimate_initial_rotation).
+_INITIAL_ROTATION_HALVINGS = 2
+_MIN_ROTATION_IMAGE_SIDE = 12
+# The grid of pans and tilts (radians) the smallest images start from: up to 17 degrees each way,
+# 2.5 degrees apart, less than a pixel of the 20x15 image, well inside Gauss-Newton's basin.
+_PAN_TILT_RANGE = 0.3
+_PAN_TILT_STEP = 0.0436
 
 
 @dataclass
@@ -200,13 +209,92 @@ def estimate_initial_rotation(
     camera: Intrinsics,
     iterations: int = 10,
 ) -> np.ndarray:
-    """Rotation R (previous <- current) that best aligns two small images, by Gauss-Newton.
+    """Rotation R (previous <- current) that best aligns two small images, coarse to fine.
+
+    Gauss-Newton (rotation_from_images) converges only while the images are misaligned by a few
+    pixels. At 30 Hz that holds on the coarsest pyramid level (80x60: a few degrees move it by a
+    pixel or two), but between frames far apart in time a turn of 10-15 degrees moves the 80x60
+    image by 15-20 pixels, and the estimate from the identity stops in a local minimum (on
+    redkitchen every 20th frame it came back 4-9 degrees short and the search windows missed by
+    80-120 px). So the images are halved up to _INITIAL_ROTATION_HALVINGS more times (to 20x15),
+    the rotation is found there, where the same turn is 4-5 pixels, and each finer image starts
+    from the coarser one's answer. Even there a turn together with a sideways step of 25 cm can
+    put the identity outside the basin of the right minimum (on the synthetic `loop` path every
+    15th frame Gauss-Newton went the wrong way), so the smallest images first pick the best of a
+    grid of pans and tilts (best_pan_and_tilt) to start from.
+    """
+    previous_images = [previous_intensity.astype(np.float32)]
+    current_images = [current_intensity.astype(np.float32)]
+    cameras = [camera]
+    for _ in range(_INITIAL_ROTATION_HALVINGS):
+        if min(previous_images[-1].shape) < 2 * _MIN_ROTATION_IMAGE_SIDE:
+            break
+        previous_images.append(cv2.pyrDown(previous_images[-1]))
+        current_images.append(cv2.pyrDown(current_images[-1]))
+        cameras.append(cameras[-1].at_level(1))
+    rotation = best_pan_and_tilt(previous_images[-1], current_images[-1], cameras[-1])
+    for previous, current, level_camera in zip(
+        previous_images[::-1], current_images[::-1], cameras[::-1], strict=True
+    ):
+        rotation = rotation_from_images(previous, current, level_camera, rotation, iterations)
+    if se3.rotation_angle(rotation) > _MAX_INITIAL_ROTATION:
+        return np.eye(3)
+    return rotation
+
+
+def best_pan_and_tilt(
+    previous_intensity: np.ndarray, current_intensity: np.ndarray, camera: Intrinsics
+) -> np.ndarray:
+    """The rotation (previous <- current) about the camera's x and y axes, on a grid of
+    _PAN_TILT_STEP up to _PAN_TILT_RANGE, that best aligns two small images.
+
+    Each candidate warps the current image by the rotation's homography; the mean squared
+    intensity difference over the pixels both images see decides. Candidates that leave less
+    than half of the image in view are not considered (a small overlap can match by chance).
+    The identity is a candidate, so nothing worse than no prior comes out of it.
+    """
+    previous = cv2.GaussianBlur(previous_intensity.astype(np.float32), (5, 5), 1.0)
+    current = cv2.GaussianBlur(current_intensity.astype(np.float32), (5, 5), 1.0)
+    height, width = previous.shape
+    rays = camera.ray_directions().reshape(-1, 3).astype(np.float64)
+    angles = np.arange(-_PAN_TILT_RANGE, _PAN_TILT_RANGE + 1e-9, _PAN_TILT_STEP)
+    best, best_cost = np.eye(3), np.inf
+    for tilt in angles:
+        for pan in angles:
+            rotation = se3.exp(np.array([tilt, pan, 0.0, 0.0, 0.0, 0.0]))[:3, :3]
+            q = rays @ rotation  # R^T applied to each ray: previous frame -> current frame
+            z = np.maximum(q[:, 2], 1e-6)
+            u = camera.fx * q[:, 0] / z + camera.cx
+            v = camera.fy * q[:, 1] / z + camera.cy
+            valid = (q[:, 2] > 0) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+            if valid.mean() < 0.5:
+                continue
+            warped = cv2.remap(
+                current,
+                u.reshape(height, width).astype(np.float32),
+                v.reshape(height, width).astype(np.float32),
+                cv2.INTER_LINEAR,
+            ).ravel()
+            cost = float(np.mean((warped[valid] - previous.ravel()[valid]) ** 2))
+            if cost < best_cost:
+                best, best_cost = rotation, cost
+    return best
+
+
+def rotation_from_images(
+    previous_intensity: np.ndarray,
+    current_intensity: np.ndarray,
+    camera: Intrinsics,
+    initial: np.ndarray,
+    iterations: int = 10,
+) -> np.ndarray:
+    """Rotation R (previous <- current) aligning two images by Gauss-Newton, from `initial`.
 
     Under a pure rotation a previous pixel x maps to the current pixel pi(K W K^-1 x) with W = R^T
     (a homography, whatever the depth). W is updated as exp(delta) W, minimising
     sum (I_cur(pi(K W K^-1 x)) - I_prev(x))^2. Translation is ignored: at the coarsest pyramid
     level a few centimetres move the image by less than a pixel, while a few degrees move it by
-    several.
+    several. Returns `initial` when too few pixels overlap or the system is singular.
     """
     previous = cv2.GaussianBlur(previous_intensity.astype(np.float32), (5, 5), 1.0)
     current = cv2.GaussianBlur(current_intensity.astype(np.float32), (5, 5), 1.0)
@@ -215,7 +303,7 @@ def estimate_initial_rotation(
     height, width = previous.shape
     rays = camera.ray_directions().reshape(-1, 3).astype(np.float64)
     reference = previous.ravel().astype(np.float64)
-    rotation_cur_prev = np.eye(3)
+    rotation_cur_prev = np.asarray(initial, dtype=np.float64).T
     for _ in range(iterations):
         q = rays @ rotation_cur_prev.T
         u = camera.fx * q[:, 0] / q[:, 2] + camera.cx
@@ -223,7 +311,7 @@ def estimate_initial_rotation(
         # Keep one pixel from the border so the bilinear samples and gradients are genuine.
         valid = (q[:, 2] > 0) & (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
         if valid.sum() < 20:
-            return np.eye(3)
+            return np.asarray(initial, dtype=np.float64)
         map_u = u.reshape(height, width).astype(np.float32)
         map_v = v.reshape(height, width).astype(np.float32)
         samples = [
@@ -247,14 +335,12 @@ def estimate_initial_rotation(
         try:
             delta = np.linalg.solve(jacobian.T @ jacobian, -jacobian.T @ residual)
         except np.linalg.LinAlgError:
-            return np.eye(3)
+            return np.asarray(initial, dtype=np.float64)
         rotation_cur_prev = se3.exp(np.concatenate([delta, np.zeros(3)]))[:3, :3] @ (
             rotation_cur_prev
         )
         if np.linalg.norm(delta) < 1e-6:
             break
-    if se3.rotation_angle(rotation_cur_prev) > _MAX_INITIAL_ROTATION:
-        return np.eye(3)
     return rotation_cur_prev.T
 
 
@@ -274,6 +360,28 @@ def predict_pixels(features: Features, rotation: np.ndarray, camera: Intrinsics)
     z = np.maximum(q[:, 2], 1e-6)
     predicted = np.stack([camera.fx * q[:, 0] / z + camera.cx, camera.fy * q[:, 1] / z + camera.cy])
     return predicted.T / scale
+
+
+def predict_pixels_with_motion(
+    features: Features, increment: np.ndarray, camera: Intrinsics
+) -> np.ndarray:
+    """Where previous features appear in the current image under a full motion (level pixels).
+
+    `increment` is previous <- current, so a previous point X is seen in the current camera at
+    R^T (X - t); with each feature's own depth this also predicts the translation's parallax,
+    which predict_pixels (a rotation alone) cannot.
+    """
+    rotation, translation = increment[:3, :3], increment[:3, 3]
+    in_current = (features.points - translation) @ rotation
+    z = np.maximum(in_current[:, 2], 1e-6)
+    predicted = np.stack(
+        [
+            camera.fx * in_current[:, 0] / z + camera.cx,
+            camera.fy * in_current[:, 1] / z + camera.cy,
+        ],
+        axis=1,
+    )
+    return predicted / 2.0 ** features.levels[:, None]
 
 
 # --------------------------------------------------------------------------------------------
