@@ -6,11 +6,12 @@ function.
 
 Called apart, the two problems cost two wake-ups of the helper threads per iteration, and about
 forty NumPy and Python calls between them (partials made and added up, LinearSystems unpacked,
-scaled and summed) that each take microseconds for nanoseconds of arithmetic. Here the ICP
-chunks and the RGB-D correspondence chunks are the first pass of one loop, the RGB-D rows its
-second (rgbd/cpu.py's two passes), and a level's work arrays are made once for all of its
-iterations. The chunks and the order of every sum are those of the separate calls, so the
-system is the same, bit for bit, on any number of threads.
+scaled and summed) that each take microseconds for nanoseconds of arithmetic. Here one loop
+runs the RGB-D correspondence chunks, then the ICP chunks, then the RGB-D rows chunks (rgbd/
+cpu.py's second pass, which needs every correspondence chunk's sum: with the ICP chunks
+between, its threads seldom wait), and a level's work arrays are made once for all of its
+iterations. The chunks and the order of every sum are those of the separate calls, so the system is
+the same, bit for bit, on any number of threads.
 """
 
 from __future__ import annotations
@@ -30,7 +31,16 @@ from kintinuous_fast.odometry.rgbd.cpu import (
 from kintinuous_fast.odometry.sums import NV, SLOT_B, SLOT_COST, SLOT_COUNT
 from kintinuous_fast.odometry.sums.cpu import ALLOCATING_LOOP, partials
 from kintinuous_fast.targets import pinhole
-from kintinuous_fast.targets.cpu import SPINS, claim_slot, claimed_items_in_passes, run_parallel
+from kintinuous_fast.targets.cpu import (
+    NEXT_PART,
+    PARTS_DONE,
+    SPINS,
+    _fetch_add,
+    _load,
+    _spin_below,
+    claim_slot,
+    run_parallel,
+)
 from kintinuous_ref.odometry.combined import MIN_ICP_SCALE
 from kintinuous_ref.odometry.solve import LinearSystem
 from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS
@@ -48,34 +58,65 @@ FUSED_WEIGHTINGS = ("degeneracy-aware", *ROBUST_WEIGHTINGS)
 # The loop
 
 
+# Not cached, as targets.cpu.claimed_items (a generator).
+@numba.njit
+def _joint_items(claims, corresponded, parts, correspond, rows_from, spins):
+    """The parts of one _joint_loop call this thread claims, one item each, in order: the
+    RGB-D correspondence chunks (0..correspond-1, each counted in corresponded[0] when done),
+    the ICP chunks, then from `rows_from` the RGB-D rows chunks, which read every
+    correspondence chunk's sums: those are claimed once corresponded[0] reaches `correspond`,
+    which the ICP chunks between leave time for. A thread that would wait for it longer than
+    `spins` atomic loads (a thread holding a correspondence chunk descheduled) leaves the loop
+    rather than spin on a core that thread needs; the thread that finishes the last
+    correspondence chunk always goes on (as targets.cpu.claimed_items_in_passes)."""
+    while True:
+        if (
+            _load(claims, NEXT_PART) >= rows_from
+            and _spin_below(corresponded, 0, correspond, spins) < correspond
+        ):
+            return
+        part = _fetch_add(claims, NEXT_PART)
+        if part >= parts:
+            return
+        if part >= rows_from:  # claimed between the look above and now: it must wait
+            while _spin_below(corresponded, 0, correspond, spins) < correspond:
+                pass
+        yield part
+        if part < correspond:
+            _fetch_add(corresponded, 0)
+        _fetch_add(claims, PARTS_DONE)
+
+
 @ALLOCATING_LOOP
-def _joint_loop(claims, parts, icp_terms, icp_out, rgbd_terms, pairs, sums, warps, rgbd_out):
-    """One item per part: the first pass's items are the ICP chunks (icp_chunk into icp_out)
-    and then the RGB-D correspondence chunks (_correspond_chunk), the second pass's the RGB-D
-    rows chunks (_rows_chunk), claimed once every chunk of the first is done
-    (claimed_items_in_passes); a thread's first chunk of the second takes sigma' from the
-    first pass's sums. `icp_terms` = (points, pose, current to model camera, model vertices,
-    model normals, camera, limits, robust) as icp/cpu.py's loops take them, `rgbd_terms` =
-    (the interest points' columns, warp terms, (previous pose, focal)) as rgbd/cpu.py's."""
+def _joint_loop(
+    claims, parts, corresponded, icp_terms, icp_out, rgbd_terms, pairs, sums, warps, rgbd_out
+):
+    """One item per part (_joint_items): the RGB-D correspondence chunks (_correspond_chunk),
+    the ICP chunks (icp_chunk into icp_out), then the RGB-D rows chunks (_rows_chunk); a
+    thread's first rows chunk takes sigma' from the correspondence chunks' sums.
+    `corresponded`: the correspondence chunks done, zeroed before the call. `icp_terms` =
+    (points, pose, current to model camera, model vertices, model normals, camera, limits,
+    robust) as icp/cpu.py's loops take them, `rgbd_terms` = (the interest points' columns,
+    warp terms, (previous pose, focal)) as rgbd/cpu.py's."""
     points, pose, to_model, mv, mn, camera, limits, robust = icp_terms
     columns, warp_terms, row_terms = rgbd_terms
     interest, intensity, gradient = columns
     previous_pose, focal = row_terms
-    icp_chunks = icp_out.shape[0]
-    first = icp_chunks + sums.shape[0]
+    correspond = sums.shape[0]
+    rows_from = correspond + icp_out.shape[0]
     warp = warps[claim_slot(claims)]
     sigma, has_pairs = -1.0, False
-    for item in claimed_items_in_passes(claims, parts, parts, first, SPINS):
-        if item < icp_chunks:
-            icp_chunk(item, points, pose, to_model, mv, mn, camera, limits, robust, icp_out)
-        elif item < first:
-            c = item - icp_chunks
-            _correspond_chunk(c, interest, intensity, gradient, warp_terms, pairs, sums, warp)
+    for item in _joint_items(claims, corresponded, parts, correspond, rows_from, SPINS):
+        if item < correspond:
+            _correspond_chunk(item, interest, intensity, gradient, warp_terms, pairs, sums, warp)
+        elif item < rows_from:
+            c = item - correspond
+            icp_chunk(c, points, pose, to_model, mv, mn, camera, limits, robust, icp_out)
         else:
-            if sigma < 0.0:  # this thread's first chunk of the second pass
+            if sigma < 0.0:  # this thread's first rows chunk
                 has_pairs, sigma = _robust_scale(sums)
             if has_pairs:
-                _rows_chunk(item - first, pairs, previous_pose, focal, sigma, rgbd_out)
+                _rows_chunk(item - rows_from, pairs, previous_pose, focal, sigma, rgbd_out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -155,6 +196,7 @@ class JointLevel:
         self.pairs, self.sums, self.warps = _work(interest)
         self.rgbd_out = partials(interest)
         self.parts = self.icp_out.shape[0] + 2 * self.sums.shape[0]
+        self.corresponded = np.zeros(1, dtype=np.int64)
         self.items = self.points.shape[1] + interest
 
     def system(self, pose: np.ndarray, rgbd_weight: float, threshold: float) -> LinearSystem:
@@ -163,8 +205,10 @@ class JointLevel:
         limits = (dist2, cos_min)
         icp_terms = (self.points, pose, to_model, *self.model, self.camera, limits, self.icp.robust)
         rgbd_terms = (self.columns, self.warp_terms(pose), self.row_terms)
+        self.corresponded[0] = 0
         run_parallel(
             _joint_loop,
+            self.corresponded,
             icp_terms,
             self.icp_out,
             rgbd_terms,
