@@ -57,8 +57,8 @@ python3 -m json.tool "$out/bench_cuda_moving.json" | grep -B1 -A4 '"shift"'
 # the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
 timeout 150 python3 benchmarks/combined_weightings.py "$data" --size 640x480 --resolution 256 \
     --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
-# where the warm pipeline's host time goes (launches, uploads): profile.txt and cuda_warm.prof
-timeout 100 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 30 \
+# where the warm pipeline's host time goes with graphs on: profile.txt and cuda_warm.prof
+KINTINUOUS_CUDA_GRAPHS=1 timeout 100 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 30 \
     --top 40 --out "$out/cuda_warm.prof" >"$out/profile.txt" 2>/dev/null
 # the NumPy reference on the same machine, for the ratio (a few frames: seconds each)
 timeout 120 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend ref "${@:3}" --frames 4 \

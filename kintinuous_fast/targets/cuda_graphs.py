@@ -193,25 +193,24 @@ def _shape(dimensions: Any) -> tuple:
     return tuple(dimensions) if isinstance(dimensions, tuple) else (int(dimensions),)
 
 
+_NUMBERS = (bool, int, float, np.bool_, np.integer, np.floating)
+
+
 def _argument_key(argument: Any) -> Any:
-    """What a graph holds of one argument: a device array's address, shape, strides and type;
-    a number's type and value; a tuple's items."""
-    if isinstance(argument, (bool, int, float, np.bool_, np.integer, np.floating)):
-        return (type(argument).__name__, argument)
+    """What a graph holds of one argument: a device array's address, shape, strides and type
+    (kept on the array: none of them ever changes, and reading a numba array's address makes
+    a ctypes object each time); a number's type and value; a tuple's items."""
+    kept = getattr(argument, "__dict__", None)  # device arrays have one, numbers and tuples not
+    if kept is not None and hasattr(argument, "copy_to_host"):
+        if "_graph_key" not in kept:
+            address = device_address(argument)
+            kept["_graph_key"] = (address, argument.shape, argument.strides, argument.dtype.str)
+        return kept["_graph_key"]
     if isinstance(argument, tuple):
         return tuple(_argument_key(item) for item in argument)
-    if isinstance(argument, np.ndarray) or not hasattr(argument, "copy_to_host"):
-        raise NotCapturable(type(argument).__name__)
-    return _array_key(argument)
-
-
-def _array_key(array: Any) -> tuple:
-    """A device array's key, kept on the array: none of its parts ever changes, and reading a
-    numba array's address makes a ctypes object each time."""
-    kept = getattr(array, "__dict__", {})
-    if "_graph_key" not in kept:
-        kept["_graph_key"] = (device_address(array), array.shape, array.strides, array.dtype.str)
-    return kept["_graph_key"]
+    if isinstance(argument, _NUMBERS):
+        return (type(argument), argument)
+    raise NotCapturable(type(argument).__name__)
 
 
 def device_address(array: Any) -> int:
