@@ -5,6 +5,7 @@
 # (KINTINUOUS_CUDA_GRAPHS=1, kintinuous_fast/targets/cuda_graphs.py); its JSON has the
 # launches, host waits and bytes to the host per frame and per stage.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
+# (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel.)
 # (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
 # Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_moving.json, ate_cuda.json,
 # profile.txt, cuda_warm.prof and bench_ref_256.json into OUT_DIR (default: the current folder).

@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Prepares, on this machine, the folder that travels to a lent GPU machine for
+# cuda_device_check.sh: .device/ (kept out of git through .git/info/exclude) with a NumPy 2.4
+# wheel for the machine's Python 3.12 (its numba-cuda needs NumPy < 2.5, and nothing can be
+# fetched there) and a copy of the TUM RGB-D folder the checks read (the shared data does not
+# travel). About 57 MB with the 300 redkitchen frames; a call carries 64 MiB with the repository.
+# Usage, from the repository root: benchmarks/cuda_device_prepare.sh TUM_FOLDER
+# Then, with the device tool: carry [".device"], command
+#   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site \
+#       .device/wheels/*.whl && export PYTHONPATH=/tmp/site &&
+#   bash benchmarks/cuda_device_check.sh .device/data "$OUT" --set volume.moving=false
+set -eu
+data=${1:?usage: cuda_device_prepare.sh TUM_FOLDER}
+mkdir -p .device .git/info
+grep -qx '/.device/' .git/info/exclude 2>/dev/null || echo '/.device/' >>.git/info/exclude
+rm -rf .device/wheels .device/data
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+    --platform manylinux2014_x86_64 -d .device/wheels "numpy>=2.4,<2.5"
+cp -r "$data" .device/data
+du -sh .device
