@@ -159,6 +159,7 @@ class Candidate:
             "true_overlap": self.true_overlap,
             "label": self.label,
             "pose_error_m": self.pose_error_m,
+            "dense_angle_deg": self.verdict.dense_angle_deg,
             **self.verdict.as_dict(),
         }
 

@@ -17,10 +17,14 @@ Four stages, each of which can reject a candidate (the reason is counted, `Verdi
    (odometry/combined.py: point-to-plane ICP and photometric error in one system) aligns the new
    keyframe to the old one, coarse to fine over the kept pyramid levels. ICP alone slid a few
    centimetres along the walls of the `revisit` scenario's start; the texture holds it.
-   Accepted only if the point-to-plane RMSE is small, most of the new keyframe's points found a
-   partner ("dense"), and the intensities of the paired pixels agree ("photometric"). The last
-   check is what separates two places built alike (perceptual aliasing: identical furniture in
-   two rooms aligns perfectly in geometry, but the walls around it differ in texture).
+   Accepted only if the point-to-plane RMSE is small, most of the points that the old view holds
+   at the found pose found a partner ("dense": relative to the views' overlap, which a revisit
+   from another angle keeps only in part, `Overlap`), and the intensities of the paired pixels
+   agree once the exposure change between the views is taken off ("photometric"; the share
+   asked for falls with the angle between the views). The last check is what separates two
+   places built alike seen from the same angle (perceptual aliasing: identical furniture in two
+   rooms aligns perfectly in geometry, but the walls around it differ in texture). The
+   thresholds are calibrated on real revisits (calibration.py, docs/loop_closure.md).
 4. **Plausibility.** The loop says how far odometry has drifted between the two keyframes; more
    than `max_correction` plus `max_correction_per_metre` of the path between them is not drift
    but another place ("implausible correction").
@@ -74,8 +78,9 @@ class Verdict:
         return float(np.degrees(se3.rotation_angle(self.dense_pose[:3, :3])))
 
     def as_dict(self) -> dict:
-        """The numbers for report.json (no arrays)."""
-        return {
+        """The numbers for report.json (no arrays; a statistic that could not be measured, such
+        as the RMSE of an alignment that failed, is None)."""
+        numbers = {
             "query": self.query,
             "match": self.match,
             "accepted": self.accepted,
@@ -89,6 +94,10 @@ class Verdict:
             "icp_overlap_share": self.icp_overlap_share,
             "photometric_share": self.photometric_share,
             "correction_m": self.correction,
+        }
+        return {
+            key: None if isinstance(value, float) and not np.isfinite(value) else value
+            for key, value in numbers.items()
         }
 
 
