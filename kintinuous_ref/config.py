@@ -198,7 +198,7 @@ class LoopClosureConfig:
     match_ratio: float = 0.8  # Lowe's ratio test on ORB Hamming distances
     # Thresholds below are calibrated on real revisits (benchmarks/loop_calibration.py, the
     # numbers in docs/loop_closure.md): redkitchen views of one place 15-45 cm and 15-27 degrees
-    # apart keep only 10-77 ratio-test matches and 4-30 RANSAC inliers (22-51 % of the matches),
+    # apart keep only 18-77 ratio-test matches and 4-26 RANSAC inliers (22-46 % of the matches),
     # and the dense check is what tells a right alignment from a wrong one there.
     min_matches: int = 12  # fewer ratio-test matches: not a candidate
     # sparse 3D-3D RANSAC on the depth: a first cut, for the time the dense check costs. Wrong
@@ -218,9 +218,9 @@ class LoopClosureConfig:
     pair_distance: float = 0.03  # metres: a point of the new keyframe paired with the old's
     # Paired points per point of the new keyframe that the old keyframe's view holds at the
     # found pose (Overlap.visible_share), not per point of the new keyframe: a true revisit
-    # from 15-27 degrees away shares only 42-75 % of its view, so the absolute share of a right
+    # from 15-27 degrees away shares only 42-66 % of its view, so the absolute share of a right
     # alignment falls to 0.24, while the relative one stays at 0.53-0.91; wrong alignments score
-    # 0.00-0.16 on it
+    # 0.00-0.17 on it
     min_icp_overlap_share: float = 0.35
     # a loop over less than this share of the new view constrains little (right: 0.42 and up)
     min_visible_share: float = 0.25
