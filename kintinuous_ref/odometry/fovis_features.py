@@ -4,8 +4,8 @@ estimator that odometry/fovis.py describes and runs.
 1. Features: FAST corners on each level of the Gaussian intensity pyramid, bucketed over the
    image, kept where the depth is valid and smooth over the patch; each described by its 9x9
    patch of intensities minus its mean.
-2. Initial rotation: the coarsest images aligned by a 3-DOF rotation, which predicts where each
-   feature moves.
+2. Initial rotation: the coarsest images aligned by a 3-DOF rotation (from a grid of pans and
+   tilts, coarse to fine), which predicts where each feature moves.
 3. Matching: mutual nearest descriptors inside the search window around the prediction, refined to
    sub-pixel accuracy by aligning the patches.
 
@@ -33,8 +33,8 @@ _SUBPIXEL_REACH = 2
 # Bilinear depth at a sub-pixel position only where the 4 neighbours agree to this fraction; across
 # a depth edge the interpolated depth belongs to neither surface.
 _DEPTH_AGREEMENT = 0.03
-# An initial rotation estimate larger than this (radians, 20 degrees) is implausible even between
-# frames a second apart: ignore it.
+# An initial rotation estimate beyond this (radians, 20 degrees; redkitchen frames a second apart
+# turn by up to 19) is taken for a failed alignment and ignored.
 _MAX_INITIAL_ROTATION = 0.35
 # The initial rotation starts on the coarsest level halved this many more times, down to images
 # no smaller than _MIN_ROTATION_IMAGE_SIDE pixels a side (estimate_initial_rotation).
