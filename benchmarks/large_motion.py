@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/large_motion.py                       # every case, every method
     .venv/bin/python benchmarks/large_motion.py --cases redkitchen/20 --methods fovis
     .venv/bin/python benchmarks/large_motion.py --json large_motion.jsonl
+    .venv/bin/python benchmarks/large_motion.py --set fovis.switch_rule=vector
 
 Cases: redkitchen frames 0-299 taken every 10th, 20th and 30th frame (0.33-1 s apart: 10-24 cm
 and up to 20 degrees a step), and the first 10 s of the synthetic `loop` path rendered with
@@ -37,6 +38,7 @@ from kintinuous_ref.datasets import real_dataset, tum
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.odometry import fovis
 from kintinuous_ref.preprocess import preprocess_frame
+from kintinuous_ref.program.config_options import configured
 
 CASES = ("redkitchen/10", "redkitchen/20", "redkitchen/30", "loop/15")
 METHODS = ("fovis", "icp+rgbd", "fovis/icp+rgbd")
@@ -78,12 +80,12 @@ def load_case(name: str) -> Case | None:
     return Case(name, camera, frames, tum.Trajectory(truth.timestamps[kept], truth.poses[kept]))
 
 
-def run_method(case: Case, method: str, backend_name: str) -> dict:
+def run_method(case: Case, method: str, backend_name: str, config: Config) -> dict:
     """The pipeline with `method` on the case: ATE RMSE (m), failures and their reasons."""
     result = pipeline.run(
         iter(case.frames),
         case.camera,
-        Config(),
+        config,
         odometry=method,
         groundtruth=case.truth,
         backend=load_backend(backend_name),
@@ -153,7 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--backend", default="auto", help="ref, cpu, cuda or auto")
     parser.add_argument("--no-steps", action="store_true", help="skip FOVIS's per-pair table")
     parser.add_argument("--json", type=Path, help="append the rows to this JSON-lines file")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="a setting, repeatable"
+    )
     args = parser.parse_args(argv)
+    config = configured(Config(), None, args.set)
     rows = []
     for name in args.cases:
         case = load_case(name)
@@ -162,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         print(f"{name}: {len(case.frames)} frames")
         for method in args.methods:
-            row = run_method(case, method, args.backend)
+            row = run_method(case, method, args.backend, config)
             rows.append(row)
             print(
                 f"  {method:16s} ATE RMSE {row['ate_rmse_m'] * 1000:7.1f} mm  "

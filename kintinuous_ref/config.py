@@ -16,7 +16,14 @@ from dataclasses import dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
 from kintinuous_ref.errors import ConfigError
-from kintinuous_ref.vocabulary import FALLBACKS, GRADIENTS, PLACEMENTS, ROBUST_KERNELS, WEIGHTINGS
+from kintinuous_ref.vocabulary import (
+    FALLBACKS,
+    GRADIENTS,
+    PLACEMENTS,
+    ROBUST_KERNELS,
+    SWITCH_RULES,
+    WEIGHTINGS,
+)
 
 
 @dataclass(frozen=True)
@@ -162,6 +169,10 @@ class TrackingConfig:
 @dataclass(frozen=True)
 class FovisConfig:
     switch_threshold: float = 0.03  # mu of the switching rule (paper V-A), metres
+    # "length" (the paper's rule) or "vector": on redkitchen every 20th frame fovis/icp+rgbd
+    # tracks to 71.5 mm with "length" and 29.0 mm with "vector", on every frame 22.2 mm with
+    # both (docs/odometry.md, "FOVIS over large motions")
+    switch_rule: str = "length"
     fast_threshold: int = 20
     max_features: int = 600
     patch_radius: int = 4  # 9x9 descriptor patches
@@ -363,6 +374,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "combined.weighting": WEIGHTINGS,
     "icp.robust_kernel": ROBUST_KERNELS,
     "tracking.fallback": FALLBACKS,
+    "fovis.switch_rule": SWITCH_RULES,
 }
 
 

@@ -35,6 +35,10 @@ ROBUST_KERNELS = ("none", "huber", "tukey")
 
 # tracking.fallback: a failed frame's pose (odometry/__init__.py).
 FALLBACKS = ("constant-velocity", "previous")
+# How the FOVIS switching strategy measures a disagreement of two translations: "length" the
+# paper's | ||t_fovis|| - ||t_other|| |, "vector" ||t_fovis - t_other|| (which also sees two
+# motions of one length in different directions)
+SWITCH_RULES = ("length", "vector")
 
 # volume.placement: where the volume sits relative to the first camera (tsdf.volume_origin).
 PLACEMENTS = ("ahead", "centred")

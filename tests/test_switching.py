@@ -81,3 +81,25 @@ def test_bad_inputs_are_reported():
     bad[0, 3] = np.nan
     with pytest.raises(se3.PoseError, match="other estimator's increment contains NaN"):
         choose_increment(good, bad, MU)
+
+
+def test_vector_rule_sees_a_motion_of_equal_length_the_other_way():
+    # both 10 cm long, in opposite directions: no disagreement in length, 20 cm as vectors
+    fovis, other = np.eye(4), np.eye(4)
+    fovis[:3, 3] = [0.1, 0.0, 0.0]
+    other[:3, 3] = [-0.1, 0.0, 0.0]
+    assert choose_increment(fovis, other, MU)[1] == "other"
+    assert choose_increment(fovis, other, MU, "vector")[1] == "fovis"
+    assert choose_increment(fovis, other, 0.2, "vector")[1] == "other"  # strict, as the paper's
+    assert choose_increment(fovis, other, np.nextafter(0.2, 0.0), "vector")[1] == "fovis"
+    with pytest.raises(ConfigError):
+        choose_increment(fovis, other, MU, "angle")
+
+
+def test_the_rule_is_a_checked_setting():
+    from kintinuous_ref.config import Config, with_overrides
+
+    assert Config().fovis.switch_rule == "length"  # the paper's
+    assert with_overrides(Config(), {"fovis.switch_rule": "vector"}).fovis.switch_rule == "vector"
+    with pytest.raises(ConfigError, match="switch_rule"):
+        with_overrides(Config(), {"fovis.switch_rule": "angle"})

@@ -418,8 +418,9 @@ class FovisTracker:
             )
         if dense_reason:  # the dense estimator failed: FOVIS is all there is
             return self.recovery.success(previous_pose @ sparse.increment, previous_pose, "fovis")
+        fovis = self.config.fovis
         increment, chosen = switching.choose_increment_or_fallback(
-            sparse.increment, fovis_ok, dense_increment, self.config.fovis.switch_threshold
+            sparse.increment, fovis_ok, dense_increment, fovis.switch_threshold, fovis.switch_rule
         )
         used = "fovis" if chosen == switching.FOVIS else self.dense.method
         new_pose = previous_pose @ increment
