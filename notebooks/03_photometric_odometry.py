@@ -12,7 +12,7 @@
 # ---
 
 # %% [markdown]
-# # 2. Photometric (RGB-D) odometry
+# # 3. Photometric (RGB-D) odometry
 #
 # Section IV of the paper: Steinbruecker et al.'s dense RGB-D odometry, which Kintinuous runs
 # on the GPU. Given the previous frame $(I_n, M_n)$ (intensity, metric depth) and the current

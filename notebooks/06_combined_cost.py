@@ -12,7 +12,7 @@
 # ---
 
 # %% [markdown]
-# # 3. The combined ICP + RGB-D cost
+# # 6. The combined ICP + RGB-D cost
 #
 # Section V-B of the paper: KinectFusion's ICP uses only geometry, Steinbruecker's RGB-D odometry
 # (lesson 3) only photoconsistency. Both are linearised in the same twist $\xi$, so they can be

@@ -12,7 +12,7 @@
 # ---
 
 # %% [markdown]
-# # 4. Colour fusion
+# # 9. Colour fusion
 #
 # Section VI of the paper: instead of colouring the map from keyframes, Kintinuous keeps a
 # **colour volume** beside the TSDF and averages colour into it frame by frame, the way depth is

@@ -12,7 +12,7 @@
 # ---
 
 # %% [markdown]
-# # 6. The moving cyclical volume and slice extraction
+# # 10. The moving cyclical volume and slice extraction
 #
 # KinectFusion maps a fixed cube: walk out of it and the map ends. What makes Kintinuous
 # *continuous* (paper section III, Fig. 2) is that the TSDF volume **follows the camera**. It is

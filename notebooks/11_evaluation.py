@@ -12,7 +12,7 @@
 # ---
 
 # %% [markdown]
-# # 8. Evaluation: ATE, frame-to-frame error, drift and the ranking score
+# # 11. Evaluation: ATE, frame-to-frame error, drift and the ranking score
 #
 # The paper's results (section VII, Tables I-IV, Fig. 4-5) rest on four measures from the TUM
 # RGB-D benchmark (Sturm et al., IROS 2012) and one of its own, the **ranking score** (eq. 16).

@@ -12,7 +12,7 @@
 # ---
 
 # %% [markdown]
-# # 9. A GPU kernel you can read: the ICP reduction under numba's CUDA simulator
+# # 12. A GPU kernel you can read: the ICP reduction under numba's CUDA simulator
 #
 # Every dense estimator of the paper ends each Gauss-Newton iteration the same way: one row
 # $(J_k, r_k)$ per pixel or pair, summed into the 6x6 normal equations $J^\top J$ and

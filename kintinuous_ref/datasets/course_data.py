@@ -86,6 +86,10 @@ class CourseData:
             depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
         return Frame(index=index, timestamp=image.timestamp, colour=colour, depth=depth)
 
+    def __getitem__(self, index: int) -> Frame:
+        """Course frame `index` at full size (so that CourseData serves where a sequence does)."""
+        return self.frame(index)
+
     def frames(
         self, indices: range | list[int], width: int | None = None, height: int | None = None
     ) -> list[Frame]:
