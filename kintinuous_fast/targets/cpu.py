@@ -45,8 +45,8 @@ NEXT_PART, PARTS_DONE, NEXT_SLOT = 0, 1, 2
 
 
 @intrinsic
-def _fetch_add(typing_context: Any, array: Any, index: Any) -> Any:
-    """_fetch_add(array, index) in numba code: array[index] += 1 for a 1-d int64 array, as one
+def atomic_fetch_add(typing_context: Any, array: Any, index: Any) -> Any:
+    """atomic_fetch_add(array, index) in numba code: array[index] += 1 for a 1-d int64 array, as one
     atomic operation (every thread that calls it gets a different old value), returning the
     old value; stores made before it are seen by a thread that then loads the new one."""
     signature = types.int64(array, index)
@@ -61,9 +61,10 @@ def _fetch_add(typing_context: Any, array: Any, index: Any) -> Any:
 
 
 @intrinsic
-def _load(typing_context: Any, array: Any, index: Any) -> Any:
-    """_load(array, index) in numba code: array[index] of a 1-d int64 array, loaded atomically,
-    so a loop polling it sees another thread's update and LLVM cannot hoist the load."""
+def atomic_load(typing_context: Any, array: Any, index: Any) -> Any:
+    """atomic_load(array, index) in numba code: array[index] of a 1-d int64 array, loaded
+    atomically, so a loop polling it sees another thread's update and LLVM cannot hoist the
+    load."""
     signature = types.int64(array, index)
 
     def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
@@ -83,30 +84,30 @@ def claimed_items(claims: Any, count: int, parts: int) -> Any:
     this thread claims: one at a time, each the next not yet claimed by any thread, so a thread
     that starts late, finishes early or is descheduled evens out. A part counts as done when
     the loop asks for the item after its last."""
-    part = _fetch_add(claims, NEXT_PART)
+    part = atomic_fetch_add(claims, NEXT_PART)
     while part < parts:
         for item in range(count * part // parts, count * (part + 1) // parts):  # noqa: UP028 (numba: no yield from)
             yield item
-        _fetch_add(claims, PARTS_DONE)
-        part = _fetch_add(claims, NEXT_PART)
+        atomic_fetch_add(claims, PARTS_DONE)
+        part = atomic_fetch_add(claims, NEXT_PART)
 
 
 @numba.njit(cache=True)
 def claim_slot(claims: Any) -> int:
     """A number of this thread's own among the threads running one loop, from 0: the index of
     its row of a work array with one row per thread (`threads()`)."""
-    return _fetch_add(claims, NEXT_SLOT)
+    return atomic_fetch_add(claims, NEXT_SLOT)
 
 
 @numba.njit(nogil=True, cache=True)
-def _spin_below(array: Any, index: int, target: int, spins: int) -> int:
+def spin_below(array: Any, index: int, target: int, spins: int) -> int:
     """array[index] once it reaches `target`, or its value after `spins` loads; without the
     GIL, so the threads it waits for can take it."""
-    value = _load(array, index)
+    value = atomic_load(array, index)
     for _ in range(spins):
         if value >= target:
             break
-        value = _load(array, index)
+        value = atomic_load(array, index)
     return value
 
 
@@ -121,19 +122,19 @@ def claimed_items_in_passes(claims: Any, count: int, parts: int, first: int, spi
     part always goes on to the second, so every part is done."""
     while True:
         if (
-            _load(claims, NEXT_PART) >= first
-            and _spin_below(claims, PARTS_DONE, first, spins) < first
+            atomic_load(claims, NEXT_PART) >= first
+            and spin_below(claims, PARTS_DONE, first, spins) < first
         ):
             return
-        part = _fetch_add(claims, NEXT_PART)
+        part = atomic_fetch_add(claims, NEXT_PART)
         if part >= parts:
             return
         if part >= first:  # claimed between the look above and now: it must wait
-            while _spin_below(claims, PARTS_DONE, first, spins) < first:
+            while spin_below(claims, PARTS_DONE, first, spins) < first:
                 pass
         for item in range(count * part // parts, count * (part + 1) // parts):  # noqa: UP028
             yield item
-        _fetch_add(claims, PARTS_DONE)
+        atomic_fetch_add(claims, PARTS_DONE)
 
 
 # Parts a loop is cut into per thread, by default: with a few each, a thread that starts late,
@@ -228,7 +229,7 @@ def _wait_for_parts(job: "_Job") -> None:
     interruption: BaseException | None = None
     while job.error is None:
         try:
-            if _spin_below(job.claims, PARTS_DONE, job.parts, SPINS) >= job.parts:
+            if spin_below(job.claims, PARTS_DONE, job.parts, SPINS) >= job.parts:
                 break
             time.sleep(20e-6)
         except KeyboardInterrupt as signal_raised:
@@ -279,7 +280,7 @@ class _Team:
     def _serve(self) -> None:
         seen = 0
         while True:
-            if _spin_below(self.posted, 0, seen + 1, SPINS) <= seen:
+            if spin_below(self.posted, 0, seen + 1, SPINS) <= seen:
                 with self.wake:
                     self.sleeping += 1
                     while self.posted[0] <= seen:

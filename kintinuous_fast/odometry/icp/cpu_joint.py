@@ -35,11 +35,11 @@ from kintinuous_fast.targets.cpu import (
     NEXT_PART,
     PARTS_DONE,
     SPINS,
-    _fetch_add,
-    _load,
-    _spin_below,
+    atomic_fetch_add,
+    atomic_load,
     claim_slot,
     run_parallel,
+    spin_below,
 )
 from kintinuous_ref.odometry.combined import MIN_ICP_SCALE
 from kintinuous_ref.odometry.solve import LinearSystem
@@ -71,20 +71,20 @@ def _joint_items(claims, corresponded, parts, correspond, rows_from, spins):
     correspondence chunk always goes on (as targets.cpu.claimed_items_in_passes)."""
     while True:
         if (
-            _load(claims, NEXT_PART) >= rows_from
-            and _spin_below(corresponded, 0, correspond, spins) < correspond
+            atomic_load(claims, NEXT_PART) >= rows_from
+            and spin_below(corresponded, 0, correspond, spins) < correspond
         ):
             return
-        part = _fetch_add(claims, NEXT_PART)
+        part = atomic_fetch_add(claims, NEXT_PART)
         if part >= parts:
             return
         if part >= rows_from:  # claimed between the look above and now: it must wait
-            while _spin_below(corresponded, 0, correspond, spins) < correspond:
+            while spin_below(corresponded, 0, correspond, spins) < correspond:
                 pass
         yield part
         if part < correspond:
-            _fetch_add(corresponded, 0)
-        _fetch_add(claims, PARTS_DONE)
+            atomic_fetch_add(corresponded, 0)
+        atomic_fetch_add(claims, PARTS_DONE)
 
 
 @ALLOCATING_LOOP
