@@ -75,16 +75,34 @@ def test_cpu_preprocess_frame_rejects_mismatched_images():
 
 @pytest.mark.parametrize("size", [(60, 80), (61, 81), (13, 40)], ids=["80x60", "81x61", "40x13"])
 def test_equivalence_cpu_bilateral_filter_in_chunks(monkeypatch, size):
-    # Frames this small run as one chunk; with the parallel split forced, row chunks of 6-8 rows
+    # Frames this small run as one chunk; with the parallel split forced, row chunks of 7 rows
     # (the last shorter than the radius) must add their pair sums across every seam.
-    monkeypatch.setattr(cpu, "PARALLEL_MIN", 0)
+    monkeypatch.setattr(cpu_bilateral, "PARALLEL_MIN", 0)
+    monkeypatch.setattr(cpu_bilateral, "CHUNK_ROWS", 7)
     fe.check_bilateral_filter(cpu, *size)
     fe.check_bilateral_filter(cpu, *size, radius=3)
 
 
 def test_equivalence_cpu_preprocess_frame_in_chunks(monkeypatch):
     monkeypatch.setattr(cpu, "PARALLEL_MIN", 0)
+    monkeypatch.setattr(cpu_bilateral, "PARALLEL_MIN", 0)
+    monkeypatch.setattr(cpu_bilateral, "CHUNK_ROWS", 7)
     fe.check_preprocess_frame(cpu, 60, 80)
+
+
+def test_cpu_bilateral_filter_is_the_same_bits_on_any_thread_count():
+    # A 640x480 depth map runs in chunks; how many threads run them must not change a bit
+    # (the chunks, and so the order of each seam row's sums, follow the image, not the threads).
+    depth = fe.raw_depth(480, 640).astype(np.float32) / np.float32(5000.0)
+    threads = numba.get_num_threads()
+    try:
+        results = []
+        for count in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(count)
+            results.append(cpu_bilateral.bilateral_filter(depth, 4.5, 0.03, 3))
+    finally:
+        numba.set_num_threads(threads)
+    assert all(np.array_equal(results[0], other, equal_nan=True) for other in results[1:])
 
 
 @numba.njit  # not cached: the cache would not see a change of cpu_bilateral.exp_neg

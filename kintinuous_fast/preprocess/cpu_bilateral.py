@@ -197,6 +197,10 @@ def _bilateral_seams_loop(depth, chunk_rows, head, tail, out):
             )
 
 
+# Rows per chunk of a large image: 15 chunks at 480 rows, enough parts for 16 threads.
+CHUNK_ROWS = 32
+
+
 def bilateral_filter(
     depth: np.ndarray, sigma_space: float, sigma_depth: float, radius: int
 ) -> np.ndarray:
@@ -210,9 +214,11 @@ def bilateral_filter(
     hole = np.float32(-(16.0 * sigma_depth + 1.0))
     work = np.where(depth > 0, depth, hole).astype(np.float32)
     height, width = depth.shape
-    # A few chunks per thread; at least `radius` rows each, so only one chunk reaches into the next.
-    chunks = 1 if depth.size < PARALLEL_MIN else 4 * numba.get_num_threads()
-    chunk_rows = max(radius, -(-height // chunks), 1)
+    # Chunks of a fixed height, not a number per thread: a seam row's sums are added in another
+    # order than an inner row's, so chunks that followed the thread count would make the result
+    # depend on it. At least `radius` rows each, so only one chunk reaches into the next.
+    chunk_rows = height if depth.size < PARALLEL_MIN else CHUNK_ROWS
+    chunk_rows = max(radius, chunk_rows, 1)
     chunks = -(-height // chunk_rows)
     head = np.empty((chunks, 2, radius, width), np.float32)
     tail = np.empty((chunks, 2, radius, width), np.float32)
