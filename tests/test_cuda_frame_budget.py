@@ -1,7 +1,8 @@
 """What a tracked frame asks of the device on the cuda backend: the host waits for the GPU once
-(the tracker's record), launches a fixed number of kernels, and nothing image- or volume-sized
-crosses; the poses equal the reference's, and the dense estimate run on the device equals the
-reference's steps over the same kernels driven by the host (solve.refine), failures included.
+(the tracker's record), launches a fixed number of kernels, queues every upload on a stream
+(none makes the host wait), and nothing image- or volume-sized crosses; the poses equal the
+reference's, and the dense estimate run on the device equals the reference's steps over the
+same kernels driven by the host (solve.refine), failures included.
 
 The counts come from the counter `kintinuous benchmark --json` reports (pipeline traffic per
 stage); an independent log of every array that crosses (test_fast_cuda_pipeline.Crossings,
@@ -127,6 +128,12 @@ def test_cuda_frame_budget(monkeypatch):
         images = [shape for shape in ups if image_like(shape, BUDGET_SIZE)]
         width, height = BUDGET_SIZE
         assert sorted(images) == [(height, width), (height, width, 3)], images
+    # and no upload of a tracked frame makes the host wait: each is queued on a stream (the
+    # first tracked frame also makes the tracker's workspace, once for the run)
+    for index in range(2, frames_needed):
+        frame_log = range(frame_starts[index], frame_starts[index + 1])
+        blocking = [crossings.log[i] for i in crossings.blocking if i in frame_log]
+        assert blocking == [], (index, blocking)
     assert is_device(got.model.vertices) and is_device(got.model.normals)
 
 

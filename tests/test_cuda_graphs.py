@@ -112,6 +112,67 @@ def test_a_download_inside_a_segment_sees_the_launches_before_it(graphs):
     assert np.array_equal(to_host(values), np.full(4, 2.0))
 
 
+@kernel
+def _add_each(values, amounts):
+    i = cuda.grid(1)
+    if i < values.shape[0]:
+        values[i] += amounts[i]
+
+
+@on_device
+def test_uploads_replay_with_the_values_of_each_call(graphs):
+    from kintinuous_fast.targets import to_host
+    from kintinuous_fast.targets.cuda import copy_up
+
+    add_each = _add_each
+    values = cuda.to_device(np.zeros(4))
+    amounts = cuda.device_array(4)
+
+    @graphs.segment
+    def add_uploaded(host):
+        add_each[1, 4](values, copy_up(amounts, host))
+
+    before = graphs.segment_counts().get(add_uploaded.__qualname__, [0, 0, 0]).copy()
+    for step in range(1, 5):  # launched, captured, replayed twice: each call's own amounts
+        add_uploaded(np.arange(4.0) * step)
+    counts = np.subtract(graphs.segment_counts()[add_uploaded.__qualname__], before)
+    assert counts.tolist() == [1, 1, 2]
+    assert np.array_equal(to_host(values), np.arange(4.0) * (1 + 2 + 3 + 4))
+
+
+@on_device
+def test_a_buffer_uploaded_twice_in_a_segment_feeds_each_launch_its_own_values(graphs):
+    from kintinuous_fast.targets import to_host
+    from kintinuous_fast.targets.cuda import copy_up
+
+    add_each = _add_each
+    values = cuda.to_device(np.zeros(3))
+    amounts = cuda.device_array(3)
+
+    @graphs.segment
+    def add_twice():
+        add_each[1, 3](values, copy_up(amounts, np.ones(3)))
+        add_each[1, 3](values, copy_up(amounts, np.full(3, 10.0)))
+
+    for _ in range(3):
+        add_twice()
+    assert np.array_equal(to_host(values), np.full(3, 33.0))
+
+
+@on_device
+def test_uploads_without_graphs_are_in_stream_order():
+    from kintinuous_fast.targets import cuda_graphs, to_host
+    from kintinuous_fast.targets.cuda import copy_up
+
+    assert not cuda_graphs.enabled()
+    add_each = _add_each
+    values = cuda.to_device(np.zeros(5))
+    amounts = cuda.device_array(5)
+    for step in range(1, 4):
+        add_each[1, 5](values, copy_up(amounts, np.full(5, float(step))))
+    assert np.array_equal(to_host(values), np.full(5, 6.0))
+
+
 @on_device
 def test_a_host_array_argument_is_never_captured(graphs):
     add = _add

@@ -24,6 +24,7 @@ import copy
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -125,20 +126,21 @@ def test_equivalence_cuda_colour_weights(host_frames, angle, check):
 
 
 @on_device
-def test_raw_images_go_up_through_one_pinned_buffer_per_shape():
+def test_raw_images_go_up_through_pinned_buffers_that_frames_reuse():
     from kintinuous_fast.targets import cuda as target
 
     backend = load_backend("cuda")
     rng = np.random.default_rng(7)
-    depths = [rng.integers(0, 60000, (HEIGHT, WIDTH), dtype=np.uint16) for _ in range(2)]
+    depths = [rng.integers(0, 60000, (HEIGHT, WIDTH), dtype=np.uint16) for _ in range(4)]
     colour = rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
     before = dict(target._STAGING)
-    uploaded = [backend.upload(image) for image in (*depths, colour)]
-    for device, host in zip(uploaded, (*depths, colour), strict=True):
-        np.testing.assert_array_equal(device.copy_to_host(), host)
+    for depth in depths:  # a frame's depth, read back, then let go as a pipeline does
+        np.testing.assert_array_equal(backend.upload(depth).copy_to_host(), depth)
+    on_device = backend.upload(colour)
+    np.testing.assert_array_equal(on_device.copy_to_host(), colour)
     added = {key: buffer for key, buffer in target._STAGING.items() if key not in before}
-    assert len(target._STAGING) - len(before) <= 2  # the second depth reuses the first's buffer
-    assert all(buffer.shape[:2] == (HEIGHT, WIDTH) for buffer in added.values())
+    assert len(added) <= 2  # one pooled depth buffer (reused by every frame), one colour
+    assert all(buffer.host.shape[:2] == (HEIGHT, WIDTH) for buffer in added.values())
 
 
 @on_device
@@ -199,11 +201,13 @@ class Crossings:
         from numba import cuda
 
         self.log: list[tuple[str, tuple[int, ...]]] = []
+        # positions in the log of the uploads that make the host wait (no stream given)
+        self.blocking: list[int] = []
         self._copying_in = 0  # inside an upload: its own copies and reads are not logged again
         upload = cuda.to_device
 
         def to_device(array, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
-            self.log.append(("up", tuple(np.shape(array))))
+            self._log_upload(array, args, kwargs)
             with self._uploading():
                 return upload(array, *args, **kwargs)
 
@@ -217,6 +221,14 @@ class Crossings:
 
             self._watch_downloads(monkeypatch, device_array)
         self._watch_copies_in(monkeypatch, device_array)
+
+    def _log_upload(self, array: Any, args: tuple, kwargs: dict) -> None:
+        """An upload in the log; one without a stream (to_device's and copy_to_device's first
+        argument after the array) among the blocking ones."""
+        stream = kwargs.get("stream", args[0] if args else 0)
+        if not stream:
+            self.blocking.append(len(self.log))
+        self.log.append(("up", tuple(np.shape(array))))
 
     @contextmanager
     def _uploading(self) -> Iterator[None]:
@@ -235,7 +247,7 @@ class Crossings:
 
         def copy_to_device(array, source, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
             if not self._copying_in and not is_device(source):
-                self.log.append(("up", tuple(np.shape(source))))
+                self._log_upload(source, args, kwargs)
             with self._uploading():
                 return copy_in(array, source, *args, **kwargs)
 

@@ -112,26 +112,41 @@ def _memory(array: Any) -> Any:
     return array._ary if numba_config.ENABLE_CUDASIM else array.gpu_data
 
 
-# Page-locked host buffers for the frames' raw images, one per shape and dtype (a frame's depth
-# and colour), kept for the process: the copy engine reads pinned memory directly, where a copy
-# from pageable memory first goes through a staging copy of the driver's.
-_STAGING: dict[tuple[tuple[int, ...], str], np.ndarray] = {}
+# Page-locked host buffers, one per device buffer that takes uploads (keyed by its address,
+# shape and type), kept for the process: the copy engine reads pinned memory directly and
+# without a host wait, where a copy from pageable memory first goes through a staging copy of
+# the driver's and returns only when it is done.
+_STAGING: dict[tuple, cuda_graphs.Staging] = {}
+
+
+def copy_up(device: Any, host: np.ndarray) -> Any:
+    """`device` (returned) filled with `host` in stream order: after every launch queued or
+    recorded before, and before every one after, with no host wait (cuda_graphs.upload). The
+    values go through `device`'s own pinned buffer, which the host fills only once the copy
+    before has read it."""
+    staging = _staging_for(device)
+    if staging.queued:  # a recorded copy has yet to read the buffer's present contents
+        cuda_graphs.flush()
+    staging.copied.synchronize()  # the copy before has read it (long since, in a pipeline)
+    staging.host[...] = host
+    cuda_graphs.upload(device, staging)
+    return device
+
+
+def _staging_for(device: Any) -> cuda_graphs.Staging:
+    key = (cuda_graphs.device_address(device), device.shape, device.dtype.str)
+    if key not in _STAGING:
+        host = cuda.pinned_array(device.shape, dtype=device.dtype)
+        _STAGING[key] = cuda_graphs.Staging(host=host, copied=cuda.event())
+    return _STAGING[key]
 
 
 def upload_image(image: np.ndarray) -> Any:
-    """A raw frame image on the device, copied up through this shape's pinned buffer. The copy
-    is synchronous, so the buffer is free for the next frame when this returns."""
+    """A raw frame image on the device, in a pooled buffer (frames alternate between two),
+    copied up through that buffer's pinned host buffer without a host wait (copy_up)."""
     if is_device(image):
         return image
-    key = (image.shape, image.dtype.str)
-    if key not in _STAGING:
-        _STAGING[key] = cuda.pinned_array(image.shape, dtype=image.dtype)
-    staging = _STAGING[key]
-    staging[...] = image
-    device = pooled_array("raw image", image.shape, image.dtype)
-    cuda_graphs.flush()
-    device.copy_to_device(staging)
-    return device
+    return copy_up(pooled_array("raw image", image.shape, image.dtype), image)
 
 
 def like_input(result: Any, given: Any) -> Any:

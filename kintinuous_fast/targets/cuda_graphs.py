@@ -13,10 +13,14 @@ recorded launches run:
   without graphs (this also compiles the kernels);
 - seen before: captured on the graph stream into a graph once, then replayed by one launch.
 
-A graph replays the same kernels with the same argument values and reads device memory as it is
-at the replay, so equal keys mean equal work. Keys repeat only where a stage reuses its buffers
-(targets.cuda.pooled_array); a segment with a host array argument is never captured, since numba
-copies such an argument for each launch.
+Copies from the host go the same way (`upload`): each device buffer that takes them has a
+pinned host buffer of its own (a `Staging`), the copy is queued in stream order without a host
+wait, and a captured copy is a graph node that reads that pinned buffer at the replay.
+
+A graph replays the same kernels with the same argument values and reads device and pinned
+host memory as they are at the replay, so equal keys mean equal work. Keys repeat only where a
+stage reuses its buffers (targets.cuda.pooled_array); a segment with a host array argument is
+never captured, since numba copies such an argument for each launch.
 
 numba's simulator has no graphs: there the "graph" of a key is the list of its launches, replayed
 by launching them again with the segment's arguments (the same, by the key). So the bookkeeping
@@ -57,16 +61,35 @@ class Launch:
 
 
 @dataclass
+class Staging:
+    """A pinned host buffer that feeds one device buffer's uploads. `copied` is an event
+    recorded after the last copy out of it ran on the stream, `queued` says a recorded copy
+    still has to read it: the host writes into it only once neither holds."""
+
+    host: np.ndarray
+    copied: Any
+    queued: bool = False
+
+
+@dataclass
+class Upload:
+    """One recorded copy of `staging.host` into `device`."""
+
+    device: Any
+    staging: Staging
+
+
+@dataclass
 class _Recorder:
     enabled: bool = False
     depth: int = 0  # segments entered and not yet left
     name: str = ""  # the outermost segment's function
-    pending: list[Launch] = field(default_factory=list)
+    pending: list[Launch | Upload] = field(default_factory=list)
     seen: OrderedDict = field(default_factory=OrderedDict)
     graphs: OrderedDict = field(default_factory=OrderedDict)
     # per segment (its outermost function's name): [launched, captured, replayed] counts
     counts: dict[str, list[int]] = field(default_factory=dict)
-    stream: Any = None  # the graph stream, made on first capture
+    stream: Any = None  # the stream of uploads and replays, made on first use
 
 
 RECORDER = _Recorder(enabled=os.environ.get(ENVIRONMENT, "0") == "1")
@@ -124,6 +147,26 @@ def record(dispatcher: Any, configuration: Any, arguments: tuple) -> None:
     RECORDER.pending.append(Launch(dispatcher, grid, block, shared_memory, arguments))
 
 
+def upload(device: Any, staging: Staging) -> None:
+    """Copy `staging.host` into `device` after every launch and copy queued or recorded before
+    it, without waiting: recorded inside a segment, else queued now on the work stream."""
+    if recording():
+        staging.queued = True
+        RECORDER.pending.append(Upload(device, staging))
+    else:
+        _launch_each([Upload(device, staging)])
+
+
+def work_stream() -> Any:
+    """The stream of uploads and replays. It synchronises with the default stream, where the
+    other launches run, so every launch and copy runs in the one order they were made in."""
+    if RECORDER.stream is None:
+        from numba import cuda
+
+        RECORDER.stream = cuda.stream()
+    return RECORDER.stream
+
+
 def flush() -> None:
     """Run the recorded launches (the module docstring's rules). Called at a segment's end and
     before every copy between host and device, which must see the launches made before it."""
@@ -150,10 +193,24 @@ def flush() -> None:
         counts[0] += 1
 
 
-def _launch_each(launches: list[Launch]) -> None:
-    """The launches one by one on the default stream, through numba's dispatch."""
+def _launch_each(launches: list[Launch | Upload]) -> None:
+    """The launches one by one on the default stream, through numba's dispatch, and the
+    uploads on the work stream."""
     for launch in launches:
-        launch.dispatcher[launch.grid, launch.block, 0, launch.shared_memory](*launch.arguments)
+        if isinstance(launch, Upload):
+            launch.device.copy_to_device(launch.staging.host, stream=work_stream())
+        else:
+            launch.dispatcher[launch.grid, launch.block, 0, launch.shared_memory](*launch.arguments)
+    _mark_copied(launches)
+
+
+def _mark_copied(launches: list[Launch | Upload]) -> None:
+    """After the uploads among `launches` are queued: each staging buffer's event follows its
+    copy, and no recorded copy reads it any more."""
+    for launch in launches:
+        if isinstance(launch, Upload):
+            launch.staging.copied.record(work_stream())
+            launch.staging.queued = False
 
 
 def _remember(table: OrderedDict, key: Any, value: Any, limit: int) -> None:
@@ -176,16 +233,20 @@ def _unpack(configuration: Any) -> tuple[Any, Any, int]:
 # Keys
 
 
-def _key(launches: list[Launch]) -> tuple:
-    return tuple(
-        (
-            id(launch.dispatcher),
-            _shape(launch.grid),
-            _shape(launch.block),
-            launch.shared_memory,
-            tuple(_argument_key(argument) for argument in launch.arguments),
-        )
-        for launch in launches
+def _key(launches: list[Launch | Upload]) -> tuple:
+    return tuple(_launch_key(launch) for launch in launches)
+
+
+def _launch_key(launch: Launch | Upload) -> tuple:
+    if isinstance(launch, Upload):
+        host = launch.staging.host
+        return ("upload", _argument_key(launch.device), host.__array_interface__["data"][0])
+    return (
+        id(launch.dispatcher),
+        _shape(launch.grid),
+        _shape(launch.block),
+        launch.shared_memory,
+        tuple(_argument_key(argument) for argument in launch.arguments),
     )
 
 
@@ -231,25 +292,26 @@ def _simulated() -> bool:
 # Capture and replay
 
 
-def _capture(launches: list[Launch]) -> Any:
+def _capture(launches: list[Launch | Upload]) -> Any:
     """An executable graph of `launches` (a GPU), or the launches themselves (the simulator)."""
     if _simulated():
         return len(launches)
     from cuda.bindings import driver
     from numba import cuda
 
-    if RECORDER.stream is None:
-        RECORDER.stream = cuda.stream()
-    stream = RECORDER.stream
+    stream = work_stream()
     handle = _driver_stream(stream)
     mode = driver.CUstreamCaptureMode.CU_STREAM_CAPTURE_MODE_RELAXED
     with cuda.defer_cleanup():  # no memory is freed while the stream is being captured
         _check(driver.cuStreamBeginCapture(handle, mode))
         try:
             for launch in launches:
-                launch.dispatcher[launch.grid, launch.block, stream, launch.shared_memory](
-                    *launch.arguments
-                )
+                if isinstance(launch, Upload):  # a memcpy node reading the pinned buffer
+                    launch.device.copy_to_device(launch.staging.host, stream=stream)
+                else:
+                    launch.dispatcher[launch.grid, launch.block, stream, launch.shared_memory](
+                        *launch.arguments
+                    )
         finally:
             error, graph = driver.cuStreamEndCapture(handle)
         _check((error,))
@@ -274,13 +336,14 @@ class _Graph:
             pass
 
 
-def _replay(graph: Any, launches: list[Launch]) -> None:
+def _replay(graph: Any, launches: list[Launch | Upload]) -> None:
     if isinstance(graph, int):  # the simulator: the same launches again
         _launch_each(launches)
         return
     from cuda.bindings import driver
 
     _check(driver.cuGraphLaunch(graph.executable, graph.stream))
+    _mark_copied(launches)
 
 
 def _driver_stream(stream: Any) -> Any:
@@ -300,6 +363,7 @@ def _check(result: tuple) -> None:
 __all__ = [
     "ENVIRONMENT",
     "NotCapturable",
+    "Staging",
     "device_address",
     "enable",
     "enabled",
@@ -309,4 +373,6 @@ __all__ = [
     "recording",
     "segment",
     "segment_counts",
+    "upload",
+    "work_stream",
 ]

@@ -19,10 +19,11 @@ from typing import Any
 import numpy as np
 from numba import cuda
 
-from kintinuous_fast.targets import cuda_device_jit, cuda_graphs, pinhole
+from kintinuous_fast.targets import cuda_device_jit, pinhole
 from kintinuous_fast.targets.cuda import (
     BLOCK_1D,
     BLOCK_2D,
+    copy_up,
     grid_1d,
     grid_2d,
     kernel,
@@ -210,12 +211,9 @@ def _placeholder(shape: tuple[int, ...], dtype: str) -> Any:
 def constants_to_device(role: str, rows: np.ndarray) -> Any:
     """A frame's pose-dependent constants (a small matrix) in a pooled device array. Kernels
     read them there rather than as launch parameters, so that their launches repeat from frame
-    to frame and replay as a graph (targets.cuda_graphs). The copy waits for the device's
-    queued work, and runs after the launches recorded before it."""
-    out = pooled_array(role, rows.shape, rows.dtype)
-    cuda_graphs.flush()
-    out.copy_to_device(np.ascontiguousarray(rows))
-    return out
+    to frame and replay as a graph (targets.cuda_graphs). The copy is queued in stream order,
+    after the launches before it, without a host wait (targets.cuda.copy_up)."""
+    return copy_up(pooled_array(role, rows.shape, rows.dtype), rows)
 
 
 def largest_depth(depth: Any) -> Any:
