@@ -86,8 +86,8 @@ from kintinuous_fast.odometry.sums.cuda import (
     reduction_blocks,
     stage,
 )
-from kintinuous_fast.targets import cuda_graphs, pinhole, to_host
-from kintinuous_fast.targets.cuda import BLOCK_2D, grid_1d, grid_2d
+from kintinuous_fast.targets import pinhole, to_host
+from kintinuous_fast.targets.cuda import BLOCK_2D, copy_up, grid_1d, grid_2d
 
 # ----------------------------------------------------------------------------------------------
 # Host side
@@ -216,9 +216,7 @@ class FrameOnDevice:
 
     def upload(self, previous_pose: np.ndarray) -> None:
         """The frame's poses (_initial_poses) into the workspace."""
-        poses = _initial_poses(previous_pose, self.icp)
-        cuda_graphs.flush()  # launches recorded before the copy run before it
-        self.space.poses.copy_to_device(poses)
+        copy_up(self.space.poses, _initial_poses(previous_pose, self.icp))
 
     def record(self) -> np.ndarray:
         """The state vector on the host: the one wait for the device."""
