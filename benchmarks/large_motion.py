@@ -4,6 +4,8 @@
     .venv/bin/python benchmarks/large_motion.py --cases redkitchen/20 --methods fovis
     .venv/bin/python benchmarks/large_motion.py --json large_motion.jsonl
     .venv/bin/python benchmarks/large_motion.py --set fovis.switch_rule=vector
+    .venv/bin/python benchmarks/large_motion.py --cases redkitchen/1 --methods fovis/icp+rgbd \
+        --no-steps --set fovis.dense_from_fovis=true        # every frame, the dense half seeded
 
 Cases: redkitchen frames 0-299 taken every 10th, 20th and 30th frame (0.33-1 s apart: 10-24 cm
 and up to 20 degrees a step), and the first 10 s of the synthetic `loop` path rendered with
@@ -13,15 +15,19 @@ and the like work too; the desk's orbit keeps looking at the table, so its image
 Each case runs the whole pipeline (kintinuous_ref.pipeline, moving volume, default
 configuration) with `fovis`, `icp+rgbd` and `fovis/icp+rgbd` (the paper's switching) from the
 first ground-truth pose, and prints the ATE RMSE (kintinuous_ref.metrics) and the tracking
-failures of each. Then, for FOVIS alone on each pair of consecutive frames: the corners with
-depth in both frames, the mutually consistent matches, the consistency clique, the inliers, the
-error against the ground truth's increment and, when it failed, why. A case whose real data is
-absent is skipped.
+failures of each; for a switching method (`fovis/X`) also, per step, the errors of FOVIS's and
+the dense estimate's increments against the ground truth's, where the dense one started (`dense*`:
+from FOVIS's increment), the two disagreements the rules measure and which increment was used.
+Then, for FOVIS alone on each pair of consecutive frames: the corners with depth in both frames,
+the mutually consistent matches, the consistency clique, the inliers, the error against the
+ground truth's increment and, when it failed, why. Steps are named by the recording's frame
+numbers. A case whose real data is absent is skipped.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 from collections.abc import Iterator
@@ -36,7 +42,7 @@ from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets import real_dataset, tum
 from kintinuous_ref.datasets.synthetic import make_scenario
-from kintinuous_ref.odometry import fovis
+from kintinuous_ref.odometry import TrackingResult, fovis
 from kintinuous_ref.preprocess import preprocess_frame
 from kintinuous_ref.program.config_options import configured
 
@@ -52,6 +58,7 @@ class Case:
     camera: Intrinsics
     frames: list[tum.Frame]  # index = position in the case, into `truth`
     truth: tum.Trajectory
+    numbers: list[int]  # each frame's number in the recording
 
 
 def load_case(name: str) -> Case | None:
@@ -77,22 +84,57 @@ def load_case(name: str) -> Case | None:
         for position, (index, (colour, depth)) in enumerate(zip(indices, images, strict=True))
     ]
     kept = list(indices)
-    return Case(name, camera, frames, tum.Trajectory(truth.timestamps[kept], truth.poses[kept]))
+    return Case(
+        name, camera, frames, tum.Trajectory(truth.timestamps[kept], truth.poses[kept]), kept
+    )
+
+
+class RecordingTracker:
+    """A tracker that keeps every TrackingResult it returns (the pipeline keeps only poses)."""
+
+    def __init__(self, tracker: object) -> None:
+        self.tracker = tracker
+        self.results: list[TrackingResult] = []
+        self.model_stride = getattr(tracker, "model_stride", 1)
+
+    def track(self, *arguments: object) -> TrackingResult:
+        result = self.tracker.track(*arguments)
+        self.results.append(result)
+        return result
+
+
+class RecordingOdometry:
+    """A backend's odometry stage whose make_tracker hands out RecordingTrackers."""
+
+    def __init__(self, odometry: object) -> None:
+        self.odometry = odometry
+        self.trackers: list[RecordingTracker] = []
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.odometry, name)
+
+    def make_tracker(self, *arguments: object) -> RecordingTracker:
+        tracker = RecordingTracker(self.odometry.make_tracker(*arguments))
+        self.trackers.append(tracker)
+        return tracker
 
 
 def run_method(case: Case, method: str, backend_name: str, config: Config) -> dict:
-    """The pipeline with `method` on the case: ATE RMSE (m), failures and their reasons."""
+    """The pipeline with `method` on the case: ATE RMSE (m), failures and their reasons, and
+    for a switching method each step's decision (switch_steps)."""
+    backend = copy.copy(load_backend(backend_name))
+    backend.odometry = recording = RecordingOdometry(backend.odometry)
     result = pipeline.run(
         iter(case.frames),
         case.camera,
         config,
         odometry=method,
         groundtruth=case.truth,
-        backend=load_backend(backend_name),
+        backend=backend,
     )
     estimate = tum.Trajectory(np.array(result.timestamps), np.array(result.poses))
     errors = metrics.evaluate(estimate, case.truth)
-    return {
+    row = {
         "case": case.name,
         "method": method,
         "frames": len(result.poses),
@@ -100,6 +142,71 @@ def run_method(case: Case, method: str, backend_name: str, config: Config) -> di
         "failures": result.tracking_failures,
         "failure_reasons": result.failure_reasons,
     }
+    if "/" in method:
+        row["switch_steps"] = list(switch_steps(case, recording.trackers[0].results))
+    return row
+
+
+def increment_error(estimate: np.ndarray | None, truth: np.ndarray) -> list[float] | None:
+    """[translation error (m), rotation error (deg)] of an increment; None for no estimate."""
+    if estimate is None:
+        return None
+    error = se3.inverse(truth) @ estimate
+    return [
+        float(np.linalg.norm(error[:3, 3])),
+        float(np.degrees(se3.rotation_angle(error[:3, :3]))),
+    ]
+
+
+def switch_steps(case: Case, results: list[TrackingResult]) -> Iterator[dict]:
+    """Per step of a switching tracker: both increments' errors, the dense start, the length
+    and vector disagreements (m) and the estimator used."""
+    poses = case.truth.poses
+    for index, result in enumerate(results, start=1):
+        decision = result.switch
+        if decision is None:  # a stale frame: the dense half was not asked
+            continue
+        truth = se3.inverse(poses[index - 1]) @ poses[index]
+        fovis_t = None if decision.fovis_increment is None else decision.fovis_increment[:3, 3]
+        dense_t = None if decision.dense_increment is None else decision.dense_increment[:3, 3]
+        both = fovis_t is not None and dense_t is not None
+        yield {
+            "pair": case.numbers[index - 1 : index + 1],
+            "true_step_m": float(np.linalg.norm(truth[:3, 3])),
+            "true_turn_deg": float(np.degrees(se3.rotation_angle(truth[:3, :3]))),
+            "fovis_error": increment_error(decision.fovis_increment, truth),
+            "dense_error": increment_error(decision.dense_increment, truth),
+            "seeded": not np.array_equal(decision.dense_start, np.eye(4)),
+            "length_gap_m": (
+                abs(float(np.linalg.norm(fovis_t)) - float(np.linalg.norm(dense_t)))
+                if both
+                else None
+            ),
+            "vector_gap_m": float(np.linalg.norm(fovis_t - dense_t)) if both else None,
+            "used": result.used or "failed",
+        }
+
+
+def print_switch_step(step: dict) -> None:
+    def error(value: list[float] | None) -> str:
+        return (
+            "      failed      "
+            if value is None
+            else f"{value[0] * 1000:6.1f} mm {value[1]:4.1f} deg"
+        )
+
+    def gap(value: float | None) -> str:
+        return "   -  " if value is None else f"{value * 1000:5.1f}"
+
+    first, second = step["pair"]
+    print(
+        f"  {first:3d}->{second:3d}  step {step['true_step_m'] * 100:5.1f} cm "
+        f"{step['true_turn_deg']:5.1f} deg  fovis {error(step['fovis_error'])}  "
+        f"dense{'*' if step['seeded'] else ' '} {error(step['dense_error'])}  "
+        f"gaps (mm) length {gap(step['length_gap_m'])} vector {gap(step['vector_gap_m'])}  "
+        f"used {step['used']}",
+        flush=True,
+    )
 
 
 def fovis_steps(case: Case) -> Iterator[dict]:
@@ -115,7 +222,7 @@ def fovis_steps(case: Case) -> Iterator[dict]:
             error = se3.inverse(truth) @ result.increment
             yield {
                 "case": case.name,
-                "pair": [frame.index - 1, frame.index],
+                "pair": case.numbers[frame.index - 1 : frame.index + 1],
                 "true_step_m": float(np.linalg.norm(truth[:3, 3])),
                 "true_turn_deg": float(np.degrees(se3.rotation_angle(truth[:3, :3]))),
                 "features": [result.previous_features, result.current_features],
@@ -175,6 +282,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"failures {row['failures']:3d} of {row['frames'] - 1}",
                 flush=True,
             )
+            if "switch_steps" in row and not args.no_steps:
+                for step in row["switch_steps"]:
+                    print_switch_step(step)
         if not args.no_steps:
             steps = list(fovis_steps(case))
             for step in steps:

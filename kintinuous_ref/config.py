@@ -173,6 +173,11 @@ class FovisConfig:
     # tracks to 71.5 mm with "length" and 29.0 mm with "vector", on every frame 22.2 mm with
     # both (docs/odometry.md, "FOVIS over large motions")
     switch_rule: str = "length"
+    # Where the dense half of fovis/X starts its Gauss-Newton: False, the previous pose (the
+    # paper's initial estimate, section IV-A.3); True, FOVIS's increment when FOVIS succeeded,
+    # so that the switching compares a dense refinement of FOVIS's motion with FOVIS's own
+    # (docs/odometry.md, "Starting the dense estimate from FOVIS")
+    dense_from_fovis: bool = False
     fast_threshold: int = 20
     max_features: int = 600
     patch_radius: int = 4  # 9x9 descriptor patches

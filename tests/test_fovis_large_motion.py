@@ -8,12 +8,15 @@ the `loop` path at 2 Hz from frame 180 on, 3 of 14 redkitchen steps; its initial
 15 degree pan was 13 degrees off. Only the 15 cm, 7.6 degree step about all axes it managed.
 """
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from kintinuous_fast import cuda_is_simulated, cuda_status
 from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.config import Config, FovisConfig, PreprocessConfig
+from kintinuous_ref.config import Config, FovisConfig, PreprocessConfig, with_overrides
 from kintinuous_ref.datasets import real_dataset
 from kintinuous_ref.datasets.synthetic import make_scenario
 from kintinuous_ref.datasets.tum import open_sequence
@@ -194,3 +197,99 @@ def test_redkitchen_every_twentieth_frame():
         translation_mm, rotation_deg = pose_error(result.increment, step)
         assert translation_mm < 60.0 and rotation_deg < 3.5, indices[k]
     assert failures <= 1
+
+
+SEEDED = {"fovis.dense_from_fovis": True}
+
+
+def test_the_seeded_dense_estimate_refines_fovis_on_a_large_step():
+    """fovis.dense_from_fovis: the dense half of fovis/icp+rgbd starts from FOVIS's increment.
+    On the 12 degree pan with a 10 cm step that sends it, started from the previous pose, tens
+    of centimetres off (the test above), it now converges on the true motion, the rule keeps it,
+    and the cpu backend's tracker takes the same path to the same pose as the reference's."""
+    from kintinuous_fast.odometry import cpu
+
+    scenario = make_scenario("desk", frames=30, noise=True)
+    start = scenario.trajectory.poses[0]
+    increment = se3.exp(np.array(LARGE_MOTIONS["12 deg pan, 10 cm sideways"]))
+    first = preprocess_view(scenario, start)
+    second = preprocess_view(scenario, start @ increment)
+    model = model_from_frame(first, start)
+    config = with_overrides(Config(), SEEDED)
+
+    reference = make_tracker("fovis/icp+rgbd", config, scenario.camera)
+    seeded = reference.track(first, second, model, start)
+    decision = seeded.switch
+    assert seeded.ok and decision is not None
+    np.testing.assert_array_equal(decision.dense_start, decision.fovis_increment)
+    dense_mm, dense_deg = pose_error(decision.dense_increment, increment)
+    # Sensor noise on depth and colour (measured: 1.1 mm, 0.02 deg); unseeded it is > 30 mm off.
+    assert dense_mm < 5.0 and dense_deg < 0.1
+    assert seeded.used == "icp+rgbd"  # within mu of FOVIS: the dense refinement stands
+    translation_mm, rotation_deg = pose_error(seeded.pose, start @ increment)
+    assert translation_mm < 5.0 and rotation_deg < 0.1
+
+    fast = cpu.make_tracker("fovis/icp+rgbd", config, scenario.camera)
+    on_cpu = fast.track(first, second, model, start)
+    assert (on_cpu.ok, on_cpu.used) == (seeded.ok, seeded.used)
+    np.testing.assert_array_equal(on_cpu.switch.dense_start, decision.dense_start)
+    metres, radians = pose_error(on_cpu.pose, seeded.pose)
+    # test_fast_odometry.py's tracker tolerance: 1e-6 m and 1e-5 rad
+    assert metres / 1000 <= 1e-6 and np.radians(radians) <= 1e-5
+
+
+def dense_estimates(make_tracker, width: int, height: int) -> tuple:
+    """One Gauss-Newton step of ICP+RGB-D at full resolution on the analytic room of the
+    fast-odometry tests (cases.room), started at the previous pose and halfway along the true
+    motion: (pose from the previous pose, pose from halfway, true pose)."""
+    import odometry_scene as scene
+    import test_fast_odometry_cases as cases
+
+    camera, previous, current, previous_frame, frame, _ = cases.room(width, height, 4)
+    model = cases.Model(previous, *scene.model(previous, camera, 1)[0])
+    tracker = make_tracker("icp+rgbd", cases.iterations_config((1,)), camera)
+    halfway = previous @ se3.exp(0.5 * se3.log(se3.inverse(previous) @ current))
+    poses = []
+    for start_pose in (None, halfway):
+        pose, reason = tracker.estimate(previous_frame, frame, model, previous, start_pose)
+        assert not reason, reason
+        poses.append(pose)
+    return (*poses, current)
+
+
+def assert_same_start_as_the_reference(make_tracker, width: int, height: int):
+    """A fast backend's dense estimate from a given start equals the reference's from it (within
+    test_fast_odometry.py's 1e-6 m / 1e-5 rad), and the start is where the step began: from
+    halfway along the motion one step lands nearer the truth than from the previous pose."""
+    from kintinuous_ref.odometry import make_tracker as reference_tracker
+
+    *reference, truth = dense_estimates(reference_tracker, width, height)
+    *fast, _ = dense_estimates(make_tracker, width, height)
+    for want, got in zip(reference, fast, strict=True):
+        millimetres, degrees = pose_error(got, want)
+        assert millimetres / 1000 <= 1e-6 and np.radians(degrees) <= 1e-5
+    from_previous, from_halfway = (pose_error(pose, truth)[0] for pose in reference)
+    # 160x120, measured: 29.3 mm from the previous pose, 3.7 mm from halfway
+    assert from_halfway < from_previous / 2, (from_halfway, from_previous)
+
+
+def test_the_dense_start_reaches_the_cpu_estimate():
+    from kintinuous_fast.odometry import cpu
+
+    assert_same_start_as_the_reference(cpu.make_tracker, 160, 120)
+
+
+@pytest.mark.skipif(bool(cuda_status()), reason="no CUDA GPU: runs in the simulator test below")
+def test_the_dense_start_reaches_the_cuda_estimate():
+    """On the simulator (every thread a Python thread) 40x30 frames, as
+    tests/test_fast_odometry_cuda.py uses there."""
+    from kintinuous_fast.odometry import cuda
+
+    size = (40, 30) if cuda_is_simulated() else (160, 120)
+    assert_same_start_as_the_reference(cuda.make_tracker, *size)
+
+
+@pytest.mark.skipif(cuda_status() == "", reason="CUDA works in this process: the test above")
+@pytest.mark.cuda_simulator(Path(__file__), "-k", "reaches_the_cuda_estimate and not in_simulator")
+def test_the_dense_start_reaches_the_cuda_estimate_in_simulator(cuda_simulator):
+    cuda_simulator()

@@ -96,13 +96,16 @@ def estimate_dense(
     current: PreprocessedFrame,
     model: ModelPrediction | None,
     previous_pose: np.ndarray,
+    start_pose: np.ndarray | None = None,
 ) -> tuple[np.ndarray, str]:
     """kintinuous_ref.odometry.estimate_dense: for frames on the device, every step there and one
     wait for the result (frame_on_device.py); host frames and a first frame, the reference's
     steps over this module's systems."""
     if previous is None or not is_device(current.levels[0].depth):
-        return _reference.estimate_dense(tracker, previous, current, model, previous_pose)
-    return estimate_on_device(tracker, previous, current, model, previous_pose)
+        return _reference.estimate_dense(
+            tracker, previous, current, model, previous_pose, start_pose
+        )
+    return estimate_on_device(tracker, previous, current, model, previous_pose, start_pose)
 
 
 def make_tracker(

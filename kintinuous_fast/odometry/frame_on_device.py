@@ -177,14 +177,19 @@ def _settings(tracker: Any, problem: Any) -> tuple:
     )
 
 
-def _initial_poses(previous_pose: np.ndarray, icp: IcpProblem | None) -> np.ndarray:
-    """The poses array at the start of a frame: the estimate = the previous pose, the relative
-    poses as the host-driven kernels compute them, the inverses the solve kernel uses."""
+def _initial_poses(
+    previous_pose: np.ndarray, icp: IcpProblem | None, start_pose: np.ndarray | None = None
+) -> np.ndarray:
+    """The poses array at the start of a frame: the estimate = `start_pose` (None: the previous
+    pose), the relative poses as the host-driven kernels compute them, the inverses the solve
+    kernel uses."""
     poses = np.zeros((7, 4, 4))
     model_inverse = icp.model_inverse if icp is not None else np.eye(4)
-    poses[0] = poses[3] = poses[4] = previous_pose
-    poses[1] = model_inverse @ previous_pose
-    poses[2] = relative_pose(previous_pose, previous_pose)
+    start = previous_pose if start_pose is None else start_pose
+    poses[0] = poses[3] = start
+    poses[4] = previous_pose
+    poses[1] = model_inverse @ start
+    poses[2] = relative_pose(start, previous_pose)
     poses[PREVIOUS_INVERSE] = np.linalg.inv(previous_pose)
     poses[MODEL_INVERSE] = model_inverse
     return poses
@@ -207,16 +212,16 @@ class FrameOnDevice:
         self.settings = _settings(tracker, problem)
         self._arguments: dict[int, tuple] = {}  # per level: (ICP's, RGB-D's) kernel arguments
 
-    def run(self, previous_pose: np.ndarray) -> np.ndarray:
+    def run(self, previous_pose: np.ndarray, start_pose: np.ndarray | None = None) -> np.ndarray:
         """The frame's record (32 numbers, the module's slots) for an estimate started at
-        `previous_pose`: its one upload, its launches and its one wait."""
-        self.upload(previous_pose)
+        `start_pose` (None: `previous_pose`): its one upload, its launches and its one wait."""
+        self.upload(previous_pose, start_pose)
         self.launch()
         return self.record()
 
-    def upload(self, previous_pose: np.ndarray) -> None:
+    def upload(self, previous_pose: np.ndarray, start_pose: np.ndarray | None = None) -> None:
         """The frame's poses (_initial_poses) into the workspace."""
-        copy_up(self.space.poses, _initial_poses(previous_pose, self.icp))
+        copy_up(self.space.poses, _initial_poses(previous_pose, self.icp, start_pose))
 
     def record(self) -> np.ndarray:
         """The state vector on the host: the one wait for the device."""
@@ -352,12 +357,18 @@ def _failure(tracker: Any, record: np.ndarray) -> str:
 
 
 def estimate_on_device(
-    tracker: Any, previous: Any, current: Any, model: Any, previous_pose: np.ndarray
+    tracker: Any,
+    previous: Any,
+    current: Any,
+    model: Any,
+    previous_pose: np.ndarray,
+    start_pose: np.ndarray | None = None,
 ) -> tuple[np.ndarray, str]:
     """kintinuous_ref.odometry.estimate_dense with every step on the device and one wait."""
     problem = tracker.problem(previous, current, model, previous_pose)
     frame = FrameOnDevice(tracker, problem, previous, current)
-    record = frame.run(np.ascontiguousarray(previous_pose, dtype=np.float64))
+    start = None if start_pose is None else np.ascontiguousarray(start_pose, dtype=np.float64)
+    record = frame.run(np.ascontiguousarray(previous_pose, dtype=np.float64), start)
     return read_record(tracker, record, previous_pose)
 
 

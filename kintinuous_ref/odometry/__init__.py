@@ -30,6 +30,7 @@ from kintinuous_ref import se3
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.odometry import switching
 from kintinuous_ref.odometry.combined import CombinedProblem as CombinedProblem
 from kintinuous_ref.odometry.combined import icp_model_noise, icp_robust_kernel
 from kintinuous_ref.odometry.icp import IcpProblem as IcpProblem
@@ -52,6 +53,8 @@ class TrackingResult:
     ok: bool  # False: the pipeline does not fuse the frame
     reason: str = ""  # one line, '' when ok
     used: str = ""  # which estimator's increment was used, e.g. "icp+rgbd" or "fovis"
+    # FOVIS switching (fovis/X) only: both estimates and the choice, for diagnosis
+    switch: switching.SwitchDecision | None = None
 
 
 class Tracker(Protocol):
@@ -73,11 +76,22 @@ class _Recovery:
         self.fallback = fallback
         self.last_increment = np.eye(4)
 
-    def success(self, pose: np.ndarray, previous_pose: np.ndarray, used: str) -> TrackingResult:
+    def success(
+        self,
+        pose: np.ndarray,
+        previous_pose: np.ndarray,
+        used: str,
+        switch: switching.SwitchDecision | None = None,
+    ) -> TrackingResult:
         self.last_increment = se3.inverse(previous_pose) @ pose
-        return TrackingResult(pose, True, "", used)
+        return TrackingResult(pose, True, "", used, switch)
 
-    def failure(self, previous_pose: np.ndarray, reason: str) -> TrackingResult:
+    def failure(
+        self,
+        previous_pose: np.ndarray,
+        reason: str,
+        switch: switching.SwitchDecision | None = None,
+    ) -> TrackingResult:
         if self.fallback == "constant-velocity":
             pose = previous_pose @ self.last_increment
         else:
@@ -85,7 +99,7 @@ class _Recovery:
         # Keep the failed frame's motion out of the next fallback: a second failure in a row
         # then holds the pose still instead of extrapolating a guess.
         self.last_increment = np.eye(4)
-        return TrackingResult(pose, False, reason, "")
+        return TrackingResult(pose, False, reason, "", switch)
 
 
 def repeated_streams(
@@ -162,9 +176,11 @@ class Systems(Protocol):
     - model_pyramid(vertices, normals, levels): kintinuous_ref.preprocess's.
     - refine(pose, system_at, iterations, min_count, converged, step): solve.py's.
     - repeated_streams(previous, current) and fovis_images(frame): this module's.
-    - estimate_dense(tracker, previous, current, model, previous_pose): this module's, the
-      steps of one dense estimate over the members above; the cuda backend's runs the same
-      steps on the device and waits for it once a frame.
+    - estimate_dense(tracker, previous, current, model, previous_pose, start_pose): this
+      module's, the steps of one dense estimate over the members above; the cuda backend's runs
+      the same steps on the device and waits for it once a frame. Both start Gauss-Newton at
+      `start_pose` (None: the previous pose), with the previous pose kept as RGB-D's reference
+      and the jump check's origin.
     """
 
     IcpProblem: Callable[..., Any]
@@ -204,6 +220,7 @@ class Systems(Protocol):
         current: PreprocessedFrame,
         model: ModelPrediction | None,
         previous_pose: np.ndarray,
+        start_pose: np.ndarray | None = None,
     ) -> tuple[np.ndarray, str]:
         """(pose, '') or (pose so far, why it failed): estimate_dense's steps."""
         ...
@@ -215,10 +232,13 @@ def estimate_dense(
     current: PreprocessedFrame,
     model: ModelPrediction | None,
     previous_pose: np.ndarray,
+    start_pose: np.ndarray | None = None,
 ) -> tuple[np.ndarray, str]:
     """One dense estimate over the tracker's systems, its inputs checked (DenseTracker.estimate):
-    the stale-stream test, the frame's problem, coarse-to-fine Gauss-Newton from the previous
-    pose, then the inlier and jump checks at the estimate. (pose, '') or (pose so far, why)."""
+    the stale-stream test, the frame's problem, coarse-to-fine Gauss-Newton from `start_pose`
+    (None: the previous pose, the paper's initial estimate), then the inlier and jump checks at
+    the estimate. The previous pose stays RGB-D's reference frame and the origin of the jump
+    check whatever the start. (pose, '') or (pose so far, why)."""
     systems = tracker.systems
     depth_repeated, colour_repeated = systems.repeated_streams(previous, current)
     stale = stale_input(tracker.method, depth_repeated, colour_repeated)
@@ -231,8 +251,9 @@ def estimate_dense(
         # One stream is stale: track on the fresh one alone for this frame.
         problem = problem.icp if colour_repeated else problem.rgbd
     tracking = tracker.config.tracking
+    start = previous_pose if start_pose is None else start_pose
     pose, reason = systems.refine(
-        previous_pose.copy(),
+        np.array(start, dtype=np.float64),
         problem.system,
         tracker.iterations,
         tracking.min_correspondences,
@@ -326,8 +347,10 @@ class DenseTracker:
         current: PreprocessedFrame,
         model: ModelPrediction | None,
         previous_pose: np.ndarray,
+        start_pose: np.ndarray | None = None,
     ) -> tuple[np.ndarray, str]:
-        """(pose, '') or (best pose so far, reason for failure); never raises on bad data."""
+        """(pose, '') or (best pose so far, reason for failure); never raises on bad data.
+        `start_pose`: where Gauss-Newton starts (None: the previous pose)."""
         needs_model = self.method != "rgbd"
         if needs_model and model is None:
             return previous_pose, "no model prediction to track against"
@@ -338,7 +361,9 @@ class DenseTracker:
                     previous_pose,
                     f"{name} frame has {len(frame.levels)} pyramid levels, {levels} needed",
                 )
-        return self.systems.estimate_dense(self, previous, current, model, previous_pose)
+        return self.systems.estimate_dense(
+            self, previous, current, model, previous_pose, start_pose
+        )
 
     def check_estimate(self, pose: np.ndarray, previous_pose: np.ndarray, fraction: float) -> str:
         """'' when a converged estimate with `fraction` inliers at the finest level stands, else
@@ -395,8 +420,6 @@ class FovisTracker:
         model: ModelPrediction | None,
         previous_pose: np.ndarray,
     ) -> TrackingResult:
-        from kintinuous_ref.odometry import switching
-
         tracking = self.config.tracking
         sparse = self.sparse_motion(previous, current)
         fovis_reason = sparse.reason or "failed"
@@ -409,15 +432,49 @@ class FovisTracker:
             if not fovis_ok:
                 return self.recovery.failure(previous_pose, f"fovis: {fovis_reason}")
             return self.recovery.success(previous_pose @ sparse.increment, previous_pose, "fovis")
+        return self.switch(previous, current, model, previous_pose, sparse, fovis_ok, fovis_reason)
 
-        pose, dense_reason = self.dense.estimate(previous, current, model, previous_pose)
+    def dense_start(self, fovis_increment: np.ndarray, fovis_ok: bool) -> np.ndarray | None:
+        """The increment the dense estimate starts from: FOVIS's when it succeeded and
+        config.fovis.dense_from_fovis is on, else None (the previous pose, the paper's)."""
+        if fovis_ok and self.config.fovis.dense_from_fovis:
+            return fovis_increment
+        return None
+
+    def switch(
+        self,
+        previous: PreprocessedFrame,
+        current: PreprocessedFrame,
+        model: ModelPrediction | None,
+        previous_pose: np.ndarray,
+        sparse: FovisResult,
+        fovis_ok: bool,
+        fovis_reason: str,
+    ) -> TrackingResult:
+        """Paper V-A: the dense estimate, then FOVIS's increment or the dense one by the rule
+        (switching.choose_increment_or_fallback); either alone when the other failed."""
+        start = self.dense_start(sparse.increment, fovis_ok)
+        start_pose = None if start is None else previous_pose @ start
+        pose, dense_reason = self.dense.estimate(
+            previous, current, model, previous_pose, start_pose
+        )
         dense_increment = se3.inverse(previous_pose) @ pose
+        decision = switching.SwitchDecision(
+            sparse.increment if fovis_ok else None,
+            None if dense_reason else dense_increment,
+            np.eye(4) if start is None else start,
+        )
         if dense_reason and not fovis_ok:
             return self.recovery.failure(
-                previous_pose, f"fovis: {fovis_reason}; {self.dense.method}: {dense_reason}"
+                previous_pose,
+                f"fovis: {fovis_reason}; {self.dense.method}: {dense_reason}",
+                decision,
             )
         if dense_reason:  # the dense estimator failed: FOVIS is all there is
-            return self.recovery.success(previous_pose @ sparse.increment, previous_pose, "fovis")
+            decision = decision.chose(switching.FOVIS)
+            return self.recovery.success(
+                previous_pose @ sparse.increment, previous_pose, "fovis", decision
+            )
         fovis = self.config.fovis
         increment, chosen = switching.choose_increment_or_fallback(
             sparse.increment, fovis_ok, dense_increment, fovis.switch_threshold, fovis.switch_rule
@@ -425,7 +482,7 @@ class FovisTracker:
         used = "fovis" if chosen == switching.FOVIS else self.dense.method
         new_pose = previous_pose @ increment
         new_pose[:3, :3] = se3.orthonormalize(new_pose[:3, :3])
-        return self.recovery.success(new_pose, previous_pose, used)
+        return self.recovery.success(new_pose, previous_pose, used, decision.chose(chosen))
 
     def sparse_motion(self, previous: PreprocessedFrame, current: PreprocessedFrame) -> FovisResult:
         """FOVIS's estimate between the two frames, on host images (it runs on the CPU, as in

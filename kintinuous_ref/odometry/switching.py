@@ -12,9 +12,16 @@ translations are compared, not their directions or the rotations. The rule "vect
 and so also catches an estimator that moved as far as FOVIS but the wrong way, which on large
 motions the length rule keeps (docs/odometry.md). When FOVIS itself failed (too few features or
 inliers) its increment means nothing and the other estimator's is used.
+
+The paper does not say where the other estimator starts. With config.fovis.dense_from_fovis it
+starts from FOVIS's increment (odometry.FovisTracker.dense_start), so that the rule compares a
+dense refinement of FOVIS's motion with FOVIS's own; otherwise from the previous pose, the dense
+trackers' initial estimate, which over large motions lets it converge to another basin.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,6 +31,21 @@ from kintinuous_ref.vocabulary import SWITCH_RULES
 
 FOVIS = "fovis"
 OTHER = "other"
+
+
+@dataclass(frozen=True)
+class SwitchDecision:
+    """One frame of fovis/X: both estimators' increments (previous camera <- current camera),
+    where the dense one started and which the rule chose."""
+
+    fovis_increment: np.ndarray | None  # None: FOVIS failed
+    dense_increment: np.ndarray | None  # None: the dense estimator failed
+    dense_start: np.ndarray  # the increment its Gauss-Newton started from (identity: none)
+    chosen: str = ""  # FOVIS or OTHER; '' when both failed
+
+    def chose(self, chosen: str) -> SwitchDecision:
+        """This decision with `chosen` recorded."""
+        return replace(self, chosen=chosen)
 
 
 def choose_increment(
