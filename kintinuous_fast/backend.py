@@ -68,7 +68,9 @@ class FastBackend:
             return DeviceTraffic()
         from kintinuous_fast.targets import TRAFFIC
 
-        return DeviceTraffic(TRAFFIC.launches, TRAFFIC.host_waits, TRAFFIC.bytes_to_host)
+        return DeviceTraffic(
+            TRAFFIC.launches, TRAFFIC.host_waits, TRAFFIC.bytes_to_host, TRAFFIC.graph_replays
+        )
 
     def kernels_cached(self, tracking: bool = True) -> bool:
         """For cpu: whether a warm-up from these sources recorded the kernels of each stage a

@@ -52,18 +52,22 @@ KNOWN = BACKENDS
 @dataclass(frozen=True)
 class DeviceTraffic:
     """What the host has asked of an accelerator so far: kernel launches, blocking downloads
-    (each one a wait for every kernel before it) and the bytes they brought back. A backend
-    that computes where its caller runs (the reference, cpu) has none: all zeros."""
+    (each one a wait for every kernel before it), the bytes they brought back, and how many
+    recorded sequences of launches were replayed as one graph launch each (of the launches,
+    those replayed cost the host no dispatch of their own). A backend that computes where its
+    caller runs (the reference, cpu) has none: all zeros."""
 
     launches: int = 0
     host_waits: int = 0
     bytes_to_host: int = 0
+    graph_replays: int = 0
 
     def __sub__(self, earlier: DeviceTraffic) -> DeviceTraffic:
         return DeviceTraffic(
             self.launches - earlier.launches,
             self.host_waits - earlier.host_waits,
             self.bytes_to_host - earlier.bytes_to_host,
+            self.graph_replays - earlier.graph_replays,
         )
 
 

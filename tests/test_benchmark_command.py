@@ -33,7 +33,7 @@ def test_benchmark_json_reports_stages_and_fps(capsys, fast):
     assert report["fps"] == pytest.approx(1000.0 / stages["total"]["median"])
     assert np.isfinite(report["fps"])
     # the device counters are there for every backend: zeros where nothing runs on a device
-    for name in ("launches", "host_waits", "bytes_to_host"):
+    for name in ("launches", "host_waits", "bytes_to_host", "graph_replays"):
         assert report[f"{name}_per_frame"] == 0
         assert {stats[name] for stats in report["traffic_per_stage"].values()} == {0}
     assert set(report["traffic_per_stage"]) == set(stages)

@@ -15,6 +15,7 @@ Without a GPU the tests run in a child process with numba's CUDA simulator, whos
 the recorded launches launched again (cuda_graphs' docstring).
 """
 
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,30 @@ def test_segment_launches_then_captures_then_replays(graphs):
     counts = np.subtract(graphs.segment_counts()[twice.__qualname__], before)
     assert counts.tolist() == [2, 1, 2]
     assert np.array_equal(to_host(values), np.full(8, 4 * 3.0 + 15.0))
+
+
+@on_device
+def test_a_refused_capture_launches_one_by_one_from_then_on(graphs, monkeypatch):
+    from kintinuous_fast.targets import to_host
+
+    def refuse(launches):  # noqa: ANN001, ANN202
+        raise graphs.CaptureFailed("not permitted while capturing")
+
+    monkeypatch.setattr(graphs, "_capture", refuse)
+    add = _add
+    values = cuda.to_device(np.zeros(8))
+
+    @graphs.segment
+    def once(amount):
+        add[1, 8](values, amount)
+
+    refused_before = len(graphs.RECORDER.refusals)
+    with pytest.warns(UserWarning, match="capture failed") if not refused_before else nullcontext():
+        for _ in range(4):
+            once(1.0)
+    assert graphs.segment_counts()[once.__qualname__] == [4, 0, 0]
+    assert graphs.RECORDER.refusals[refused_before:] == ["not permitted while capturing"]
+    assert np.array_equal(to_host(values), np.full(8, 4.0))
 
 
 @on_device
@@ -244,3 +269,8 @@ def test_pipeline_replays_its_repeating_stages_and_equals_launching():
         assert per_frame(stage, last - 1)[:2] == (0, 0), (stage, ways)
         assert per_frame(stage, last)[2] >= 1
     assert pooled[-1] == pooled[-3], pooled  # no buffer made in the last frames
+    # the benchmark's counter sees the same replays: in the last frame, one graph launch for
+    # each segment replayed and nothing else
+    replays = sum(per_frame(stage, last)[2] for stage in ways[last])
+    assert replayed.traffic["total"][last].graph_replays == replays
+    assert {frame.graph_replays for frame in plain.traffic["total"]} == {0}

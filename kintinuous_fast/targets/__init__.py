@@ -87,12 +87,14 @@ class TrafficCounter:
     """The cuda target's launches, blocking downloads and downloaded bytes since the process
     started: each kernel launch (targets.cuda.kernel) and each download (to_host) adds to it.
     A download waits for every kernel launched before it, so `host_waits` counts the points
-    where the host stops and the GPU runs dry."""
+    where the host stops and the GPU runs dry. `graph_replays` counts the graph launches that
+    replayed recorded launches (targets.cuda_graphs), each of them counted in `launches` too."""
 
     def __init__(self) -> None:
         self.launches = 0
         self.host_waits = 0
         self.bytes_to_host = 0
+        self.graph_replays = 0
 
 
 TRAFFIC = TrafficCounter()

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import os
+import warnings
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -43,6 +44,10 @@ MAX_KEYS = 256
 MAX_GRAPHS = 64
 # The environment variable that turns graphs on for a process ("1").
 ENVIRONMENT = "KINTINUOUS_CUDA_GRAPHS"
+
+
+class CaptureFailed(Exception):
+    """The driver refused to capture or instantiate a segment's launches."""
 
 
 class NotCapturable(Exception):
@@ -90,6 +95,7 @@ class _Recorder:
     # per segment (its outermost function's name): [launched, captured, replayed] counts
     counts: dict[str, list[int]] = field(default_factory=dict)
     stream: Any = None  # the stream of uploads and replays, made on first use
+    refusals: list[str] = field(default_factory=list)  # why captures failed, in order
 
 
 RECORDER = _Recorder(enabled=os.environ.get(ENVIRONMENT, "0") == "1")
@@ -182,15 +188,32 @@ def flush() -> None:
         RECORDER.graphs.move_to_end(key)
         _replay(RECORDER.graphs[key], launches)
         counts[2] += 1
-    elif key is not None and key in RECORDER.seen:
-        _remember(RECORDER.graphs, key, _capture(launches), MAX_GRAPHS)
-        _replay(RECORDER.graphs[key], launches)
+    elif key is not None and RECORDER.seen.get(key) is True:
+        try:
+            graph = _capture(launches)
+        except CaptureFailed as error:  # launched as without graphs from now on
+            _refuse(key, error)
+            _launch_each(launches)
+            counts[0] += 1
+            return
+        _remember(RECORDER.graphs, key, graph, MAX_GRAPHS)
+        _replay(graph, launches)
         counts[1] += 1
-    else:
-        if key is not None:
+    else:  # a new key, or one whose capture was refused (False)
+        if key is not None and key not in RECORDER.seen:
             _remember(RECORDER.seen, key, True, MAX_KEYS)
         _launch_each(launches)
         counts[0] += 1
+
+
+def _refuse(key: tuple, error: Exception) -> None:
+    """Remember that `key`'s launches cannot be captured here; say so once per process."""
+    RECORDER.seen[key] = False
+    if not RECORDER.refusals:
+        warnings.warn(
+            f"CUDA graph capture failed ({error}); those launches run one by one", stacklevel=3
+        )
+    RECORDER.refusals.append(str(error))
 
 
 def _launch_each(launches: list[Launch | Upload]) -> None:
@@ -293,9 +316,19 @@ def _simulated() -> bool:
 
 
 def _capture(launches: list[Launch | Upload]) -> Any:
-    """An executable graph of `launches` (a GPU), or the launches themselves (the simulator)."""
+    """An executable graph of `launches` (a GPU), or their number (the simulator: _replay
+    launches them again). CaptureFailed where the driver or numba refuses, nothing launched."""
     if _simulated():
         return len(launches)
+    try:
+        return _capture_on_gpu(launches)
+    except CaptureFailed:
+        raise
+    except Exception as error:  # no cuda.bindings, or numba refused a launch while capturing
+        raise CaptureFailed(f"{type(error).__name__}: {error}") from error
+
+
+def _capture_on_gpu(launches: list[Launch | Upload]) -> Any:
     from cuda.bindings import driver
     from numba import cuda
 
@@ -337,6 +370,9 @@ class _Graph:
 
 
 def _replay(graph: Any, launches: list[Launch | Upload]) -> None:
+    from kintinuous_fast.targets import TRAFFIC  # the package imports this module
+
+    TRAFFIC.graph_replays += 1
     if isinstance(graph, int):  # the simulator: the same launches again
         _launch_each(launches)
         return
@@ -357,7 +393,7 @@ def _check(result: tuple) -> None:
     from cuda.bindings import driver
 
     if result[0] != driver.CUresult.CUDA_SUCCESS:
-        raise RuntimeError(f"CUDA graph call failed: {result[0]}")
+        raise CaptureFailed(f"CUDA graph call failed: {result[0]}")
 
 
 __all__ = [

@@ -36,7 +36,7 @@ def timing_stats(values: list[float]) -> dict[str, float | None]:
     }
 
 
-TRAFFIC_FIELDS = ("launches", "host_waits", "bytes_to_host")
+TRAFFIC_FIELDS = ("launches", "host_waits", "bytes_to_host", "graph_replays")
 
 
 def traffic_stats(frames: list[Any]) -> dict[str, float]:
@@ -59,8 +59,9 @@ def benchmark(
     """Run the pipeline over `frames` frames of `dataset` (a TUM folder or scenario name) on
     `backend` and return {backend, dataset, odometry, frames, resolution, timing_ms: {stage:
     {mean, median, max}}, fps (1000 / median total ms), the device traffic per frame
-    (launches_per_frame, host_waits_per_frame, bytes_to_host_per_frame: medians, zeros without
-    a device) and per stage (traffic_per_stage)} over frames 2..N."""
+    (launches_per_frame, host_waits_per_frame, bytes_to_host_per_frame,
+    graph_replays_per_frame: medians, zeros without a device) and per stage
+    (traffic_per_stage)} over frames 2..N."""
     from kintinuous_ref import pipeline
     from kintinuous_ref.backend import load_backend
     from kintinuous_ref.program.reconstruct import check_start, open_dataset, prepare_kernels
@@ -130,6 +131,11 @@ def format_table(report: dict[str, Any]) -> str:
             f"device per frame (median): {report['launches_per_frame']:.0f} kernel launches, "
             f"{report['host_waits_per_frame']:.0f} host waits, "
             f"{report['bytes_to_host_per_frame']:.0f} bytes to the host"
+            + (
+                f", {report['graph_replays_per_frame']:.0f} graph replays"
+                if report["graph_replays_per_frame"]
+                else ""
+            )
         )
     return "\n".join(lines)
 
