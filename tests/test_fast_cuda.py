@@ -270,3 +270,44 @@ def test_cuda_volume_and_frame_stages_copy_nothing_after_the_first_frame(
     monkeypatch.setattr(device_array, "copy_to_host", counted_download)
     one_frame(1)
     assert crossings == []
+
+
+def test_equivalence_cuda_volume_offset_and_origin_read_on_the_device():
+    """The moving volume's buffer offset and origin reach integration and the raycast through
+    device memory (tsdf.cuda.volume_placement): at an offset that wraps along x and z, with the
+    origin away from the first pose, the volume and the raycast equal the reference's; then a
+    new offset and origin (what a shift sets) are read by the next raycast without anything
+    else changing, so it again equals the reference's on the same cells."""
+    from kintinuous_fast.raycast import cuda as cuda_raycast
+    from kintinuous_fast.tsdf import cuda as cuda_tsdf
+    from kintinuous_fast.tsdf.volume import to_reference_volume
+    from kintinuous_ref import raycast as ref_raycast
+    from kintinuous_ref import tsdf as ref_tsdf
+
+    height, width, n = (24, 32, 16) if SIMULATED else (60, 80, 32)
+    config = VolumeConfig(resolution=n, size=3.0)
+    camera, poses = fe.camera_for(height, width), fe.moving_poses(2)
+    reference = ref_tsdf.make_volume(config, poses[0])
+    fast = cuda_tsdf.make_volume(config, poses[0])
+    for volume in (reference, fast):
+        volume.offset[:] = (5, 0, n - 5)
+    for index, pose in enumerate(poses):
+        depth = fe.scene_depth(height, width, seed=index)
+        ref_tsdf.integrate(reference, depth, pose, camera)
+        cuda_tsdf.integrate(fast, depth, pose, camera)
+    back = to_reference_volume(fast)
+    np.testing.assert_array_equal(back.weight, reference.weight)
+    np.testing.assert_allclose(back.tsdf, reference.tsdf, atol=len(poses) * 0.5 / 32767 + 1e-7)
+    assert np.count_nonzero(reference.weight) > 0.02 * reference.weight.size  # a real test
+    for shifted in (False, True):
+        if shifted:  # the same cells seen as another part of the world
+            fast.offset[:] = (2, 7, 1)
+            fast.origin = fast.origin + np.array([0.02, -0.01, 0.03])
+            back = to_reference_volume(fast)
+        got = cuda_raycast.raycast(fast, poses[1], camera)
+        want = ref_raycast.raycast(back, poses[1], camera)
+        hit_got, hit_want = ~np.isnan(got.vertices[..., 0]), ~np.isnan(want.vertices[..., 0])
+        assert hit_want.mean() > 0.2
+        assert np.count_nonzero(hit_got != hit_want) <= 0.002 * hit_want.size + 1
+        both = hit_got & hit_want
+        np.testing.assert_allclose(got.vertices[both], want.vertices[both], atol=1e-5, rtol=0)

@@ -26,7 +26,7 @@ from kintinuous_fast.targets.cuda import (
 )
 from kintinuous_fast.targets.cuda_graphs import segment
 from kintinuous_fast.tsdf import voxel
-from kintinuous_fast.tsdf.cuda import constants_to_device
+from kintinuous_fast.tsdf.cuda import constants_to_device, volume_placement
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_fast.tsdf.voxel import BRICK
 from kintinuous_ref.camera import Intrinsics
@@ -75,7 +75,7 @@ def empty_space(volume: FastTsdfVolume) -> Any:
     distance = pooled_array("empty space", (bricks,) * 3, np.int64)
     scratch = pooled_array("empty space", (bricks,) * 3, np.int64)
     blocks = grid_1d(bricks**3)
-    _negative_brick_kernel[blocks, BLOCK_1D](volume.tsdf_weight, *volume.offsets(), distance)
+    _negative_brick_kernel[blocks, BLOCK_1D](volume.tsdf_weight, volume_placement(volume), distance)
     for axis in range(3):
         source, target = (distance, scratch) if axis % 2 == 0 else (scratch, distance)
         _axis_distance_kernel[blocks, BLOCK_1D](source, target, axis)
@@ -84,8 +84,10 @@ def empty_space(volume: FastTsdfVolume) -> Any:
 
 
 @kernel
-def _negative_brick_kernel(tsdf_weight, o0, o1, o2, distance):
-    """distance[b] = 0 where logical brick b holds an observed negative voxel, else _FAR."""
+def _negative_brick_kernel(tsdf_weight, placement, distance):
+    """distance[b] = 0 where logical brick b holds an observed negative voxel, else _FAR (the
+    buffer offset read from `placement`, tsdf.cuda.volume_placement)."""
+    o0, o1, o2 = int(placement[0, 0]), int(placement[0, 1]), int(placement[0, 2])
     bricks = distance.shape[0]
     index = cuda.grid(1)
     if index >= bricks**3:
@@ -146,12 +148,11 @@ def _raycast_kernel(
     tsdf_weight,
     colour_volume,
     has_colour,
-    offsets,
+    placement,
     empty,
     fine_distance,
     camera,
     pose,
-    volume_origin,
     voxel_size,
     step,
     vertices,
@@ -160,8 +161,11 @@ def _raycast_kernel(
     stride,
 ):
     # one thread per pixel cast: (u, v) multiples of the stride; `pose` (4, 3) float64: the
-    # rotation (rows 0-2) and the camera centre (row 3), read from device memory
+    # rotation (rows 0-2) and the camera centre (row 3), read from device memory, as are the
+    # volume's buffer offset and origin (`placement`, tsdf.cuda.volume_placement)
     rotation, origin = pose, (pose[3, 0], pose[3, 1], pose[3, 2])
+    offsets = (int(placement[0, 0]), int(placement[0, 1]), int(placement[0, 2]))
+    volume_origin = (placement[1, 0], placement[1, 1], placement[1, 2])
     cast_u, cast_v = cuda.grid(2)
     u, v = cast_u * stride, cast_v * stride
     if v < vertices.shape[0] and u < vertices.shape[1]:
@@ -242,7 +246,7 @@ def _cast(
         volume.tsdf_weight,
         colour_volume,
         has_colour,
-        volume.offsets(),
+        volume_placement(volume),
         empty_space(volume) if skip_empty else _map_that_skips_nothing(),
         _map_that_skips_nothing(),  # no finer level
         *view,
@@ -262,12 +266,13 @@ def _view_arguments(
     volume_origin: np.ndarray,
     voxel_size: float,
 ) -> tuple:
-    """view_constants as the kernel takes them: the intrinsics and the volume's origin as
-    tuples of floats (launch parameters, fixed between shifts), the pose's rotation and centre
-    as one (4, 3) device matrix (constants_to_device), which changes every frame."""
+    """view_constants as the kernel takes them: the intrinsics as a tuple of floats (a launch
+    parameter, fixed for the run), the pose's rotation and centre as one (4, 3) device matrix
+    (constants_to_device), which changes every frame. The volume's origin, which changes at a
+    shift, is read from volume_placement."""
+    del volume_origin  # in volume_placement
     return (
         tuple(float(x) for x in camera),
         constants_to_device("raycast pose", np.vstack([rotation, origin])),
-        tuple(float(x) for x in volume_origin),
         voxel_size,
     )

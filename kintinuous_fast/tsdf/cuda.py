@@ -139,7 +139,7 @@ def _column_span(base, steps, j, k, intrinsics, image_size, far, n):
 def _integrate_kernel(
     tsdf_weight,
     colour_volume,
-    offsets,
+    placement,
     frame,
     largest,
     bounded,
@@ -154,8 +154,10 @@ def _integrate_kernel(
     # `frame` (6, 3) float32 (frame_constants): rows 0-2 the voxel steps, row 3 the base, rows
     # 4-5 the box [lo, hi) of voxel indices; one thread per column (j, k) of the volume, those
     # outside the box return. If `bounded`, each column only where z <= the frame's largest
-    # depth (1,) `largest` + mu, as frustum_box; `limits` = fuse_voxel's
+    # depth (1,) `largest` + mu, as frustum_box; `limits` = fuse_voxel's; the buffer offset
+    # is row 0 of `placement` (volume_placement)
     steps, base = frame, frame[3]
+    offsets = (int(placement[0, 0]), int(placement[0, 1]), int(placement[0, 2]))
     k, j = cuda.grid(2)
     inside_k = int(frame[4, 2]) <= k and k < int(frame[5, 2])
     if inside_k and int(frame[4, 1]) <= j and j < int(frame[5, 1]):
@@ -214,6 +216,20 @@ def constants_to_device(role: str, rows: np.ndarray) -> Any:
     to frame and replay as a graph (targets.cuda_graphs). The copy is queued in stream order,
     after the launches before it, without a host wait (targets.cuda.copy_up)."""
     return copy_up(pooled_array(role, rows.shape, rows.dtype), rows)
+
+
+def volume_placement(volume: FastTsdfVolume) -> Any:
+    """Where the moving volume is: its buffer offset (row 0, in cells) and its origin (row 1,
+    metres) as a (2, 3) float64 device array that integration and the raycast read. A shift
+    changes what is in it, not the kernels' arguments, so their launches go on repeating and
+    replaying as graphs (targets.cuda_graphs) through shifts. Copied up when a shift changed it
+    (copy_up, in stream order)."""
+    rows = np.array([volume.offsets(), volume.origin], dtype=np.float64)
+    kept = volume.device_placement
+    if kept is None or not np.array_equal(kept[0], rows):
+        device = cuda.device_array((2, 3), np.float64) if kept is None else kept[1]
+        volume.device_placement = (rows, copy_up(device, rows))
+    return volume.device_placement[1]
 
 
 def largest_depth(depth: Any) -> Any:
@@ -325,7 +341,7 @@ def integrate_in_box(
     _integrate_kernel[grid_2d(n, n), BLOCK_2D](  # x: k (contiguous in memory), y: j
         volume.tsdf_weight,
         colour_volume,
-        volume.offsets(),
+        volume_placement(volume),
         frame_constants(volume, pose, box),
         _placeholder((1,), "float32") if largest is None else largest,
         largest is not None,

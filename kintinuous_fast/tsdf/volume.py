@@ -61,6 +61,8 @@ class FastTsdfVolume(VoxelGrid):
     # cpu backend only: the negative-voxel masks (NegativeMasks) or None when not known;
     # whatever writes tsdf_weight other than integration must call forget_negative_masks()
     negative_masks: NegativeMasks | None = field(default=None, repr=False, compare=False)
+    # cuda backend only: (the rows, the device array) of tsdf.cuda.volume_placement, or None
+    device_placement: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def resolution(self) -> int:
