@@ -53,6 +53,36 @@ def _gather_model_block(rows, cols, count, mv, mn, model):
         model[5 * BLOCK + m] = mn[v, u, 2]
 
 
+@INLINE
+def _block_pair(columns, m, pose, rows, model, limits):
+    """Pair m of a block (`columns` = its points' x, y, z, nx, ny, nz rows, sliced from its
+    first point; `model` its gathered model pixels): (kept, world point, world normal, model
+    vertex, model normal), the vertex and normals in float64. What both the rows and the pair
+    count test, written once: inlined at numba IR level, each loop compiles as if written out."""
+    x, y, z, nx, ny, nz = columns
+    qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
+    ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
+    uz = float(model[5 * BLOCK + m])
+    world = _transform(pose, x[m], y[m], z[m])
+    g = _rotate(pose, nx[m], ny[m], nz[m])
+    vertex, normal = (qx, qy, qz), (ux, uy, uz)
+    kept = (rows[m] >= 0) & _is_compatible(world, g, vertex, normal, limits)
+    return kept, world, vertex, normal
+
+
+@INLINE
+def _block_columns(points, start, stop):
+    """points[:, start:stop]'s six rows as 1-d slices indexed from 0 (_project_block says why)."""
+    return (
+        points[0, start:stop],
+        points[1, start:stop],
+        points[2, start:stop],
+        points[3, start:stop],
+        points[4, start:stop],
+        points[5, start:stop],
+    )
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out, weighted):
     """match_pixel and point_to_plane_row (icp/ops.py) of points[:, start:stop] and their
@@ -61,16 +91,10 @@ def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out,
     pairs have weights (`robust`: robust_terms, weighs_pairs) weighted[k * BLOCK + m] =
     w (j0..j5, r), w = pair_weight; `limits`: is_compatible's."""
     weighs = _weighs_pairs(robust)
-    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
-    nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
+    columns = _block_columns(points, start, stop)
+    z = columns[2]
     for m in range(stop - start):
-        qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
-        ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
-        uz = float(model[5 * BLOCK + m])
-        world = _transform(pose, x[m], y[m], z[m])
-        g = _rotate(pose, nx[m], ny[m], nz[m])
-        vertex, normal = (qx, qy, qz), (ux, uy, uz)
-        kept = (rows[m] >= 0) & _is_compatible(world, g, vertex, normal, limits)
+        kept, world, vertex, normal = _block_pair(columns, m, pose, rows, model, limits)
         j0, j1, j2, j3, j4, j5, r = _point_to_plane_row(world, vertex, normal)
         out[m] = j0 if kept else 0.0
         out[BLOCK + m] = j1 if kept else 0.0
@@ -95,19 +119,12 @@ def _icp_rows_block(points, start, stop, pose, rows, model, limits, robust, out,
 
 @numba.njit(cache=True, error_model="numpy")
 def _kept_pairs_block(points, start, stop, pose, rows, model, limits):
-    """How many of points[:, start:stop] _icp_rows_block keeps (the same tests on the same
+    """How many of points[:, start:stop] _icp_rows_block keeps (the same _block_pair on the same
     values), without their rows: what the inlier fraction counts."""
-    x, y, z = points[0, start:stop], points[1, start:stop], points[2, start:stop]
-    nx, ny, nz = points[3, start:stop], points[4, start:stop], points[5, start:stop]
+    columns = _block_columns(points, start, stop)
     kept = 0
     for m in range(stop - start):
-        qx, qy, qz = float(model[m]), float(model[BLOCK + m]), float(model[2 * BLOCK + m])
-        ux, uy = float(model[3 * BLOCK + m]), float(model[4 * BLOCK + m])
-        uz = float(model[5 * BLOCK + m])
-        world = _transform(pose, x[m], y[m], z[m])
-        g = _rotate(pose, nx[m], ny[m], nz[m])
-        vertex, normal = (qx, qy, qz), (ux, uy, uz)
-        kept += (rows[m] >= 0) & _is_compatible(world, g, vertex, normal, limits)
+        kept += _block_pair(columns, m, pose, rows, model, limits)[0]
     return kept
 
 
