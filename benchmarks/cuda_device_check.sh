@@ -7,7 +7,8 @@
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel.)
 # (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
-# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_moving.json, ate_cuda.json,
+# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_512_synced.txt,
+# bench_cuda_moving.json, ate_cuda.json,
 # profile.txt, cuda_warm.prof and bench_ref_256.json into OUT_DIR (default: the current folder).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
@@ -48,6 +49,11 @@ for graphs in 0 1; do
     echo "$name: exit $?, $(($(date +%s) - start)) s wall, compilation included"
     python3 -m json.tool "$out/$name.json" | head -60
 done
+# each stage's own time, device work included (--sync-stages waits for the GPU after each stage;
+# the runs above leave the GPU's work to whichever stage waits next)
+KINTINUOUS_CUDA_GRAPHS=1 timeout 60 python3 -m kintinuous_ref.program.cli benchmark "$data" \
+    --backend cuda "${@:3}" --resolution 512 --frames 50 --sync-stages >"$out/bench_cuda_512_synced.txt"
+echo "synchronized stages: exit $?"; cat "$out/bench_cuda_512_synced.txt"
 # Kintinuous proper: the moving volume at the defaults (its slices meshed by our own marching
 # cubes on the device, no VTK needed); the "shift" stage is the shift-and-extract time
 start=$(date +%s)

@@ -72,6 +72,18 @@ class FastBackend:
             TRAFFIC.launches, TRAFFIC.host_waits, TRAFFIC.bytes_to_host, TRAFFIC.graph_replays
         )
 
+    def synchronize(self) -> None:
+        """For cuda: run the recorded launches and wait for the device; cpu's loops return
+        when done."""
+        if self.name != "cuda":
+            return
+        from numba import cuda
+
+        from kintinuous_fast.targets import cuda_graphs
+
+        cuda_graphs.flush()
+        cuda.synchronize()
+
     def kernels_cached(self, tracking: bool = True) -> bool:
         """For cpu: whether a warm-up from these sources recorded the kernels of each stage a
         run calls (with `tracking`, all five; without, preprocessing, integration and colour)

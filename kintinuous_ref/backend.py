@@ -111,6 +111,11 @@ class Backend(Protocol):
         (zeros for a backend without an accelerator)."""
         ...
 
+    def synchronize(self) -> None:
+        """Return once the work queued on an accelerator so far is done (at once without one):
+        what a stage's time must wait for to include its device work."""
+        ...
+
     def kernels_cached(self, tracking: bool = True) -> bool:
         """False when a run (with `tracking`, one that tracks and raycasts; without, one that
         maps with known poses) would first compile kernels that other processes could compile
@@ -169,6 +174,9 @@ class ReferenceBackend:
 
     def device_traffic(self) -> DeviceTraffic:
         return DeviceTraffic()  # NumPy on the host: no device
+
+    def synchronize(self) -> None:
+        pass  # NumPy returns when its work is done
 
     def kernels_cached(self, tracking: bool = True) -> bool:
         return True  # NumPy: nothing to compile

@@ -193,6 +193,7 @@ def run(
     slices: Path | None = None,
     capture_errors: bool = False,
     loop_closer: LoopCloser | None = None,
+    synchronize_stages: bool = False,
 ) -> PipelineResult:
     """Reconstruct a sequence. `groundtruth` holds one pose per frame INDEX of the sequence
     (TumSequence.groundtruth_for_frames()). `predict_model` None: raycast only when a tracker
@@ -201,7 +202,9 @@ def run(
     memory. `capture_errors`: an exception while reading or processing a frame ends the loop and
     is kept in the result's `error` (the work before it stays) instead of propagating.
     `backend` None: the reference. `loop_closer`: close loops (step 2b), which needs the moving
-    volume."""
+    volume. `synchronize_stages`: each stage's time waits for its device work
+    (Backend.synchronize); otherwise an accelerator's work runs on while the host goes on, and
+    a stage's time is the host's (the frame's total stays right over many frames)."""
     backend = backend or ReferenceBackend()
     check_run(config, odometry, groundtruth, backend, loop_closure=loop_closer is not None)
     if predict_model is None:
@@ -217,7 +220,9 @@ def run(
     previous = None
     try:
         for frame in frames:
-            clock = _Clock(backend.device_traffic)
+            clock = _Clock(
+                backend.device_traffic, backend.synchronize if synchronize_stages else None
+            )
             # 1. Preprocess (IV-A.1), where the backend computes.
             current = backend.preprocess.preprocess_frame(
                 backend.upload(frame.colour), backend.upload(frame.depth), camera, config.preprocess
@@ -321,14 +326,19 @@ def error_reason(err: Exception) -> str:
 class _Clock:
     """Milliseconds and device traffic (DeviceTraffic) per stage of one frame."""
 
-    def __init__(self, traffic: Callable[[], DeviceTraffic]) -> None:
+    def __init__(
+        self, traffic: Callable[[], DeviceTraffic], wait: Callable[[], None] | None = None
+    ) -> None:
         self.count = traffic
+        self.wait = wait  # called before each lap: the device's work joins its stage
         self.start = self.last = time.perf_counter()
         self.first = self.counted = traffic()
         self.laps: dict[str, float] = {}
         self.traffic: dict[str, DeviceTraffic] = {}
 
     def lap(self, stage: str) -> None:
+        if self.wait is not None:
+            self.wait()
         now, counted = time.perf_counter(), self.count()
         self.laps[stage] = 1000.0 * (now - self.last)
         self.traffic[stage] = counted - self.counted

@@ -47,3 +47,54 @@ def test_benchmark_takes_configuration_overrides(capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["icp_iterations"] == [3, 2, 1]
     assert report["resolution"] == 32
+
+
+class _DeviceWork:
+    """The reference backend with a device whose queued work takes `seconds` to finish: what
+    synchronize waits for."""
+
+    def __init__(self, seconds: float) -> None:
+        from kintinuous_ref.backend import ReferenceBackend
+
+        self.inner, self.seconds, self.waits = ReferenceBackend(), seconds, 0
+
+    def __getattr__(self, name: str):  # noqa: ANN204
+        return getattr(self.inner, name)
+
+    def synchronize(self) -> None:
+        import time
+
+        self.waits += 1
+        time.sleep(self.seconds)
+
+
+def test_synchronized_stages_include_their_device_work():
+    from kintinuous_ref import pipeline
+    from kintinuous_ref.config import Config, VolumeConfig
+    from kintinuous_ref.program.reconstruct import open_dataset
+
+    sequence = open_dataset(str(TINY_DESK))
+    config = Config(volume=VolumeConfig(resolution=16, size=2.0, moving=False))
+    runs = {}
+    for synchronized in (False, True):
+        backend = _DeviceWork(0.2)
+        runs[synchronized] = (
+            pipeline.run(
+                sequence.frames(0, 2),
+                sequence.camera,
+                config,
+                "icp",
+                sequence.groundtruth_for_frames(),
+                backend=backend,
+                synchronize_stages=synchronized,
+            ),
+            backend.waits,
+        )
+    (plain, plain_waits), (synced, synced_waits) = runs[False], runs[True]
+    assert plain_waits == 0
+    stages = [stage for stage in synced.timings_ms if stage != "total"]
+    assert {"preprocess", "odometry", "integrate", "raycast"} <= set(stages)
+    assert synced_waits == sum(len(synced.timings_ms[stage]) for stage in stages)
+    for stage in stages:  # each lap waited for the device's 200 ms
+        assert min(synced.timings_ms[stage]) >= 200.0, (stage, synced.timings_ms[stage])
+    assert min(plain.timings_ms["integrate"]) < 200.0  # a 16^3 volume: the ref's own time

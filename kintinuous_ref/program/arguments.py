@@ -320,6 +320,12 @@ def add_benchmark(commands: argparse._SubParsersAction) -> argparse.ArgumentPars
         action="store_true",
         help=FAST_ODOMETRY_HELP,
     )
+    parser.add_argument(
+        "--sync-stages",
+        action="store_true",
+        help="wait for the GPU at the end of each stage, so that each stage's time includes its "
+        "device work (without it a GPU's stage times are the host's; frames/s is right either way)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     return parser
 

@@ -274,7 +274,13 @@ def run_benchmark(args: argparse.Namespace) -> None:
     if args.fast_odometry:
         config = fast_odometry(config)
     report = benchmark(
-        args.dataset, args.backend, args.odometry, args.frames, config, start=args.start
+        args.dataset,
+        args.backend,
+        args.odometry,
+        args.frames,
+        config,
+        start=args.start,
+        synchronize_stages=args.sync_stages,
     )
     print(strict_dumps(report) if args.json else format_table(report))
 
