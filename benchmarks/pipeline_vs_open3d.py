@@ -17,7 +17,10 @@ Open3D runs right after our default column, and `--rounds R` repeats both (and t
 columns but the reference) R times, pooling the frames: a noisy host then slows both sides
 alike, and the ratios of each round are printed too. `--threads N` runs both on N threads
 (numba's thread count, and OpenMP's, which Open3D's CPU kernels use); the default is each
-library's own (every core).
+library's own (every core). `--default-only` leaves out the fast-odometry and 1/3/6 columns.
+The row "odometry cpu" is the odometry's CPU time per frame (the process's, every thread's:
+on one thread what the odometry's work costs, which other jobs on the machine disturb far
+less than its wall time).
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ import platform
 import statistics
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -50,6 +55,8 @@ REDKITCHEN = data_folder() / "redkitchen"  # $KINTINUOUS_DATA, else ../shared/da
 # coarsest first, (6, 3, 1), and so runs one iteration at full resolution.
 OPEN3D_ITERATIONS = (1, 3, 6)
 STAGES = ("preprocess", "odometry", "integrate", "raycast", "total")
+# Rows beside the stages: the odometry's process CPU time per frame.
+CPU_ROWS = ("odometry cpu",)
 STAGE_COLOURS = ("#8da0cb", "#fc8d62", "#66c2a5", "#e78ac3")  # of the four stages in the plot
 
 
@@ -70,21 +77,53 @@ def open3d_iterations(config: Config) -> Config:
 
 
 def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # noqa: ANN001
-    """Per stage the times of frames 2..N (lists), with `ate_mm` and `failures`."""
+    """Per stage the times of frames 2..N (lists), with `ate_mm` and `failures`; on the cpu
+    backend also the odometry's CPU time ("odometry cpu", of its dense estimates)."""
     groundtruth = sequence.groundtruth_for_frames()
-    result = pipeline.run(
-        sequence.frames(0, frames),
-        sequence.camera,
-        config,
-        "icp+rgbd",
-        groundtruth,
-        backend=load_backend(backend),
-        predict_model=True,
-    )
+    chosen = load_backend(backend)
+    with odometry_cpu_time(chosen) as cpu_ms:
+        result = pipeline.run(
+            sequence.frames(0, frames),
+            sequence.camera,
+            config,
+            "icp+rgbd",
+            groundtruth,
+            backend=chosen,
+            predict_model=True,
+        )
     row = {stage: list(result.timings_ms[stage][1:]) for stage in STAGES}
+    if cpu_ms:
+        row["odometry cpu"] = cpu_ms
     row["ate_mm"] = ate_mm(result.poses, groundtruth, frames)
     row["failures"] = result.tracking_failures
     return row
+
+
+@contextmanager
+def odometry_cpu_time(backend) -> Iterator[list[float]]:  # noqa: ANN001
+    """A list that collects the process CPU ms of each dense estimate but the first while the
+    block runs (the backend's odometry module's estimate_dense, timed around); empty where the
+    backend has no such module."""
+    systems = getattr(backend, "odometry", None)
+    untimed = getattr(systems, "estimate_dense", None)
+    laps: list[float] = []
+    if untimed is None:
+        yield laps
+        return
+
+    def timed(*args, **options):  # noqa: ANN002, ANN003, ANN202
+        started = time.process_time()
+        try:
+            return untimed(*args, **options)
+        finally:
+            laps.append(1000.0 * (time.process_time() - started))
+
+    systems.estimate_dense = timed
+    try:
+        yield laps
+    finally:
+        systems.estimate_dense = untimed
+        del laps[:1]  # the first estimate (frame 1) warms up, as the stages' first frame
 
 
 def run_open3d(  # noqa: ANN001, PLR0913
@@ -113,19 +152,19 @@ def run_open3d(  # noqa: ANN001, PLR0913
     current = o3d.t.pipelines.slam.Frame(camera.height, camera.width, intrinsic, device)
     predicted = o3d.t.pipelines.slam.Frame(camera.height, camera.width, intrinsic, device)
     to_model = np.eye(4)
-    laps = {stage: [] for stage in ("odometry", "integrate", "raycast", "total")}
+    laps = {stage: [] for stage in ("odometry", "odometry cpu", "integrate", "raycast", "total")}
     poses = []
     for index, frame in enumerate(sequence.frames(0, frames)):
         raw = np.round(frame.depth * camera.depth_scale).astype(np.uint16)
         current.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(raw)))
         current.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(frame.colour)))
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         if index > 0:
             tracked = model.track_frame_to_model(
                 current, predicted, camera.depth_scale, max_depth, 0.07
             )
             to_model = to_model @ tracked.transformation.numpy()
-        tracked_at = time.perf_counter()
+        tracked_at, tracked_cpu = time.perf_counter(), time.process_time()
         model.update_frame_pose(index, o3c.Tensor(to_model))
         model.integrate(current, camera.depth_scale, max_depth, truncation_voxels)
         integrated_at = time.perf_counter()
@@ -135,6 +174,7 @@ def run_open3d(  # noqa: ANN001, PLR0913
         end = time.perf_counter()
         if index > 0:
             laps["odometry"].append(1000.0 * (tracked_at - start))
+            laps["odometry cpu"].append(1000.0 * (tracked_cpu - cpu_start))
             laps["integrate"].append(1000.0 * (integrated_at - tracked_at))
             laps["raycast"].append(1000.0 * (end - integrated_at))
             laps["total"].append(1000.0 * (end - start))
@@ -167,6 +207,8 @@ def run_columns(sequence, config: Config, args: argparse.Namespace, with_referen
         runs[backend] = run_ours(sequence, backend, config, frames)
         if backend == "cpu":
             add_open3d()
+            if args.default_only:
+                continue
             runs["cpu fast-odo"] = run_ours(sequence, "cpu", fast_odometry(config), frames)
             runs["cpu 1/3/6"] = run_ours(sequence, "cpu", open3d_iterations(config), frames)
     if "cpu" not in backends:
@@ -186,11 +228,11 @@ def medians(row: dict) -> dict:
 def print_round_ratios(rounds: list[dict[str, dict]]) -> None:
     """Per round, ours / Open3D's medians of the default column (the spread of the noise)."""
     print("cpu / Open3D in each round:")
-    for stage in ("odometry", "integrate", "raycast", "total"):
+    for stage in ("odometry", "odometry cpu", "integrate", "raycast", "total"):
         ratios = [
             statistics.median(runs["cpu"][stage]) / statistics.median(runs["open3d"][stage])
             for runs in rounds
-            if "cpu" in runs and "open3d" in runs
+            if stage in runs.get("cpu", {}) and stage in runs.get("open3d", {})
         ]
         print(f"  {stage:10s} " + " ".join(f"{ratio:.2f}" for ratio in ratios))
 
@@ -198,7 +240,7 @@ def print_round_ratios(rounds: list[dict[str, dict]]) -> None:
 def print_table(table: dict[str, dict]) -> None:
     names = list(table)
     print(f"{'stage (median ms)':20s}" + "".join(f"{name:>14s}" for name in names))
-    for stage in (*STAGES, "fps", "ate_mm"):
+    for stage in (*STAGES, *CPU_ROWS, "fps", "ate_mm"):
         cells = []
         for name in names:
             row = table[name]
@@ -270,6 +312,9 @@ def main() -> None:
     parser.add_argument("--json", type=Path)
     parser.add_argument("--plot", type=Path, help="write a bar chart of the stages (PNG)")
     parser.add_argument("--threads", type=int, help="threads for both (default: every core)")
+    parser.add_argument(
+        "--default-only", action="store_true", help="no fast-odometry or 1/3/6 columns"
+    )
     args = parser.parse_args()
     threads = set_threads(args.threads)
     if not REDKITCHEN.is_dir():
