@@ -71,8 +71,10 @@ def main() -> None:
     candidates = all_candidates(args.width, args.strides, not args.no_twins, settings)
     args.out.mkdir(parents=True, exist_ok=True)
     summary = calibration.summary(candidates)
+    pairs = calibration.effective_pairs(candidates)
     result = {
         "width": args.width,
+        "effective_pairs": pairs,
         "settings": dataclasses.asdict(settings),
         "summary": summary,
         "candidates": [c.as_dict() for c in candidates],
@@ -81,6 +83,7 @@ def main() -> None:
     figure = calibration.draw_distributions(candidates, settings)
     figure.savefig(args.out / "loop_calibration.png", dpi=110)
     print(json.dumps(summary, indent=1))
+    print(f"effective pairs of a loop's alignment (right candidates): {pairs:.2f}")
 
 
 if __name__ == "__main__":

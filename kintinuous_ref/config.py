@@ -267,6 +267,22 @@ class LoopClosureConfig:
     odometry_sigma_rotation_deg: float = 0.5
     loop_sigma_translation: float = 0.01
     loop_sigma_rotation_deg: float = 0.5
+    # Loop edges take their covariance from their own dense alignment when this is on
+    # (place_recognition.loop_covariance): the information its final system states per pair,
+    # times loop_effective_pairs, so that a loop between views 24 cm and 11 degrees apart is
+    # weighed by what its fewer, worse-fitting pairs say (3 times looser than one between near
+    # views on redkitchen). Off: the fixed loop sigmas above.
+    loop_covariance_from_alignment: bool = True
+    # The pairs' errors are correlated (neighbouring pixels, one sensor's distortion): a real
+    # alignment misses by what a handful of independent pairs would. Calibrated on redkitchen's
+    # revisits against their ground truth (benchmarks/loop_calibration.py: the maximum
+    # likelihood scale over the right candidates, docs/loop_closure.md)
+    loop_effective_pairs: float = 3.5
+    # standard deviations of a loop never below these (a noise-free synthetic alignment), nor
+    # above loop_sigma_ceiling times them (a direction the views hardly constrain)
+    loop_sigma_floor_translation: float = 0.001  # metres
+    loop_sigma_floor_rotation_deg: float = 0.05
+    loop_sigma_ceiling: float = 100.0
     # loop edges are scaled by dynamic covariance scaling (Agarwal et al., ICRA 2013), the closed
     # form of switchable constraints: s = min(1, 2 phi / (phi + chi^2)), phi = 1 / sigma^2
     switch_prior_sigma: float = 1.0

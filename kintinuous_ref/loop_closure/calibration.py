@@ -129,6 +129,7 @@ class Candidate:
     true_overlap: float
     verdict: Verdict
     pose_error_m: float | None  # the dense alignment's translation against the truth
+    true_relative: np.ndarray  # (4, 4) the query in the match's camera frame, from the truth
 
     @property
     def label(self) -> bool | None:
@@ -148,9 +149,20 @@ class Candidate:
         right = self.pose_error_m is not None and self.pose_error_m < RIGHT_POSE
         return "right" if self.label and right else "wrong"
 
+    @property
+    def information_chi2(self) -> float | None:
+        """r^T H r for the dense pose's error r against the truth, in the pose graph's residual,
+        H the alignment's own per-pair information (`alignment_information`)."""
+        found, information = self.verdict.dense_pose, self.verdict.information
+        if found is None or information is None:
+            return None
+        residual = pose_residual(found, self.true_relative)
+        return float(residual @ information @ residual)
+
     def as_dict(self) -> dict:
         return {
             "group": self.group,
+            "information_chi2": self.information_chi2,
             "kind": self.kind,
             "query_frame": self.query_frame,
             "match_frame": self.match_frame,
@@ -181,8 +193,23 @@ def measure(
             error = float(np.linalg.norm(found[:3, 3] - truth[:3, 3]))
     apart = views_apart(match.pose, query.pose)
     return Candidate(
-        kind, query.frame, match.frame, *apart, true_overlap(query, match), verdict, error
+        kind, query.frame, match.frame, *apart, true_overlap(query, match), verdict, error, truth
     )
+
+
+def pose_residual(measured: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """The pose graph's residual [log R(E), t(E)] of E = measured^-1 true (pose_graph.py)."""
+    error = se3.inverse(measured) @ true
+    return np.concatenate([se3.rotation_log(error[:3, :3]), error[:3, 3]])
+
+
+def effective_pairs(candidates: list[Candidate]) -> float:
+    """n with n H the information that states the right candidates' errors against the
+    ground truth: the maximum likelihood scale of a Gaussian covariance, 6 / mean(r^T H r)
+    (`Candidate.information_chi2`), so that r^T (n H) r averages 6, its six degrees of freedom."""
+    values = [c.information_chi2 for c in candidates if c.group == "right"]
+    values = [v for v in values if v is not None and np.isfinite(v)]
+    return 6.0 / float(np.mean(values)) if values else float("nan")
 
 
 def there_and_back_candidates(

@@ -42,6 +42,7 @@ from kintinuous_ref.loop_closure.keyframes import Keyframe, is_new_keyframe, mak
 from kintinuous_ref.loop_closure.place_recognition import (
     REASONS,
     Verdict,
+    loop_covariance,
     match_descriptors,
     ranked_candidates,
     verify,
@@ -154,6 +155,9 @@ class LoopCloser:
         self, frame: int, keyframe: Keyframe, match: Keyframe, verdict: Verdict
     ) -> np.ndarray | None:
         settings = self.config.loop_closure
+        covariance = None
+        if settings.loop_covariance_from_alignment and verdict.information is not None:
+            covariance = loop_covariance(verdict.information, settings)
         self.graph.add_edge(
             match.node,
             keyframe.node,
@@ -161,6 +165,7 @@ class LoopCloser:
             settings.loop_sigma_translation,
             np.radians(settings.loop_sigma_rotation_deg),
             loop=True,
+            covariance=covariance,
         )
         solution = pose_graph.optimise(
             self.graph,

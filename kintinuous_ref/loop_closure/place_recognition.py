@@ -43,7 +43,7 @@ import numpy as np
 from kintinuous_ref import se3
 from kintinuous_ref.config import CombinedConfig, LoopClosureConfig, RgbdConfig, TrackingConfig
 from kintinuous_ref.loop_closure.keyframes import FIRST_KEPT_LEVEL, Keyframe
-from kintinuous_ref.odometry.combined import CombinedProblem
+from kintinuous_ref.odometry.combined import CombinedProblem, icp_scale, rgbd_scale
 from kintinuous_ref.odometry.fovis import absolute_orientation
 from kintinuous_ref.odometry.icp import IcpProblem
 from kintinuous_ref.odometry.rgbd import RgbdProblem
@@ -68,6 +68,9 @@ class Verdict:
     photometric_share: float | None = None
     correction: float | None = None  # metres the loop moves the new keyframe from odometry's pose
     relative: np.ndarray | None = None  # (4, 4) pose of the query in the match's camera frame
+    # (6, 6) information of the dense pose in the pose graph's residual ([rotation, translation]
+    # of Z^-1 T_match^-1 T_query), unscaled: `alignment_information`
+    information: np.ndarray | None = None
     dense_pose: np.ndarray | None = None  # (4, 4) what the dense alignment found, accepted or not
 
     @property
@@ -174,22 +177,7 @@ def dense_alignment(
     rgbd = rgbd or RgbdConfig()
     combined = combined or CombinedConfig()
     levels = min(len(config.icp_iterations), len(query.levels), len(match.levels))
-    icp = IcpProblem(
-        query.levels[:levels],
-        [(m.vertices, m.normals) for m in match.levels[:levels]],
-        np.eye(4),
-        distance_threshold=0.1,
-        angle_threshold_deg=20.0,
-    )
-    photometric = RgbdProblem(
-        match.levels[:levels],
-        query.levels[:levels],
-        np.eye(4),
-        rgbd.min_gradient[FIRST_KEPT_LEVEL:] or rgbd.min_gradient[-1:],
-        rgbd.max_depth_change,
-        rgbd.max_depth,
-        rgbd.gradient,
-    )
+    icp, photometric = _problems(query, match, levels, rgbd)
     problem = CombinedProblem.from_config(icp, photometric, combined)
     tracking = TrackingConfig()
     pose, reason = refine(
@@ -208,6 +196,94 @@ def dense_alignment(
     system = tight.system(0, pose)
     rmse = float(np.sqrt(system.cost / system.count)) if system.count else float("inf")
     return pose, "", rmse, tight.inlier_fraction(pose, 0)
+
+
+def _problems(
+    query: Keyframe, match: Keyframe, levels: int, rgbd: RgbdConfig
+) -> tuple[IcpProblem, RgbdProblem]:
+    """ICP (query points against the match's surface) and RGB-D (the match's intensities
+    warped into the query) over the first `levels` kept levels, both in the match's camera
+    frame: the pose they refine is the query in the match's frame."""
+    icp = IcpProblem(
+        query.levels[:levels],
+        [(m.vertices, m.normals) for m in match.levels[:levels]],
+        np.eye(4),
+        distance_threshold=0.1,
+        angle_threshold_deg=20.0,
+    )
+    photometric = RgbdProblem(
+        match.levels[:levels],
+        query.levels[:levels],
+        np.eye(4),
+        rgbd.min_gradient[FIRST_KEPT_LEVEL:] or rgbd.min_gradient[-1:],
+        rgbd.max_depth_change,
+        rgbd.max_depth,
+        rgbd.gradient,
+    )
+    return icp, photometric
+
+
+def adjoint(pose: np.ndarray) -> np.ndarray:
+    """Ad(T) (6, 6) for twists [omega, u]: T exp(xi) T^-1 = exp(Ad(T) xi)."""
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    out = np.zeros((6, 6))
+    out[:3, :3] = rotation
+    out[3:, 3:] = rotation
+    out[3:, :3] = se3.skew(translation) @ rotation
+    return out
+
+
+def alignment_information(
+    query: Keyframe, match: Keyframe, pose: np.ndarray, rgbd: RgbdConfig | None = None
+) -> np.ndarray:
+    """The information (6, 6) of a dense alignment's pose as its own final system states it,
+    per geometric pair: at the finest kept level, J^T W J of the ICP pairs divided by their
+    mean squared residual plus that of the RGB-D pixels divided by theirs (each term in units
+    of its own noise), divided by the number of ICP pairs and expressed in the pose graph's
+    residual. Per pair, so that it does not grow with the image size: the pairs' errors are
+    correlated (neighbouring pixels, one sensor's distortion), and a loop is as certain as a
+    few effective pairs (`loop_covariance`), not as all of them.
+
+    The alignment's increment is a left perturbation in the match's frame, Z' = exp(xi) Z; the
+    pose graph's residual of a loop edge is log(Z^-1 Z_graph), and at Z = exp(xi) Z_graph that
+    is -Ad(Z^-1) xi to first order. So information H of xi is Ad(Z)^T H Ad(Z) of the residual
+    (`residual_information`)."""
+    icp, photometric = _problems(query, match, 1, rgbd or RgbdConfig())
+    geometric, appearance = icp.system(0, pose), photometric.system(0, pose)
+    information = np.zeros((6, 6))
+    if geometric.count:
+        information += geometric.A / icp_scale(geometric) ** 2
+    if appearance.count:
+        information += appearance.A / rgbd_scale(appearance) ** 2
+    return residual_information(information / max(geometric.count, 1), pose)
+
+
+def residual_information(information: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Information of a left increment xi of `pose` (Z' = exp(xi) Z) as information of the pose
+    graph's residual log(Z^-1 Z_graph) = -Ad(Z^-1) xi: Ad(Z)^T H Ad(Z), symmetrised."""
+    change = adjoint(pose)
+    moved = change.T @ information @ change
+    return (moved + moved.T) / 2
+
+
+def loop_covariance(information: np.ndarray, config: LoopClosureConfig) -> np.ndarray:
+    """The covariance (6, 6, [rotation, translation]) a loop edge is given from its alignment's
+    per-pair information H (`alignment_information`): (`loop_effective_pairs` H)^-1, its
+    standard deviation in every direction kept between the floor
+    (`loop_sigma_floor_translation` / `_rotation_deg`: a noise-free synthetic alignment is not
+    infinitely certain) and `loop_sigma_ceiling` times it (a direction the views hardly
+    constrain is weak, not absent, and the matrix stays invertible). The bounds act on the
+    eigenvalues of the information in floor units, so on the combined directions of rotation
+    and translation that the alignment couples."""
+    floor = np.array([np.radians(config.loop_sigma_floor_rotation_deg)] * 3
+                     + [config.loop_sigma_floor_translation] * 3)  # fmt: skip
+    information = np.asarray(information, dtype=np.float64) * config.loop_effective_pairs
+    # in floor units u = D^-1 r, D = diag(floor): the information is D H D
+    scaled = floor[:, None] * information * floor[None, :]
+    values, vectors = np.linalg.eigh((scaled + scaled.T) / 2)
+    values = np.clip(values, 1.0 / config.loop_sigma_ceiling**2, 1.0)
+    in_floor_units = vectors @ np.diag(1.0 / values) @ vectors.T
+    return floor[:, None] * in_floor_units * floor[None, :]
 
 
 @dataclass
@@ -347,6 +423,8 @@ def verify(
         return verdict
     pose, failure, rmse, share = dense_alignment(query, match, motion, config)
     verdict.dense_pose = pose
+    if not failure:
+        verdict.information = alignment_information(query, match, pose)
     seen = overlap(query, match, pose, config.pair_distance)
     verdict.icp_rmse, verdict.icp_inlier_share = rmse, share
     verdict.visible_share = seen.visible_share
