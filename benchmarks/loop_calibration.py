@@ -9,8 +9,10 @@ played there and back at each stride; offset returns, each frame against the nea
 share no surface, most ORB matches first; and the synthetic `twins` walk. For each it records
 every check's statistic, the true overlap of the two views and how far the dense alignment
 ended from the true relative pose, then writes OUT/loop_calibration.json (every candidate, the
-settings, a summary per kind) and OUT/loop_calibration.png (each statistic, right against wrong
-candidates, with the thresholds). Skips with a message where redkitchen is absent.
+settings, a summary per kind, and the effective pairs of a loop's alignment that
+`loop_closure.loop_effective_pairs` is set from: calibration.effective_pairs) and
+OUT/loop_calibration.png (each statistic, right against wrong candidates, with the thresholds).
+Skips with a message where redkitchen is absent.
 """
 
 from __future__ import annotations
