@@ -262,7 +262,8 @@ class LoopClosureConfig:
     max_correction: float = 0.3
     max_correction_per_metre: float = 0.05
     # pose graph: standard deviations of the edges (odometry drifts ~1 cm and 0.5 degree per
-    # 0.3 m keyframe step on the synthetic scenes; a verified loop is as good as one step)
+    # 0.3 m keyframe step on the synthetic scenes); the loop sigmas only with
+    # loop_covariance_from_alignment off (a verified loop as good as one step)
     odometry_sigma_translation: float = 0.01  # metres
     odometry_sigma_rotation_deg: float = 0.5
     loop_sigma_translation: float = 0.01

@@ -3,7 +3,8 @@
 Per frame (`observe`, after odometry, before the frame is fused): when the camera has moved far
 enough a keyframe is taken and joined to the previous one by an odometry edge (their relative
 pose as tracked); its best-matching older keyframes are verified (place_recognition.py). An
-accepted loop becomes a switchable loop edge and the pose graph is solved (pose_graph.py). If
+accepted loop becomes a switchable loop edge, weighed by the covariance of its own dense
+alignment (place_recognition.loop_covariance), and the pose graph is solved (pose_graph.py). If
 the graph keeps the loop switched on, the current camera moves with its keyframe:
 C = K'_k K_k^-1, the correction `observe` returns. The pipeline applies it to the pose it fuses
 and re-centres the moving volume there (MovingVolume.recentre): what the window held, fused

@@ -30,7 +30,10 @@ Four stages, each of which can reject a candidate (the reason is counted, `Verdi
    but another place ("implausible correction").
 
 The motion found is the pose of the new keyframe in the old keyframe's camera frame: the loop
-edge of the pose graph.
+edge of the pose graph, with the covariance that the alignment's own final system states
+(`alignment_information`, scaled to a calibrated number of effective pairs by `loop_covariance`):
+a loop between views far apart, with fewer and worse-fitting pairs, weighs less than one
+between near views.
 """
 
 from __future__ import annotations
@@ -68,8 +71,9 @@ class Verdict:
     photometric_share: float | None = None
     correction: float | None = None  # metres the loop moves the new keyframe from odometry's pose
     relative: np.ndarray | None = None  # (4, 4) pose of the query in the match's camera frame
-    # (6, 6) information of the dense pose in the pose graph's residual ([rotation, translation]
-    # of Z^-1 T_match^-1 T_query), unscaled: `alignment_information`
+    # (6, 6) information of the dense pose per ICP pair, in the pose graph's residual
+    # ([rotation, translation] of Z^-1 T_match^-1 T_query): `alignment_information`; the loop
+    # edge's covariance is made from it by `loop_covariance`
     information: np.ndarray | None = None
     dense_pose: np.ndarray | None = None  # (4, 4) what the dense alignment found, accepted or not
 
