@@ -401,6 +401,11 @@ if REAL is not None and REAL.is_redkitchen:
 # - A loop measures only the sum of the odometry errors between its ends; the edges'
 #   covariances decide where the graph puts it, right only when they say where the tracker
 #   was weak.
+# - A loop's own covariance comes from its dense alignment's final system (J^T W J in units of
+#   each term's noise, moved into the pose graph's residual by the adjoint), scaled to the few
+#   effective pairs that real alignments are worth (`place_recognition.loop_covariance`,
+#   calibrated against the ground truth in docs/loop_closure.md): a loop between views far
+#   apart weighs less than one between near views.
 # - The deformation graph bends the map as rigidly and smoothly as its pinned points allow.
 # - In a full run (`kintinuous reconstruct DATASET --out DIR --loop-closure`) the three work
 #   together: on the `revisit` scenario (the default tracker, 160x120) the ATE falls from 72
