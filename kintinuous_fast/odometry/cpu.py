@@ -10,14 +10,11 @@ reference's trackers over them.
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Sequence
-
-import numpy as np
 
 from kintinuous_fast.odometry import STAGE_NAMES
 from kintinuous_ref import odometry as _reference
 from kintinuous_ref.camera import Intrinsics
-from kintinuous_ref.config import Config, TrackingConfig
+from kintinuous_ref.config import Config
 from kintinuous_ref.odometry import DenseTracker as DenseTracker
 from kintinuous_ref.odometry import FovisTracker as FovisTracker
 from kintinuous_ref.odometry import Systems, Tracker
@@ -26,37 +23,19 @@ from kintinuous_ref.odometry import estimate_dense as estimate_dense
 from kintinuous_ref.odometry import fovis_images as fovis_images
 from kintinuous_ref.odometry import is_repeated_frame as is_repeated_frame
 from kintinuous_ref.odometry import repeated_streams as repeated_streams
-from kintinuous_ref.odometry import solve as reference_solve
 from kintinuous_ref.odometry import stale_input as stale_input
 from kintinuous_ref.preprocess import model_pyramid as model_pyramid
 
 from .combined import CombinedProblem as CombinedProblem
 from .icp.cpu import IcpProblem as IcpProblem
-from .icp.cpu_joint import JOINT_STEP
 from .rgbd.cpu import RgbdProblem as RgbdProblem
+from .solve import refine as refine
 
 # __all__ (STAGE_NAMES): the reference's objects both targets export and this module's
 # functions. Beside them, the members of Systems (kintinuous_ref.odometry.Systems) that
 # kintinuous_ref.odometry imports rather than defines are imported here too: IcpProblem,
-# RgbdProblem, CombinedProblem and model_pyramid; `refine` is this module's.
+# RgbdProblem, CombinedProblem, model_pyramid and refine.
 __all__ = STAGE_NAMES
-
-
-def refine(
-    pose: np.ndarray,
-    system_at: Callable[[int, np.ndarray], reference_solve.LinearSystem],
-    iterations: Sequence[int],
-    min_count: int = 6,
-    converged: float = TrackingConfig.converged_step,
-    step: tuple[Callable, Callable] | None = None,
-) -> tuple[np.ndarray, str]:
-    """odometry.solve.refine (the reference's coarse-to-fine loop and compiled step) with the
-    joint loop's step (icp/cpu_joint.JOINT_STEP): where the system came from the joint loop, its
-    step was taken in the call that summed it, one compiled call an iteration instead of three;
-    the same functions on the same values, so the same poses."""
-    return reference_solve.refine(
-        pose, system_at, iterations, min_count, converged, step or JOINT_STEP
-    )
 
 
 def make_tracker(

@@ -17,7 +17,6 @@ the same, bit for bit, on any number of threads.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -28,13 +27,6 @@ from kintinuous_fast.odometry.rgbd.cpu import (
     _robust_scale,
     _rows_chunk,
     _work,
-)
-from kintinuous_fast.odometry.solve import (
-    SOLVED,
-    _increment,
-    _scaled_solution,
-    apply_increment,
-    solve,
 )
 from kintinuous_fast.odometry.sums import NV, SLOT_B, SLOT_COST, SLOT_COUNT
 from kintinuous_fast.odometry.sums.cpu import ALLOCATING_LOOP, partials
@@ -55,7 +47,7 @@ from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS
 
 from .cpu_block import icp_chunk
 
-__all__ = ["FUSED_WEIGHTINGS", "JOINT_STEP", "JointLevel", "SteppedSystem", "joint_system"]
+__all__ = ["FUSED_WEIGHTINGS", "JointLevel", "joint_system"]
 
 # The weightings whose joint system is computed here: the degeneracy-aware ones (the default
 # among them); the others are a scaling and a sum, left to the reference's joint_system.
@@ -184,17 +176,6 @@ def _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold):
     return a, b, icp_count + rgbd_count, cost
 
 
-@numba.njit(cache=True)
-def _joint_step(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold, pose):
-    """_joint_sums, and the Gauss-Newton step from `pose` that solve and apply_increment
-    (odometry/solve) would take with it, their compiled functions called in the same order on the
-    same values: (A, b, count, cost, status, xi, the updated pose; `pose` where not SOLVED)."""
-    a, b, count, cost = _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold)
-    status, xi, _ = _scaled_solution(a, b)
-    updated = _increment(xi, pose) if status == SOLVED else pose
-    return a, b, count, cost, status, xi, updated
-
-
 # ----------------------------------------------------------------------------------------------
 # Host side
 
@@ -205,6 +186,7 @@ class JointLevel:
     for all of the level's iterations."""
 
     def __init__(self, icp, rgbd, level: int) -> None:  # noqa: ANN001 (the CPU's problems)
+        self.level = level  # named in benchmarks/warm_profile.py's per-level loop times
         self.icp = icp
         self.points = icp.points(level)
         self.model = icp.model(level)
@@ -217,17 +199,13 @@ class JointLevel:
         self.parts = self.icp_out.shape[0] + 2 * self.sums.shape[0]
         self.corresponded = np.zeros(1, dtype=np.int64)
         self.items = self.points.shape[1] + interest
-        self.robust = icp.robust
 
     def system(self, pose: np.ndarray, rgbd_weight: float, threshold: float) -> LinearSystem:
-        """The joint system at `pose` (combined.joint_system's degeneracy-aware branch), with
-        the step from `pose` already taken (SteppedSystem)."""
-        pose_array, to_model, dist2, cos_min = self.icp.constants(pose)
+        """The joint system at `pose` (combined.joint_system's degeneracy-aware branch)."""
+        pose, to_model, dist2, cos_min = self.icp.constants(pose)
         limits = (dist2, cos_min)
-        model_vertices, model_normals = self.model
-        icp_terms = (self.points, pose_array, to_model, model_vertices, model_normals)
-        icp_terms = (*icp_terms, self.camera, limits, self.robust)
-        rgbd_terms = (self.columns, self.warp_terms(pose_array), self.row_terms)
+        icp_terms = (self.points, pose, to_model, *self.model, self.camera, limits, self.icp.robust)
+        rgbd_terms = (self.columns, self.warp_terms(pose), self.row_terms)
         self.corresponded[0] = 0
         run_parallel(
             _joint_loop,
@@ -242,62 +220,16 @@ class JointLevel:
             parts=self.parts,
             items=self.items,
         )
-        centre = np.ascontiguousarray(pose_array[:3, 3])
-        a, b, count, cost, status, xi, updated = _joint_step(
+        centre = np.ascontiguousarray(pose[:3, 3], dtype=np.float64)
+        a, b, count, cost = _joint_sums(
             self.icp_out,
             self.sums,
             self.rgbd_out,
             float(rgbd_weight),
             centre,
             float(threshold),
-            pose_array,
         )
-        return SteppedSystem(a, b, count, cost, status, xi, pose, updated)
-
-
-@dataclass
-class SteppedSystem(LinearSystem):
-    """A LinearSystem with the Gauss-Newton step from the pose it was built at already taken,
-    in the compiled call that summed it (_joint_step): `status` and `xi` of solve's
-    _scaled_solution, `updated` = apply_increment(xi, pose). JOINT_STEP uses them in place of
-    two more compiled calls per iteration."""
-
-    status: int = SOLVED
-    xi: np.ndarray | None = None
-    pose: np.ndarray | None = None
-    updated: np.ndarray | None = None
-
-
-# The step solve_stepped handed out last: (xi, pose, updated pose) for apply_stepped.
-_handed_out: list[tuple] = [()]
-
-
-def solve_stepped(system: LinearSystem, min_count: int = 6) -> tuple[np.ndarray | None, str]:
-    """odometry.solve.solve, from the step a SteppedSystem has taken where it has one (solved,
-    enough pairs); any other system, and every failure with its reason, from solve itself."""
-    if (
-        isinstance(system, SteppedSystem)
-        and system.status == SOLVED
-        and system.count >= min_count
-        and system.updated is not None
-    ):
-        _handed_out[0] = (system.xi, system.pose, system.updated)
-        return system.xi, ""
-    return solve(system, min_count)
-
-
-def apply_stepped(xi: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """odometry.solve.apply_increment: the pose solve_stepped's system computed when called with
-    the very increment and pose it was built at (refine's order), else apply_increment."""
-    handed_out = _handed_out[0]
-    if handed_out and xi is handed_out[0] and pose is handed_out[1]:
-        _handed_out[0] = ()
-        return handed_out[2]
-    return apply_increment(xi, pose)
-
-
-# refine's `step` (solve, apply_increment) for the CPU's trackers.
-JOINT_STEP = (solve_stepped, apply_stepped)
+        return LinearSystem(a, b, count, cost)
 
 
 def joint_system(
