@@ -10,7 +10,7 @@ absent. The offset return also passes views of the way out again (it retraces th
 frame 296 to 96); at this size the loop it closes is one of those, and the offset views are
 checked at their true poses in test_loop_calibration.py. At 320x240 it also closes a loop
 between views 24 cm and 11 degrees apart, whose alignment is centimetres off: the last test
-runs it there (30-40 s) with each loop weighed by its own alignment's covariance
+runs it there (23-31 s) with each loop weighed by its own alignment's covariance
 (docs/loop_closure.md, "A loop's covariance from its alignment")."""
 
 from __future__ import annotations
