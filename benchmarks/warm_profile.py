@@ -91,6 +91,9 @@ class LoopClock:
 
     def __init__(self) -> None:
         self.runs: list[list[dict[str, list[float]]]] = []
+        # the time between iterations of a level: (level, seconds), the last call's (level, end)
+        self.between: list[tuple[int, float]] = []
+        self.last_iteration: tuple[int, float] | None = None
 
     def frames(self, frames: Iterable[Any]) -> Iterator[Any]:
         """`frames`, opening a new record for each: the loops called until the pipeline asks
@@ -99,6 +102,13 @@ class LoopClock:
         for frame in frames:
             self.runs[-1].append(defaultdict(list))
             yield frame
+
+    def iteration(self, level: int, started: float, ended: float) -> None:
+        """Count a joint-loop call of `level` from `started` to `ended` (perf_counter): the
+        time since the previous call of the same level is host time between iterations."""
+        if self.last_iteration is not None and self.last_iteration[0] == level:
+            self.between.append((level, started - self.last_iteration[1]))
+        self.last_iteration = (level, ended)
 
     def add(self, name: str, seconds: float) -> None:
         """Count a call of loop `name` to the frame under way (none before the first frame)."""
@@ -110,16 +120,30 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     """Run the benchmark with every kintinuous_fast module's run_parallel timed (the cpu loops
     are called through it) and return loop_report's summary: timing the calls from outside the
     loops includes the helper threads' hand-over, which is what a thread count changes."""
+    import kintinuous_fast.odometry.icp.cpu_joint as joint
     import kintinuous_fast.targets.cpu as threads
     from kintinuous_ref import pipeline
 
-    untimed, unframed = threads.run_parallel, pipeline.run
+    untimed, unframed, unlevelled = threads.run_parallel, pipeline.run, joint.JointLevel.system
     clock = LoopClock()
+    level: list[int | None] = [None]  # the joint loop's level while its system is computed
 
     def timed(loop, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
         started = time.perf_counter()
         untimed(loop, *args, **options)
-        clock.add(f"{loop.__module__.split('.')[1]}.{loop.__name__}", time.perf_counter() - started)
+        ended = time.perf_counter()
+        name = f"{loop.__module__.split('.')[1]}.{loop.__name__}"
+        if loop is joint._joint_loop and level[0] is not None:
+            name = f"{name} L{level[0]}"
+            clock.iteration(level[0], started, ended)
+        clock.add(name, ended - started)
+
+    def levelled(self, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
+        level[0] = self.level
+        try:
+            return unlevelled(self, *args, **options)
+        finally:
+            level[0] = None
 
     def framed(frames, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
         return unframed(clock.frames(frames), *args, **options)
@@ -129,16 +153,23 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     for module in patched:
         module.run_parallel = timed
     pipeline.run = framed
+    joint.JointLevel.system = levelled
     try:
         result = benchmark(dataset, frames=frames, **run)
     finally:
         pipeline.run = unframed
+        joint.JointLevel.system = unlevelled
         for module in patched:
             module.run_parallel = untimed
     medians = {stage: t["median"] for stage, t in result["timing_ms"].items()}
     # The benchmark's last run is the timed one; its first frame (no model) is left out, as
     # from the stages' statistics.
-    return loop_report(medians, clock.runs[-1][1:])
+    report = loop_report(medians, clock.runs[-1][1:])
+    report["between_iterations_us"] = {
+        f"L{lv}": float(np.median([1e6 * s for at, s in clock.between if at == lv]))
+        for lv in sorted({at for at, _ in clock.between})
+    }
+    return report
 
 
 def loop_report(medians: dict[str, float], frames: list[dict[str, list[float]]]) -> dict[str, Any]:
@@ -203,6 +234,12 @@ def print_loop_report(report: dict[str, Any]) -> None:
         print(f"{stage:12s} loops {split['loops_ms']:7.2f}  outside {split['outside_ms']:7.2f}")
     total = medians["total"]
     print(f"all loops {report['loops_ms']:.2f} ms of a median frame of {total:.2f} ms")
+    between = report.get("between_iterations_us", {})
+    if between:
+        print(
+            "host time between two Gauss-Newton iterations of a level (median us): "
+            + ", ".join(f"{level} {us:.0f}" for level, us in between.items())
+        )
 
 
 if __name__ == "__main__":
