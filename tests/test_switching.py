@@ -103,3 +103,14 @@ def test_the_rule_is_a_checked_setting():
     assert with_overrides(Config(), {"fovis.switch_rule": "vector"}).fovis.switch_rule == "vector"
     with pytest.raises(ConfigError, match="switch_rule"):
         with_overrides(Config(), {"fovis.switch_rule": "angle"})
+
+
+def test_the_dense_start_is_a_checked_setting():
+    from kintinuous_ref.config import Config, with_overrides
+
+    assert Config().fovis.dense_from_fovis is True  # measured: docs/odometry.md
+    assert (
+        with_overrides(Config(), {"fovis.dense_from_fovis": False}).fovis.dense_from_fovis is False
+    )
+    with pytest.raises(ConfigError, match="dense_from_fovis"):
+        with_overrides(Config(), {"fovis.dense_from_fovis": "fovis"})

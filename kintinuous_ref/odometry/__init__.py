@@ -5,7 +5,8 @@
     icp+rgbd       both in one joint system per iteration (combined.py), the default
     fovis          sparse FAST-feature visual odometry (fovis.py)
     fovis/X        FOVIS switching (switching.py, paper V-A): X's increment unless FOVIS disagrees
-                   about the translation length by more than mu
+                   about the translation length by more than mu; X starts from FOVIS's increment
+                   (config.fovis.dense_from_fovis) or from the previous pose
 
 Every tracker returns a TrackingResult. Failure is expected and never raises: a singular system,
 too few correspondences, too small a fraction of inliers, or an implausible jump (config.tracking)
@@ -392,7 +393,8 @@ class DenseTracker:
 
 
 class FovisTracker:
-    """FOVIS alone, or FOVIS switching with a dense estimator (paper V-A)."""
+    """FOVIS alone, or FOVIS switching with a dense estimator (paper V-A), which starts from
+    FOVIS's increment when FOVIS succeeded and config.fovis.dense_from_fovis is on."""
 
     def __init__(
         self, method: str, config: Config, camera: Intrinsics, systems: Systems | None = None
