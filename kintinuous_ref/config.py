@@ -223,8 +223,9 @@ class LoopClosureConfig:
     # sparse 3D-3D RANSAC on the depth: a first cut, for the time the dense check costs. Wrong
     # motions reach 47 inliers and 43 % of the matches, right ones (of offset views) have as few
     # as 4 and 22 %; with these two cuts at 3 and 0 no more wrong candidates of the calibration
-    # pass the dense and photometric checks. At 4 and 10 % the offset return at 160x120 closed a
-    # loop 38 frames apart that left its return error 4 mm larger, so the cuts stay at 6 and 20 %
+    # pass the dense and photometric checks. At 4 and 10 % the offset return at 160x120 closes
+    # its offset loop (weighed by its alignment's covariance, the return error then falls), but
+    # the tracked `twins` walk accepts a loop, so the cuts stay at 6 and 20 %
     ransac_iterations: int = 300
     ransac_inlier_distance: float = 0.05  # metres between matched 3D points after alignment
     min_ransac_inliers: int = 6
