@@ -15,13 +15,13 @@ and the like work too; the desk's orbit keeps looking at the table, so its image
 Each case runs the whole pipeline (kintinuous_ref.pipeline, moving volume, default
 configuration) with `fovis`, `icp+rgbd` and `fovis/icp+rgbd` (the paper's switching) from the
 first ground-truth pose, and prints the ATE RMSE (kintinuous_ref.metrics) and the tracking
-failures of each; for a switching method (`fovis/X`) also, per step, the errors of FOVIS's and
-the dense estimate's increments against the ground truth's, where the dense one started (`dense*`:
-from FOVIS's increment), the two disagreements the rules measure and which increment was used.
-Then, for FOVIS alone on each pair of consecutive frames: the corners with depth in both frames,
-the mutually consistent matches, the consistency clique, the inliers, the error against the
-ground truth's increment and, when it failed, why. Steps are named by the recording's frame
-numbers. A case whose real data is absent is skipped.
+failures of each; for a switching method (`fovis/X`) also, per step, the errors of FOVIS's and the
+dense estimate's increments against the ground truth's, where the dense one started (`dense*`: from
+FOVIS's increment, or the last good one where FOVIS failed), the two disagreements the rules
+measure and which increment was used. Then, for FOVIS alone on each pair of consecutive frames: the
+corners with depth in both frames, the mutually consistent matches, the consistency clique, the
+inliers, the error against the ground truth's increment and, when it failed, why. Steps are named
+by the recording's frame numbers. A case whose real data is absent is skipped.
 """
 
 from __future__ import annotations

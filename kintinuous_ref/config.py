@@ -176,9 +176,10 @@ class FovisConfig:
     switch_rule: str = "length"
     # Where the dense half of fovis/X starts its Gauss-Newton: True, FOVIS's increment when
     # FOVIS succeeded, so that the switching compares a dense refinement of FOVIS's motion with
-    # FOVIS's own; False, the previous pose (the dense trackers' start, section IV-A.3; the
-    # paper does not say where its switched estimator starts). fovis/icp+rgbd on redkitchen
-    # every 20th frame: 18.7 mm with True, 71.5 mm with False; on every frame 22.2 mm with both
+    # FOVIS's own, and the last good frame's increment where FOVIS failed; False, the previous
+    # pose (the dense trackers' start, section IV-A.3; the paper does not say where its
+    # switched estimator starts). fovis/icp+rgbd on redkitchen every 20th frame: 18.7 mm with
+    # True, 71.5 mm with False; every 30th 83.7 and 116.9 mm; on every frame 22.2 mm with both
     # (docs/odometry.md, "Starting the dense estimate from FOVIS")
     dense_from_fovis: bool = True
     fast_threshold: int = 20

@@ -114,3 +114,25 @@ def test_the_dense_start_is_a_checked_setting():
     )
     with pytest.raises(ConfigError, match="dense_from_fovis"):
         with_overrides(Config(), {"fovis.dense_from_fovis": "fovis"})
+
+
+def test_the_dense_half_starts_from_fovis_else_from_the_last_good_increment():
+    from kintinuous_ref.camera import Intrinsics
+    from kintinuous_ref.config import Config, with_overrides
+    from kintinuous_ref.odometry import FovisTracker
+
+    camera = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    fovis_step, last_step = np.eye(4), np.eye(4)
+    fovis_step[:3, 3] = (0.2, 0.0, 0.05)
+    last_step[:3, 3] = (0.15, 0.01, 0.0)
+    tracker = FovisTracker("fovis/icp+rgbd", Config(), camera)
+    first_pose = np.eye(4)
+    tracker.recovery.success(first_pose @ last_step, first_pose, "icp+rgbd")  # a good frame
+    assert np.array_equal(tracker.dense_start(fovis_step, True), fovis_step)
+    np.testing.assert_allclose(tracker.dense_start(fovis_step, False), last_step, atol=1e-15)
+    tracker.recovery.failure(first_pose, "lost")  # a failed frame: no motion to carry on
+    assert np.array_equal(tracker.dense_start(fovis_step, False), np.eye(4))
+    paper = FovisTracker(
+        "fovis/icp+rgbd", with_overrides(Config(), {"fovis.dense_from_fovis": False}), camera
+    )
+    assert paper.dense_start(fovis_step, True) is None  # the previous pose, as the paper's

@@ -394,7 +394,8 @@ class DenseTracker:
 
 class FovisTracker:
     """FOVIS alone, or FOVIS switching with a dense estimator (paper V-A), which starts from
-    FOVIS's increment when FOVIS succeeded and config.fovis.dense_from_fovis is on."""
+    FOVIS's increment (or, where FOVIS failed, the last good one) when
+    config.fovis.dense_from_fovis is on."""
 
     def __init__(
         self, method: str, config: Config, camera: Intrinsics, systems: Systems | None = None
@@ -437,11 +438,13 @@ class FovisTracker:
         return self.switch(previous, current, model, previous_pose, sparse, fovis_ok, fovis_reason)
 
     def dense_start(self, fovis_increment: np.ndarray, fovis_ok: bool) -> np.ndarray | None:
-        """The increment the dense estimate starts from: FOVIS's when it succeeded and
-        config.fovis.dense_from_fovis is on, else None (the previous pose, the paper's)."""
-        if fovis_ok and self.config.fovis.dense_from_fovis:
-            return fovis_increment
-        return None
+        """The increment the dense estimate starts from with config.fovis.dense_from_fovis on:
+        FOVIS's when it succeeded, else the last good frame's (constant velocity: a large step
+        that FOVIS misses is still more like the one before than like no motion). Off: None,
+        the previous pose (the paper's)."""
+        if not self.config.fovis.dense_from_fovis:
+            return None
+        return fovis_increment if fovis_ok else self.recovery.last_increment
 
     def switch(
         self,
