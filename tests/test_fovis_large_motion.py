@@ -124,17 +124,23 @@ def test_the_loop_path_at_two_hertz_is_tracked():
     assert translation_mm < 15.0 and rotation_deg < 0.3
 
 
-def test_switching_takes_fovis_when_the_dense_estimate_is_lost():
-    """Paper V-A: the FOVIS increment is used when the translation lengths differ by more than
-    mu = 3 cm. On a 12 degree pan with a 10 cm step ICP+RGB-D from the previous pose (the
-    paper's start, fovis.dense_from_fovis off) converges to a wrong motion (tens of centimetres
-    off); `fovis/icp+rgbd` must take FOVIS's increment and land on the true pose."""
+def large_pan() -> tuple:
+    """The noisy desk's first view and one 12 degrees and 10 cm away: (scenario, first pose,
+    the true increment, the two preprocessed frames, a perfect model of the first)."""
     scenario = make_scenario("desk", frames=30, noise=True)
     start = scenario.trajectory.poses[0]
     increment = se3.exp(np.array(LARGE_MOTIONS["12 deg pan, 10 cm sideways"]))
     first = preprocess_view(scenario, start)
     second = preprocess_view(scenario, start @ increment)
-    model = model_from_frame(first, start)
+    return scenario, start, increment, (first, second), model_from_frame(first, start)
+
+
+def test_switching_takes_fovis_when_the_dense_estimate_is_lost():
+    """Paper V-A: the FOVIS increment is used when the translation lengths differ by more than
+    mu = 3 cm. On a 12 degree pan with a 10 cm step ICP+RGB-D from the previous pose (the
+    paper's start, fovis.dense_from_fovis off) converges to a wrong motion (tens of centimetres
+    off); `fovis/icp+rgbd` must take FOVIS's increment and land on the true pose."""
+    scenario, start, increment, (first, second), model = large_pan()
     config = with_overrides(Config(), {"fovis.dense_from_fovis": False})
 
     dense = make_tracker("icp+rgbd", config, scenario.camera).track(first, second, model, start)
@@ -209,12 +215,7 @@ def test_the_seeded_dense_estimate_refines_fovis_on_a_large_step():
     and the cpu backend's tracker takes the same path to the same pose as the reference's."""
     from kintinuous_fast.odometry import cpu
 
-    scenario = make_scenario("desk", frames=30, noise=True)
-    start = scenario.trajectory.poses[0]
-    increment = se3.exp(np.array(LARGE_MOTIONS["12 deg pan, 10 cm sideways"]))
-    first = preprocess_view(scenario, start)
-    second = preprocess_view(scenario, start @ increment)
-    model = model_from_frame(first, start)
+    scenario, start, increment, (first, second), model = large_pan()
     config = with_overrides(Config(), SEEDED)
 
     reference = make_tracker("fovis/icp+rgbd", config, scenario.camera)

@@ -240,7 +240,9 @@ def _cast(
     has_colour = colour and volume.colour is not None
     colour_volume = volume.colour if has_colour else _no_colour_volume()
     pose = np.asarray(pose, dtype=np.float64)
-    view = _view_arguments(*view_constants(volume, pose, camera))
+    # the volume's origin (changed by a shift) is read from volume_placement, the pose from a
+    # device matrix (it changes every frame); the intrinsics are fixed for the run
+    intrinsics, rotation, origin, _, voxel_size = view_constants(volume, pose, camera)
     cast_grid = grid_2d(-(-shape[0] // stride), -(-shape[1] // stride))
     _raycast_kernel[cast_grid, BLOCK_2D](
         volume.tsdf_weight,
@@ -249,7 +251,9 @@ def _cast(
         volume_placement(volume),
         empty_space(volume) if skip_empty else _map_that_skips_nothing(),
         _map_that_skips_nothing(),  # no finer level
-        *view,
+        tuple(float(x) for x in intrinsics),
+        constants_to_device("raycast pose", np.vstack([rotation, origin])),
+        voxel_size,
         STEP_FRACTION * volume.truncation,
         vertices,
         normals,
@@ -257,22 +261,3 @@ def _cast(
         int(stride),
     )
     return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)
-
-
-def _view_arguments(
-    camera: np.ndarray,
-    rotation: np.ndarray,
-    origin: np.ndarray,
-    volume_origin: np.ndarray,
-    voxel_size: float,
-) -> tuple:
-    """view_constants as the kernel takes them: the intrinsics as a tuple of floats (a launch
-    parameter, fixed for the run), the pose's rotation and centre as one (4, 3) device matrix
-    (constants_to_device), which changes every frame. The volume's origin, which changes at a
-    shift, is read from volume_placement."""
-    del volume_origin  # in volume_placement
-    return (
-        tuple(float(x) for x in camera),
-        constants_to_device("raycast pose", np.vstack([rotation, origin])),
-        voxel_size,
-    )
