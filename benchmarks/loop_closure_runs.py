@@ -9,7 +9,9 @@ synthetic ground-truth surface) OUT/groundtruth, and, where open3d is installed,
 frame-to-model dense SLAM on the same frames with the same voxel size (OUT/open3d, its mesh in
 OUT/open3d/mesh.ply; it closes no loops), then prints and writes OUT/summary.json: ATE of
 each trajectory (the closure run's corrected and uncorrected ones too) and its return error
-(the last pose relative to the first against the truth's), the loop closure report, and with
+(the last pose relative to the first against the truth's), the loop closure report (every
+verified candidate's statistics and each closure, with how far apart the ground truth puts the
+two keyframes' views), and with
 scene.ply the mesh's mean distance to the true surface and the share of its vertices more than
 3 cm away (a doubled surface shows there).
 """
@@ -26,6 +28,7 @@ import pipeline_vs_open3d  # benchmarks/, beside this file
 from kintinuous_ref import metrics, se3
 from kintinuous_ref.config import Config, VolumeConfig, with_overrides
 from kintinuous_ref.datasets import tum
+from kintinuous_ref.loop_closure.calibration import views_apart
 from kintinuous_ref.program import reconstruct
 
 
@@ -45,6 +48,22 @@ def return_error(path: Path, truth: tum.Trajectory) -> dict[str, float]:
     return {
         "translation_m": float(np.linalg.norm(error[:3, 3])),
         "rotation_deg": float(np.degrees(se3.rotation_angle(error[:3, :3]))),
+    }
+
+
+def truly_apart(frames: list[int], truth: tum.Trajectory) -> dict[str, float]:
+    """How far apart the ground truth puts two frames' views (metres, degrees)."""
+    metres, degrees = views_apart(truth.poses[frames[0]], truth.poses[frames[1]])
+    return {"true_apart_m": metres, "true_apart_deg": degrees}
+
+
+def with_truth(loops: dict, truth: tum.Trajectory) -> dict:
+    """A report's `loop_closures` with each verified candidate and each closure given the true
+    distance and angle between its two keyframes' views: which loops join views far apart."""
+    return {
+        **loops,
+        "verified": [{**v, **truly_apart(v["frames"], truth)} for v in loops["verified"]],
+        "closures": [{**c, **truly_apart(c["keyframe_frames"], truth)} for c in loops["closures"]],
     }
 
 
@@ -122,8 +141,7 @@ def main() -> None:
             uncorrected = out / "trajectory_uncorrected.txt"
             entry["ate_uncorrected_m"] = ate(uncorrected, truth)
             entry["return_uncorrected"] = return_error(uncorrected, truth)
-            entry["loop_closures"] = {k: v for k, v in report["loop_closures"].items()
-                                      if k != "verified"}  # fmt: skip
+            entry["loop_closures"] = with_truth(report["loop_closures"], truth)
             entry["map_deformation"] = report.get("map_deformation")
             entry["loop_closure_ms"] = report["timing_ms"].get("loop_closure")
         if scene.exists():

@@ -146,11 +146,17 @@ class LoopCloser:
         for candidate, _ in ranked_candidates(keyframe, self.keyframes[:-1], settings):
             matches = match_descriptors(keyframe.descriptors, candidate.descriptors,
                                         settings.match_ratio)  # fmt: skip
-            verdict = verify(keyframe, candidate, settings, self.rng, matches)
+            verdict = verify(keyframe, candidate, settings, self.rng, matches,
+                             prior=self._odometry_relative(candidate, keyframe))  # fmt: skip
             self.verdicts.append(verdict)
             if verdict.accepted:
                 return self._close(frame, keyframe, candidate, verdict)
         return None
+
+    def _odometry_relative(self, match: Keyframe, query: Keyframe) -> np.ndarray:
+        """The query in the match's camera frame as the pose graph's latest solution has the
+        match and tracking the query (tracking carries on in the frame of that solution)."""
+        return se3.inverse(self.graph.poses[match.node]) @ query.pose
 
     def _close(
         self, frame: int, keyframe: Keyframe, match: Keyframe, verdict: Verdict
@@ -350,5 +356,12 @@ class LoopCloser:
                 }
                 for c in self.closures
             ],
-            "verified": [v.as_dict() for v in self.verdicts if v.reason != "few matches"][:100],
+            "verified": [
+                {
+                    **v.as_dict(),
+                    "frames": [self.keyframes[v.match].frame, self.keyframes[v.query].frame],
+                }
+                for v in self.verdicts
+                if v.reason != "few matches"
+            ][:100],
         }

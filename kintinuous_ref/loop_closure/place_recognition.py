@@ -12,7 +12,11 @@ Four stages, each of which can reject a candidate (the reason is counted, `Verdi
    rigid motion: RANSAC over minimal sets of 3 matches, each solved in closed form (Horn /
    Umeyama), keeping the motion with the most matches within `ransac_inlier_distance`; then
    re-solved on all its inliers. Too few inliers, or too small a share of the matches, is
-   "geometry".
+   "geometry", unless the relative pose odometry gives the two keyframes is at hand (a tracked
+   run, `dense_from_odometry`): the dense stage then starts from that instead. Views 15-25
+   degrees apart keep too few ORB inliers although they overlap, and from a start within the
+   odometry's drift the dense alignment ends where it ends from the true pose; the later
+   checks judge the loop as they judge any other.
 3. **Geometry and appearance, dense.** From that motion, the tracker's own ICP+RGB-D
    (odometry/combined.py: point-to-plane ICP and photometric error in one system) aligns the new
    keyframe to the old one, coarse to fine over the kept pyramid levels. ICP alone slid a few
@@ -76,6 +80,7 @@ class Verdict:
     # edge's covariance is made from it by `loop_covariance`
     information: np.ndarray | None = None
     dense_pose: np.ndarray | None = None  # (4, 4) what the dense alignment found, accepted or not
+    dense_start: str = "ransac"  # where the dense alignment started: "ransac" or "odometry"
 
     @property
     def dense_angle_deg(self) -> float | None:
@@ -101,6 +106,7 @@ class Verdict:
             "icp_overlap_share": self.icp_overlap_share,
             "photometric_share": self.photometric_share,
             "correction_m": self.correction,
+            "dense_start": self.dense_start,
         }
         return {
             key: None if isinstance(value, float) and not np.isfinite(value) else value
@@ -399,10 +405,15 @@ def verify(
     rng: np.random.Generator,
     matches: tuple[np.ndarray, np.ndarray] | None = None,
     every_check: bool = False,
+    prior: np.ndarray | None = None,
+    from_prior: bool = False,
 ) -> Verdict:
     """Stages 1-4 of the module docstring for one candidate pair. The first stage that fails
     rejects it and, unless `every_check` (for calibration: every statistic measured), the rest
-    are not run."""
+    are not run. `prior` is the query in the match's camera frame as odometry has it: where the
+    sparse stage finds too few inliers, the dense alignment starts from it instead of being
+    refused (`dense_from_odometry`), and with `from_prior` it starts from it whatever the sparse
+    stage found (to calibrate that start)."""
     iq, im = matches or match_descriptors(query.descriptors, match.descriptors, config.match_ratio)
     verdict = Verdict(query.node, match.node, False, matches=len(iq))
 
@@ -420,10 +431,13 @@ def verify(
     )
     verdict.ransac_inliers = int(inliers.sum())
     verdict.ransac_share = verdict.ransac_inliers / max(len(iq), 1)
-    if (
-        verdict.ransac_inliers < config.min_ransac_inliers
-        or verdict.ransac_share < config.min_ransac_share
-    ) and reject("geometry"):
+    sparse = (
+        verdict.ransac_inliers >= config.min_ransac_inliers
+        and verdict.ransac_share >= config.min_ransac_share
+    )
+    if prior is not None and (from_prior or (not sparse and config.dense_from_odometry)):
+        motion, verdict.dense_start = prior, "odometry"
+    elif not sparse and reject("geometry"):
         return verdict
     pose, failure, rmse, share = dense_alignment(query, match, motion, config)
     verdict.dense_pose = pose
