@@ -7,11 +7,12 @@ ground truth's) falls below that of the same run's uncorrected trajectory.
 Small on purpose, to keep each run under a minute on a 2-core machine: 160x120 images, a 3 m
 volume at 128^3, and at stride 2 the first 200 of the 300 frames. Skipped where redkitchen is
 absent. The offset return also passes views of the way out again (it retraces the path from
-frame 296 to 96); at this size the loop it closes is one of those, and the offset views are
-checked at their true poses in test_loop_calibration.py. At 320x240 it also closes a loop
-between views 24 cm and 11 degrees apart, whose alignment is centimetres off: the last test
-runs it there (23-31 s) with each loop weighed by its own alignment's covariance
-(docs/loop_closure.md, "A loop's covariance from its alignment")."""
+frame 296 to 96), so some of its loops join near views. At 320x240 it closes a loop between
+views 24 cm and 11 degrees apart, whose alignment is centimetres off (23-31 s), with each loop
+weighed by its own alignment's covariance (docs/loop_closure.md, "A loop's covariance from its
+alignment"). The way out from frame 120 closes a loop between views 41 cm and 18.8 degrees
+apart, whose alignment starts from odometry's relative pose (docs/loop_closure.md, "Closing
+loops between views far apart")."""
 
 from __future__ import annotations
 
