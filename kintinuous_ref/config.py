@@ -226,16 +226,17 @@ class LoopClosureConfig:
     # as 4 and 22 %; with these two cuts at 3 and 0 no more wrong candidates of the calibration
     # pass the dense and photometric checks. At 4 and 10 % the offset return at 160x120 closes
     # its offset loop (weighed by its alignment's covariance, the return error then falls), but
-    # the tracked `twins` walk accepts a loop, so the cuts stay at 6 and 20 %
+    # the tracked `twins` walk accepts a loop (a true one: two views of one wall 2.75 m apart),
+    # so the cuts stay at 6 and 20 % and dense_from_odometry closes such loops instead
     ransac_iterations: int = 300
     ransac_inlier_distance: float = 0.05  # metres between matched 3D points after alignment
     min_ransac_inliers: int = 6
     min_ransac_share: float = 0.2  # inliers per match
     # Where the sparse cut refuses a candidate, start the dense alignment from the relative pose
     # odometry gives the two keyframes instead: views 15-25 degrees apart keep too few ORB
-    # inliers (redkitchen at 320x240: 3-5 of 17-21 matches) although they overlap, and from
-    # that start the alignment ends where it ends from the true pose (the dense, photometric
-    # and plausibility checks and the pose graph's consistency test still judge the loop)
+    # inliers (redkitchen: 3-5 of 17-21 matches) although they overlap, and from that start
+    # the alignment ends where it ends from the true pose (the dense, photometric and
+    # plausibility checks and the pose graph's consistency test still judge the loop)
     dense_from_odometry: bool = True
     # dense refinement (the tracker's ICP+RGB-D of the two frames) and the acceptance test
     icp_iterations: tuple[int, ...] = (10, 10, 10)  # pyramid levels 1.., finest to coarsest
