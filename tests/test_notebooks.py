@@ -1,14 +1,15 @@
 """The course builds the README's way, and every lesson in it runs without an error.
 
 The lessons are jupytext percent-format .py files (readable diffs). The module builds the course
-once, with `kintinuous course`'s own function (kintinuous_ref.program.course.build_course): each
-lesson converted to an .ipynb in a temporary folder, executed there by nbclient in a fresh
-kernel and rendered to HTML, so that CI runs each lesson once, as a student does. The tests then
-read what it wrote. The numbers each notebook shows are checked inside the notebook itself
-(assert cells against synthetic ground truth, and np.testing.assert_allclose of kintinuous_fast
-against kintinuous_ref), so any error output fails its lesson; on top, each must show at least
-two pictures, in the .ipynb and in its HTML page (under MPLBACKEND=Agg, which would drop them if
-a notebook relied on the user's backend), and end with a summary and exercises.
+once, with `kintinuous course`'s own function (kintinuous_ref.program.course.build_course), one
+lesson per core as the command does: each lesson converted to an .ipynb in a temporary folder,
+executed there by nbclient in a fresh kernel and rendered to HTML, so that CI runs each lesson
+once, as a student does. The tests then read what it wrote. The numbers each notebook shows
+are checked inside the notebook itself (assert cells against synthetic ground truth, and
+np.testing.assert_allclose of kintinuous_fast against kintinuous_ref), so any error output fails
+its lesson; on top, each must show at least two pictures, in the .ipynb and in its HTML page
+(under MPLBACKEND=Agg, which would drop them if a notebook relied on the user's backend), and
+end with a summary and exercises.
 The lessons are the folder's numbered files (notebooks/[0-9][0-9]_*.py), in file order, which
 is the reading order. Only the lessons whose tests are selected are built:
 `pytest tests/test_notebooks.py -k 06` builds lesson 6 alone.
@@ -20,6 +21,9 @@ from __future__ import annotations
 
 import os
 import re
+import signal
+import threading
+import time
 from pathlib import Path
 
 import nbformat
@@ -28,6 +32,7 @@ import pytest
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.program import course
 from kintinuous_ref.program.course import LessonResult, build_course, figure_count
+from kintinuous_ref.signals import Interrupted
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 # Per-notebook limit: generous against a loaded machine, small enough that a hang is caught.
@@ -82,7 +87,12 @@ def built_course(request, tmp_path_factory) -> dict[str, LessonResult]:
     them; a hang is caught by the per-cell limit."""
     out = tmp_path_factory.mktemp("course")
     results = build_course(
-        out, selected_lessons(request), notebooks=NOTEBOOKS, timeout_s=TIMEOUT_S, progress=print
+        out,
+        selected_lessons(request),
+        notebooks=NOTEBOOKS,
+        timeout_s=TIMEOUT_S,
+        progress=print,
+        jobs=course.default_jobs(),
     )
     return {result.name: result for result in results}
 
@@ -189,3 +199,70 @@ def test_lessons_are_chosen_by_number_or_name():
     assert [path.stem for path in chosen] == ["01_tsdf_fusion", "05_icp"]
     with pytest.raises(KintinuousError, match="no lesson '99'"):
         course.select_lessons(NOTEBOOKS, ["99"])
+
+
+# A lesson that records when it ran (its cell's output: start and end, seconds since the epoch).
+TIMED_LESSON = """# %%
+import time
+started = time.time()
+time.sleep({seconds})
+print(started, time.time())
+"""
+RUNS_ALONE_HEADER = """# ---
+# jupyter:
+#   kintinuous:
+#     runs_alone: true
+# ---
+
+"""
+
+
+def ran_between(result: LessonResult) -> tuple[float, float]:
+    """(start, end) that a TIMED_LESSON printed."""
+    cell = nbformat.read(result.notebook, as_version=4).cells[0]
+    started, ended = map(float, cell.outputs[0]["text"].split())
+    return started, ended
+
+
+@pytest.mark.slow
+def test_lessons_run_two_at_a_time_and_a_timing_lesson_by_itself(tmp_path):
+    lessons = tmp_path / "notebooks"
+    lessons.mkdir()
+    (lessons / "01_first.py").write_text(TIMED_LESSON.format(seconds=3))
+    (lessons / "02_alone.py").write_text(RUNS_ALONE_HEADER + TIMED_LESSON.format(seconds=0))
+    (lessons / "03_third.py").write_text(TIMED_LESSON.format(seconds=3))
+    assert [course.runs_alone(path) for path in sorted(lessons.glob("*.py"))] == [0, 1, 0]
+    results = build_course(tmp_path / "out", notebooks=lessons, html=False, jobs=2)
+    assert [result.name for result in results] == ["01_first", "02_alone", "03_third"]
+    assert all(result.ok for result in results)
+    first, alone, third = (ran_between(result) for result in results)
+    assert first[0] < third[1] and third[0] < first[1], "the two lessons did not overlap"
+    assert alone[0] > max(first[1], third[1]), "the timing lesson ran beside another"
+
+
+@pytest.mark.slow
+def test_a_signal_ends_every_running_lesson_and_keeps_those_done(tmp_path):
+    lessons = tmp_path / "notebooks"
+    lessons.mkdir()
+    (lessons / "01_quick.py").write_text(TIMED_LESSON.format(seconds=0))
+    for name in ("02_long", "03_long", "04_never"):
+        (lessons / f"{name}.py").write_text(TIMED_LESSON.format(seconds=120))
+
+    def interrupt_once_both_long_lessons_run() -> None:
+        deadline = time.monotonic() + 60
+        while len(kernels_left()) < 2 or not (tmp_path / "out" / "01_quick.ipynb").exists():
+            if time.monotonic() > deadline:
+                return
+            time.sleep(0.2)
+        time.sleep(1)  # both kernels inside their cell
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=interrupt_once_both_long_lessons_run, daemon=True).start()
+    started = time.monotonic()
+    with pytest.raises(Interrupted) as raised:
+        build_course(tmp_path / "out", notebooks=lessons, html=False, jobs=2)
+    assert raised.value.message == f"interrupted; the lessons done are in {tmp_path / 'out'}"
+    assert time.monotonic() - started < 60, "the long lessons ran on after the signal"
+    assert kernels_left() == [], "a lesson's kernel outlived the signal"
+    assert (tmp_path / "out" / "01_quick.ipynb").exists()
+    assert not (tmp_path / "out" / "04_never.ipynb").exists()

@@ -47,6 +47,17 @@ def finite_float(text: str) -> float:
     return value
 
 
+def positive_int(text: str) -> int:
+    """An option's count: a whole number of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, found {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, found {value}")
+    return value
+
+
 def add_run_options(parser: argparse.ArgumentParser) -> None:
     """The options every command that runs the pipeline shares: volume, backend, configuration."""
     parser.add_argument("--volume-size", type=finite_float, default=3.0, help="cube side, metres")
@@ -373,6 +384,13 @@ def add_course(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
         help="comma-separated lesson numbers or names, e.g. 01,03 (default: all)",
     )
     parser.add_argument("--no-html", action="store_true", help="write the .ipynb files only")
+    parser.add_argument(
+        "--jobs",
+        type=positive_int,
+        metavar="N",
+        help="lessons run at a time (default: one per core, at most 4); the speed appendix "
+        "always runs by itself",
+    )
     parser.add_argument(
         "--notebooks",
         type=Path,

@@ -312,7 +312,7 @@ def run_warmup(args: argparse.Namespace) -> None:
 def run_course(args: argparse.Namespace) -> int:
     from kintinuous_ref.program import course
 
-    return course.run(args.out, args.lessons, args.notebooks, html=not args.no_html)
+    return course.run(args.out, args.lessons, args.notebooks, html=not args.no_html, jobs=args.jobs)
 
 
 def run_info(args: argparse.Namespace) -> None:

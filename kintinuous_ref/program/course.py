@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from threading import Event
 from typing import TYPE_CHECKING, Any
 
 from kintinuous_ref.datasets import DATA_VARIABLE
@@ -35,6 +36,7 @@ LESSON_PATTERN = "[0-9][0-9]_*.py"
 # under a minute while the first lesson compiles them; a hang still ends.
 CELL_TIMEOUT_S = 600
 NEEDED_MODULES = ("jupytext", "nbclient", "nbconvert", "ipykernel")
+MAX_DEFAULT_JOBS = 4
 
 
 @dataclass
@@ -123,23 +125,82 @@ def build_course(
     html: bool = True,
     timeout_s: float = CELL_TIMEOUT_S,
     progress: Callable[[str], None] | None = None,
+    jobs: int = 1,
 ) -> list[LessonResult]:
-    """Convert, execute and render the chosen lessons into `out`, one after the other; a lesson
-    that fails is reported in its result and the others still run."""
+    """Convert, execute and render the chosen lessons into `out`, `jobs` at a time (each kernel
+    runs one numba thread, so a job per core costs no lesson its speed); a lesson that times
+    code (`runs_alone`) runs after the others, by itself. Results come in course order; a
+    lesson that fails is reported in its result and the others still run."""
     check_tools()
     folder = find_notebooks(notebooks)
     paths = select_lessons(folder, lessons)
     out.mkdir(parents=True, exist_ok=True)
     env = lesson_environment(folder)
-    results = []
-    for number, path in enumerate(paths, start=1):
+    done: dict[Path, LessonResult] = {}
+    ending = Event()  # a signal ends the course: the lessons it cut short are not results
+
+    def build(path: Path) -> None:
         result = build_lesson(path, out, env, html=html, timeout_s=timeout_s)
-        results.append(result)
+        if ending.is_set():
+            return
+        done[path] = result
         if progress is not None:
-            progress(f"[{number}/{len(paths)}] {lesson_line(result)}")
+            progress(f"[{len(done)}/{len(paths)}] {lesson_line(result)}")
             if not result.ok:
                 progress(f"kintinuous: lesson {result.name} failed in {result.error}")
-    return results
+
+    together = [path for path in paths if jobs > 1 and not runs_alone(path)]
+    if together:
+        _build_together(together, build, jobs, out, ending)
+    for path in paths:
+        if path not in done:
+            build(path)
+    return [done[path] for path in paths]
+
+
+def runs_alone(path: Path) -> bool:
+    """Whether a lesson asks to run by itself (`kintinuous: runs_alone: true` in its jupytext
+    header): one that times code, whose numbers another lesson beside it would slow."""
+    import jupytext
+
+    return bool(jupytext.read(path).metadata.get("kintinuous", {}).get("runs_alone", False))
+
+
+# The kernels of the lessons running now, so that a signal can end them all (_end_kernels).
+_RUNNING_KERNELS: set[Any] = set()
+
+
+def _build_together(
+    paths: list[Path], build: Callable[[Path], None], jobs: int, out: Path, ending: Event
+) -> None:
+    """build(path) of every path, `jobs` threads at a time. The signal that ends the command
+    reaches the main thread only: there it sets `ending`, cancels the lessons not started, ends
+    the kernels of those running (so that each thread's lesson fails at once) and is raised
+    once every thread has stopped, with the lessons done kept in `out`."""
+    from concurrent.futures import ThreadPoolExecutor, wait
+
+    pool = ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="lesson")
+    futures = [pool.submit(build, path) for path in paths]
+    try:
+        wait(futures)
+    except KeyboardInterrupt as signal_raised:
+        ending.set()
+        pool.shutdown(wait=False, cancel_futures=True)
+        _end_kernels()
+        name = getattr(signal_raised, "signal_name", "SIGINT")
+        raise Interrupted(name, f"interrupted; the lessons done are in {out}") from signal_raised
+    finally:
+        pool.shutdown(wait=True)  # the lessons running end with their kernels
+    for future in futures:
+        future.result()  # an error of the course's own code, not a lesson's
+
+
+def _end_kernels() -> None:
+    """Kill the kernel processes of the lessons running now."""
+    for kernel in list(_RUNNING_KERNELS):
+        process = getattr(getattr(kernel, "provisioner", None), "process", None)
+        if process is not None and process.poll() is None:
+            process.kill()
 
 
 def build_lesson(
@@ -171,6 +232,7 @@ def execute(
 
     cells: list[int] = []
     kernel = this_interpreter_kernel()
+    _RUNNING_KERNELS.add(kernel)
     client = NotebookClient(
         notebook,
         timeout=timeout_s,
@@ -185,6 +247,7 @@ def execute(
             raise Interrupted("SIGINT", f"interrupted; the lessons done are in {folder}") from err
         return failure_line(notebook, cells[-1] if cells else None, err)
     finally:
+        _RUNNING_KERNELS.discard(kernel)
         shut_down(kernel)
     return None
 
@@ -273,9 +336,23 @@ def lesson_line(result: LessonResult) -> str:
     return f"{result.name}: FAILED after {result.seconds:.1f} s"
 
 
-def run(out: Path, lessons: Sequence[str] | None, notebooks: Path | None, *, html: bool) -> int:
+def default_jobs() -> int:
+    """Lessons run at a time by default: one per core this process may use, at most
+    MAX_DEFAULT_JOBS (each kernel holds its own arrays and compiled code in memory)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(MAX_DEFAULT_JOBS, cores or 1))
+
+
+def run(
+    out: Path,
+    lessons: Sequence[str] | None,
+    notebooks: Path | None,
+    *,
+    html: bool,
+    jobs: int | None = None,
+) -> int:
     """The command: progress and failures on stderr, a summary on stdout; 1 when a lesson
-    failed."""
+    failed. `jobs`: lessons at a time (default_jobs when None)."""
     started = time.perf_counter()
     results = build_course(
         out,
@@ -283,6 +360,7 @@ def run(out: Path, lessons: Sequence[str] | None, notebooks: Path | None, *, htm
         notebooks=notebooks,
         html=html,
         progress=lambda line: print(line, file=sys.stderr, flush=True),
+        jobs=default_jobs() if jobs is None else jobs,
     )
     failed = [result.name for result in results if not result.ok]
     kinds = ".ipynb and .html" if html else ".ipynb"
