@@ -227,7 +227,7 @@ class LoopClosureConfig:
     # pass the dense and photometric checks. At 4 and 10 % the offset return at 160x120 closes
     # its offset loop (weighed by its alignment's covariance, the return error then falls), but
     # the tracked `twins` walk accepts a loop (a true one: two views of one wall 2.75 m apart),
-    # so the cuts stay at 6 and 20 % and dense_from_odometry closes such loops instead
+    # so the cuts stay at 6 and 20 % (dense_from_odometry closes such loops another way)
     ransac_iterations: int = 300
     ransac_inlier_distance: float = 0.05  # metres between matched 3D points after alignment
     min_ransac_inliers: int = 6
@@ -236,8 +236,11 @@ class LoopClosureConfig:
     # odometry gives the two keyframes instead: views 15-25 degrees apart keep too few ORB
     # inliers (redkitchen: 3-5 of 17-21 matches) although they overlap, and from that start
     # the alignment ends where it ends from the true pose (the dense, photometric and
-    # plausibility checks and the pose graph's consistency test still judge the loop)
-    dense_from_odometry: bool = True
+    # plausibility checks and the pose graph's consistency test still judge the loop). Off:
+    # the loops it adds come earlier, each empties the window the tracking goes on in, and the
+    # ATE rises in four of six measured runs (twins 8.7 -> 13.5 mm, redkitchen there and back
+    # at stride 4 22.8 -> 25.6 mm; docs/loop_closure.md)
+    dense_from_odometry: bool = False
     # dense refinement (the tracker's ICP+RGB-D of the two frames) and the acceptance test
     icp_iterations: tuple[int, ...] = (10, 10, 10)  # pyramid levels 1.., finest to coarsest
     # metres of point-to-plane residual over the matched pairs: right alignments of real views

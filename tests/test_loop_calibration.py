@@ -114,18 +114,19 @@ def test_an_offset_return_the_sparse_check_refuses_closes_from_odometry():
     """Frame 130 against frame 80 (36 cm, 16.6 degrees): RANSAC keeps 3 inliers, under the
     sparse cut. From the relative pose odometry would give, here the truth 10 cm and 3 degrees
     off, the dense alignment ends within the calibration's 10 cm of the truth and the loop is
-    accepted; without that start it is refused at the sparse check."""
+    accepted (loop_closure.dense_from_odometry on); by default it is refused at the sparse
+    check."""
     make = kitchen()
     if make is None:
         pytest.skip("redkitchen is not here")
     query, match = make(130, 20, 3.0), make(80, 0, 0.0)
     truth = se3.inverse(match.pose) @ query.pose
     prior = calibration.drifted(truth, (0.1, 3.0), np.random.default_rng(0))
-    verdict = place_recognition.verify(query, match, SETTINGS, np.random.default_rng(0),
+    from_odometry = dataclasses.replace(SETTINGS, dense_from_odometry=True)
+    verdict = place_recognition.verify(query, match, from_odometry, np.random.default_rng(0),
                                        prior=prior)  # fmt: skip
     assert verdict.accepted and verdict.dense_start == "odometry", verdict.as_dict()
     assert np.linalg.norm(verdict.relative[:3, 3] - truth[:3, 3]) < calibration.RIGHT_POSE
-    without = dataclasses.replace(SETTINGS, dense_from_odometry=False)
-    refused = place_recognition.verify(query, match, without, np.random.default_rng(0),
+    refused = place_recognition.verify(query, match, SETTINGS, np.random.default_rng(0),
                                        prior=prior)  # fmt: skip
     assert not refused.accepted and refused.reason == "geometry"

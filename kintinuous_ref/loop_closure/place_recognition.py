@@ -13,7 +13,8 @@ Four stages, each of which can reject a candidate (the reason is counted, `Verdi
    Umeyama), keeping the motion with the most matches within `ransac_inlier_distance`; then
    re-solved on all its inliers. Too few inliers, or too small a share of the matches, is
    "geometry", unless the relative pose odometry gives the two keyframes is at hand (a tracked
-   run, `dense_from_odometry`): the dense stage then starts from that instead. Views 15-25
+   run) and `dense_from_odometry` is on (off by default): the dense stage then starts from that
+   instead. Views 15-25
    degrees apart keep too few ORB inliers although they overlap, and from a start within the
    odometry's drift the dense alignment ends where it ends from the true pose; the later
    checks judge the loop as they judge any other.
