@@ -14,10 +14,9 @@ Four stages, each of which can reject a candidate (the reason is counted, `Verdi
    re-solved on all its inliers. Too few inliers, or too small a share of the matches, is
    "geometry", unless the relative pose odometry gives the two keyframes is at hand (a tracked
    run) and `dense_from_odometry` is on (off by default): the dense stage then starts from that
-   instead. Views 15-25
-   degrees apart keep too few ORB inliers although they overlap, and from a start within the
-   odometry's drift the dense alignment ends where it ends from the true pose; the later
-   checks judge the loop as they judge any other.
+   instead. Views 15-25 degrees apart keep too few ORB inliers although they overlap, and from
+   a start within the odometry's drift the dense alignment ends where it ends from the true
+   pose; the later checks judge the loop as they judge any other.
 3. **Geometry and appearance, dense.** From that motion, the tracker's own ICP+RGB-D
    (odometry/combined.py: point-to-plane ICP and photometric error in one system) aligns the new
    keyframe to the old one, coarse to fine over the kept pyramid levels. ICP alone slid a few
