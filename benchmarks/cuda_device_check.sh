@@ -36,7 +36,9 @@ date -u
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', numpy.__version__)"
 python3 -m kintinuous_ref.program.cli info
-timeout 200 python3 -m pytest -q -p no:cacheprovider --continue-on-collection-errors -k "cuda or graph or pool" \
+# -o addopts=-ra: the device has no pytest-xdist, which the project's addopts ask for
+timeout 200 python3 -m pytest -q -p no:cacheprovider -o addopts=-ra --continue-on-collection-errors \
+    -k "cuda or graph or pool" \
     tests/test_fast_cuda.py tests/test_fast_cuda_pipeline.py tests/test_fast_odometry_cuda.py \
     tests/test_cuda_frame_budget.py tests/test_cuda_graphs.py tests/test_fast_solve_ops.py \
     tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \

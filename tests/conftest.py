@@ -3,8 +3,10 @@
 `cuda_simulator`: runs a CUDA test module in a child pytest with numba's CUDA simulator. The
 simulator must be switched on (NUMBA_ENABLE_CUDASIM=1) before numba is imported, so without a
 GPU the CUDA tests are skipped in the main process and run in that child instead. A test names
-its child with `@pytest.mark.cuda_simulator(test_file, *pytest_arguments)`; every named child
-starts when collection ends, so on two cores the simulator runs beside the other tests.
+its child with `@pytest.mark.cuda_simulator(test_file, *pytest_arguments)`; without
+pytest-xdist every named child starts when collection ends, so that on two cores the simulator
+runs beside the other tests; under it (the default, one worker per core) each test starts its
+child when it waits for it.
 """
 
 import os
@@ -38,7 +40,9 @@ def start_in_cuda_simulator(test_file: Path, *arguments: str) -> None:
     if key in _started:
         return
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
-    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(test_file)]
+    # -o addopts=-ra: one process, not the project's worker per core (the child runs beside them)
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=-ra"]
+    command.append(str(test_file))
     log = Path(tempfile.mkstemp(prefix="cuda-simulator-", suffix=".log")[1])
     with log.open("w") as output:
         child = subprocess.Popen(
@@ -95,8 +99,10 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     """Start every simulator child the selected tests wait for, so that the children (one core's
-    worth of Python threads) run beside the main process instead of after it."""
-    if not session.items or not _cuda_is_missing():
+    worth of Python threads) run beside the main process instead of after it. Not in a worker
+    of pytest-xdist: every worker collects every test but runs only some, and the workers
+    already run beside each other, so a test starts its own child when it waits for it."""
+    if not session.items or "PYTEST_XDIST_WORKER" in os.environ or not _cuda_is_missing():
         return
     for item in session.items:
         mark = item.get_closest_marker(SIMULATOR_MARK)
