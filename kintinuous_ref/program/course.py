@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from threading import Event
+from threading import Event, Lock
 from typing import TYPE_CHECKING, Any
 
 from kintinuous_ref.datasets import DATA_VARIABLE
@@ -138,16 +138,18 @@ def build_course(
     env = lesson_environment(folder)
     done: dict[Path, LessonResult] = {}
     ending = Event()  # a signal ends the course: the lessons it cut short are not results
+    reporting = Lock()  # one lesson's lines at a time, each with its own count
 
     def build(path: Path) -> None:
         result = build_lesson(path, out, env, html=html, timeout_s=timeout_s)
-        if ending.is_set():
-            return
-        done[path] = result
-        if progress is not None:
-            progress(f"[{len(done)}/{len(paths)}] {lesson_line(result)}")
-            if not result.ok:
-                progress(f"kintinuous: lesson {result.name} failed in {result.error}")
+        with reporting:
+            if ending.is_set():
+                return
+            done[path] = result
+            if progress is not None:
+                progress(f"[{len(done)}/{len(paths)}] {lesson_line(result)}")
+                if not result.ok:
+                    progress(f"kintinuous: lesson {result.name} failed in {result.error}")
 
     together = [path for path in paths if jobs > 1 and not runs_alone(path)]
     if together:
