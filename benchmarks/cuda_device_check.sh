@@ -7,12 +7,13 @@
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel.)
 # (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
-# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_512_synced.txt,
+# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_256_graphs.json, bench_cuda_512_synced.txt,
 # bench_cuda_moving.json, ate_cuda.json,
 # profile.txt, cuda_warm.prof and bench_ref_256.json into OUT_DIR (default: the current folder).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
+mkdir -p "$out"
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 # The backends are entry points: where the package is not installed (a bare GPU machine, no
 # index to install from), a folder with its metadata alone makes them discoverable.
@@ -37,39 +38,53 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', numpy.__version__)"
 python3 -m kintinuous_ref.program.cli info
 # -o addopts=-ra: the device has no pytest-xdist, which the project's addopts ask for
-timeout 200 python3 -m pytest -q -p no:cacheprovider -o addopts=-ra --continue-on-collection-errors \
+timeout 150 python3 -m pytest -q -p no:cacheprovider -o addopts=-ra --continue-on-collection-errors \
     -k "cuda or graph or pool" \
     tests/test_fast_cuda.py tests/test_fast_cuda_pipeline.py tests/test_fast_odometry_cuda.py \
     tests/test_cuda_frame_budget.py tests/test_cuda_graphs.py tests/test_fast_solve_ops.py \
     tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \
     2>&1 | tee "$out/cuda_tests.log" | tail -40
-for graphs in 0 1; do
-    name=bench_cuda_512$([ "$graphs" = 1 ] && echo _graphs)
+# one line per stage from a benchmark's JSON: median ms, and the counter's per-frame traffic
+summary() {
+    python3 - "$1" <<'PY'
+import json, sys
+report = json.load(open(sys.argv[1]))
+print(f"  fps {report['fps']:.1f}, failures {report['tracking_failures']}, per frame: "
+      + ", ".join(f"{k} {v}" for k, v in report.items() if k.endswith("_per_frame")))
+for stage, t in report["timing_ms"].items():
+    print(f"  {stage:12s} median {t['median']:8.3f} ms  max {t['max']:8.3f}")
+PY
+}
+for run in "1 512" "0 512" "1 256"; do
+    read -r graphs resolution <<<"$run"
+    name=bench_cuda_$resolution$([ "$graphs" = 1 ] && echo _graphs)
     start=$(date +%s)
-    KINTINUOUS_CUDA_GRAPHS=$graphs timeout 100 python3 -m kintinuous_ref.program.cli benchmark \
-        "$data" --backend cuda "${@:3}" --resolution 512 --frames 100 --json >"$out/$name.json"
+    KINTINUOUS_CUDA_GRAPHS=$graphs timeout 80 python3 -m kintinuous_ref.program.cli benchmark \
+        "$data" --backend cuda "${@:3}" --resolution "$resolution" --frames 100 --json >"$out/$name.json"
     echo "$name: exit $?, $(($(date +%s) - start)) s wall, compilation included"
-    python3 -m json.tool "$out/$name.json" | head -60
+    summary "$out/$name.json"
 done
+# the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
+KINTINUOUS_CUDA_GRAPHS=1 timeout 100 python3 benchmarks/combined_weightings.py "$data" --size 640x480 \
+    --resolution 256 --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
 # each stage's own time, device work included (--sync-stages waits for the GPU after each stage;
 # the runs above leave the GPU's work to whichever stage waits next)
-KINTINUOUS_CUDA_GRAPHS=1 timeout 60 python3 -m kintinuous_ref.program.cli benchmark "$data" \
+KINTINUOUS_CUDA_GRAPHS=1 timeout 50 python3 -m kintinuous_ref.program.cli benchmark "$data" \
     --backend cuda "${@:3}" --resolution 512 --frames 50 --sync-stages >"$out/bench_cuda_512_synced.txt"
 echo "synchronized stages: exit $?"; cat "$out/bench_cuda_512_synced.txt"
 # Kintinuous proper: the moving volume at the defaults (its slices meshed by our own marching
 # cubes on the device, no VTK needed); the "shift" stage is the shift-and-extract time
 start=$(date +%s)
-timeout 100 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend cuda \
-    --set volume.moving=true --frames 100 --json >"$out/bench_cuda_moving.json"
+KINTINUOUS_CUDA_GRAPHS=1 timeout 80 python3 -m kintinuous_ref.program.cli benchmark "$data" \
+    --backend cuda --set volume.moving=true --frames 100 --json >"$out/bench_cuda_moving.json"
 echo "benchmark moving volume: exit $?, $(($(date +%s) - start)) s wall, compilation included"
-python3 -m json.tool "$out/bench_cuda_moving.json" | grep -B1 -A4 '"shift"'
-# the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
-timeout 150 python3 benchmarks/combined_weightings.py "$data" --size 640x480 --resolution 256 \
-    --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
+summary "$out/bench_cuda_moving.json"
 # where the warm pipeline's host time goes with graphs on: profile.txt and cuda_warm.prof
-KINTINUOUS_CUDA_GRAPHS=1 timeout 100 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 30 \
+KINTINUOUS_CUDA_GRAPHS=1 timeout 70 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 30 \
     --top 40 --out "$out/cuda_warm.prof" >"$out/profile.txt" 2>/dev/null
+echo "profile: exit $?"
 # the NumPy reference on the same machine, for the ratio (a few frames: seconds each)
-timeout 120 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend ref "${@:3}" --frames 4 \
+timeout 50 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend ref "${@:3}" --frames 3 \
     --json >"$out/bench_ref_256.json"
-python3 -m json.tool "$out/bench_ref_256.json" | grep -A3 '"total"'
+summary "$out/bench_ref_256.json"
+date -u
