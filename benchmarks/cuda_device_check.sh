@@ -14,25 +14,7 @@ set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
 mkdir -p "$out"
-export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
-# The backends are entry points: where the package is not installed (a bare GPU machine, no
-# index to install from), a folder with its metadata alone makes them discoverable.
-if ! python3 -c "import importlib.metadata as m; m.distribution('kintinuous')" 2>/dev/null; then
-    metadata=${TMPDIR:-/tmp}/kintinuous-metadata
-    rm -rf "$metadata" && mkdir -p "$metadata"
-    python3 - "$metadata" <<'PY'
-import pathlib, sys, tomllib
-project = tomllib.loads(pathlib.Path("pyproject.toml").read_text())["project"]
-info = pathlib.Path(sys.argv[1]) / "kintinuous-0.0.0+source.dist-info"
-info.mkdir()
-info.joinpath("METADATA").write_text("Metadata-Version: 2.1\nName: kintinuous\nVersion: 0.0.0+source\n")
-groups = project["entry-points"]
-info.joinpath("entry_points.txt").write_text("".join(
-    f"[{group}]\n" + "".join(f"{name} = {target}\n" for name, target in points.items())
-    for group, points in groups.items()))
-PY
-    export PYTHONPATH=$PYTHONPATH:$metadata
-fi
+source benchmarks/device_env.sh
 date -u
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import numba, numpy; print('numba', numba.__version__, 'numpy', numpy.__version__)"
@@ -44,17 +26,6 @@ timeout 150 python3 -m pytest -q -p no:cacheprovider -o addopts=-ra --continue-o
     tests/test_cuda_frame_budget.py tests/test_cuda_graphs.py tests/test_fast_solve_ops.py \
     tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \
     2>&1 | tee "$out/cuda_tests.log" | tail -40
-# one line per stage from a benchmark's JSON: median ms, and the counter's per-frame traffic
-summary() {
-    python3 - "$1" <<'PY'
-import json, sys
-report = json.load(open(sys.argv[1]))
-print(f"  fps {report['fps']:.1f}, failures {report['tracking_failures']}, per frame: "
-      + ", ".join(f"{k} {v}" for k, v in report.items() if k.endswith("_per_frame")))
-for stage, t in report["timing_ms"].items():
-    print(f"  {stage:12s} median {t['median']:8.3f} ms  max {t['max']:8.3f}")
-PY
-}
 for run in "1 512" "0 512" "1 256"; do
     read -r graphs resolution <<<"$run"
     name=bench_cuda_$resolution$([ "$graphs" = 1 ] && echo _graphs)

@@ -4,12 +4,12 @@ cuda_graphs.py), and the pooled device buffers that make a frame's launches repe
 
 Truths: a replay runs the same kernels with the same arguments as launching them one by one, so
 results with graphs equal those without, bit for bit in the simulator (which runs blocks in a
-fixed order); a segment replays only when every kernel, grid and argument repeats; a pooled
-buffer is handed out again only when nothing refers to it. The pipeline test runs the desk at
-40x30 and counts, frame by frame, how each stage's segment ran: once the two alternating frame
-buffers exist, every stage (preprocessing, the dense estimate, the colour weights, integration
-and the raycast, which read the frame's pose from device memory) replays every frame, and the
-pool stops growing.
+fixed order) and within GPU_ORDER_TOLERANCE on a GPU; a segment replays only when every kernel,
+grid and argument repeats; a pooled buffer is handed out again only when nothing refers to it.
+The pipeline test runs the desk at 40x30 and counts, frame by frame, how each stage's segment
+ran: once the two alternating frame buffers exist, every stage (preprocessing, the dense
+estimate, the colour weights, integration and the raycast, which read the frame's pose from
+device memory) replays every frame, and the pool stops growing.
 
 Without a GPU the tests run in a child process with numba's CUDA simulator, whose "graphs" are
 the recorded launches launched again (cuda_graphs' docstring).
@@ -20,10 +20,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from numba import config as numba_config
 from numba import cuda
 
 from kintinuous_fast import cuda_status, load_backend
 from kintinuous_fast.targets.cuda import kernel
+
+# On a GPU the ICP and RGB-D pair lists fill in the order their atomic slots are taken, which
+# changes from run to run, so the float32 sums over them (and the poses) differ in the last bits
+# between any two runs; the simulator runs blocks in a fixed order, so there they are equal.
+GPU_ORDER_TOLERANCE = 0.0 if numba_config.ENABLE_CUDASIM else 1e-5
 
 on_device = pytest.mark.skipif(
     bool(cuda_status()), reason="no CUDA GPU: runs in the simulator subprocess below"
@@ -298,7 +304,7 @@ def test_pipeline_replays_its_repeating_stages_and_equals_launching():
     replayed, ways, pooled = _run_desk(frames_count, with_graphs=True)
     assert replayed.fused == plain.fused == [True] * frames_count, replayed.failure_reasons
     for a, b in zip(replayed.poses, plain.poses, strict=True):
-        assert np.array_equal(a, b)
+        assert np.allclose(a, b, rtol=0.0, atol=GPU_ORDER_TOLERANCE), np.abs(a - b).max()
     assert np.linalg.norm(plain.poses[-1][:3, 3] - plain.poses[0][:3, 3]) > 0.005  # a motion
 
     def per_frame(name: str, frame: int) -> tuple:

@@ -52,7 +52,8 @@ def build_slice_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         """(lower, upper) along one axis of a vertex's edge voxels, for the vertex's coordinate
         x on that axis, in a box of `size` voxels: floor(x) and floor(x) + 1 on the edge's
         axis, the nearest whole number twice on the others, clipped to the box."""
-        lower = math.floor(x) if on_axis else int(rint(x))
+        # int(): on the GPU math.floor returns a float, which cannot index an array
+        lower = int(math.floor(x)) if on_axis else int(rint(x))
         lower = min(max(lower, 0), size - 1)
         return lower, min(lower + (1 if on_axis else 0), size - 1)
 

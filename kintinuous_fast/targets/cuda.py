@@ -100,10 +100,14 @@ def pooled_array(role: str, shape: tuple[int, ...], dtype: Any) -> Any:
     return arrays[-1]
 
 
-def _references(arrays: list[Any], index: int) -> tuple[int, int]:
+def _references(arrays: list[Any], index: int) -> tuple[int, int, int]:
     """How many references the array and its memory have: measured once when only the pool
-    holds it (the baseline), then compared. A view refers to the memory, not to the array."""
-    return sys.getrefcount(arrays[index]), sys.getrefcount(_memory(arrays[index]))
+    holds it (the baseline), then compared. A view refers to the memory, not to the array: in
+    the simulator by a Python reference to its NumPy buffer, on a GPU by a weak proxy that
+    counts itself in the memory's `refct` instead."""
+    memory = _memory(arrays[index])
+    views = 0 if numba_config.ENABLE_CUDASIM else memory.refct
+    return sys.getrefcount(arrays[index]), sys.getrefcount(memory), views
 
 
 def _memory(array: Any) -> Any:
