@@ -1,15 +1,17 @@
 #!/usr/bin/env bash
-# The checks that need a GPU, in one go: the CUDA equivalence tests on the device (sizes of the
-# CPU tests, not the simulator's) and `kintinuous benchmark --backend cuda` at 512^3, with each
-# launch dispatched by Python and with repeating launches replayed as CUDA graphs
-# (KINTINUOUS_CUDA_GRAPHS=1, kintinuous_fast/targets/cuda_graphs.py); its JSON has the
-# launches, host waits and bytes to the host per frame and per stage.
+# The checks that need a GPU, in one go (about 6 minutes on an H100): the CUDA equivalence
+# tests on the device (sizes of the CPU tests, not the simulator's); `kintinuous benchmark
+# --backend cuda` at 512^3 with the launches dispatched one by one and replayed as CUDA graphs
+# (KINTINUOUS_CUDA_GRAPHS, kintinuous_fast/targets/cuda_graphs.py) and at 256^3 with graphs,
+# each JSON with the launches, host waits and bytes to the host per frame and per stage; the
+# ATE over 300 frames; the moving volume; a profile of the host; each kernel's GPU time.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
-# (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel.)
-# (options go to `kintinuous benchmark`, e.g. --set volume.moving=false where pyvista is missing).
-# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_256_graphs.json, bench_cuda_512_synced.txt,
-# bench_cuda_moving.json, ate_cuda.json,
-# profile.txt, cuda_warm.prof and bench_ref_256.json into OUT_DIR (default: the current folder).
+# (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel;
+# options go to `kintinuous benchmark`, e.g. --set volume.moving=false).
+# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_256_graphs.json,
+# ate_cuda.json, bench_cuda_moving.json, profile.txt, cuda_warm.prof and kernel_times.json into
+# OUT_DIR (default: the current folder): nine files, one more than the device tool brings back,
+# so give a local folder and pack it into the tool's $OUT afterwards (cuda_device_prepare.sh).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
@@ -38,11 +40,6 @@ done
 # the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
 KINTINUOUS_CUDA_GRAPHS=1 timeout 100 python3 benchmarks/combined_weightings.py "$data" --size 640x480 \
     --resolution 256 --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
-# each stage's own time, device work included (--sync-stages waits for the GPU after each stage;
-# the runs above leave the GPU's work to whichever stage waits next)
-KINTINUOUS_CUDA_GRAPHS=1 timeout 50 python3 -m kintinuous_ref.program.cli benchmark "$data" \
-    --backend cuda "${@:3}" --resolution 512 --frames 50 --sync-stages >"$out/bench_cuda_512_synced.txt"
-echo "synchronized stages: exit $?"; cat "$out/bench_cuda_512_synced.txt"
 # Kintinuous proper: the moving volume at the defaults (its slices meshed by our own marching
 # cubes on the device, no VTK needed); the "shift" stage is the shift-and-extract time
 start=$(date +%s)
@@ -51,11 +48,10 @@ KINTINUOUS_CUDA_GRAPHS=1 timeout 80 python3 -m kintinuous_ref.program.cli benchm
 echo "benchmark moving volume: exit $?, $(($(date +%s) - start)) s wall, compilation included"
 summary "$out/bench_cuda_moving.json"
 # where the warm pipeline's host time goes with graphs on: profile.txt and cuda_warm.prof
-KINTINUOUS_CUDA_GRAPHS=1 timeout 70 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 30 \
+KINTINUOUS_CUDA_GRAPHS=1 timeout 70 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 20 \
     --top 40 --out "$out/cuda_warm.prof" >"$out/profile.txt" 2>/dev/null
 echo "profile: exit $?"
-# the NumPy reference on the same machine, for the ratio (a few frames: seconds each)
-timeout 50 python3 -m kintinuous_ref.program.cli benchmark "$data" --backend ref "${@:3}" --frames 3 \
-    --json >"$out/bench_ref_256.json"
-summary "$out/bench_ref_256.json"
+# each kernel's own GPU time per frame (launched one by one between CUDA events)
+timeout 60 python3 benchmarks/cuda_kernel_times.py "$data" "${@:3}" --frames 20 --top 25 \
+    --json "$out/kernel_times.json" 2>&1 | grep -v Warning
 date -u

@@ -8,7 +8,8 @@
 # Then, with the device tool: carry [".device"], command
 #   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site \
 #       .device/wheels/*.whl && export PYTHONPATH=/tmp/site &&
-#   bash benchmarks/cuda_device_check.sh .device/data "$OUT" --set volume.moving=false
+#   timeout 420 bash benchmarks/cuda_device_check.sh .device/data /tmp/checks --set volume.moving=false;
+#   tar czf "$OUT/checks.tgz" -C /tmp/checks .
 set -eu
 data=${1:?usage: cuda_device_prepare.sh TUM_FOLDER}
 mkdir -p .device .git/info

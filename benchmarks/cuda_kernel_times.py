@@ -3,8 +3,11 @@ benchmark` timed by a pair of CUDA events around it, summed per kernel and per f
 
     python benchmarks/cuda_kernel_times.py DATASET [--frames 40] [--set K=V] [--json F]
 
-Launches go one by one (graphs off), each between two events on the default stream, so a
-kernel's time is its own device time (the gap between kernels is the host's and is left out).
+Launches go one by one (graphs off), each between two events on the default stream. The GPU
+would reach the first event as soon as the host records it and then wait out numba's dispatch
+of the kernel (tens of microseconds), so a one-thread kernel that spins for about 0.3 ms goes
+first: by the time the GPU reaches the event, the kernel is queued behind it, and the time
+between the events is the kernel's own.
 Prints per kernel its calls and milliseconds per frame and microseconds per call, most time
 first, and per stage (the package the kernel lives in) the GPU milliseconds per frame: the
 floor under a frame once the host is out of it. Needs a GPU (numba's simulator has no events
@@ -19,12 +22,25 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from numba import cuda
 
 from kintinuous_fast.targets import cuda as cuda_target
 from kintinuous_fast.targets import cuda_graphs
 from kintinuous_ref.config import Config, with_overrides
 from kintinuous_ref.program.benchmark import benchmark
+
+# Steps of the spinning kernel: a chain of dependent multiply-adds, about 0.3 ms on an H100
+# (each step waits for the one before), longer than the host takes to dispatch a launch.
+HOLD_STEPS = 100_000
+
+
+@cuda.jit
+def _hold(scratch, steps):
+    value = scratch[0]
+    for _ in range(steps):
+        value = value * 0.999999 + 1e-6
+    scratch[0] = value
 
 
 class KernelTimer:
@@ -35,6 +51,7 @@ class KernelTimer:
         self.pairs: list[tuple[str, Any, Any]] = []
         self.active = False
         self._launch = cuda_target.CountedKernel.__getitem__
+        self.scratch = cuda.to_device(np.zeros(1, dtype=np.float32))
 
     def install(self) -> None:
         timer, original = self, self._launch
@@ -46,6 +63,7 @@ class KernelTimer:
 
             def between_events(*arguments: Any) -> None:
                 before, after = cuda.event(), cuda.event()
+                _hold[1, 1](timer.scratch, HOLD_STEPS)
                 before.record()
                 launch(*arguments)
                 after.record()

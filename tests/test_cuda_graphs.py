@@ -195,13 +195,16 @@ def test_uploads_without_graphs_are_in_stream_order():
     from kintinuous_fast.targets import cuda_graphs, to_host
     from kintinuous_fast.targets.cuda import copy_up
 
-    assert not cuda_graphs.enabled()
-    add_each = _add_each
-    values = cuda.to_device(np.zeros(5))
-    amounts = cuda.device_array(5)
-    for step in range(1, 4):
-        add_each[1, 5](values, copy_up(amounts, np.full(5, float(step))))
-    assert np.array_equal(to_host(values), np.full(5, 6.0))
+    was_on = cuda_graphs.enabled()
+    cuda_graphs.enable(False)
+    try:
+        values = cuda.to_device(np.zeros(5))
+        amounts = cuda.device_array(5)
+        for step in range(1, 4):
+            _add_each[1, 5](values, copy_up(amounts, np.full(5, float(step))))
+        assert np.array_equal(to_host(values), np.full(5, 6.0))
+    finally:
+        cuda_graphs.enable(was_on)
 
 
 @on_device
@@ -324,3 +327,17 @@ def test_pipeline_replays_its_repeating_stages_and_equals_launching():
     replays = sum(per_frame(stage, last)[2] for stage in ways[last])
     assert replayed.traffic["total"][last].graph_replays == replays
     assert {frame.graph_replays for frame in plain.traffic["total"]} == {0}
+
+
+@pytest.mark.parametrize(
+    ("setting", "simulated", "expected"),
+    [(None, False, True), (None, True, False), ("0", False, False), ("1", True, True)],
+)
+def test_graphs_are_on_by_default_on_a_gpu_only(monkeypatch, setting, simulated, expected):
+    from kintinuous_fast.targets import cuda_graphs
+
+    monkeypatch.delenv(cuda_graphs.ENVIRONMENT, raising=False)
+    if setting is not None:
+        monkeypatch.setenv(cuda_graphs.ENVIRONMENT, setting)
+    monkeypatch.setattr(cuda_graphs.numba_config, "ENABLE_CUDASIM", simulated)
+    assert cuda_graphs.enabled_by_default() is expected

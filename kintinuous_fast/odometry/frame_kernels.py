@@ -64,7 +64,7 @@ METHOD_MODES = {"icp+rgbd": JOINT, "icp": ICP_ONLY, "rgbd": RGBD_ONLY}
 POSES_ICP = slice(0, 2)
 POSES_RGBD = slice(2, 5)
 PREVIOUS_INVERSE, MODEL_INVERSE = 5, 6
-SOLVE_THREADS = 32  # the solve and finish kernels' block: one thread per slot of the sums
+SOLVE_THREADS = 64  # the solve kernel's block: a warp per estimator, a thread per slot of its sums
 
 _ops = build_solve_ops(DEVICE)
 # Module-level names: numba resolves the device functions as globals of the kernels below.
@@ -131,14 +131,36 @@ def mode_kernel(flags, state, method):
 
 
 @cuda.jit(device=True)
-def _add_partials(partials, sums, row):
-    """sums[row, s] = the blocks' partials of slot s added in block order, one slot per
-    thread of the block."""
-    for s in range(cuda.threadIdx.x, NV, cuda.blockDim.x):
-        total = 0.0
-        for k in range(partials.shape[0]):
-            total += partials[k, s]
-        sums[row, s] = total
+def _blocks_total(partials, slot):
+    """The blocks' partials of `slot` added in block order. Eight loads go out before the first
+    of their values is used: a GPU thread stalls on a load only where it reads the value, so
+    the loads' latency (hundreds of cycles each, up to a thousand blocks) overlaps eightfold,
+    while the additions keep their order."""
+    blocks = partials.shape[0]
+    total = 0.0
+    k = 0
+    while k + 8 <= blocks:
+        v0, v1 = partials[k, slot], partials[k + 1, slot]
+        v2, v3 = partials[k + 2, slot], partials[k + 3, slot]
+        v4, v5 = partials[k + 4, slot], partials[k + 5, slot]
+        v6, v7 = partials[k + 6, slot], partials[k + 7, slot]
+        total = total + v0 + v1 + v2 + v3 + v4 + v5 + v6 + v7  # left to right: block order
+        k += 8
+    while k < blocks:
+        total += partials[k, slot]
+        k += 1
+    return total
+
+
+@cuda.jit(device=True)
+def _add_partials(icp_partials, rgbd_partials, sums):
+    """sums[0] = ICP's block partials added, sums[1] = RGB-D's: the block's first warp adds
+    ICP's, its second RGB-D's, one slot per thread (SOLVE_THREADS)."""
+    warp, slot = cuda.threadIdx.x // 32, cuda.threadIdx.x % 32
+    if slot < NV and warp == 0:
+        sums[0, slot] = _blocks_total(icp_partials, slot)
+    elif slot < NV and warp == 1:
+        sums[1, slot] = _blocks_total(rgbd_partials, slot)
 
 
 @cuda.jit(device=True)
@@ -247,8 +269,7 @@ def solve_kernel(icp_partials, rgbd_partials, tally, state, poses, settings, lev
     sums = cuda.shared.array((2, NV), float64)
     if state[FAILED] != 0.0 or state[DONE_LEVEL] == level:
         return
-    _add_partials(icp_partials, sums, 0)
-    _add_partials(rgbd_partials, sums, 1)
+    _add_partials(icp_partials, rgbd_partials, sums)
     cuda.syncthreads()
     if cuda.threadIdx.x != 0:
         return
@@ -279,13 +300,8 @@ def solve_kernel(icp_partials, rgbd_partials, tally, state, poses, settings, lev
 @kernel
 def finish_kernel(icp_partials, tally, counts, state, poses, finest):
     """The record: the inlier check's counts at the finest level and the estimate; one thread."""
-    pairs = 0.0
-    valid = 0.0
-    for k in range(icp_partials.shape[0]):
-        pairs += icp_partials[k, SLOT_COUNT]
-        valid += icp_partials[k, SLOT_EXTRA]
-    state[ICP_PAIRS] = pairs
-    state[ICP_VALID] = valid
+    state[ICP_PAIRS] = _blocks_total(icp_partials, SLOT_COUNT)
+    state[ICP_VALID] = _blocks_total(icp_partials, SLOT_EXTRA)
     state[RGBD_PAIRS] = tally[0]
     state[RGBD_POINTS] = counts[finest]
     for i in range(4):

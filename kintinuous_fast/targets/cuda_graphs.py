@@ -38,11 +38,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numba import config as numba_config
 
 # Keys remembered, and graphs kept, at most: a few per stage and frame parity.
 MAX_KEYS = 256
 MAX_GRAPHS = 64
-# The environment variable that turns graphs on for a process ("1").
+# The environment variable that turns graphs on ("1") or off ("0") for a process.
 ENVIRONMENT = "KINTINUOUS_CUDA_GRAPHS"
 
 
@@ -98,7 +99,19 @@ class _Recorder:
     refusals: list[str] = field(default_factory=list)  # why captures failed, in order
 
 
-RECORDER = _Recorder(enabled=os.environ.get(ENVIRONMENT, "0") == "1")
+
+
+def enabled_by_default() -> bool:
+    """On a GPU, graphs are on unless KINTINUOUS_CUDA_GRAPHS=0 (they took the H100's frame from
+    16.3 to 10.4 ms, docs/benchmarks.md); in numba's simulator, whose replays only stand in for
+    graphs, they are off unless KINTINUOUS_CUDA_GRAPHS=1."""
+    setting = os.environ.get(ENVIRONMENT)
+    if setting is not None:
+        return setting == "1"
+    return not numba_config.ENABLE_CUDASIM
+
+
+RECORDER = _Recorder(enabled=enabled_by_default())
 
 
 def enable(on: bool = True) -> None:
