@@ -143,16 +143,19 @@ def correspond_kernel(
     gate,
     level,
 ):
-    """Algorithm 2: kept pairs listed per block in shared memory, then each adds r^2 to the
-    global sum (tally[1]) and takes its slot in the global list (counted in tally[0], a float64
-    that counts exactly to 2^53) with atomics. `poses` = (relative, pose, previous) stacked;
-    `count` = [interest points]; `gate`, `level`: sums.cuda.gated."""
+    """Algorithm 2: kept pairs listed per block in shared memory with their r^2, the block's
+    sum of r^2 added by a tree, then one atomic adds it to the global sum (tally[1]) and one
+    takes the block's run of slots in the global list (counted in tally[0], a float64 that
+    counts exactly to 2^53). Atomics on one address serialise: one per kept pair (tens of
+    thousands an iteration) would cost more than the rest of the kernel. `poses` = (relative,
+    pose, previous) stacked; `count` = [interest points]; `gate`, `level`: sums.cuda.gated."""
     if gated(gate, level):
         return
     relative, pose = poses[0], poses[1]
     local = cuda.shared.array(BLOCK, int64)
-    local_r = cuda.shared.array(BLOCK, float64)
+    local_r2 = cuda.shared.array(BLOCK, float64)
     local_count = cuda.shared.array(1, int32)
+    base = cuda.shared.array(1, int64)
     t = cuda.threadIdx.x
     if t == 0:
         local_count[0] = 0
@@ -177,12 +180,23 @@ def correspond_kernel(
         if ok:
             slot = cuda.atomic.add(local_count, 0, 1)
             local[slot] = k
-            local_r[slot] = r
+            local_r2[slot] = r * r
     cuda.syncthreads()
-    if t < local_count[0]:
-        r = local_r[t]
-        cuda.atomic.add(tally, 1, r * r)
-        pairs[int(cuda.atomic.add(tally, 0, 1.0))] = local[t]
+    kept = local_count[0]
+    if t >= kept:
+        local_r2[t] = 0.0  # the slots no pair took add nothing
+    step = BLOCK // 2
+    while step > 0:
+        cuda.syncthreads()
+        if t < step:
+            local_r2[t] += local_r2[t + step]
+        step //= 2
+    if t == 0:
+        cuda.atomic.add(tally, 1, local_r2[0])
+        base[0] = int(cuda.atomic.add(tally, 0, float(kept)))
+    cuda.syncthreads()
+    if t < kept:
+        pairs[base[0] + t] = local[t]
 
 
 @kernel
