@@ -5,6 +5,7 @@
 # fetched there) and a copy of the TUM RGB-D folder the checks read (the shared data does not
 # travel). About 57 MB with the 300 redkitchen frames; a call carries 64 MiB with the repository.
 # Usage, from the repository root: benchmarks/cuda_device_prepare.sh TUM_FOLDER
+# Before the device call, benchmarks/cuda_typing_check.py types every kernel for a GPU here.
 # Then, with the device tool: carry [".device"], command
 #   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site \
 #       .device/wheels/*.whl && export PYTHONPATH=/tmp/site &&

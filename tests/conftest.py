@@ -22,6 +22,10 @@ ROOT = Path(__file__).resolve().parents[1]
 # The real datasets lie beside this checkout (../shared/data), wherever the package is installed
 # (CI installs it into a virtual environment, where the package's own default points elsewhere).
 os.environ.setdefault("KINTINUOUS_DATA", str(ROOT.parent / "shared" / "data"))
+# The cuda tests check launches made one by one (what crosses, when the host waits), as the
+# simulator runs them; on a GPU graphs would otherwise replay them (targets/cuda_graphs.py), and
+# tests/test_cuda_graphs.py turns graphs on where it tests them.
+os.environ.setdefault("KINTINUOUS_CUDA_GRAPHS", "0")
 
 
 SIMULATOR_MARK = "cuda_simulator"

@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# The cpu backend on many cores, for the device machine's 16 (the only machine with that many
+# here; numba's CPU target needs no GPU): what one parallel call costs at 2, 8 and 16 threads
+# (benchmarks/parallel_call_overhead.py), then every stage and loop at 1-16 threads
+# (benchmarks/thread_sweep.py). About 3 minutes, the cpu kernels' first compile included.
+# Usage, from the repository root: benchmarks/cpu_device_check.sh TUM_FOLDER [OUT_DIR]
+# Writes sweep.json into OUT_DIR (default: the current folder).
+set -u
+data=${1:?usage: cpu_device_check.sh TUM_FOLDER [OUT_DIR]}
+out=${2:-.}
+mkdir -p "$out"
+source benchmarks/device_env.sh
+date -u
+lscpu | grep -E "Model name|^CPU\(s\)|Thread\(s\) per core"
+for threads in 2 8 16; do
+    echo "one parallel call, NUMBA_NUM_THREADS=$threads"
+    NUMBA_NUM_THREADS=$threads timeout 60 python3 benchmarks/parallel_call_overhead.py --calls 300 | tail -9
+done
+timeout 200 python3 benchmarks/thread_sweep.py "$data" --threads 1,2,4,8,16 --frames 30 \
+    --set volume.moving=false --json "$out/sweep.json" | tail -48
+date -u

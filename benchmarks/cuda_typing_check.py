@@ -1,0 +1,131 @@
+"""Every CUDA kernel the simulator tests launch, typed for a real GPU, without one: run it
+before a session on the device machine, whose minutes are few.
+
+    python benchmarks/cuda_typing_check.py --python TYPING_PYTHON [TEST ...]
+
+numba's simulator runs kernels as Python, so it never types them: a kernel can pass every
+simulator test and still not compile for a GPU (an index that is a float there, say, since
+`math.floor` returns a float on the CUDA target). Here the tests (default: the CUDA tests of
+the pipeline's stages) run in the simulator in this process, with every kernel launch's
+argument types recorded; then `TYPING_PYTHON`, an interpreter with numba-cuda installed (the
+CUDA target the device machine uses), compiles each kernel for those types with a stand-in
+compute capability. Typing needs no GPU; a failure after typing (no NVRTC or driver on this
+machine) counts as typed. Lists each kernel that does not type, with numba's message, and
+exits 1 if any. A typing interpreter, once:
+
+    python3 -m venv /tmp/typing && /tmp/typing/bin/pip install "numba==$(python -c \
+        'import numba; print(numba.__version__)')" numba-cuda numpy scipy
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_TESTS = [
+    "tests/test_fast_cuda.py",
+    "tests/test_fast_odometry_cuda.py",
+    "tests/test_cuda_graphs.py",
+    "tests/test_fast_mesh_box.py",
+    "tests/test_fast_volume.py",
+]
+COMPUTE_CAPABILITY = (9, 0)  # an H100's; typing does not depend on it
+
+
+def record_signatures(tests: list[str], out: Path) -> int:
+    """Run `tests` in the simulator in this process, writing {(module, kernel): {argument
+    types}} of every launch of a project kernel to `out`; pytest's exit status."""
+    os.environ["NUMBA_ENABLE_CUDASIM"] = "1"
+    import numba
+    import pytest
+
+    from kintinuous_fast.targets import cuda as cuda_target
+
+    seen: dict[tuple[str, str], set] = {}
+    launch = cuda_target.CountedKernel.__getitem__
+
+    def numba_type(value: Any) -> Any:
+        value = getattr(value, "_ary", value)  # a simulated device array's NumPy array
+        if isinstance(value, tuple):
+            return numba.types.BaseTuple.from_types([numba_type(item) for item in value])
+        return numba.typeof(value)
+
+    def recorded(kernel: Any, configuration: Any) -> Any:
+        run = launch(kernel, configuration)
+
+        def typed_launch(*arguments: Any) -> None:
+            function = kernel.dispatcher.fn
+            if function.__module__.startswith("kintinuous_fast"):
+                key = (function.__module__, function.__name__)
+                seen.setdefault(key, set()).add(tuple(numba_type(a) for a in arguments))
+            run(*arguments)
+
+        return typed_launch
+
+    cuda_target.CountedKernel.__getitem__ = recorded
+    status = pytest.main(["-q", "-n", "0", "-o", "addopts=-ra", "-k", "not in_simulator", *tests])
+    out.write_bytes(pickle.dumps(seen))
+    return int(status)
+
+
+def type_signatures(signatures_file: Path) -> int:
+    """Compile each recorded kernel for its types on numba-cuda's target; the number that do
+    not type (their messages printed)."""
+    from types import SimpleNamespace
+
+    import numba.cuda.dispatcher as cuda_dispatcher
+    from numba import cuda
+    from numba.core.errors import TypingError
+
+    # device functions ask the current device for its compute capability while typing
+    device = SimpleNamespace(compute_capability=COMPUTE_CAPABILITY)
+    cuda_dispatcher.get_current_device = lambda: device
+    seen = pickle.loads(signatures_file.read_bytes())
+    failures = typed = 0
+    for (module, name), signatures in sorted(seen.items()):
+        function = getattr(importlib.import_module(module), name).dispatcher.py_func
+        for types in signatures:
+            try:
+                cuda.compile_ptx(function, types, cc=COMPUTE_CAPABILITY)
+            except TypingError as error:
+                failures += 1
+                print(f"does not type: {module}.{name}{tuple(str(t) for t in types)}\n{error}\n")
+                continue
+            except Exception:  # after typing: no NVRTC or driver here
+                pass
+            typed += 1
+    print(f"{len(seen)} kernels, {typed} signatures typed for the GPU, {failures} did not")
+    return failures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("tests", nargs="*", default=DEFAULT_TESTS)
+    parser.add_argument("--python", help="an interpreter with numba-cuda (see above)")
+    parser.add_argument("--type-only", type=Path, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.type_only:
+        sys.exit(1 if type_signatures(args.type_only) else 0)
+    if not args.python:
+        parser.error("--python: an interpreter with numba-cuda installed is needed to type")
+    with tempfile.TemporaryDirectory() as folder:
+        signatures = Path(folder) / "signatures.pickle"
+        status = record_signatures(args.tests, signatures)
+        if status != 0:
+            sys.exit(f"the simulator tests failed (pytest status {status}); nothing typed")
+        environment = {**os.environ, "PYTHONPATH": str(ROOT)}
+        environment.pop("NUMBA_ENABLE_CUDASIM", None)
+        command = [args.python, __file__, "--type-only", str(signatures)]
+        sys.exit(subprocess.run(command, env=environment).returncode)
+
+
+if __name__ == "__main__":
+    main()
