@@ -99,20 +99,6 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     except ImportError:  # the reference alone: nothing compiled, nothing to drop
         return
     drop_stale_kernels()
-    _compile_cpu_kernels_once(session)
-
-
-def _compile_cpu_kernels_once(session: pytest.Session) -> None:
-    """Under pytest-xdist the main process fills numba's cache with the cpu kernels before the
-    workers start (`kintinuous warmup`: two processes at once, about 25 s cold, seconds warm),
-    so that the workers and the course's lesson kernels load them rather than each compiling
-    the same kernels at the same time. If it fails, the tests compile what they need."""
-    if "PYTEST_XDIST_WORKER" in os.environ or not session.config.getoption("numprocesses", None):
-        return
-    command = [sys.executable, "-m", "kintinuous_ref.program.cli", "warmup", "--backend", "cpu"]
-    done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
-    if done.returncode != 0:
-        sys.stderr.write(f"kintinuous warmup failed; the tests compile instead:\n{done.stderr}\n")
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
