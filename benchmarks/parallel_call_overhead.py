@@ -2,7 +2,7 @@
 loop from Python) against a numba gufunc on numba's threading layer (`guvectorize`, target
 "parallel", the outer dimension being the parts), on the same synthetic loop.
 
-    python benchmarks/parallel_call_overhead.py [--calls 400]
+    python benchmarks/parallel_call_overhead.py [--calls 400] [--gaps 0,20,100] [--at-most N]
 
 The loop does `reps` multiply-adds on each of 64 items, cut into 8 parts. Between two calls the
 calling thread runs Python for `gap` microseconds, as the odometry does between its loops (the
@@ -74,12 +74,23 @@ def median_call(call: Callable[[], None], gap: float, calls: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=400)
+    parser.add_argument("--gaps", default="0,20,100", help="microseconds of Python between calls")
+    parser.add_argument(
+        "--at-most",
+        type=int,
+        help="numba.set_num_threads: loops on at most this many threads while the helper team "
+        "keeps NUMBA_NUM_THREADS - 1 helpers (a large team, loops that want few of them)",
+    )
     args = parser.parse_args()
+    if args.at_most:
+        numba.set_num_threads(args.at_most)
+    print(f"NUMBA_NUM_THREADS {numba.config.NUMBA_NUM_THREADS}, loops on at most "
+          f"{numba.get_num_threads()}")  # fmt: skip
     values = np.ones(ITEMS)
     parts = np.arange(PARTS, dtype=np.int64)
     done = np.empty(PARTS)
     print("gap us  work reps |  one thread  run_parallel (x)   gufunc (x)")
-    for gap in (0, 20, 100):
+    for gap in (int(text) for text in args.gaps.split(",")):
         for reps in (200, 500, 2000, 20000):
             one = median_call(lambda r=reps: run_parallel(_helper_loop, values, r, parts=1),
                               gap, args.calls)  # fmt: skip
