@@ -13,9 +13,12 @@ source benchmarks/device_env.sh
 date -u
 lscpu | grep -E "Model name|^CPU\(s\)|Thread\(s\) per core"
 for threads in 2 8 16; do
-    echo "one parallel call, NUMBA_NUM_THREADS=$threads"
-    NUMBA_NUM_THREADS=$threads timeout 60 python3 benchmarks/parallel_call_overhead.py --calls 300 | tail -9
+    NUMBA_NUM_THREADS=$threads timeout 60 python3 benchmarks/parallel_call_overhead.py --calls 300 \
+        | tail -14
 done
+# a team of 15 helpers for loops that may use two threads: what waking the team costs
+NUMBA_NUM_THREADS=16 timeout 60 python3 benchmarks/parallel_call_overhead.py --calls 300 \
+    --gaps 100,1000 --at-most 2 | tail -10
 timeout 200 python3 benchmarks/thread_sweep.py "$data" --threads 1,2,4,8,16 --frames 30 \
     --set volume.moving=false --json "$out/sweep.json" | tail -48
 date -u
