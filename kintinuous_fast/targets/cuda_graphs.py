@@ -99,8 +99,6 @@ class _Recorder:
     refusals: list[str] = field(default_factory=list)  # why captures failed, in order
 
 
-
-
 def enabled_by_default() -> bool:
     """On a GPU, graphs are on unless KINTINUOUS_CUDA_GRAPHS=0 (they took the H100's frame from
     16.3 to 10.4 ms, docs/benchmarks.md); in numba's simulator, whose replays only stand in for
