@@ -4,9 +4,12 @@ threads and parts; each thread gets a work-array row of its own; an error in a h
 reaches the caller; and a forked child runs its loops too."""
 
 import _thread
+import json
 import multiprocessing
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -160,3 +163,49 @@ def test_loops_below_the_minimum_run_in_one_part_on_the_calling_thread(threads, 
     np.testing.assert_array_equal(seen, np.ones(count, dtype=np.int64))
     if count < 100:  # one part: a single thread, slot 0, did every item
         np.testing.assert_array_equal(slots, np.zeros(count, dtype=np.int64))
+
+
+# The child: a team of 6 helpers (NUMBA_NUM_THREADS=7), all asleep, then one call that wants
+# exactly one helper (parts=2 on two threads); prints how many helpers looked at the job.
+WAKE_CHILD = """
+import json, time
+import numba, numpy as np
+from kintinuous_fast.targets import cpu
+from test_cpu_threads import _count_items
+
+looked = []
+help_job = cpu._Job.help
+cpu._Job.help = lambda job: (looked.append(1), help_job(job))[1]
+seen, slots = np.zeros(10_000, dtype=np.int64), np.zeros(10_000, dtype=np.int64)
+numba.set_num_threads(7)
+cpu.run_parallel(_count_items, seen, slots, parts=7)  # starts the team, every helper joins
+deadline = time.monotonic() + 30
+while cpu._team().sleeping < 6 and time.monotonic() < deadline:  # each spins, then sleeps
+    time.sleep(0.01)
+asleep = cpu._team().sleeping
+looked.clear()
+numba.set_num_threads(2)
+cpu.run_parallel(_count_items, seen, slots, parts=2)
+time.sleep(0.2)  # a helper woken for nothing would have looked by now
+print(json.dumps({"asleep": asleep, "looked": len(looked), "seen": sorted(set(seen.tolist()))}))
+"""
+
+
+def test_a_call_wakes_only_the_sleeping_helpers_it_wants():
+    # each helper woken takes the GIL to look at the job, so waking a whole team for a loop
+    # that wants one helper costs that loop the team's wake-ups (docs/benchmarks.md)
+    tests = os.path.dirname(os.path.abspath(__file__))
+    environment = {**os.environ, "NUMBA_NUM_THREADS": "7", "PYTHONPATH": tests}
+    child = subprocess.run(
+        [sys.executable, "-c", WAKE_CHILD],
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert child.returncode == 0, child.stderr[-3000:]
+    result = json.loads(child.stdout.strip().splitlines()[-1])
+    assert result["asleep"] == 6
+    assert result["looked"] <= 1  # the one helper wanted (or none: the caller took both parts)
+    assert result["seen"] == [2]  # every item done once by each of the two calls
