@@ -1,7 +1,8 @@
 """The cpu backend's loops on several threads (kintinuous_fast.targets.cpu): every item of a
 loop's range is done exactly once, in parts that follow the closed form, whatever the number of
 threads and parts; each thread gets a work-array row of its own; an error in a helper thread
-reaches the caller; and a forked child runs its loops too."""
+reaches the caller; a call wakes only the sleeping helpers it wants; and a forked child runs its
+loops too."""
 
 import _thread
 import json
