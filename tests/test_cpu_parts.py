@@ -6,10 +6,6 @@ loop forced onto all 7; and the joint ICP + RGB-D loop (one parallel call per it
 bits as the two problems' separate systems summed, on each of those, and close to the
 reference's joint system."""
 
-import json
-import os
-import subprocess
-import sys
 import textwrap
 import threading
 import time
@@ -17,6 +13,7 @@ import time
 import numba
 import numpy as np
 import pytest
+from threads_child import TESTS, run_with_threads
 
 from kintinuous_fast.targets import cpu
 from kintinuous_fast.targets.cpu import (
@@ -152,17 +149,7 @@ CHILD = textwrap.dedent(
 
 
 def test_the_pipeline_gives_the_same_bits_on_1_2_and_7_threads():
-    environment = {**os.environ, "NUMBA_NUM_THREADS": "7"}
-    child = subprocess.run(
-        [sys.executable, "-c", CHILD],
-        env=environment,
-        capture_output=True,
-        text=True,
-        timeout=1200,
-        check=False,
-    )
-    assert child.returncode == 0, child.stderr[-3000:]
-    runs = json.loads(child.stdout.strip().splitlines()[-1])
+    runs = run_with_threads(CHILD, 7)
     first = runs["1 threads"]
     for name, digests in runs.items():
         assert digests == first, name
@@ -224,18 +211,7 @@ JOINT_CHILD = textwrap.dedent(
 
 
 def test_the_joint_loop_gives_the_separate_systems_bits_on_1_2_and_7_threads():
-    tests = os.path.dirname(os.path.abspath(__file__))
-    environment = {**os.environ, "NUMBA_NUM_THREADS": "7"}
-    child = subprocess.run(
-        [sys.executable, "-c", JOINT_CHILD, tests],
-        env=environment,
-        capture_output=True,
-        text=True,
-        timeout=1200,
-        check=False,
-    )
-    assert child.returncode == 0, child.stderr[-3000:]
-    runs = json.loads(child.stdout.strip().splitlines()[-1])
+    runs = run_with_threads(JOINT_CHILD, 7, TESTS)
     first = runs["1 threads"]
     for name, run in runs.items():
         # two calls at each pose and level, and the separate systems' sum once

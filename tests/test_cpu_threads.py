@@ -5,18 +5,16 @@ reaches the caller; a call wakes only the sleeping helpers it wants; and a forke
 loops too."""
 
 import _thread
-import json
 import multiprocessing
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 
 import numba
 import numpy as np
 import pytest
+from threads_child import run_with_threads
 
 from kintinuous_fast.targets.cpu import (
     NEXT_PART,
@@ -195,18 +193,7 @@ print(json.dumps({"asleep": asleep, "looked": len(looked), "seen": sorted(set(se
 def test_a_call_wakes_only_the_sleeping_helpers_it_wants():
     # each helper woken takes the GIL to look at the job, so waking a whole team for a loop
     # that wants one helper costs that loop the team's wake-ups (docs/benchmarks.md)
-    tests = os.path.dirname(os.path.abspath(__file__))
-    environment = {**os.environ, "NUMBA_NUM_THREADS": "7", "PYTHONPATH": tests}
-    child = subprocess.run(
-        [sys.executable, "-c", WAKE_CHILD],
-        env=environment,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    assert child.returncode == 0, child.stderr[-3000:]
-    result = json.loads(child.stdout.strip().splitlines()[-1])
+    result = run_with_threads(WAKE_CHILD, 7, timeout=300)
     assert result["asleep"] == 6
     assert result["looked"] <= 1  # the one helper wanted (or none: the caller took both parts)
     assert result["seen"] == [2]  # every item done once by each of the two calls
