@@ -13,8 +13,10 @@ compute capability. Typing needs no GPU; a failure after typing (no NVRTC or dri
 machine) counts as typed. Lists each kernel that does not type, with numba's message, and
 exits 1 if any. A typing interpreter, once:
 
-    python3 -m venv /tmp/typing && /tmp/typing/bin/pip install "numba==$(python -c \
+    python3 -m venv typing-venv && typing-venv/bin/pip install "numba==$(python -c \
         'import numba; print(numba.__version__)')" numba-cuda numpy scipy
+
+(any folder: pass its interpreter, e.g. `--python typing-venv/bin/python`).
 """
 
 from __future__ import annotations

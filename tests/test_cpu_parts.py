@@ -13,7 +13,7 @@ import time
 import numba
 import numpy as np
 import pytest
-from threads_child import TESTS, run_with_threads
+from threads_child import run_with_threads
 
 from kintinuous_fast.targets import cpu
 from kintinuous_fast.targets.cpu import (
@@ -163,10 +163,9 @@ def test_the_pipeline_gives_the_same_bits_on_1_2_and_7_threads():
 # their bytes, and each problem's RGB-D inlier fraction beside the base class's.
 JOINT_CHILD = textwrap.dedent(
     """
-    import hashlib, json, sys, numba
+    import hashlib, json, numba
     import numpy as np
-    sys.path.insert(0, sys.argv[1])
-    import test_fast_odometry_cases as cases
+    import test_fast_odometry_cases as cases  # the tests folder is on the child's path
     from kintinuous_fast.odometry import combined, cpu as odometry
     from kintinuous_fast.targets import cpu
     from kintinuous_ref.odometry.rgbd import RgbdProblem
@@ -211,7 +210,7 @@ JOINT_CHILD = textwrap.dedent(
 
 
 def test_the_joint_loop_gives_the_separate_systems_bits_on_1_2_and_7_threads():
-    runs = run_with_threads(JOINT_CHILD, 7, TESTS)
+    runs = run_with_threads(JOINT_CHILD, 7)
     first = runs["1 threads"]
     for name, run in runs.items():
         # two calls at each pose and level, and the separate systems' sum once

@@ -10,7 +10,7 @@ from typing import Any
 TESTS = os.path.dirname(os.path.abspath(__file__))
 
 
-def run_with_threads(code: str, threads: int, *arguments: str, timeout: float = 1200) -> Any:
+def run_with_threads(code: str, threads: int, timeout: float = 1200) -> Any:
     """The JSON that `code` prints last, run with NUMBA_NUM_THREADS=`threads` and this folder
     importable; a failing child fails the caller with the end of its stderr."""
     paths = [TESTS, *filter(None, [os.environ.get("PYTHONPATH")])]
@@ -20,7 +20,7 @@ def run_with_threads(code: str, threads: int, *arguments: str, timeout: float = 
         "PYTHONPATH": os.pathsep.join(paths),
     }
     child = subprocess.run(
-        [sys.executable, "-c", code, *arguments],
+        [sys.executable, "-c", code],
         env=environment,
         capture_output=True,
         text=True,
