@@ -1,22 +1,25 @@
 """The Gauss-Newton step's 6x6 algebra as device functions (kintinuous_fast.odometry.solve.ops)
 against the host's compiled step (solve/__init__.py, odometry/combined.py: LAPACK) and the
-reference's (NumPy), the ops compiled for the CPU with numba.njit; then the same ops compiled
-for CUDA in a one-thread kernel against the CPU compile (on a GPU, or on numba's CUDA simulator
-in a child process: tests/conftest.py).
+reference's (NumPy), the ops compiled for the CPU with numba.njit (one lane: plain loops); then
+the same ops compiled for CUDA in a one-thread kernel against the CPU compile, and the solve
+kernel (odometry/frame_solve.py, the ops on a block of threads) against the reference's step (on
+a GPU, or on numba's CUDA simulator in a child process: tests/conftest.py).
 
 Tolerances, with the largest errors measured over these cases at 64 seeds in brackets:
-- eigenvalues: 1e-12 x the largest |eigenvalue| of np.linalg.eigh's [1.1e-15]; eigenvectors
-  orthonormal to 1e-13 [2.7e-15], A V = V diag(values) to 1e-12 x max |eigenvalue| [6.4e-16];
+- eigenvalues: 1e-12 x the largest |eigenvalue| of np.linalg.eigh's [1.4e-15]; eigenvectors
+  orthonormal to 1e-13 [3.4e-15], A V = V diag(values) to 1e-12 x max |eigenvalue| [7.7e-16];
 - increments of scaled_solution: rtol 1e-10, atol 1e-14 of the host's and the reference's (the
   bound of tests/test_fast_solve.py: a weak direction amplifies rounding by its condition)
   [2.4e-15 x max |xi|]; the condition number: 100 eps x itself [2.4 eps x itself];
-- discounted_joint: 1e-12 x max |entry| of A and b (tests/test_fast_solve.py's) [A 9.6e-15,
-  b 8.8e-15];
+- discounted_joint: 1e-12 x max |entry| of A and b (tests/test_fast_solve.py's) [A 5.7e-15,
+  b 8.0e-15];
 - increment: 1e-14 absolute of both apply_increments on poses near rotations [5.1e-15];
   reflections 3e-13 [1.2e-13], where the SVD is the less accurate
   (test_increment_of_a_reflection);
 - the CUDA compile: bit for bit on the simulator (Python floats round as the CPU's loops), 1e-12
   x max |entry| on a GPU (fused multiply-adds).
+- the solve kernel's new pose: 1e-12 absolute of the reference's step (its partial sums added
+  in ranges, its eigenproblems in another order than LAPACK's).
 """
 
 from pathlib import Path
@@ -44,6 +47,7 @@ from kintinuous_ref.odometry.solve import MAX_CONDITION, LinearSystem
 
 CPU = ops.build_ops(numba.njit(cache=True))
 SEEDS = range(8)
+ONE_LANE = (0, 1)  # the 6x6 steps' lane and lane count: plain loops
 
 
 def scratch() -> np.ndarray:
@@ -86,15 +90,14 @@ def corridor_system(seed: int, count: int = 600) -> LinearSystem:
 
 
 def spectra(seed: int) -> list[np.ndarray]:
-    """Symmetric matrices: spread SPD, indefinite, repeated eigenvalues, diagonal, zero, 3x3."""
+    """Symmetric 6x6 matrices: spread SPD, indefinite, repeated eigenvalues, diagonal, zero."""
     rng = np.random.default_rng(seed)
     q = np.linalg.qr(rng.normal(size=(6, 6)))[0]
     spread = q @ np.diag(10.0 ** rng.uniform(-8, 4, 6)) @ q.T
     m = rng.normal(size=(6, 6))
     repeated = q @ np.diag([1.0, 1.0, 1.0, 2.0, 2.0, 1e-9]) @ q.T
-    small = rng.normal(size=(3, 3))
     matrices = [spread, m + m.T, repeated, np.diag(rng.normal(size=6)), np.zeros((6, 6))]
-    matrices += [random_system(seed).A, corridor_system(seed).A, small + small.T]
+    matrices += [random_system(seed).A, corridor_system(seed).A]
     return [(a + a.T) / 2 for a in matrices]
 
 
@@ -104,7 +107,7 @@ def test_symmetric_eigen_equals_eigh(seed: int) -> None:
         n = len(a)
         given = a.copy()
         values, vectors = np.full(n, np.nan), np.full((n, n), np.nan)
-        CPU.symmetric_eigen(a, values, vectors, scratch())
+        CPU.symmetric_eigen(a, values, vectors, scratch(), *ONE_LANE)
         np.testing.assert_array_equal(a, given)  # `a` unchanged
         expected, expected_vectors = np.linalg.eigh(a)
         largest = max(np.abs(expected).max(), 1e-300)
@@ -124,7 +127,7 @@ def test_symmetric_eigen_equals_eigh(seed: int) -> None:
 def test_scaled_solution_equals_the_host(seed: int, weak: int | None) -> None:
     system = random_system(seed, weak_axis=weak)
     xi = np.full(6, np.nan)
-    status, condition = CPU.scaled_solution(system.A, system.b, xi, scratch())
+    status, condition = CPU.scaled_solution(system.A, system.b, xi, scratch(), *ONE_LANE)
     host_status, host_xi, host_condition = fast._scaled_solution(system.A, system.b)
     assert (status, condition) == (host_status, host_condition) == (SOLVED, 0.0)
     np.testing.assert_allclose(xi, host_xi, rtol=1e-10, atol=1e-14)
@@ -158,7 +161,7 @@ def test_scaled_solution_gives_the_host_statuses() -> None:
     ]
     for a, b, expected in cases:
         xi = np.full(6, np.nan)
-        status, condition = CPU.scaled_solution(a, b, xi, scratch())
+        status, condition = CPU.scaled_solution(a, b, xi, scratch(), *ONE_LANE)
         host_status, host_xi, host_condition = fast._scaled_solution(a, b)
         assert status == host_status == expected
         np.testing.assert_array_equal(xi, host_xi)
@@ -179,7 +182,7 @@ def test_the_condition_number_equals_the_host(seed: int) -> None:
     for smallest in (1e-11, 1e-12):
         a = q @ np.diag([smallest, 0.5, 1.0, 1.5, 2.0, 3.0]) @ q.T
         a = (a + a.T) / 2
-        status, condition = CPU.scaled_solution(a, np.ones(6), np.empty(6), scratch())
+        status, condition = CPU.scaled_solution(a, np.ones(6), np.empty(6), scratch(), *ONE_LANE)
         host_status, _, host_condition = fast._scaled_solution(a, np.ones(6))
         assert status == host_status == ILL_CONDITIONED
         assert condition == pytest.approx(host_condition, rel=100 * 2.2e-16 * host_condition)
@@ -226,7 +229,7 @@ def test_discounted_joint_equals_the_host(seed: int, kind: str, threshold: float
     centre = np.random.default_rng(seed).normal(size=3)
     out_a, out_b = np.full((6, 6), np.nan), np.full(6, np.nan)
     arguments = joint_arguments(icp, rgbd, centre, threshold)
-    CPU.discounted_joint(*arguments, out_a, out_b, scratch())
+    CPU.discounted_joint(*arguments, out_a, out_b, scratch(), *ONE_LANE)
     host_a, host_b = fast_combined._discounted_joint(*arguments[:7], centre, threshold)
     expected = ref_combined.joint_system(
         icp, rgbd, 0.3, "degeneracy-aware", 10.0, centre, threshold
@@ -301,7 +304,7 @@ def test_increment_of_a_reflection(seed: int) -> None:
 
 
 @pytest.mark.skipif(cuda_status() == "", reason="CUDA works here: the kernel test runs directly")
-@pytest.mark.cuda_simulator(Path(__file__), "-k", "one_thread_kernel")
+@pytest.mark.cuda_simulator(Path(__file__), "-k", "one_thread_kernel or on_a_block")
 def test_solve_ops_in_the_cuda_simulator(cuda_simulator) -> None:
     cuda_simulator()
 
@@ -319,10 +322,10 @@ def test_the_ops_in_a_one_thread_kernel() -> None:
     def kernel(icp_a, icp_b, rgbd_a, rgbd_b, scalars, pose, values, vectors, a, b, xi, status,
                out):  # fmt: skip
         scratch = cuda.local.array((k, 6, 6), float64)
-        symmetric_eigen(icp_a, values, vectors, scratch)
-        discounted_joint(icp_a, icp_b, 600, scalars[0], rgbd_a, rgbd_b, scalars[1],
-                         scalars[2], scalars[3], scalars[4], scalars[5], a, b, scratch)  # fmt: skip
-        solved, condition = scaled_solution(a, b, xi, scratch)
+        symmetric_eigen(icp_a, values, vectors, scratch, 0, 1)
+        discounted_joint(icp_a, icp_b, 600, scalars[0], rgbd_a, rgbd_b, scalars[1], scalars[2],
+                         scalars[3], scalars[4], scalars[5], a, b, scratch, 0, 1)  # fmt: skip
+        solved, condition = scaled_solution(a, b, xi, scratch, 0, 1)
         status[0] = solved
         status[1] = condition
         increment(xi, pose, out, scratch)
@@ -341,11 +344,11 @@ def test_the_ops_in_a_one_thread_kernel() -> None:
     values, vectors, a, b, xi = (x.copy_to_host() for x in device)
 
     expected_values, expected_vectors = np.empty(6), np.empty((6, 6))
-    CPU.symmetric_eigen(icp.A, expected_values, expected_vectors, scratch())
+    CPU.symmetric_eigen(icp.A, expected_values, expected_vectors, scratch(), *ONE_LANE)
     expected_a, expected_b = np.empty((6, 6)), np.empty(6)
-    CPU.discounted_joint(*arguments, expected_a, expected_b, scratch())
+    CPU.discounted_joint(*arguments, expected_a, expected_b, scratch(), *ONE_LANE)
     expected_xi = np.empty(6)
-    expected_status = CPU.scaled_solution(expected_a, expected_b, expected_xi, scratch())
+    expected_status = CPU.scaled_solution(expected_a, expected_b, expected_xi, scratch(), *ONE_LANE)
     expected_pose = np.empty((4, 4))
     CPU.increment(expected_xi, pose, expected_pose, scratch())
 
@@ -358,3 +361,104 @@ def test_the_ops_in_a_one_thread_kernel() -> None:
         else:  # fused multiply-adds on a GPU
             np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
     np.testing.assert_allclose(np.abs(vectors.T @ expected_vectors), np.eye(6), atol=1e-8)
+
+
+# ----------------------------------------------------------------------------------------------
+# The whole step on a CUDA block: odometry/frame_solve.py's kernel against the reference
+
+
+def packed(system: LinearSystem) -> np.ndarray:
+    """The NV summed values of a system (sums.unpack's layout)."""
+    from kintinuous_fast.odometry.sums import NV, SLOT_B, SLOT_COST, SLOT_COUNT
+
+    vector = np.zeros(NV)
+    vector[:SLOT_B] = system.A[np.triu_indices(6)]
+    vector[SLOT_B : SLOT_B + 6] = system.b
+    vector[SLOT_COST], vector[SLOT_COUNT] = system.cost, system.count
+    return vector
+
+
+def block_partials(system: LinearSystem, blocks: int, seed: int) -> np.ndarray:
+    """`blocks` random partial vectors that add up to the system's (as the kernels' blocks)."""
+    shares = np.random.default_rng(seed).dirichlet(np.ones(blocks))
+    return shares[:, None] * packed(system)[None, :]
+
+
+def block_step(icp, rgbd, pose, mode, settings, blocks=37, level=1, failed=False):  # noqa: ANN001, ANN201
+    """solve_kernel once on a block, from partials of `icp` and `rgbd` over `blocks` blocks
+    (RGB-D's over 5 blocks), `pose` the estimate: (state, poses) after it."""
+    from kintinuous_fast.odometry import frame_kernels as slots
+    from kintinuous_fast.odometry.frame_on_device import _initial_poses
+    from kintinuous_fast.odometry.frame_solve import SOLVE_THREADS, solve_kernel
+
+    state = np.zeros(slots.STATE_SIZE)
+    state[slots.DONE_LEVEL], state[slots.MODE], state[slots.FAILED] = -1.0, mode, failed
+    previous = se3.exp(np.array([0.01, -0.02, 0.03, 0.1, 0.0, -0.05]))
+    poses = np.ascontiguousarray(_initial_poses(previous, None, pose))
+    arrays = [cuda.to_device(x) for x in (np.zeros(2), state, poses)]
+    icp_partials = cuda.to_device(block_partials(icp, blocks, 1))
+    rgbd_partials = cuda.to_device(block_partials(rgbd, 5, 2))
+    solve_kernel[1, SOLVE_THREADS](icp_partials, rgbd_partials, *arrays, settings, level)
+    return arrays[1].copy_to_host(), arrays[2].copy_to_host(), previous
+
+
+def assert_pose_step(poses: np.ndarray, previous: np.ndarray, expected: np.ndarray) -> None:
+    """The new estimate and the relative poses the next kernels read."""
+    np.testing.assert_allclose(poses[0], expected, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(poses[3], poses[0])
+    np.testing.assert_array_equal(poses[1], poses[0])  # no model pose: the identity
+    np.testing.assert_allclose(poses[2], np.linalg.inv(previous) @ expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.skipif(bool(cuda_status()), reason="no CUDA GPU: runs in the simulator child")
+@pytest.mark.parametrize("blocks", [1, 37, 1024])
+def test_the_joint_step_on_a_block(blocks: int) -> None:
+    """The default weighting with a weak direction to discount (a corridor's ICP system), its
+    partials over `blocks` blocks, so every range of the kernel's partial sums is used (and
+    some are empty): the reference's joint system, solve and increment."""
+    from kintinuous_fast.odometry import frame_kernels as slots
+
+    icp, rgbd = corridor_system(7), random_system(107, count=150)
+    pose = near_rotation(7, 1e-12)
+    pose[:3, 3] = [0.4, 1.5, 1.1]
+    settings = (10.0, 1e-12, slots.DISCOUNTED, 0.3, 10.0, 0.02)
+    state, poses, previous = block_step(icp, rgbd, pose, slots.JOINT, settings, blocks)
+    joint = ref_combined.joint_system(icp, rgbd, 0.3, "degeneracy-aware", 10.0, pose[:3, 3], 0.02)
+    assert ref_combined.information_spectrum(icp, pose[:3, 3])[0].min() < 0.02  # discounted
+    xi, reason = ref.solve(joint)
+    assert reason == "" and state[slots.FAILED] == 0 and state[slots.DONE_LEVEL] == -1
+    assert_pose_step(poses, previous, ref.apply_increment(xi, pose))
+
+
+@pytest.mark.skipif(bool(cuda_status()), reason="no CUDA GPU: runs in the simulator child")
+def test_the_outcomes_of_a_step_on_a_block() -> None:
+    """ICP alone (its own system), convergence, too few pairs, an ill-conditioned system and
+    a closed gate, each as the reference's step ends."""
+    from kintinuous_fast.odometry import frame_kernels as slots
+
+    icp, rgbd, pose = random_system(3), random_system(4, count=150), near_rotation(3, 1e-12)
+    plain = (10.0, 1e-12, slots.PAPER_METRES, 1.0, 1.0, 0.0)
+    state, poses, previous = block_step(icp, rgbd, pose, slots.ICP_ONLY, plain)
+    assert state[slots.FAILED] == 0 and state[slots.DONE_LEVEL] == -1
+    assert_pose_step(poses, previous, ref.apply_increment(ref.solve(icp)[0], pose))
+
+    converging = (10.0, 1.0, slots.PAPER_METRES, 1.0, 1.0, 0.0)  # every step is below 1
+    state, _, _ = block_step(icp, rgbd, pose, slots.ICP_ONLY, converging, level=2)
+    assert state[slots.FAILED] == 0 and state[slots.DONE_LEVEL] == 2
+
+    too_many = (1e6, 1e-12, slots.PAPER_METRES, 1.0, 1.0, 0.0)
+    state, poses, _ = block_step(icp, rgbd, pose, slots.JOINT, too_many)
+    assert (state[slots.FAILED], state[slots.STATUS]) == (1.0, slots.TOO_FEW)
+    assert state[slots.FAIL_COUNT] == icp.count + rgbd.count and state[slots.FAIL_LEVEL] == 1
+    np.testing.assert_array_equal(poses[0], pose)
+
+    rows = np.random.default_rng(2).normal(size=(3, 6))
+    plane = LinearSystem(rows.T @ rows + np.eye(6) * 1e-30, np.ones(6), 400, 1.0)
+    state, _, _ = block_step(plane, rgbd, pose, slots.ICP_ONLY, plain)
+    assert (state[slots.FAILED], state[slots.STATUS]) == (1.0, ILL_CONDITIONED)
+    assert state[slots.CONDITION] > MAX_CONDITION
+    assert "singular system (condition number" in ref.solve(plane)[1]
+
+    state, poses, _ = block_step(icp, rgbd, pose, slots.ICP_ONLY, plain, failed=True)
+    assert state[slots.STATUS] == 0 and state[slots.DONE_LEVEL] == -1
+    np.testing.assert_array_equal(poses[0], pose)

@@ -15,13 +15,13 @@ The sequence of a frame, the bracketed kernels only for a method with that estim
         per step: [icp], [correspond, rows], solve
     at the finest level: [icp], [correspond], finish
 
-`solve` runs in one block: it adds the blocks' partial sums in float64, forms the joint system
-(kintinuous_ref.odometry.combined.joint_system, every weighting), solves it as solve.solve
-does, applies the increment (eq. 4) and writes the new pose with the relative poses ICP and
-RGB-D read. Where the reference leaves a level early (a step below tracking.converged_step) or
-fails (no solution), the solve kernel closes the gate (sums.cuda.gated) and the level's or the
-frame's remaining kernels return at once: the launches stay the same for every frame, so the
-sequence could be captured once and replayed.
+`solve` runs in one block (frame_solve.py): it adds the blocks' partial sums in float64, forms
+the joint system (kintinuous_ref.odometry.combined.joint_system, every weighting), solves it as
+solve.solve does, applies the increment (eq. 4) and writes the new pose with the relative poses
+ICP and RGB-D read. Where the reference leaves a level early (a step below
+tracking.converged_step) or fails (no solution), the solve kernel closes the gate
+(sums.cuda.gated) and the level's or the frame's remaining kernels return at once: the launches
+stay the same for every frame, so the sequence could be captured once and replayed.
 """
 
 from __future__ import annotations
@@ -56,7 +56,6 @@ from kintinuous_fast.odometry.frame_kernels import (  # the state's slots and th
     RGBD_ONLY,
     RGBD_PAIRS,
     RGBD_POINTS,
-    SOLVE_THREADS,
     STALE,
     STATE_SIZE,
     STATUS,
@@ -66,8 +65,8 @@ from kintinuous_fast.odometry.frame_kernels import (  # the state's slots and th
     finish_kernel,
     mode_kernel,
     repeats_kernel,
-    solve_kernel,
 )
+from kintinuous_fast.odometry.frame_solve import SOLVE_THREADS, solve_kernel
 from kintinuous_fast.odometry.icp.cuda import IcpProblem, icp_kernel
 from kintinuous_fast.odometry.rgbd import relative_pose
 from kintinuous_fast.odometry.rgbd.cuda import (

@@ -1,14 +1,31 @@
-"""The 6x6 algebra of a Gauss-Newton step as scalar loops, written once for the CPU and CUDA
-targets: `build_ops(jit)` as in kintinuous_fast.targets. What solve/__init__.py and
+"""The 6x6 algebra of a Gauss-Newton step, written once for the CPU and CUDA targets:
+`build_ops(jit, barrier)` as in kintinuous_fast.targets. What solve/__init__.py and
 odometry/combined.py compute on the host with LAPACK and fresh arrays (eigh, cholesky, svd, inv),
 here without allocation, np.linalg or exceptions, so that a CUDA kernel can run the whole
-iteration on the device: cyclic Jacobi for the symmetric eigenproblems, Cholesky and the two
+iteration on the device: Jacobi's method for the symmetric eigenproblems, Cholesky and the two
 triangular solves for the normal equations, the polar decomposition for the nearest rotation.
 
-Every intermediate lives in the caller's float64 `scratch` of shape (SCRATCH_MATRICES, 6, 6) (in
-a CUDA kernel `cuda.local.array((SCRATCH_MATRICES, 6, 6), float64)`); vectors use rows of its
-matrices. Which matrices each function uses is in its docstring; the arguments must not be views
-of them, nor of each other.
+The 6x6 steps (symmetric_eigen, scaled_solution, discounted_joint) are written for a team of
+`lanes` threads that all call them: lane e computes the elements e, e + lanes, ... of each
+matrix (element k is row k // 6, column k % 6), and `barrier()` separates a step from the next
+one that reads its results. On a CUDA block (odometry/frame_solve.py) the lanes are the
+block's threads and the barrier is `cuda.syncthreads`; called with lane 0 of 1 and a barrier
+that does nothing they are plain loops, which is how the CPU compile runs them, with the same
+arithmetic in the same order. Work that is scalar (the checks, Cholesky) runs on lane 0, which
+leaves its verdict in `scratch` for every lane to read after a barrier, so that every lane takes
+the same branches and meets the same barriers. An element's sum runs over k ascending, as a
+product does in matrices.product.
+
+The eigenproblems use Jacobi's method in its parallel ordering (Golub and Van Loan, section
+8.5): a sweep's 15 rotations go in 5 rounds of 3 whose index pairs are disjoint (the rounds of a
+round-robin tournament of the 6 indices), and a round applies its 3 rotations at once, each
+element of J^T A J from four elements of A. So 36 lanes take a sweep in 5 dependent steps
+instead of 15. The 3x3 of the increment keeps the cyclic order on one lane.
+
+Every intermediate lives in the caller's float64 `scratch` of shape (SCRATCH_MATRICES, 6, 6)
+(on a CUDA block a shared array, for one thread a local one); vectors use rows of its matrices.
+Which matrices each function uses is in its docstring; the arguments must not be views of them,
+nor of each other.
 """
 
 from __future__ import annotations
@@ -25,9 +42,15 @@ from . import ILL_CONDITIONED, NOT_DEFINITE, NOT_FINITE, SOLVED, UNCONSTRAINED
 
 __all__ = ["SCRATCH_MATRICES", "build_ops"]
 
-# The (6, 6) float64 matrices a caller's scratch holds: discounted_joint and increment use all.
-SCRATCH_MATRICES = 6
-# Cyclic Jacobi stops after this many sweeps (the tests' matrices need at most 6) ...
+# The (6, 6) float64 matrices of a caller's scratch: the eigensolver's two iterates and the two
+# of its eigenvectors (it reads one and writes the other each round), the rows of vectors and
+# the lanes' shared verdict, then the steps' intermediates.
+W0, W1, V0, V1, ROWS = range(5)
+FREE = 5
+SCRATCH_MATRICES = 10
+VERDICT = 5  # scratch[ROWS, VERDICT, 0]: what lane 0 found, read by every lane
+ELEMENTS = 36
+# Jacobi stops after this many sweeps (the tests' matrices need at most 6) ...
 MAX_SWEEPS = 30
 # ... or once the off-diagonal mass is below float64 rounding of the diagonal:
 # sum_{p<q} a_pq^2 <= (2^-52)^2 sum_p a_pp^2.
@@ -35,53 +58,71 @@ ROUNDING_SQUARED = 2.0**-104
 # Beyond this |cot 2 phi| the tangent of the Jacobi angle is 1 / (2 cot 2 phi) (theta^2 would
 # overflow).
 HUGE_COTANGENT = 1e150
+ROUNDS = 5  # a sweep of the 6x6 in the parallel ordering
 
 
-def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
+def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace:
     """symmetric_eigen, scaled_solution, discounted_joint and increment (and the Cholesky
-    factorisation they use) compiled with `jit`."""
+    factorisation they use) compiled with `jit`; `barrier` (a compiled function of no
+    arguments) synchronises the lanes, None for one lane."""
     # The reference's series coefficients of exp (A, B, C of eq. 5), compiled as written.
     so3_coefficients = jit(se3._so3_coefficients)
 
+    if barrier is None:
+
+        @jit
+        def barrier() -> None:
+            """One lane: nothing to wait for."""
+
+    @jit
+    def product(a: Any, b: Any, i: int, j: int, n: int) -> float:
+        """(a @ b)[i, j] of the leading n x n blocks (matrices.product's order of sums)."""
+        total = 0.0
+        for k in range(n):
+            total += a[i, k] * b[k, j]
+        return total
+
+    @jit
+    def product_tn(a: Any, b: Any, i: int, j: int, n: int) -> float:
+        """(a^T @ b)[i, j] of the leading n x n blocks."""
+        total = 0.0
+        for k in range(n):
+            total += a[k, i] * b[k, j]
+        return total
+
+    @jit
+    def product_nt(a: Any, b: Any, i: int, j: int, n: int) -> float:
+        """(a @ b^T)[i, j] of the leading n x n blocks."""
+        total = 0.0
+        for k in range(n):
+            total += a[i, k] * b[j, k]
+        return total
+
     @jit
     def multiply(a: Any, b: Any, out: Any, n: int) -> None:
-        """out = a @ b of the leading n x n blocks (matrices.product's order of sums)."""
+        """out = a @ b of the leading n x n blocks, on one lane."""
         for i in range(n):
             for j in range(n):
-                total = 0.0
-                for k in range(n):
-                    total += a[i, k] * b[k, j]
-                out[i, j] = total
+                out[i, j] = product(a, b, i, j, n)
 
     @jit
     def multiply_tn(a: Any, b: Any, out: Any, n: int) -> None:
-        """out = a^T @ b of the leading n x n blocks."""
+        """out = a^T @ b of the leading n x n blocks, on one lane."""
         for i in range(n):
             for j in range(n):
-                total = 0.0
-                for k in range(n):
-                    total += a[k, i] * b[k, j]
-                out[i, j] = total
+                out[i, j] = product_tn(a, b, i, j, n)
 
     @jit
     def multiply_nt(a: Any, b: Any, out: Any, n: int) -> None:
-        """out = a @ b^T of the leading n x n blocks."""
+        """out = a @ b^T of the leading n x n blocks, on one lane."""
         for i in range(n):
             for j in range(n):
-                total = 0.0
-                for k in range(n):
-                    total += a[i, k] * b[j, k]
-                out[i, j] = total
+                out[i, j] = product_nt(a, b, i, j, n)
 
     @jit
-    def rotate(work: Any, vectors: Any, n: int, p: int, q: int) -> None:
-        """One Jacobi rotation J (c, s in rows/columns p, q): work = J^T work J with
-        work[p, q] = 0, vectors = vectors J (Golub and Van Loan's symmetric Schur step)."""
-        apq = work[p, q]
-        if apq == 0.0:
-            return
-        app = work[p, p]
-        aqq = work[q, q]
+    def jacobi_rotation(app: float, aqq: float, apq: float) -> tuple[float, float, float]:
+        """(t, c, s) of the rotation that zeroes a_pq (apq != 0): Golub and Van Loan's symmetric
+        Schur step, t = tan phi, c = cos phi, s = sin phi."""
         theta = (aqq - app) / (2.0 * apq)
         if abs(theta) > HUGE_COTANGENT:
             t = 0.5 / theta
@@ -90,7 +131,18 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
             if theta < 0.0:
                 t = -t
         c = 1.0 / math.sqrt(t * t + 1.0)
-        s = t * c
+        return t, c, t * c
+
+    @jit
+    def rotate(work: Any, vectors: Any, n: int, p: int, q: int) -> None:
+        """One Jacobi rotation J (c, s in rows/columns p, q): work = J^T work J with
+        work[p, q] = 0, vectors = vectors J."""
+        apq = work[p, q]
+        if apq == 0.0:
+            return
+        app = work[p, p]
+        aqq = work[q, q]
+        t, c, s = jacobi_rotation(app, aqq, apq)
         for k in range(n):
             if k != p and k != q:
                 akp = work[k, p]
@@ -110,20 +162,26 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
             vectors[k, q] = s * vkp + c * vkq
 
     @jit
+    def off_diagonal_negligible(work: Any, n: int) -> bool:
+        """Jacobi's stopping test on the leading n x n block (ROUNDING_SQUARED)."""
+        off = 0.0
+        diagonal = 0.0
+        for p in range(n):
+            diagonal += work[p, p] * work[p, p]
+            for q in range(p + 1, n):
+                off += work[p, q] * work[p, q]
+        return off <= ROUNDING_SQUARED * diagonal
+
+    @jit
     def jacobi(a: Any, n: int, values: Any, vectors: Any, work: Any) -> None:
-        """symmetric_eigen of the leading n x n block of `a`, its iterate in `work` (n x n)."""
+        """Eigenvalues (ascending) and eigenvectors of the leading n x n block of `a` by cyclic
+        Jacobi on one lane, its iterate in `work` (n x n): the increment's 3x3."""
         for i in range(n):
             for j in range(n):
                 work[i, j] = a[i, j]
                 vectors[i, j] = 1.0 if i == j else 0.0
         for _ in range(MAX_SWEEPS):
-            off = 0.0
-            diagonal = 0.0
-            for p in range(n):
-                diagonal += work[p, p] * work[p, p]
-                for q in range(p + 1, n):
-                    off += work[p, q] * work[p, q]
-            if off <= ROUNDING_SQUARED * diagonal:
+            if off_diagonal_negligible(work, n):
                 break
             for p in range(n - 1):
                 for q in range(p + 1, n):
@@ -145,11 +203,88 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
                     vectors[k, smallest] = entry
 
     @jit
-    def symmetric_eigen(a: Any, values: Any, vectors: Any, scratch: Any) -> None:
-        """np.linalg.eigh of the symmetric n x n `a` (n = a.shape[0] <= 6; `a` unchanged):
-        eigenvalues ascending into `values` (n,), unit eigenvectors as the columns of `vectors`
-        (n, n), by cyclic Jacobi. Uses scratch[0]."""
-        jacobi(a, a.shape[0], values, vectors, scratch[0])
+    def partner(k: int, round_: int) -> int:
+        """k's partner in round `round_` (0..4) of a round-robin tournament of 0..5 (the
+        circle method: 5 stays, 0..4 turn): every pair meets once in the 5 rounds."""
+        if k == 5:
+            return round_
+        if k == round_:
+            return 5
+        return (2 * round_ - k + 5) % 5
+
+    @jit
+    def pair_rotation(work: Any, k: int, round_: int) -> tuple[int, float, float, float]:
+        """(m, c, sigma, delta) of index k in round `round_`: its partner m, and the rotation of
+        the pair (p, q) = (min, max) as rotate applies it: column k of W J is c W[:, k] + sigma
+        W[:, m] (sigma = -s for p, s for q), and W[k, k] gains delta (-t a_pq, t a_pq)."""
+        m = partner(k, round_)
+        p, q = min(k, m), max(k, m)
+        apq = work[p, q]
+        if apq == 0.0:
+            return m, 1.0, 0.0, 0.0
+        t, c, s = jacobi_rotation(work[p, p], work[q, q], apq)
+        if k == p:
+            return m, c, -s, -t * apq
+        return m, c, s, t * apq
+
+    @jit
+    def round_entry(work: Any, vectors: Any, i: int, j: int, round_: int) -> tuple[float, float]:
+        """Element (i, j) of J^T W J and of V J after round `round_`'s three rotations. An
+        off-diagonal element is computed from its (min, max) end, so W stays exactly symmetric;
+        a pair's own elements take rotate's forms (diagonal shifted, a_pq = 0)."""
+        mi, ci, si, di = pair_rotation(work, i, round_)
+        mj, cj, sj, dj = pair_rotation(work, j, round_)
+        vector = cj * vectors[i, j] + sj * vectors[i, mj]
+        if i == j:
+            return work[i, i] + di, vector
+        if j == mi:
+            return 0.0, vector
+        if i > j:
+            i, mi, ci, si, j, mj, cj, sj = j, mj, cj, sj, i, mi, ci, si
+        row = cj * work[i, j] + sj * work[i, mj]
+        partner_row = cj * work[mi, j] + sj * work[mi, mj]
+        return ci * row + si * partner_row, vector
+
+    @jit
+    def diagonal_rank(work: Any, j: int) -> int:
+        """Where W[j, j] goes in ascending order (ties by index)."""
+        rank = 0
+        for k in range(6):
+            if work[k, k] < work[j, j] or (work[k, k] == work[j, j] and k < j):
+                rank += 1
+        return rank
+
+    @jit
+    def symmetric_eigen(
+        a: Any, values: Any, vectors: Any, scratch: Any, lane: int, lanes: int
+    ) -> None:
+        """np.linalg.eigh of the symmetric 6x6 `a` (unchanged): eigenvalues ascending into
+        `values` (6,), unit eigenvectors as the columns of `vectors` (6, 6), by Jacobi in the
+        parallel ordering. Uses scratch[W0:V1 + 1]."""
+        for e in range(lane, ELEMENTS, lanes):
+            i, j = e // 6, e % 6
+            scratch[W0, i, j] = a[i, j]
+            scratch[V0, i, j] = 1.0 if i == j else 0.0
+        barrier()
+        now = 0  # the iterates are scratch[W0 + now], scratch[V0 + now]
+        for _ in range(MAX_SWEEPS):
+            if off_diagonal_negligible(scratch[W0 + now], 6):  # every lane, the same answer
+                break
+            for round_ in range(ROUNDS):
+                for e in range(lane, ELEMENTS, lanes):
+                    i, j = e // 6, e % 6
+                    w, v = round_entry(scratch[W0 + now], scratch[V0 + now], i, j, round_)
+                    scratch[W1 - now, i, j] = w
+                    scratch[V1 - now, i, j] = v
+                barrier()
+                now = 1 - now
+        for e in range(lane, ELEMENTS, lanes):
+            i, j = e // 6, e % 6
+            rank = diagonal_rank(scratch[W0 + now], j)
+            if i == 0:
+                values[rank] = scratch[W0 + now, j, j]
+            vectors[i, rank] = scratch[V0 + now, i, j]
+        barrier()
 
     @jit
     def cholesky(a: Any, n: int, lower: Any) -> bool:
@@ -192,39 +327,25 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
             x[i] = total / lower[i, i]
 
     @jit
-    def scaled_solution(A: Any, b: Any, xi: Any, scratch: Any) -> tuple[int, float]:
-        """(status, condition) of the normal equations A xi = -b (eq. 12-13), xi (6,) written
-        (zeros unless SOLVED): solve/__init__.py's _scaled_solution, its checks in its order.
-        Jacobi-scaled (D^-1/2 A D^-1/2), the condition from the scaled matrix's eigenvalues,
-        then Cholesky. Uses scratch[0:5]: 1 the scaled matrix, 2 its eigenvectors, 3 the
-        Cholesky factor, 4's rows the scale, the eigenvalues and the two triangular solves."""
-        for i in range(6):
-            xi[i] = 0.0
+    def system_status(A: Any, b: Any) -> int:
+        """NOT_FINITE, UNCONSTRAINED or SOLVED: the host's checks before the eigenvalues."""
         for i in range(6):
             for j in range(6):
                 if not math.isfinite(A[i, j]):
-                    return NOT_FINITE, 0.0
+                    return NOT_FINITE
             if not math.isfinite(b[i]):
-                return NOT_FINITE, 0.0
+                return NOT_FINITE
         for i in range(6):
             if A[i, i] <= 0:
-                return UNCONSTRAINED, 0.0
-        scaled = scratch[1]
-        rows = scratch[4]
-        scale = rows[0]
-        for i in range(6):
-            scale[i] = 1.0 / math.sqrt(A[i, i])
-        for i in range(6):
-            for j in range(6):
-                scaled[i, j] = A[i, j] * scale[i] * scale[j]
-        eigenvalues = rows[1]
-        symmetric_eigen(scaled, eigenvalues, scratch[2], scratch)
-        if eigenvalues[0] <= eigenvalues[5] / MAX_CONDITION:
-            return ILL_CONDITIONED, eigenvalues[5] / max(eigenvalues[0], 1e-300)
-        factor = scratch[3]
+                return UNCONSTRAINED
+        return SOLVED
+
+    @jit
+    def cholesky_solution(scaled: Any, scale: Any, b: Any, xi: Any, factor: Any, rows: Any) -> int:
+        """SOLVED with xi = D^-1/2 y, (D^-1/2 A D^-1/2) y = -D^-1/2 b through L L^T (`scaled` =
+        D^-1/2 A D^-1/2, `scale` = D^-1/2), or NOT_DEFINITE; on one lane. Uses rows[2:4]."""
         if not cholesky(scaled, 6, factor):
-            return NOT_DEFINITE, 0.0
-        # (D^-1/2 A D^-1/2) y = -D^-1/2 b through L L^T, then xi = D^-1/2 y
+            return NOT_DEFINITE
         rhs = rows[2]
         for i in range(6):
             rhs[i] = -b[i] * scale[i]
@@ -232,7 +353,92 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         back_substitution(factor, rows[3], rhs, 6)
         for i in range(6):
             xi[i] = rhs[i] * scale[i]
-        return SOLVED, 0.0
+        return SOLVED
+
+    @jit
+    def lane_verdict(scratch: Any, lane: int, value: float) -> float:
+        """Lane 0's `value`, returned to every lane (read after a barrier)."""
+        if lane == 0:
+            scratch[ROWS, VERDICT, 0] = value
+        barrier()
+        verdict = scratch[ROWS, VERDICT, 0]
+        barrier()  # every lane has read it before lane 0 may write the next
+        return verdict
+
+    @jit
+    def scaled_solution(
+        A: Any, b: Any, xi: Any, scratch: Any, lane: int, lanes: int
+    ) -> tuple[int, float]:
+        """(status, condition) of the normal equations A xi = -b (eq. 12-13), xi (6,) written
+        (zeros unless SOLVED): solve/__init__.py's _scaled_solution, its checks in its order.
+        Jacobi-scaled (D^-1/2 A D^-1/2), the condition from the scaled matrix's eigenvalues,
+        then Cholesky. Uses scratch[:FREE + 3]: FREE the scaled matrix, FREE + 1 its
+        eigenvectors, FREE + 2 the Cholesky factor, ROWS's rows the scale, the eigenvalues and
+        the two triangular solves."""
+        status = SOLVED
+        if lane == 0:
+            for i in range(6):
+                xi[i] = 0.0
+            status = system_status(A, b)
+        status = int(lane_verdict(scratch, lane, status))
+        if status != SOLVED:
+            return status, 0.0
+        scaled = scratch[FREE]
+        rows = scratch[ROWS]
+        scale = rows[0]
+        for i in range(lane, 6, lanes):
+            scale[i] = 1.0 / math.sqrt(A[i, i])
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):
+            i, j = e // 6, e % 6
+            scaled[i, j] = A[i, j] * scale[i] * scale[j]
+        barrier()
+        eigenvalues = rows[1]
+        symmetric_eigen(scaled, eigenvalues, scratch[FREE + 1], scratch, lane, lanes)
+        if eigenvalues[0] <= eigenvalues[5] / MAX_CONDITION:
+            return ILL_CONDITIONED, eigenvalues[5] / max(eigenvalues[0], 1e-300)
+        if lane == 0:
+            status = cholesky_solution(scaled, scale, b, xi, scratch[FREE + 2], rows)
+        return int(lane_verdict(scratch, lane, status)), 0.0
+
+    @jit
+    def change_entry(i: int, j: int, cx: float, cy: float, cz: float) -> float:
+        """M[i, j], M = [[I, 0], [skew(c), I]] (combined.about_camera)."""
+        if i == j:
+            return 1.0
+        if i == 3 and j == 1:
+            return -cz
+        if i == 3 and j == 2:
+            return cy
+        if i == 4 and j == 0:
+            return cz
+        if i == 4 and j == 2:
+            return -cx
+        if i == 5 and j == 0:
+            return -cy
+        if i == 5 and j == 1:
+            return cx
+        return 0.0
+
+    @jit
+    def from_scaled_entry(i: int, j: int, lever: float, cx: float, cy: float, cz: float) -> float:
+        """((M D)^-1)[i, j] in closed form (for np.linalg.inv): D^-1 = diag(lever x3, 1 x3)
+        and M^-1 = [[I, 0], [-skew(c), I]] (a shear: its lower block negated), so (M D)^-1 =
+        [[lever I, 0], [-skew(c), I]]."""
+        if i == j:
+            return lever if i < 3 else 1.0
+        entry = change_entry(i, j, cx, cy, cz)
+        return -entry if entry != 0.0 else 0.0
+
+    @jit
+    def lever_scale(i: int, lever: float) -> float:
+        """D[i, i], D = diag(1 / lever x3, 1 x3)."""
+        return 1 / lever if i < 3 else 1.0
+
+    @jit
+    def kept_share(value: float, threshold: float) -> float:
+        """How much of an information direction the discount keeps (1 with no threshold)."""
+        return min(value / threshold, 1.0) if threshold > 0 else 1.0
 
     @jit
     def discounted_joint(
@@ -250,106 +456,97 @@ def build_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         out_a: Any,
         out_b: Any,
         scratch: Any,
+        lane: int,
+        lanes: int,
     ) -> None:
         """(out_a, out_b) = combined.py's _discounted_joint (the joint normal equations of
         eq. 12-13, "degeneracy-aware"): the ICP system with its weak directions discounted, its
         information measured about the centre (cx, cy, cz), times `icp_weight`, plus the RGB-D
-        system times `rgbd_weight`. Uses scratch[0:6]."""
-        change = scratch[5]  # M = [[I, 0], [skew(c), I]] (combined.about_camera)
-        for i in range(6):
-            for j in range(6):
-                change[i, j] = 1.0 if i == j else 0.0
-        change[3, 1] = -cz
-        change[3, 2] = cy
-        change[4, 0] = cz
-        change[4, 2] = -cx
-        change[5, 0] = -cy
-        change[5, 1] = cx
-        multiply_tn(change, icp_a, scratch[1], 6)
-        centred = scratch[2]  # M^T A M
-        multiply(scratch[1], change, centred, 6)
+        system times `rgbd_weight`. Uses all of scratch."""
+        f0, f1, f2, f3, f4 = FREE, FREE + 1, FREE + 2, FREE + 3, FREE + 4
+        rows = scratch[ROWS]
+        for e in range(lane, ELEMENTS, lanes):  # M
+            i, j = e // 6, e % 6
+            scratch[f0, i, j] = change_entry(i, j, cx, cy, cz)
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # M^T A
+            i, j = e // 6, e % 6
+            scratch[f1, i, j] = product_tn(scratch[f0], icp_a, i, j, 6)
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # C = M^T A M
+            i, j = e // 6, e % 6
+            scratch[f2, i, j] = product(scratch[f1], scratch[f0], i, j, 6)
+        barrier()
+        centred = scratch[f2]
         translational = max(centred[3, 3] + centred[4, 4] + centred[5, 5], 1e-300)
         rotational = max(centred[0, 0] + centred[1, 1] + centred[2, 2], 1e-300)
         lever = math.sqrt(rotational / translational)
-        rows = scratch[4]
-        diagonal = rows[0]  # D = diag(1 / lever x3, 1 x3)
-        for i in range(6):
-            diagonal[i] = 1 / lever if i < 3 else 1.0
-        information = scratch[1]  # D C D / count
-        to_scaled = scratch[3]  # M D
-        for i in range(6):
-            for j in range(6):
-                information[i, j] = diagonal[i] * centred[i, j] * diagonal[j] / max(icp_count, 1)
-                to_scaled[i, j] = change[i, j] * diagonal[j]
-        eigenvalues = rows[1]
-        eigenvectors = scratch[2]
-        symmetric_eigen(information, eigenvalues, eigenvectors, scratch)
-        kept = rows[2]
+        for e in range(lane, ELEMENTS, lanes):  # information D C D / count, S = M D
+            i, j = e // 6, e % 6
+            scale_i, scale_j = lever_scale(i, lever), lever_scale(j, lever)
+            scratch[f1, i, j] = scale_i * centred[i, j] * scale_j / max(icp_count, 1)
+            scratch[f3, i, j] = scratch[f0, i, j] * scale_j
+        barrier()
+        eigenvalues, eigenvectors = rows[1], scratch[f2]
+        symmetric_eigen(scratch[f1], eigenvalues, eigenvectors, scratch, lane, lanes)
         weak = False
-        for i in range(6):
-            kept[i] = 1.0
-        if threshold > 0:
-            for i in range(6):
-                kept[i] = min(eigenvalues[i] / threshold, 1.0)
-                weak = weak or kept[i] < 1.0
+        for k in range(6):
+            weak = weak or kept_share(eigenvalues[k], threshold) < 1.0
         if not weak:
-            for i in range(6):
-                for j in range(6):
-                    out_a[i, j] = icp_a[i, j] * icp_weight + rgbd_a[i, j] * rgbd_weight
-                out_b[i] = icp_b[i] * icp_weight + rgbd_b[i] * rgbd_weight
+            for e in range(lane, ELEMENTS, lanes):
+                i, j = e // 6, e % 6
+                out_a[i, j] = icp_a[i, j] * icp_weight + rgbd_a[i, j] * rgbd_weight
+                if j == 0:
+                    out_b[i] = icp_b[i] * icp_weight + rgbd_b[i] * rgbd_weight
+            barrier()
             return
-        weighted = scratch[5]  # V diag(max(kept, 0))
-        for i in range(6):
-            for k in range(6):
-                weighted[i, k] = eigenvectors[i, k] * max(kept[k], 0.0)
-        shrink = scratch[1]
-        multiply_nt(weighted, eigenvectors, shrink, 6)
-        multiply_tn(to_scaled, icp_a, scratch[5], 6)  # S^T A
-        multiply(scratch[5], to_scaled, scratch[2], 6)  # S^T A S
-        a_eta = scratch[5]
-        multiply(shrink, scratch[2], a_eta, 6)
-        b_scaled = rows[3]  # S^T b
-        for i in range(6):
-            total = 0.0
-            for k in range(6):
-                total += to_scaled[k, i] * icp_b[k]
-            b_scaled[i] = total
-        b_eta = rows[4]
-        for i in range(6):
-            total = 0.0
-            for k in range(6):
-                total += shrink[i, k] * b_scaled[k]
-            b_eta[i] = total
-        # from_scaled = (M D)^-1 = D^-1 M^-1 in closed form (for np.linalg.inv): D^-1 =
-        # diag(lever x3, 1 x3) and M^-1 = [[I, 0], [-skew(c), I]] (a shear: its lower block
-        # negated), so from_scaled = [[lever I, 0], [-skew(c), I]].
-        from_scaled = scratch[3]
-        for i in range(6):
-            for j in range(6):
-                from_scaled[i, j] = 0.0
-        for i in range(3):
-            from_scaled[i, i] = lever
-            from_scaled[3 + i, 3 + i] = 1.0
-        from_scaled[3, 1] = cz
-        from_scaled[3, 2] = -cy
-        from_scaled[4, 0] = -cz
-        from_scaled[4, 2] = cx
-        from_scaled[5, 0] = cy
-        from_scaled[5, 1] = -cx
-        symmetric = scratch[2]
-        for i in range(6):
-            for j in range(6):
-                symmetric[i, j] = (a_eta[i, j] + a_eta[j, i]) / 2
-        multiply_tn(from_scaled, symmetric, scratch[1], 6)
-        a_world = scratch[0]
-        multiply(scratch[1], from_scaled, a_world, 6)
-        for i in range(6):
-            total = 0.0
-            for k in range(6):
-                total += from_scaled[k, i] * b_eta[k]
-            for j in range(6):
-                out_a[i, j] = a_world[i, j] * icp_weight + rgbd_a[i, j] * rgbd_weight
-            out_b[i] = total * icp_weight + rgbd_b[i] * rgbd_weight
+        for e in range(lane, ELEMENTS, lanes):  # V diag(max(kept, 0))
+            i, k = e // 6, e % 6
+            scratch[f0, i, k] = eigenvectors[i, k] * max(kept_share(eigenvalues[k], threshold), 0.0)
+        barrier()
+        b_scaled, b_eta = rows[3], rows[4]
+        for e in range(lane, ELEMENTS, lanes):  # shrink = V diag V^T; S^T A; S^T b
+            i, j = e // 6, e % 6
+            scratch[f1, i, j] = product_nt(scratch[f0], eigenvectors, i, j, 6)
+            scratch[f4, i, j] = product_tn(scratch[f3], icp_a, i, j, 6)
+            if j == 0:
+                total = 0.0
+                for k in range(6):
+                    total += scratch[f3, k, i] * icp_b[k]
+                b_scaled[i] = total
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # S^T A S; shrink S^T b
+            i, j = e // 6, e % 6
+            scratch[f0, i, j] = product(scratch[f4], scratch[f3], i, j, 6)
+            if j == 0:
+                total = 0.0
+                for k in range(6):
+                    total += scratch[f1, i, k] * b_scaled[k]
+                b_eta[i] = total
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # shrink S^T A S
+            i, j = e // 6, e % 6
+            scratch[f2, i, j] = product(scratch[f1], scratch[f0], i, j, 6)
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # its symmetric part; (M D)^-1
+            i, j = e // 6, e % 6
+            scratch[f3, i, j] = (scratch[f2, i, j] + scratch[f2, j, i]) / 2
+            scratch[f4, i, j] = from_scaled_entry(i, j, lever, cx, cy, cz)
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):
+            i, j = e // 6, e % 6
+            scratch[f0, i, j] = product_tn(scratch[f4], scratch[f3], i, j, 6)
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # back in the world frame, weighted, + RGB-D
+            i, j = e // 6, e % 6
+            a_world = product(scratch[f0], scratch[f4], i, j, 6)
+            out_a[i, j] = a_world * icp_weight + rgbd_a[i, j] * rgbd_weight
+            if j == 0:
+                total = 0.0
+                for k in range(6):
+                    total += scratch[f4, k, i] * b_eta[k]
+                out_b[i] = total * icp_weight + rgbd_b[i] * rgbd_weight
+        barrier()
 
     @jit
     def determinant3(m: Any) -> float:
