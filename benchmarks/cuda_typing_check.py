@@ -17,6 +17,13 @@ exits 1 if any. A typing interpreter, once:
         'import numba; print(numba.__version__)')" numba-cuda numpy scipy
 
 (any folder: pass its interpreter, e.g. `--python typing-venv/bin/python`).
+
+With `--resources` each kernel is also compiled to PTX and assembled by ptxas for an H100
+(sm_90), and its registers per thread, local memory (stack frame) and spills are listed, the
+largest stack first: what limits a kernel's occupancy and what it keeps in slow local memory,
+read without a GPU. That needs NVVM and ptxas in the typing interpreter:
+
+    typing-venv/bin/pip install nvidia-cuda-nvcc-cu12
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import argparse
 import importlib
 import os
 import pickle
+import re
 import subprocess
 import sys
 import tempfile
@@ -78,9 +86,9 @@ def record_signatures(tests: list[str], out: Path) -> int:
     return int(status)
 
 
-def type_signatures(signatures_file: Path) -> int:
+def type_signatures(signatures_file: Path, resources: bool = False) -> int:
     """Compile each recorded kernel for its types on numba-cuda's target; the number that do
-    not type (their messages printed)."""
+    not type (their messages printed). With `resources`, each one's ptxas report too."""
     from types import SimpleNamespace
 
     import numba.cuda.dispatcher as cuda_dispatcher
@@ -92,30 +100,64 @@ def type_signatures(signatures_file: Path) -> int:
     cuda_dispatcher.get_current_device = lambda: device
     seen = pickle.loads(signatures_file.read_bytes())
     failures = typed = 0
+    usage: list[tuple] = []
     for (module, name), signatures in sorted(seen.items()):
         function = getattr(importlib.import_module(module), name).dispatcher.py_func
         for types in signatures:
             try:
-                cuda.compile_ptx(function, types, cc=COMPUTE_CAPABILITY)
+                ptx, _ = cuda.compile_ptx(function, types, cc=COMPUTE_CAPABILITY)
+                if resources:
+                    usage.append((name, *ptxas_resources(ptx)))
             except TypingError as error:
                 failures += 1
                 print(f"does not type: {module}.{name}{tuple(str(t) for t in types)}\n{error}\n")
                 continue
-            except Exception:  # after typing: no NVRTC or driver here
-                pass
+            except Exception as error:  # after typing: no NVVM, NVRTC or driver here
+                if resources:
+                    print(f"no PTX for {module}.{name}: {type(error).__name__}: {error}")
             typed += 1
     print(f"{len(seen)} kernels, {typed} signatures typed for the GPU, {failures} did not")
+    if resources:
+        print(f"\n{'kernel':<28} {'registers':>9} {'stack B':>8} {'spilled B':>9} {'shared B':>8}")
+        for name, registers, stack, spills, shared in sorted(usage, key=lambda u: -u[2]):
+            print(f"{name:<28} {registers:>9} {stack:>8} {spills:>9} {shared:>8}")
     return failures
+
+
+def ptxas_resources(ptx: str) -> tuple[int, int, int, int]:
+    """(registers per thread, stack frame bytes, spilled bytes, shared bytes) that ptxas
+    reports for a kernel's PTX on an H100 (the ptxas of the nvidia-cuda-nvcc wheel)."""
+    import nvidia.cuda_nvcc
+
+    ptxas = Path(nvidia.cuda_nvcc.__path__[0]) / "bin" / "ptxas"
+    with tempfile.NamedTemporaryFile("w", suffix=".ptx") as source:
+        source.write(ptx)
+        source.flush()
+        command = [str(ptxas), "-v", "-arch=sm_90", source.name, "-o", os.devnull]
+        report = subprocess.run(command, capture_output=True, text=True, check=True).stderr
+
+    def number(pattern: str) -> int:
+        found = re.search(pattern, report)
+        return int(found.group(1)) if found else 0
+
+    spills = number(r"(\d+) bytes spill stores") + number(r"(\d+) bytes spill loads")
+    return (
+        number(r"Used (\d+) registers"),
+        number(r"(\d+) bytes stack frame"),
+        spills,
+        number(r"(\d+) bytes smem"),
+    )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("tests", nargs="*", default=DEFAULT_TESTS)
     parser.add_argument("--python", help="an interpreter with numba-cuda (see above)")
+    parser.add_argument("--resources", action="store_true", help="list ptxas's report per kernel")
     parser.add_argument("--type-only", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.type_only:
-        sys.exit(1 if type_signatures(args.type_only) else 0)
+        sys.exit(1 if type_signatures(args.type_only, args.resources) else 0)
     if not args.python:
         parser.error("--python: an interpreter with numba-cuda installed is needed to type")
     with tempfile.TemporaryDirectory() as folder:
@@ -126,6 +168,7 @@ def main() -> None:
         environment = {**os.environ, "PYTHONPATH": str(ROOT)}
         environment.pop("NUMBA_ENABLE_CUDASIM", None)
         command = [args.python, __file__, "--type-only", str(signatures)]
+        command += ["--resources"] if args.resources else []
         sys.exit(subprocess.run(command, env=environment).returncode)
 
 

@@ -81,7 +81,8 @@ _EMPTY_TALLY = np.zeros(2)  # [pairs listed, sum of their r^2] before Algorithm 
 
 @kernel
 def interest_kernel(dx, dy, depth, g2, use_depth, max_depth, count, indices):
-    """Algorithm 1: a shared-memory list per block, one global atomic per block."""
+    """Algorithm 1: a shared-memory list per block, one global atomic per block that keeps a
+    point (atomics on one address serialise, and most blocks of a frame keep none)."""
     local = cuda.shared.array(BLOCK, int64)
     local_count = cuda.shared.array(1, int32)
     base = cuda.shared.array(1, int32)
@@ -100,7 +101,7 @@ def interest_kernel(dx, dy, depth, g2, use_depth, max_depth, count, indices):
         if keep:
             local[cuda.atomic.add(local_count, 0, 1)] = i
     cuda.syncthreads()
-    if t == 0:
+    if t == 0 and local_count[0] > 0:
         base[0] = cuda.atomic.add(count, 0, local_count[0])
     cuda.syncthreads()
     if t < local_count[0]:
@@ -147,9 +148,11 @@ def correspond_kernel(
     sum of r^2 added by a tree, then one atomic adds it to the global sum (tally[1]) and one
     takes the block's run of slots in the global list (counted in tally[0], a float64 that
     counts exactly to 2^53). Atomics on one address serialise: one per kept pair (tens of
-    thousands an iteration) would cost more than the rest of the kernel. `poses` = (relative,
-    pose, previous) stacked; `count` = [interest points]; `gate`, `level`: sums.cuda.gated."""
-    if gated(gate, level):
+    thousands an iteration) would cost more than the rest of the kernel; so a block that keeps
+    no pair makes none, and a block past the interest points (most of a frame's grid, which
+    has a thread per pixel) returns at once. `poses` = (relative, pose, previous) stacked;
+    `count` = [interest points]; `gate`, `level`: sums.cuda.gated."""
+    if gated(gate, level) or cuda.blockIdx.x * BLOCK >= count[0]:  # the whole block or none
         return
     relative, pose = poses[0], poses[1]
     local = cuda.shared.array(BLOCK, int64)
@@ -191,7 +194,7 @@ def correspond_kernel(
         if t < step:
             local_r2[t] += local_r2[t + step]
         step //= 2
-    if t == 0:
+    if t == 0 and kept > 0:
         cuda.atomic.add(tally, 1, local_r2[0])
         base[0] = int(cuda.atomic.add(tally, 0, float(kept)))
     cuda.syncthreads()
@@ -266,14 +269,20 @@ def rows_kernel(
 ):
     """The robustly weighted photometric rows of the listed pairs, tree-reduced per block. The
     pair count and sum of r^2 are read from `tally` where correspond_kernel left them, so the
-    host waits for neither: sigma' = sqrt(sum r^2 / count), as the host computed it."""
+    host waits for neither: sigma' = sqrt(sum r^2 / count), as the host computed it. The grid
+    has room for a pair per pixel; a block past the pairs writes its partial, zero, without
+    the tree."""
     if gated(gate, level):
+        return
+    n_pairs = int(tally[0])
+    if cuda.blockIdx.x * BLOCK >= n_pairs:  # no thread of the block has a pair
+        if cuda.threadIdx.x < NV:
+            out[cuda.blockIdx.x, cuda.threadIdx.x] = 0.0
         return
     shared = cuda.shared.array((NV, BLOCK), float64)
     acc = cuda.local.array(NV, float64)
     zero(acc)
     relative, pose, previous_pose = poses[0], poses[1], poses[2]
-    n_pairs = int(tally[0])
     sigma = math.sqrt(tally[1] / n_pairs) if n_pairs > 0 else 0.0
     for j in range(cuda.grid(1), n_pairs, cuda.gridsize(1)):
         ok, r, wx, wy, wz, x, y, z, gx, gy = _warp_point(
