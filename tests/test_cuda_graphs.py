@@ -341,3 +341,41 @@ def test_graphs_are_on_by_default_on_a_gpu_only(monkeypatch, setting, simulated,
         monkeypatch.setenv(cuda_graphs.ENVIRONMENT, setting)
     monkeypatch.setattr(cuda_graphs.numba_config, "ENABLE_CUDASIM", simulated)
     assert cuda_graphs.enabled_by_default() is expected
+
+
+def test_a_segment_key_tells_launches_apart_by_every_part(monkeypatch):
+    """Keys are equal (and hash alike) exactly when the kernels, grids, blocks and arguments
+    are: a device array by its address, shape, strides and type; a number by its type and
+    value (1, 1.0 and True are three keys); a tuple by its items. A host array cannot be held."""
+    from types import SimpleNamespace
+
+    from kintinuous_fast.targets import cuda_graphs
+
+    class FakeDeviceArray:  # what a key reads of a numba device array
+        def __init__(self, address: int, shape: tuple) -> None:
+            self.device_ctypes_pointer = SimpleNamespace(value=address)
+            self.shape, self.strides, self.dtype = shape, (8 * shape[-1], 8), np.dtype(float)
+
+        def copy_to_host(self) -> None: ...
+
+    def key(*arguments, grid=4, dispatcher=print):  # noqa: ANN002, ANN001, ANN202
+        launches = [cuda_graphs.Launch(dispatcher, grid, 128, 0, arguments)]
+        return cuda_graphs._key(launches * 2)
+
+    monkeypatch.setattr(cuda_graphs, "_simulated", lambda: False)
+    first, second = FakeDeviceArray(4096, (2, 3)), FakeDeviceArray(8192, (2, 3))
+    same = key(first, 1.0, (2, True))
+    assert same == key(first, 1.0, (2, True)) and hash(same) == hash(key(first, 1.0, (2, True)))
+    others = [
+        key(second, 1.0, (2, True)),
+        key(first, 1, (2, True)),
+        key(first, True, (2, True)),
+        key(first, 1.0, (2, 1)),
+        key(first, 1.0, (2, True), grid=(4, 1)),
+        key(first, 1.0, (2, True), dispatcher=repr),
+        key(FakeDeviceArray(4096, (3, 2)), 1.0, (2, True)),
+    ]
+    assert all(other != same for other in others)
+    assert len(set(others)) == len(others)
+    with pytest.raises(cuda_graphs.NotCapturable):
+        key(np.zeros(3))

@@ -267,27 +267,47 @@ def _unpack(configuration: Any) -> tuple[Any, Any, int]:
 # Keys
 
 
-def _key(launches: list[Launch | Upload]) -> tuple:
-    return tuple(_launch_key(launch) for launch in launches)
+class SegmentKey:
+    """A segment's key: its launches' parts in one flat tuple (each launch's kernel, grid,
+    block, shared memory, argument count and arguments' keys), hashed once. A key is looked up
+    two or three times per segment, and Python does not keep a tuple's hash: a frame's keys
+    hold some 1 600 arguments."""
+
+    __slots__ = ("digest", "parts")
+
+    def __init__(self, parts: tuple) -> None:
+        self.parts = parts
+        self.digest = hash(parts)
+
+    def __hash__(self) -> int:
+        return self.digest
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, SegmentKey)
+            and self.digest == other.digest
+            and self.parts == other.parts
+        )
 
 
-def _launch_key(launch: Launch | Upload) -> tuple:
-    if isinstance(launch, Upload):
-        host = launch.staging.host
-        return ("upload", _argument_key(launch.device), host.__array_interface__["data"][0])
-    return (
-        id(launch.dispatcher),
-        _shape(launch.grid),
-        _shape(launch.block),
-        launch.shared_memory,
-        tuple(_argument_key(argument) for argument in launch.arguments),
-    )
+def _key(launches: list[Launch | Upload]) -> SegmentKey:
+    parts: list = []
+    for launch in launches:
+        if isinstance(launch, Upload):
+            host = launch.staging.host
+            parts += ("upload", _argument_key(launch.device), host.__array_interface__["data"][0])
+            continue
+        parts += (id(launch.dispatcher), launch.grid, launch.block, launch.shared_memory)
+        parts.append(len(launch.arguments))
+        for argument in launch.arguments:  # a device array's kept key inline: most arguments
+            kept = getattr(argument, "__dict__", None)
+            cached = None if kept is None else kept.get("_graph_key")
+            parts.append(_argument_key(argument) if cached is None else cached)
+    return SegmentKey(tuple(parts))
 
 
-def _shape(dimensions: Any) -> tuple:
-    return tuple(dimensions) if isinstance(dimensions, tuple) else (int(dimensions),)
-
-
+# Argument types keyed by value, looked up by type first (the common ones), by class after.
+_NUMBER_TYPES = frozenset({bool, int, float, np.bool_, np.int32, np.int64, np.float32, np.float64})
 _NUMBERS = (bool, int, float, np.bool_, np.integer, np.floating)
 
 
@@ -295,17 +315,22 @@ def _argument_key(argument: Any) -> Any:
     """What a graph holds of one argument: a device array's address, shape, strides and type
     (kept on the array: none of them ever changes, and reading a numba array's address makes
     a ctypes object each time); a number's type and value; a tuple's items."""
-    kept = getattr(argument, "__dict__", None)  # device arrays have one, numbers and tuples not
-    if kept is not None and hasattr(argument, "copy_to_host"):
-        if "_graph_key" not in kept:
-            address = device_address(argument)
-            kept["_graph_key"] = (address, argument.shape, argument.strides, argument.dtype.str)
-        return kept["_graph_key"]
-    if isinstance(argument, tuple):
+    kind = type(argument)
+    if kind in _NUMBER_TYPES:
+        return (kind, argument)
+    if kind is tuple:
         return tuple(_argument_key(item) for item in argument)
+    kept = getattr(argument, "__dict__", None)  # device arrays have one, numbers and tuples not
+    cached = None if kept is None else kept.get("_graph_key")
+    if cached is not None:
+        return cached
+    if kept is not None and hasattr(argument, "copy_to_host"):
+        address = device_address(argument)
+        kept["_graph_key"] = (address, argument.shape, argument.strides, argument.dtype.str)
+        return kept["_graph_key"]
     if isinstance(argument, _NUMBERS):
-        return (type(argument), argument)
-    raise NotCapturable(type(argument).__name__)
+        return (kind, argument)
+    raise NotCapturable(kind.__name__)
 
 
 def device_address(array: Any) -> int:
