@@ -1,17 +1,19 @@
 #!/usr/bin/env bash
 # The checks that need a GPU, in one go (about 6 minutes on an H100): the CUDA equivalence
 # tests on the device (sizes of the CPU tests, not the simulator's); `kintinuous benchmark
-# --backend cuda` at 512^3 with the launches dispatched one by one and replayed as CUDA graphs
-# (KINTINUOUS_CUDA_GRAPHS, kintinuous_fast/targets/cuda_graphs.py) and at 256^3 with graphs,
-# each JSON with the launches, host waits and bytes to the host per frame and per stage; the
-# ATE over 300 frames; the moving volume; a profile of the host; each kernel's GPU time.
+# --backend cuda` at 512^3 and 256^3 with the launches replayed as CUDA graphs
+# (kintinuous_fast/targets/cuda_graphs.py), each JSON with the launches, host waits and bytes to
+# the host per frame and per stage; the ATE over 300 frames; the moving volume; a profile of the
+# host; each kernel's GPU time. Where cuda_device_prepare.sh put a baseline tree beside the data
+# folder (baseline/), the 512^3 benchmark and the kernel times run on it too, in the same call.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel;
 # options go to `kintinuous benchmark`, e.g. --set volume.moving=false).
-# Writes cuda_tests.log, bench_cuda_512{,_graphs}.json, bench_cuda_256_graphs.json,
-# ate_cuda.json, bench_cuda_moving.json, profile.txt, cuda_warm.prof and kernel_times.json into
-# OUT_DIR (default: the current folder): nine files, one more than the device tool brings back,
-# so give a local folder and pack it into the tool's $OUT afterwards (cuda_device_prepare.sh).
+# Writes cuda_tests.log, bench_cuda_512_graphs.json, bench_cuda_256_graphs.json,
+# ate_cuda.json, bench_cuda_moving.json, profile.txt, cuda_warm.prof and kernel_times.json (and
+# baseline_bench_cuda_512_graphs.json, baseline_kernel_times.json) into OUT_DIR (default: the
+# current folder): more files than the device tool brings back, so give a local folder and
+# pack it into the tool's $OUT afterwards (cuda_device_prepare.sh).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
@@ -28,15 +30,24 @@ timeout 150 python3 -m pytest -q -p no:cacheprovider -o addopts=-ra --continue-o
     tests/test_cuda_frame_budget.py tests/test_cuda_graphs.py tests/test_fast_solve_ops.py \
     tests/test_fast_backends.py tests/test_fast_volume.py tests/test_fast_odometry_cases.py \
     2>&1 | tee "$out/cuda_tests.log" | tail -40
-for run in "1 512" "0 512" "1 256"; do
-    read -r graphs resolution <<<"$run"
-    name=bench_cuda_$resolution$([ "$graphs" = 1 ] && echo _graphs)
+baseline=$(dirname "$data")/baseline
+[ -d "$baseline" ] && echo "baseline: $(cat "$baseline/COMMIT" 2>/dev/null)" || baseline=
+# on_baseline COMMAND...: the command with the baseline tree's packages first on the path (its
+# Python runs with -P, or `-m` would put the working tree, the current folder, before them)
+on_baseline() { PYTHONPATH=$baseline:$PYTHONPATH "$@"; }
+bench() {  # bench NAME RESOLUTION [on_baseline]: 100 frames with graphs, its JSON and summary
+    local name=$1 resolution=$2 start
     start=$(date +%s)
-    KINTINUOUS_CUDA_GRAPHS=$graphs timeout 80 python3 -m kintinuous_ref.program.cli benchmark \
-        "$data" --backend cuda "${@:3}" --resolution "$resolution" --frames 100 --json >"$out/$name.json"
+    ${3:-} env KINTINUOUS_CUDA_GRAPHS=1 timeout 80 python3 -P -m kintinuous_ref.program.cli benchmark \
+        "$data" --backend cuda "${extra[@]}" --resolution "$resolution" --frames 100 --json \
+        >"$out/$name.json"
     echo "$name: exit $?, $(($(date +%s) - start)) s wall, compilation included"
     summary "$out/$name.json"
-done
+}
+extra=("${@:3}")
+bench bench_cuda_512_graphs 512
+[ -n "$baseline" ] && bench baseline_bench_cuda_512_graphs 512 on_baseline
+bench bench_cuda_256_graphs 256
 # the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
 KINTINUOUS_CUDA_GRAPHS=1 timeout 100 python3 benchmarks/combined_weightings.py "$data" --size 640x480 \
     --resolution 256 --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
@@ -54,4 +65,7 @@ echo "profile: exit $?"
 # each kernel's own GPU time per frame (launched one by one between CUDA events)
 timeout 60 python3 benchmarks/cuda_kernel_times.py "$data" "${@:3}" --frames 20 --top 25 \
     --json "$out/kernel_times.json" 2>&1 | grep -v Warning
+[ -n "$baseline" ] && on_baseline timeout 60 python3 "$baseline/benchmarks/cuda_kernel_times.py" \
+    "$data" "${@:3}" --frames 20 --top 25 --json "$out/baseline_kernel_times.json" 2>&1 |
+    grep -v Warning
 date -u
