@@ -431,6 +431,22 @@ def test_the_joint_step_on_a_block(blocks: int) -> None:
 
 
 @pytest.mark.skipif(bool(cuda_status()), reason="no CUDA GPU: runs in the simulator child")
+@pytest.mark.parametrize("weighting", ["information", "original-code"])
+def test_the_joint_step_of_other_weightings_on_a_block(weighting: str) -> None:
+    """The weightings that scale the two systems without the discount, each term by its own."""
+    from kintinuous_fast.odometry import frame_kernels as slots
+
+    icp, rgbd, pose = random_system(5), random_system(6, count=150), near_rotation(5, 1e-12)
+    code = slots.WEIGHTING_CODES[weighting]
+    state, poses, previous = block_step(
+        icp, rgbd, pose, slots.JOINT, (10.0, 1e-12, code, 0.3, 10.0, 0.0)
+    )
+    joint = ref_combined.joint_system(icp, rgbd, 0.3, weighting, 10.0, pose[:3, 3], 0.0)
+    assert state[slots.FAILED] == 0
+    assert_pose_step(poses, previous, ref.apply_increment(ref.solve(joint)[0], pose))
+
+
+@pytest.mark.skipif(bool(cuda_status()), reason="no CUDA GPU: runs in the simulator child")
 def test_the_outcomes_of_a_step_on_a_block() -> None:
     """ICP alone (its own system), convergence, too few pairs, an ill-conditioned system and
     a closed gate, each as the reference's step ends."""
