@@ -59,13 +59,13 @@ KINTINUOUS_CUDA_GRAPHS=1 timeout 80 python3 -m kintinuous_ref.program.cli benchm
 echo "benchmark moving volume: exit $?, $(($(date +%s) - start)) s wall, compilation included"
 summary "$out/bench_cuda_moving.json"
 # where the warm pipeline's host time goes with graphs on: profile.txt and cuda_warm.prof
-KINTINUOUS_CUDA_GRAPHS=1 timeout 70 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 20 \
+KINTINUOUS_CUDA_GRAPHS=1 timeout 70 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 10 \
     --top 40 --out "$out/cuda_warm.prof" >"$out/profile.txt" 2>/dev/null
 echo "profile: exit $?"
 # each kernel's own GPU time per frame (launched one by one between CUDA events)
-timeout 60 python3 benchmarks/cuda_kernel_times.py "$data" "${@:3}" --frames 20 --top 25 \
+timeout 60 python3 benchmarks/cuda_kernel_times.py "$data" "${@:3}" --frames 10 --top 25 \
     --json "$out/kernel_times.json" 2>&1 | grep -v Warning
 [ -n "$baseline" ] && on_baseline timeout 60 python3 "$baseline/benchmarks/cuda_kernel_times.py" \
-    "$data" "${@:3}" --frames 20 --top 25 --json "$out/baseline_kernel_times.json" 2>&1 |
+    "$data" "${@:3}" --frames 10 --top 25 --json "$out/baseline_kernel_times.json" 2>&1 |
     grep -v Warning
 date -u
