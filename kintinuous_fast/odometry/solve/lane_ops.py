@@ -59,6 +59,22 @@ def build_lane_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         return total
 
     @jit
+    def row_times(m: Any, v: Any, i: int, n: int) -> float:
+        """(m @ v)[i] of the leading n entries."""
+        total = 0.0
+        for k in range(n):
+            total += m[i, k] * v[k]
+        return total
+
+    @jit
+    def column_times(m: Any, v: Any, i: int, n: int) -> float:
+        """(m^T @ v)[i] of the leading n entries."""
+        total = 0.0
+        for k in range(n):
+            total += m[k, i] * v[k]
+        return total
+
+    @jit
     def multiply(a: Any, b: Any, out: Any, n: int) -> None:
         """out = a @ b of the leading n x n blocks, on one lane."""
         for i in range(n):
@@ -256,10 +272,7 @@ def build_lane_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         for j in range(3):
             singular = math.sqrt(max(squares[j], 1e-300))
             for i in range(3):
-                total = 0.0
-                for k in range(3):
-                    total += out[i, k] * right[k, j]
-                left[i, j] = total / singular
+                left[i, j] = product(out, right, i, j, 3) / singular
         nearest = scratch[3]
         multiply_nt(left, right, nearest, 3)
         if determinant3(nearest) < 0:
@@ -274,6 +287,8 @@ def build_lane_ops(jit: Callable[[Any], Any]) -> SimpleNamespace:
         product=product,
         product_tn=product_tn,
         product_nt=product_nt,
+        row_times=row_times,
+        column_times=column_times,
         multiply=multiply,
         multiply_tn=multiply_tn,
         multiply_nt=multiply_nt,

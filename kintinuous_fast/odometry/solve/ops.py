@@ -61,6 +61,7 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
     one = build_lane_ops(jit)
     # Local names: numba resolves the functions a compiled function calls from its closure.
     product, product_tn, product_nt = one.product, one.product_tn, one.product_nt
+    row_times, column_times = one.row_times, one.column_times
     jacobi_rotation, off_diagonal_negligible = one.jacobi_rotation, one.off_diagonal_negligible
     cholesky, increment = one.cholesky, one.increment
     forward_substitution, back_substitution = one.forward_substitution, one.back_substitution
@@ -339,19 +340,13 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
             scratch[f1, i, j] = product_nt(scratch[f0], eigenvectors, i, j, 6)
             scratch[f4, i, j] = product_tn(scratch[f3], icp_a, i, j, 6)
             if j == 0:
-                total = 0.0
-                for k in range(6):
-                    total += scratch[f3, k, i] * icp_b[k]
-                b_scaled[i] = total
+                b_scaled[i] = column_times(scratch[f3], icp_b, i, 6)
         barrier()
         for e in range(lane, ELEMENTS, lanes):  # S^T A S; shrink S^T b
             i, j = e // 6, e % 6
             scratch[f0, i, j] = product(scratch[f4], scratch[f3], i, j, 6)
             if j == 0:
-                total = 0.0
-                for k in range(6):
-                    total += scratch[f1, i, k] * b_scaled[k]
-                b_eta[i] = total
+                b_eta[i] = row_times(scratch[f1], b_scaled, i, 6)
         barrier()
         for e in range(lane, ELEMENTS, lanes):  # shrink S^T A S
             i, j = e // 6, e % 6
@@ -371,10 +366,8 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
             a_world = product(scratch[f0], scratch[f4], i, j, 6)
             out_a[i, j] = a_world * icp_weight + rgbd_a[i, j] * rgbd_weight
             if j == 0:
-                total = 0.0
-                for k in range(6):
-                    total += scratch[f4, k, i] * b_eta[k]
-                out_b[i] = total * icp_weight + rgbd_b[i] * rgbd_weight
+                world_b = column_times(scratch[f4], b_eta, i, 6)
+                out_b[i] = world_b * icp_weight + rgbd_b[i] * rgbd_weight
         barrier()
 
     return SimpleNamespace(
