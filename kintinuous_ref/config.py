@@ -237,10 +237,18 @@ class LoopClosureConfig:
     # inliers (redkitchen: 3-5 of 17-21 matches) although they overlap, and from that start
     # the alignment ends where it ends from the true pose (the dense, photometric and
     # plausibility checks and the pose graph's consistency test still judge the loop). Off:
-    # the loops it adds come earlier, each empties the window the tracking goes on in, and the
-    # ATE rises in four of six measured runs (twins 8.7 -> 13.5 mm, redkitchen there and back
-    # at stride 4 22.8 -> 25.6 mm; docs/loop_closure.md)
+    # with it the ATE rises in five of six measured runs, by 0.3-0.6 mm on redkitchen there
+    # and back and 8.7 -> 11.2 mm on twins (the far loops' alignments are centimetres from the
+    # ground truth; docs/loop_closure.md)
     dense_from_odometry: bool = False
+    # After a closure, tracking keeps the moving volume's window and its coordinates, and a
+    # running offset maps every later pose and slice into the corrected map (False, as the
+    # authors' implementation does: the uncorrected trajectory is then the run without loop
+    # closure, bit for bit); or the window is emptied into a slice and re-centred at the
+    # corrected pose (True), and tracking starts again on a model of one frame. On redkitchen
+    # there and back, re-centred, the return error was 1.7-9.8 mm worse in four runs of five and
+    # the ATE 0.7-2.3 mm worse in three (docs/loop_closure.md, "Tracking after a closure")
+    recentre_on_closure: bool = False
     # dense refinement (the tracker's ICP+RGB-D of the two frames) and the acceptance test
     icp_iterations: tuple[int, ...] = (10, 10, 10)  # pyramid levels 1.., finest to coarsest
     # metres of point-to-plane residual over the matched pairs: right alignments of real views

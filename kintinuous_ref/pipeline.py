@@ -13,9 +13,10 @@
     at the end: the rest of the volume becomes the last slice; the slices one mesh.
 
 With a loop closer (loop_closure/closer.py), step 2 is followed by 2b: the closer sees every
-pose, takes keyframes and looks for loops; when it closes one, this frame's pose moves by the
-correction and the moving volume is re-centred there, so mapping and tracking carry on in the
-corrected frame. The final trajectory and map are corrected at the end (`trajectory`,
+pose, takes keyframes and looks for loops; when it closes one, tracking keeps its volume and
+its coordinates, and the poses recorded from then on are moved by the correction
+(`LoopCloser.in_map`; with `recentre_on_closure` the pose moves and the volume is re-centred
+there instead). The final trajectory and map are corrected at the end (`trajectory`,
 `LoopCloser.deform_map`).
 
 The backend is a parameter: any kintinuous_ref.backend.Backend (the reference itself, the default,
@@ -217,7 +218,7 @@ def run(
     if loop_closer is not None:
         result.timings_ms["loop_closure"] = []
         result.traffic["loop_closure"] = []
-    previous = None
+    previous = tracked_pose = None  # the last frame, and its pose in the volume's coordinates
     try:
         for frame in frames:
             clock = _Clock(
@@ -235,7 +236,7 @@ def run(
             elif previous is None:
                 pose = groundtruth.poses[frame.index] if groundtruth is not None else np.eye(4)
             else:
-                tracked = tracker.track(previous, current, result.model, result.poses[-1])
+                tracked = tracker.track(previous, current, result.model, tracked_pose)
                 pose, ok, reason = tracked.pose, tracked.ok, tracked.reason
             clock.lap("odometry")
             if result.volume is None:
@@ -252,12 +253,13 @@ def run(
                     )
                 result.host_volume = backend.host_volume
                 result.contour = backend.mesh.marching_cubes
-            # 2b. Loop closure: on a closed loop the camera and the volume move with it.
+            # 2b. Loop closure: a closed loop moves the map's coordinates (closer.py).
             if loop_closer is not None:
                 correction = loop_closer.observe(
-                    frame.index, pose, current, frame.colour, frame.depth, fused=ok
-                )
-                if correction is not None:
+                    frame.index, loop_closer.in_map(pose), current, frame.colour, frame.depth,
+                    fused=ok,
+                )  # fmt: skip
+                if correction is not None and config.loop_closure.recentre_on_closure:
                     pose = correction @ pose
                     result.moving.recentre(pose)
                 clock.lap("loop_closure")
@@ -291,7 +293,8 @@ def run(
                 result.timings_ms[stage].append(milliseconds)
                 result.traffic[stage].append(clock.traffic[stage])
             result.timestamps.append(frame.timestamp)
-            result.poses.append(np.asarray(pose, dtype=np.float64))
+            tracked_pose = np.asarray(pose, dtype=np.float64)
+            result.poses.append(tracked_pose if loop_closer is None else loop_closer.in_map(pose))
             result.fused.append(ok)
             result.volume_origins.append(np.array(result.volume.origin, dtype=np.float64))
             result.last_frame = frame.index

@@ -7,8 +7,8 @@ reach the dense and photometric checks; this is the walk that must not fool them
 
 480 frames at 160x120 (the second bay is passed at frame 390), icp+rgbd on the cpu backend, a
 4 m volume at 128^3: about 15 s to render and 30 s to run on a 2-core machine. Measured: 2 loops
-accepted of 47 candidates, keyframes at frames 184 and 349 and at 202 and 367, views 2.75 m
-apart along the wall that share a strip of it at their edges, 6.7 and 7.6 mm from the exact
+accepted of 44 candidates, keyframes at frames 184 and 349 and at 202 and 367, views 2.75 m
+apart along the wall that share a strip of it at their edges, 3.5 and 7.4 mm from the exact
 relative pose (docs/loop_closure.md, "Closing loops between views far apart")."""
 
 from __future__ import annotations

@@ -6,23 +6,29 @@ pose as tracked); its best-matching older keyframes are verified (place_recognit
 accepted loop becomes a switchable loop edge, weighed by the covariance of its own dense
 alignment (place_recognition.loop_covariance), and the pose graph is solved (pose_graph.py). If
 the graph keeps the loop switched on, the current camera moves with its keyframe:
-C = K'_k K_k^-1, the correction `observe` returns. The pipeline applies it to the pose it fuses
-and re-centres the moving volume there (MovingVolume.recentre): what the window held, fused
-with the old poses, leaves as a slice, and the map from then on is built in corrected
-coordinates.
+C = K'_k K_k^-1, the correction `observe` returns. By default tracking keeps the moving
+volume and its coordinates: the corrections so far make a running offset (`map_from_volume`,
+as in the authors' implementation) that takes the tracker's poses into corrected ones, and
+the whole map, every slice, stays in the volume's coordinates, the tracker's own. With
+`recentre_on_closure` the pipeline instead applies the correction to the pose it fuses and
+re-centres the moving volume there (MovingVolume.recentre): what the window held, fused with
+the old poses, leaves as a slice, tracking starts again in the emptied window, and the map
+from then on is built in corrected coordinates.
 
-Three poses per keyframe: `fused` (the pose the map was built with: the tracked pose, corrected
-when the keyframe itself closed the loop), the graph's current estimate, and, at the end, the
-graph's final one. At the end of the run (`finish`):
+Three poses per keyframe: `pose` (the tracked pose in corrected coordinates as they were when it
+was taken, corrected when the keyframe itself closed the loop), the graph's current estimate,
+and, at the end, the graph's final one. At the end of the run:
 
 - the trajectory: each frame moves with the latest keyframe at or before it,
   T_f' = K'_k K_fused,k^-1 T_f (frames between keyframes were tracked relative to it);
 - the map: an embedded deformation graph (deformation_graph.py) is sampled from the slices'
   vertices and pinned by a cross of points in front of every keyframe's camera (at the depth it
-  saw) moved from its fused to its final pose. Every vertex of every slice then moves through
-  the graph. Space-time neighbourhoods keep apart what was fused in different coordinates: a
+  saw) moved from the pose the map was made with (`made_pose`: the tracker's own, or with
+  `recentre_on_closure` `pose`) to its final one. Every vertex of every slice then moves
+  through the graph. Space-time neighbourhoods keep apart what the drift put in one place: a
   vertex's time is the frame of the latest keyframe that saw it (the frames that fused it carry
-  the drift to undo), and each correction starts a new epoch, far from the others in time.
+  the drift to undo); with `recentre_on_closure` each correction also starts a new epoch, far
+  from the others in time, as map made before and after it is in different coordinates.
 
 The uncorrected trajectory is the one odometry alone would have given: every pose with all the
 corrections before it undone.
@@ -126,6 +132,34 @@ class LoopCloser:
         self.frame_keyframe.append(len(self.keyframes) - 1)
         return correction
 
+    @property
+    def map_from_volume(self) -> np.ndarray:
+        """(4, 4): the corrected coordinates of the tracker's: every correction so far, latest
+        on the left (the identity with recentre_on_closure, where the tracker's pose moves)."""
+        return self._offset(len(self.closures))
+
+    def in_map(self, pose: np.ndarray) -> np.ndarray:
+        """A tracked pose in corrected coordinates."""
+        return self.map_from_volume @ np.asarray(pose, dtype=np.float64)
+
+    def _offset(self, epoch: int) -> np.ndarray:
+        """map_from_volume after the first `epoch` corrections."""
+        offset = np.eye(4)
+        if not self.config.loop_closure.recentre_on_closure:
+            for closure in self.closures[:epoch]:
+                offset = closure.correction @ offset
+        return offset
+
+    def _map_epoch(self, epoch: int) -> int:
+        """The epoch whose coordinates the map made in `epoch` is in: only re-centring after a
+        closure builds the map in new coordinates."""
+        return epoch if self.config.loop_closure.recentre_on_closure else 0
+
+    def made_pose(self, node: int) -> np.ndarray:
+        """Keyframe `node`'s pose in the coordinates of the map it saw."""
+        keyframe = self.keyframes[node]
+        return se3.inverse(self._offset(self.keyframe_epochs[node])) @ keyframe.pose
+
     def _add_keyframe(
         self, frame: int, pose: np.ndarray, preprocessed: PreprocessedFrame
     ) -> np.ndarray | None:
@@ -186,17 +220,18 @@ class LoopCloser:
         corrected = solution.poses[keyframe.node]
         correction = corrected @ se3.inverse(keyframe.pose)
         moved = float(np.linalg.norm(corrected[:3, 3] - keyframe.pose[:3, 3]))
-        keyframe.pose = corrected  # the pose this keyframe's frame is fused with
+        keyframe.pose = corrected  # in the corrected coordinates from now on
         self.closures.append(Closure(frame, keyframe.node, match.node, correction, moved))
         self.keyframe_epochs[-1] = len(self.closures)
         return correction
 
     def slice_made(self, frame: int, slices: int) -> None:
         """Record that the store holds `slices` slices after `frame` (their time for the map
-        deformation). A slice made on the frame of a closure is the window that recentre()
-        emptied, fused before the correction: it belongs to the epoch before it."""
-        epoch = len(self.closures)
-        if self.closures and self.closures[-1].frame == frame:
+        deformation). With `recentre_on_closure`, a slice made on the frame of a closure is the
+        window that recentre() emptied, fused before the correction: it belongs to the epoch
+        before it. Otherwise every slice is in the tracker's coordinates, epoch 0."""
+        epoch = self._map_epoch(len(self.closures))
+        if epoch and self.closures[-1].frame == frame:
             epoch -= 1
         new = slices - len(self.slice_frames)
         self.slice_frames.extend([frame] * new)
@@ -240,9 +275,9 @@ class LoopCloser:
             depth = float(depth) if np.isfinite(depth) else 1.5
             cross = np.array([[0, 0, depth], [spread, 0, depth], [-spread, 0, depth],
                               [0, spread, depth], [0, -spread, depth]])  # fmt: skip
-            sources.append(se3.transform_points(keyframe.pose, cross))
+            sources.append(se3.transform_points(self.made_pose(keyframe.node), cross))
             targets.append(se3.transform_points(self.graph.poses[keyframe.node], cross))
-            epoch = self.keyframe_epochs[keyframe.node]
+            epoch = self._map_epoch(self.keyframe_epochs[keyframe.node])
             times.append(np.full(len(cross), self._time(keyframe.frame, epoch)))
         return np.vstack(sources), np.concatenate(times), np.vstack(targets)
 
@@ -306,7 +341,7 @@ class LoopCloser:
         last = self.frames[-1] if self.frames else 0
         missing = count - len(self.slice_frames)
         frames = [*self.slice_frames, *([last] * missing)][:count]
-        epochs = [*self.slice_epochs, *([len(self.closures)] * missing)][:count]
+        epochs = [*self.slice_epochs, *([self._map_epoch(len(self.closures))] * missing)][:count]
         return frames, epochs
 
     @staticmethod
@@ -323,9 +358,9 @@ class LoopCloser:
         times = np.full(len(points), float(made))
         camera = self.camera
         for keyframe, kf_epoch in zip(self.keyframes, self.keyframe_epochs, strict=True):
-            if kf_epoch != epoch or keyframe.frame > made:
+            if self._map_epoch(kf_epoch) != epoch or keyframe.frame > made:
                 continue
-            local = se3.transform_points(se3.inverse(keyframe.pose), points)
+            local = se3.transform_points(se3.inverse(self.made_pose(keyframe.node)), points)
             z = local[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = camera.fx * local[:, 0] / z + camera.cx
