@@ -35,11 +35,8 @@ class ClosesOnce(LoopCloser):
 @pytest.fixture(scope="module")
 def desk():
     scenario = synthetic.make_scenario("desk", frames=FRAMES, width=160, height=120)
-    frames = []
-    for i in range(FRAMES):
-        colour, depth = scenario.render(i)
-        frames.append(Frame(i, float(scenario.trajectory.timestamps[i]), colour, depth))
-    return scenario, frames
+    stamps = scenario.trajectory.timestamps
+    return scenario, [Frame(i, float(stamps[i]), *scenario.render(i)) for i in range(FRAMES)]
 
 
 def tracked(desk, closer: LoopCloser | None, config: Config) -> pipeline.PipelineResult:
