@@ -57,6 +57,9 @@ print(
     f"voxel {1000 * config.volume.voxel_size:.1f} mm, truncation mu = "
     f"{1000 * config.volume.truncation:.1f} mm"
 )
+# the prose below quotes them: mu 4.7 cm, two voxels of 2.3 cm
+assert round(100 * config.volume.voxel_size, 1) == 2.3
+assert round(100 * config.volume.truncation, 1) == 4.7
 
 # %% [markdown]
 # One frame of the scene: colour and depth from a Kinect-like sensor model (noise grows with
