@@ -241,7 +241,21 @@ def levenberg_marquardt(
     return x
 
 
-def optimise(
+@dataclass
+class Energy:
+    """E = |r(x)|^2 of a graph's deformation (module docstring) over x, each node's 12 unknowns
+    (vec(R_j) row-major, then t_j), with r's sparse Jacobian and x where the graph stands."""
+
+    residuals: Callable[[np.ndarray], np.ndarray]
+    jacobian: Callable[[np.ndarray], csr_matrix]
+    start: np.ndarray
+
+    def cost(self, x: np.ndarray) -> float:
+        r = self.residuals(x)
+        return float(r @ r)
+
+
+def energy(
     graph: DeformationGraph,
     sources: np.ndarray,
     source_times: np.ndarray,
@@ -250,10 +264,9 @@ def optimise(
     regularisation_weight: float = 10.0,
     constraint_weight: float = 100.0,
     k: int = 4,
-    iterations: int = 10,
-) -> DeformationGraph:
-    """The graph whose deformation takes `sources` (C, 3) made at `source_times` to `targets`,
-    as rigidly and smoothly as possible (module docstring). Returns a new graph."""
+) -> Energy:
+    """w_rot E_rot + w_reg E_reg + w_con E_con for taking `sources` (C, 3), made at
+    `source_times`, to `targets`."""
     sources = np.asarray(sources, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.float64)
     index, weights = node_weights(graph, sources, source_times, k)
@@ -300,8 +313,32 @@ def optimise(
         ).tocsr()  # duplicates (a == b) add up: d(c.c)/dc = 2c
         return vstack([rot, linear]).tocsr()
 
-    x = np.concatenate([graph.rotations.reshape(m, 9), graph.translations], axis=1).ravel()
-    x = levenberg_marquardt(residuals, jacobian, x, iterations)
+    start = np.concatenate([graph.rotations.reshape(m, 9), graph.translations], axis=1).ravel()
+    return Energy(residuals, jacobian, start)
+
+
+def optimise(
+    graph: DeformationGraph,
+    sources: np.ndarray,
+    source_times: np.ndarray,
+    targets: np.ndarray,
+    rotation_weight: float = 1.0,
+    regularisation_weight: float = 10.0,
+    constraint_weight: float = 100.0,
+    k: int = 4,
+    iterations: int = 10,
+) -> DeformationGraph:
+    """The graph whose deformation takes `sources` (C, 3) made at `source_times` to `targets`,
+    as rigidly and smoothly as possible (module docstring). Returns a new graph."""
+    terms = energy(graph, sources, source_times, targets, rotation_weight,
+                   regularisation_weight, constraint_weight, k)  # fmt: skip
+    x = levenberg_marquardt(terms.residuals, terms.jacobian, terms.start, iterations)
+    return with_unknowns(graph, x)
+
+
+def with_unknowns(graph: DeformationGraph, x: np.ndarray) -> DeformationGraph:
+    """`graph` with its nodes' affine maps taken from x (Energy's layout)."""
+    m = graph.size
     unknowns = x.reshape(m, 12)
     return DeformationGraph(
         positions=graph.positions,
