@@ -310,6 +310,8 @@ def run(
             raise
         result.error, result.error_traceback = err, traceback.format_exc()
         result.reason = error_reason(err)
+    if loop_closer is not None:  # the closer may have seen a frame that ended before its record
+        loop_closer.keep_frames(result.frames)
     return result
 
 

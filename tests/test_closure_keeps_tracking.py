@@ -2,7 +2,8 @@
 make a running offset that takes its poses into corrected ones, and the map stays in the
 tracker's coordinates until the deformation at the end (the authors' implementation;
 `loop_closure.recentre_on_closure` off). Checked against the same run without the closure: the
-tracking and the slices are the same bit for bit, the poses that run's moved by the offset."""
+tracking and the slices are the same bit for bit, the poses that run's moved by the offset.
+And a run stopped inside a frame after the closer saw it still has one pose per frame."""
 
 from __future__ import annotations
 
@@ -77,3 +78,33 @@ def test_recentring_instead_empties_the_window_at_the_corrected_pose(desk):
     # the window holds only what was fused after the closure
     assert closed.volume.weight.max() == FRAMES - CLOSED_AT
     assert plain.volume.weight.max() == FRAMES
+
+
+class InterruptedAfterAClosure(LoopCloser):
+    """A loop closer whose one loop (no keyframe, no graph) moves the camera by CORRECTION at
+    CLOSED_AT, and a Ctrl-C two frames later, inside the frame, after it was observed."""
+
+    def _add_keyframe(self, frame, pose, preprocessed):  # noqa: ANN001, ANN201
+        if frame != CLOSED_AT:
+            return None
+        self.closures.append(Closure(frame, 1, 0, CORRECTION, 0.05))
+        return CORRECTION
+
+    def slice_made(self, frame: int, slices: int) -> None:
+        if frame == CLOSED_AT + 2:
+            raise KeyboardInterrupt
+        super().slice_made(frame, slices)
+
+
+def test_a_run_interrupted_inside_a_frame_after_a_closure_keeps_one_pose_per_frame(desk):
+    scenario, frames = desk
+    config = Config(volume=VolumeConfig(resolution=64, size=2.0))
+    closer = InterruptedAfterAClosure(config, scenario.camera)
+    result = pipeline.run(frames, scenario.camera, config, odometry="icp",
+                          groundtruth=scenario.trajectory, loop_closer=closer)  # fmt: skip
+    assert result.interrupted and result.frames == CLOSED_AT + 2
+    trajectory = result.trajectory  # the poses corrected by the closure
+    assert len(trajectory) == result.frames == len(closer.uncorrected_poses())
+    np.testing.assert_array_equal(trajectory.poses, np.array(result.poses))
+    np.testing.assert_array_equal(closer.uncorrected_poses()[-1],
+                                  se3.inverse(CORRECTION) @ result.poses[-1])  # fmt: skip

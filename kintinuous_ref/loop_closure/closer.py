@@ -160,6 +160,12 @@ class LoopCloser:
         keyframe = self.keyframes[node]
         return se3.inverse(self._offset(self.keyframe_epochs[node])) @ keyframe.pose
 
+    def keep_frames(self, count: int) -> None:
+        """Forget the frames observed after the first `count` (a run that ended inside a frame
+        after `observe`): the trajectories then have one pose per recorded frame. Keyframes,
+        loops and the graph stay as they are."""
+        del self.frames[count:], self.poses[count:], self.frame_keyframe[count:]
+
     def _add_keyframe(
         self, frame: int, pose: np.ndarray, preprocessed: PreprocessedFrame
     ) -> np.ndarray | None:
