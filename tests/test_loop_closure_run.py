@@ -29,8 +29,8 @@ def test_closing_the_revisit_loop(tmp_path):
     jobs load it. Measured: 218 mm of drift at frame 240, ATE 68.5 mm uncorrected (the run
     without loop closure: tracking keeps its volume) and 6.8 mm corrected; the mesh's vertices
     a mean 7.4 mm and a median 5.1 mm from the true surface, 1.03 % of them beyond 3 cm, none
-    beyond 0.22 m. Those beyond 3 cm are all in the last window, whose surface was fused both
-    before the closure and after it (with `recentre_on_closure` the window is emptied at the
+    beyond 0.22 m. Those beyond 3 cm are all in the last window, fused around the revisit in
+    the tracker's drifted coordinates (with `recentre_on_closure` the window is emptied at the
     closure instead: 0.06 % beyond 3 cm, mean 6.5 mm)."""
     folder = synthetic.write_scenario("revisit", tmp_path / "revisit", 300, 160, 120)
     sequence = tum.open_sequence(folder)
