@@ -248,8 +248,8 @@ class LoopClosureConfig:
     # window is emptied into a slice and re-centred at the corrected pose (True), and tracking
     # starts again on a model of one frame. On redkitchen there and back at 160x120,
     # re-centred, the return error was 1.7-9.8 mm worse in four runs of five and the ATE
-    # 0.7-2.3 mm worse in three; on `revisit` its mesh is better (0.06 against 1.03 % of the
-    # vertices beyond 3 cm; docs/loop_closure.md, "Tracking after a closure")
+    # 0.7-2.3 mm worse in three; the `revisit` meshes are alike (6.5 mm from the true surface
+    # either way; docs/loop_closure.md, "Tracking after a closure")
     recentre_on_closure: bool = False
     # dense refinement (the tracker's ICP+RGB-D of the two frames) and the acceptance test
     icp_iterations: tuple[int, ...] = (10, 10, 10)  # pyramid levels 1.., finest to coarsest

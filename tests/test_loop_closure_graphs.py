@@ -263,6 +263,25 @@ def test_a_twisted_pole_stays_bounded_and_meets_its_constraints():
     assert np.linalg.norm(moved - pole, axis=1).max() < asked
 
 
+def test_a_piece_no_constraint_reaches_moves_with_the_rest():
+    """Two sheets of one rigid map 1.5 m apart: each node's nearest neighbours lie in its own
+    sheet, so the graph falls into two pieces, and only the first is pinned (a rigid motion).
+    The second is joined to the first (`bridging_edges`) and moves with it, rigidly, as nothing
+    says otherwise; left alone it stayed where it was mapped."""
+    sheet = bent_sheet()
+    second = sheet + [0.0, 2.5, 0.0]  # 1.5 m beyond the first's far edge
+    points = np.vstack([sheet, second])
+    times = np.zeros(len(points))
+    graph = deformation_graph.build_graph(points, times, 0.25)
+    motion = se3.exp(np.array([0.05, -0.03, 0.1, 0.02, 0.01, -0.03]))
+    sources = sheet[::37]
+    targets = se3.transform_points(motion, sources)
+    solved = deformation_graph.optimise(graph, sources, np.zeros(len(sources)), targets)
+    index, weights = deformation_graph.node_weights(solved, second, np.zeros(len(second)))
+    moved = deformation_graph.deform_points(solved, second, index, weights)
+    np.testing.assert_allclose(moved, se3.transform_points(motion, second), atol=5e-3)
+
+
 def test_space_time_keeps_two_layers_of_one_place_apart():
     """The same wall mapped twice, 5 cm apart, at frames 0 and 300: pinning the second layer
     to move 5 cm leaves the first where it is."""

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix, identity, vstack
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
@@ -49,13 +50,16 @@ from kintinuous_ref.errors import ConfigError
 # up (a step that short changes nothing).
 LM_INITIAL_DAMPING = 1e-4
 LM_MAX_DAMPING = 1e8
+# A piece of the graph that no constraint reaches is joined to the rest from each of its nodes
+# at most this many times as far from another piece as its nearest node (bridging_edges).
+BRIDGE_REACH = 1.25
 
 
 @dataclass
 class DeformationGraph:
     positions: np.ndarray  # (M, 3) node positions g_j
     times: np.ndarray  # (M,) frame each node was made at
-    neighbours: np.ndarray  # (M, k) node indices joined to each node
+    edges: np.ndarray  # (E, 2) node pairs (j, l) whose E_reg term ties l's motion to j's
     time_scale: float  # metres per frame in space-time distances
     rotations: np.ndarray  # (M, 3, 3) R_j (identity: no deformation)
     translations: np.ndarray  # (M, 3) t_j
@@ -104,10 +108,12 @@ def build_graph(
     k = min(neighbours, len(chosen) - 1)
     space_time = np.column_stack([positions, time_scale * node_times])
     _, nearest = cKDTree(space_time).query(space_time, k=k + 1)
+    nearest = nearest[:, 1:].reshape(len(chosen), k)
+    edges = np.column_stack([np.repeat(np.arange(len(chosen)), k), nearest.ravel()])
     return DeformationGraph(
         positions=positions,
         times=node_times,
-        neighbours=nearest[:, 1:].reshape(len(chosen), k),
+        edges=edges,
         time_scale=time_scale,
         rotations=np.tile(np.eye(3), (len(chosen), 1, 1)),
         translations=np.zeros((len(chosen), 3)),
@@ -157,19 +163,49 @@ def deform_poses(
     return moved
 
 
+def bridging_edges(space_time: np.ndarray, edges: np.ndarray, reached: np.ndarray) -> np.ndarray:
+    """(B, 2) edges, both ways, that join every piece of the graph of `edges` (over nodes at
+    `space_time`, (M, 4)) to a piece holding a node of `reached`, the nodes the constraints
+    move: each piece without one is joined to the nearest node of another piece, until none is
+    left. Nearest neighbours alone can leave a piece that no constraint reaches (a stretch of
+    wall mapped at the end of a run, apart in space-time from the rest); E_reg and E_rot would
+    then hold it where it was mapped, however far the constraints move its surroundings. Pieces
+    that constraints reach are left apart (two layers of one place mapped at different times
+    move as their own constraints say)."""
+    size, bridges = len(space_time), [np.zeros((0, 2), dtype=np.int64)]
+    if not len(reached):
+        return bridges[0]
+    while True:
+        joined = np.vstack([edges, *bridges])
+        graph = coo_matrix((np.ones(len(joined)), (joined[:, 0], joined[:, 1])), (size, size))
+        count, piece = connected_components(graph, directed=False)
+        pinned = np.zeros(count, dtype=bool)
+        pinned[piece[reached]] = True
+        if pinned.all():
+            return np.vstack(bridges)
+        for label in np.flatnonzero(~pinned):
+            inside, outside = np.flatnonzero(piece == label), np.flatnonzero(piece != label)
+            distance, nearest = cKDTree(space_time[outside]).query(space_time[inside])
+            # every node about as near as the nearest: bridges along the whole facing edge pin
+            # the piece's rotation too (one bridge leaves it free to turn about itself)
+            near = distance <= BRIDGE_REACH * distance.min()
+            a, b = inside[near], outside[nearest[near]]
+            bridges.append(np.column_stack([np.concatenate([a, b]), np.concatenate([b, a])]))
+
+
 def _linear_terms(
     graph: DeformationGraph,
+    edges: np.ndarray,
     sources: np.ndarray,
     index: np.ndarray,
     weights: np.ndarray,
     targets: np.ndarray,
 ) -> tuple[csr_matrix, np.ndarray]:
     """E_reg and E_con as A x - b over x = [vec(R_j) row-major, t_j] (12 per node)."""
-    m, k = graph.size, graph.neighbours.shape[1]
+    m = graph.size
     rows, cols, values = [], [], []
     # E_reg: for edge (j, l): R_j (g_l - g_j) + t_j - t_l = g_l - g_j  (3 rows per edge)
-    j = np.repeat(np.arange(m), k)
-    neighbour = graph.neighbours.ravel()
+    j, neighbour = edges[:, 0], edges[:, 1]
     d = graph.positions[neighbour] - graph.positions[j]
     edge_rows = 3 * np.arange(len(j))
     for a in range(3):
@@ -270,7 +306,10 @@ def energy(
     sources = np.asarray(sources, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.float64)
     index, weights = node_weights(graph, sources, source_times, k)
-    reg, reg_b, con, con_b = _linear_terms(graph, sources, index, weights, targets)
+    reached = np.unique(index[weights > 0])
+    space_time = graph.space_time(graph.positions, graph.times)
+    edges = np.vstack([graph.edges, bridging_edges(space_time, graph.edges, reached)])
+    reg, reg_b, con, con_b = _linear_terms(graph, edges, sources, index, weights, targets)
     m = graph.size
     linear = vstack([np.sqrt(regularisation_weight) * reg, np.sqrt(constraint_weight) * con])
     linear = linear.tocsr()
@@ -343,7 +382,7 @@ def with_unknowns(graph: DeformationGraph, x: np.ndarray) -> DeformationGraph:
     return DeformationGraph(
         positions=graph.positions,
         times=graph.times,
-        neighbours=graph.neighbours,
+        edges=graph.edges,
         time_scale=graph.time_scale,
         rotations=unknowns[:, :9].reshape(m, 3, 3).copy(),
         translations=unknowns[:, 9:].copy(),
