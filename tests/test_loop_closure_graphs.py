@@ -180,6 +180,20 @@ def bent_sheet(count: int = 40) -> np.ndarray:
     return np.column_stack([u.ravel(), v.ravel(), np.zeros(u.size)])
 
 
+def deformed(graph, points: np.ndarray, times: np.ndarray | None = None) -> np.ndarray:  # noqa: ANN001
+    """`points` (made at `times`, frame 0 by default) moved through `graph`."""
+    times = np.zeros(len(points)) if times is None else times
+    index, weights = deformation_graph.node_weights(graph, points, times)
+    return deformation_graph.deform_points(graph, points, index, weights)
+
+
+def pinned_rigidly(points: np.ndarray, sources: np.ndarray, motion: np.ndarray):  # noqa: ANN201
+    """The graph over `points` (all made at frame 0) solved with `sources` moved by `motion`."""
+    graph = deformation_graph.build_graph(points, np.zeros(len(points)), 0.25)
+    targets = se3.transform_points(motion, sources)
+    return deformation_graph.optimise(graph, sources, np.zeros(len(sources)), targets)
+
+
 def test_nodes_cover_the_points_evenly():
     points = bent_sheet()
     chosen = deformation_graph.sample_nodes(points, 0.25)
@@ -201,14 +215,9 @@ def test_weights_are_a_partition_of_unity_and_identity_leaves_points_alone():
 
 def test_constraints_from_a_rigid_motion_recover_it_everywhere():
     points = bent_sheet()
-    times = np.zeros(len(points))
-    graph = deformation_graph.build_graph(points, times, 0.25)
     motion = se3.exp(np.array([0.1, -0.05, 0.2, 0.05, 0.1, -0.03]))
-    sources = points[::37]
-    targets = se3.transform_points(motion, sources)
-    solved = deformation_graph.optimise(graph, sources, np.zeros(len(sources)), targets)
-    index, weights = deformation_graph.node_weights(solved, points, times)
-    moved = deformation_graph.deform_points(solved, points, index, weights)
+    solved = pinned_rigidly(points, points[::37], motion)
+    moved = deformed(solved, points)
     np.testing.assert_allclose(moved, se3.transform_points(motion, points), atol=2e-3)
     # Rigidity: every node's R_j is (nearly) that rotation.
     np.testing.assert_allclose(solved.rotations, np.tile(motion[:3, :3], (solved.size, 1, 1)),
@@ -225,8 +234,7 @@ def test_a_bent_sheet_is_straightened_and_stays_locally_rigid():
     graph = deformation_graph.build_graph(mapped, times, 0.25)
     ends = np.flatnonzero((np.abs(truth[:, 0]) > 0.9) | (np.abs(truth[:, 0]) < 0.05))
     solved = deformation_graph.optimise(graph, mapped[ends], times[ends], truth[ends])
-    index, weights = deformation_graph.node_weights(solved, mapped, times)
-    moved = deformation_graph.deform_points(solved, mapped, index, weights)
+    moved = deformed(solved, mapped, times)
     # Pinned at both ends, the bend between them is spread as smoothly as rigidity allows.
     error = np.linalg.norm(moved - truth, axis=1)
     assert error.max() < 0.02 and error.mean() < 0.005
@@ -252,13 +260,11 @@ def test_a_twisted_pole_stays_bounded_and_meets_its_constraints():
     sources = np.vstack([near, far])
     targets = np.vstack([near, se3.transform_points(motion, far)])
     solved = deformation_graph.optimise(graph, sources, np.zeros(4), targets)
-    index, weights = deformation_graph.node_weights(solved, sources, np.zeros(4))
-    reached = deformation_graph.deform_points(solved, sources, index, weights)
+    reached = deformed(solved, sources)
     assert np.linalg.norm(reached - targets, axis=1).max() < 0.015
     columns = np.einsum("mab,mac->mbc", solved.rotations, solved.rotations)
     assert np.linalg.norm(columns - np.eye(3), axis=(1, 2)).max() < 0.5
-    index, weights = deformation_graph.node_weights(solved, pole, times)
-    moved = deformation_graph.deform_points(solved, pole, index, weights)
+    moved = deformed(solved, pole, times)
     asked = np.linalg.norm(targets - sources, axis=1).max()
     assert np.linalg.norm(moved - pole, axis=1).max() < asked
 
@@ -270,15 +276,9 @@ def test_a_piece_no_constraint_reaches_moves_with_the_rest():
     says otherwise; left alone it stayed where it was mapped."""
     sheet = bent_sheet()
     second = sheet + [0.0, 2.5, 0.0]  # 1.5 m beyond the first's far edge
-    points = np.vstack([sheet, second])
-    times = np.zeros(len(points))
-    graph = deformation_graph.build_graph(points, times, 0.25)
     motion = se3.exp(np.array([0.05, -0.03, 0.1, 0.02, 0.01, -0.03]))
-    sources = sheet[::37]
-    targets = se3.transform_points(motion, sources)
-    solved = deformation_graph.optimise(graph, sources, np.zeros(len(sources)), targets)
-    index, weights = deformation_graph.node_weights(solved, second, np.zeros(len(second)))
-    moved = deformation_graph.deform_points(solved, second, index, weights)
+    solved = pinned_rigidly(np.vstack([sheet, second]), sheet[::37], motion)
+    moved = deformed(solved, second)
     np.testing.assert_allclose(moved, se3.transform_points(motion, second), atol=5e-3)
 
 
@@ -295,8 +295,7 @@ def test_space_time_keeps_two_layers_of_one_place_apart():
     source_times = np.concatenate([np.zeros(len(anchors)), np.full(len(anchors), 300.0)])
     targets = np.vstack([anchors, anchors])
     solved = deformation_graph.optimise(graph, sources, source_times, targets)
-    index, weights = deformation_graph.node_weights(solved, points, times)
-    moved = deformation_graph.deform_points(solved, points, index, weights)
+    moved = deformed(solved, points, times)
     np.testing.assert_allclose(moved[: len(sheet)], first, atol=2e-3)
     np.testing.assert_allclose(moved[len(sheet) :], first, atol=2e-3)
 
