@@ -172,6 +172,47 @@ def test_scaled_solution_gives_the_host_statuses() -> None:
             assert condition == host_condition == 0.0
 
 
+def scaled_matrix(a: np.ndarray) -> np.ndarray:
+    scale = 1.0 / np.sqrt(np.diag(a))
+    return a * scale[:, None] * scale[None, :]
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_the_condition_bound_holds_and_is_the_inverse_trace(seed: int) -> None:
+    """inverse_trace is trace(S^-1) from the Cholesky factor, and trace(S) trace(S^-1) bounds
+    the condition number that the eigenvalue check measures (so a step below the bound may
+    skip the eigenproblem)."""
+    for a in (random_system(seed).A, random_system(seed, weak_axis=2).A, corridor_system(seed).A):
+        s = scaled_matrix(a)
+        factor, inverse = np.linalg.cholesky(s), np.empty((6, 6))
+        trace = CPU.inverse_trace(factor, inverse, *ONE_LANE)
+        np.testing.assert_allclose(trace, np.trace(np.linalg.inv(s)), rtol=1e-10)
+        np.testing.assert_allclose(np.tril(inverse), np.linalg.inv(factor), rtol=1e-10, atol=1e-14)
+        values = np.linalg.eigvalsh(s)
+        assert values[-1] / values[0] <= np.trace(s) * trace
+
+
+def test_a_condition_above_the_bound_goes_through_the_eigenvalues() -> None:
+    """Systems whose bound is above CERTAIN_CONDITION, one solvable (condition 4e9) and one
+    ill-conditioned (4e10): the eigenvalue check decides, as the host's, and the solvable one
+    gets the host's increment."""
+    q = np.linalg.qr(np.random.default_rng(3).normal(size=(6, 6)))[0]
+    b = np.random.default_rng(4).normal(size=6)
+    for condition, expected in ((4e9, SOLVED), (4e10, ILL_CONDITIONED)):
+        a = q @ np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0 / condition]) @ q.T
+        a = (a + a.T) / 2
+        s = scaled_matrix(a)
+        values = np.linalg.eigvalsh(s)
+        assert np.trace(s) * np.trace(np.linalg.inv(s)) > ops.CERTAIN_CONDITION
+        assert (values[-1] / values[0] > MAX_CONDITION) == (expected == ILL_CONDITIONED)
+        xi = np.full(6, np.nan)
+        status, measured = CPU.scaled_solution(a, b, xi, scratch(), *ONE_LANE)
+        host_status, host_xi, host_condition = fast._scaled_solution(a, b)
+        assert status == host_status == expected
+        np.testing.assert_allclose(measured, host_condition, rtol=1e-3)
+        np.testing.assert_allclose(xi, host_xi, rtol=1e-5, atol=1e-14 * np.abs(host_xi).max())
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 def test_the_condition_number_equals_the_host(seed: int) -> None:
     """Beyond MAX_CONDITION by a known amount (about 1e11 and 1e12 after the Jacobi scaling):

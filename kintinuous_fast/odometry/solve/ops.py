@@ -50,8 +50,13 @@ W0, W1, V0, V1, ROWS = range(5)
 FREE = 5
 SCRATCH_MATRICES = 10
 VERDICT = 5  # scratch[ROWS, VERDICT, 0]: what lane 0 found, read by every lane
+# scratch[ROWS]'s rows of a Jacobi round's rotations, per index: c, sigma and delta
+ROTATION_C, ROTATION_SIGMA, ROTATION_DELTA = 2, 3, 4
 ELEMENTS = 36
 ROUNDS = 5  # a sweep of the 6x6 in the parallel ordering
+# Below this bound on the scaled condition number the reference's check (MAX_CONDITION) cannot
+# fail, with room for the eigenvalues' and the bound's rounding.
+CERTAIN_CONDITION = MAX_CONDITION / 2
 
 
 def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace:
@@ -98,12 +103,28 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
         return m, c, s, t * apq
 
     @jit
-    def round_entry(work: Any, vectors: Any, i: int, j: int, round_: int) -> tuple[float, float]:
-        """Element (i, j) of J^T W J and of V J after round `round_`'s three rotations. An
-        off-diagonal element is computed from its (min, max) end, so W stays exactly symmetric;
-        a pair's own elements take rotate's forms (diagonal shifted, a_pq = 0)."""
-        mi, ci, si, di = pair_rotation(work, i, round_)
-        mj, cj, sj, dj = pair_rotation(work, j, round_)
+    def round_rotations(work: Any, rows: Any, round_: int, lane: int, lanes: int) -> None:
+        """Each index k's rotation in round `round_` (pair_rotation's c, sigma, delta) into
+        rows[ROTATION_C:ROTATION_DELTA + 1, k], six lanes at once: computed once per index and
+        read by every element's lane, which would otherwise compute two of them one after the
+        other (a rotation's divisions and square roots are most of a round's time on a GPU)."""
+        for k in range(lane, 6, lanes):
+            _, c, sigma, delta = pair_rotation(work, k, round_)
+            rows[ROTATION_C, k] = c
+            rows[ROTATION_SIGMA, k] = sigma
+            rows[ROTATION_DELTA, k] = delta
+
+    @jit
+    def round_entry(
+        work: Any, vectors: Any, rows: Any, i: int, j: int, round_: int
+    ) -> tuple[float, float]:
+        """Element (i, j) of J^T W J and of V J after round `round_`'s three rotations, whose
+        parameters round_rotations left in `rows`. An off-diagonal element is computed from its
+        (min, max) end, so W stays exactly symmetric; a pair's own elements take rotate's forms
+        (diagonal shifted, a_pq = 0)."""
+        mi, mj = partner(i, round_), partner(j, round_)
+        ci, si, di = rows[ROTATION_C, i], rows[ROTATION_SIGMA, i], rows[ROTATION_DELTA, i]
+        cj, sj = rows[ROTATION_C, j], rows[ROTATION_SIGMA, j]
         vector = cj * vectors[i, j] + sj * vectors[i, mj]
         if i == j:
             return work[i, i] + di, vector
@@ -130,7 +151,8 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
     ) -> None:
         """np.linalg.eigh of the symmetric 6x6 `a` (unchanged): eigenvalues ascending into
         `values` (6,), unit eigenvectors as the columns of `vectors` (6, 6), by Jacobi in the
-        parallel ordering. Uses scratch[W0:V1 + 1]."""
+        parallel ordering. Uses scratch[W0:V1 + 1] and rows ROTATION_C..ROTATION_DELTA of
+        scratch[ROWS], which its callers fill only after it."""
         for e in range(lane, ELEMENTS, lanes):
             i, j = e // 6, e % 6
             scratch[W0, i, j] = a[i, j]
@@ -141,9 +163,13 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
             if off_diagonal_negligible(scratch[W0 + now], 6):  # every lane, the same answer
                 break
             for round_ in range(ROUNDS):
+                round_rotations(scratch[W0 + now], scratch[ROWS], round_, lane, lanes)
+                barrier()
                 for e in range(lane, ELEMENTS, lanes):
                     i, j = e // 6, e % 6
-                    w, v = round_entry(scratch[W0 + now], scratch[V0 + now], i, j, round_)
+                    w, v = round_entry(
+                        scratch[W0 + now], scratch[V0 + now], scratch[ROWS], i, j, round_
+                    )
                     scratch[W1 - now, i, j] = w
                     scratch[V1 - now, i, j] = v
                 barrier()
@@ -171,11 +197,9 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
         return SOLVED
 
     @jit
-    def cholesky_solution(scaled: Any, scale: Any, b: Any, xi: Any, factor: Any, rows: Any) -> int:
-        """SOLVED with xi = D^-1/2 y, (D^-1/2 A D^-1/2) y = -D^-1/2 b through L L^T (`scaled` =
-        D^-1/2 A D^-1/2, `scale` = D^-1/2), or NOT_DEFINITE; on one lane. Uses rows[2:4]."""
-        if not cholesky(scaled, 6, factor):
-            return NOT_DEFINITE
+    def factored_solution(scale: Any, b: Any, xi: Any, factor: Any, rows: Any) -> None:
+        """xi = D^-1/2 y with (D^-1/2 A D^-1/2) y = -D^-1/2 b, `factor` its Cholesky factor L
+        (L L^T = D^-1/2 A D^-1/2) and `scale` = D^-1/2; on one lane. Uses rows[2:4]."""
         rhs = rows[2]
         for i in range(6):
             rhs[i] = -b[i] * scale[i]
@@ -183,7 +207,27 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
         back_substitution(factor, rows[3], rhs, 6)
         for i in range(6):
             xi[i] = rhs[i] * scale[i]
-        return SOLVED
+
+    @jit
+    def inverse_trace(factor: Any, inverse: Any, lane: int, lanes: int) -> float:
+        """trace((L L^T)^-1) of a Cholesky factor L: the squares of L^-1's entries added. Lane
+        k < 6 solves for column k of L^-1 into `inverse`; every lane then adds the same squares
+        in the same order, so every lane returns the same value."""
+        for k in range(lane, 6, lanes):
+            for i in range(6):
+                total = 0.0
+                if i >= k:
+                    total = 1.0 if i == k else 0.0
+                    for j in range(k, i):
+                        total -= factor[i, j] * inverse[j, k]
+                    total /= factor[i, i]
+                inverse[i, k] = total
+        barrier()
+        trace = 0.0
+        for i in range(6):
+            for k in range(i + 1):
+                trace += inverse[i, k] * inverse[i, k]
+        return trace
 
     @jit
     def lane_verdict(scratch: Any, lane: int, value: float) -> float:
@@ -200,11 +244,15 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
         A: Any, b: Any, xi: Any, scratch: Any, lane: int, lanes: int
     ) -> tuple[int, float]:
         """(status, condition) of the normal equations A xi = -b (eq. 12-13), xi (6,) written
-        (zeros unless SOLVED): solve/__init__.py's _scaled_solution, its checks in its order.
-        Jacobi-scaled (D^-1/2 A D^-1/2), the condition from the scaled matrix's eigenvalues,
-        then Cholesky. Uses scratch[:FREE + 3]: FREE the scaled matrix, FREE + 1 its
-        eigenvectors, FREE + 2 the Cholesky factor, ROWS's rows the scale, the eigenvalues and
-        the two triangular solves."""
+        (zeros unless SOLVED): solve/__init__.py's _scaled_solution, the same statuses. That
+        one checks the condition of the Jacobi-scaled matrix S = D^-1/2 A D^-1/2 by its
+        eigenvalues, then factors S by Cholesky. Here Cholesky goes first, and where it
+        succeeds, trace(S) trace(S^-1) bounds the condition from above (lambda_max <= trace(S),
+        1 / lambda_min <= trace(S^-1)): below CERTAIN_CONDITION the eigenvalue check cannot
+        fail, and the eigenproblem (most of a step's time on a GPU) is skipped. Otherwise the
+        check runs as there. Uses scratch[:FREE + 4]: FREE the scaled matrix, FREE + 1 its
+        eigenvectors, FREE + 2 the Cholesky factor, FREE + 3 its inverse, ROWS's rows the
+        scale, the eigenvalues and the two triangular solves."""
         status = SOLVED
         if lane == 0:
             for i in range(6):
@@ -213,7 +261,7 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
         status = int(lane_verdict(scratch, lane, status))
         if status != SOLVED:
             return status, 0.0
-        scaled = scratch[FREE]
+        scaled, factor = scratch[FREE], scratch[FREE + 2]
         rows = scratch[ROWS]
         scale = rows[0]
         for i in range(lane, 6, lanes):
@@ -223,13 +271,30 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
             i, j = e // 6, e % 6
             scaled[i, j] = A[i, j] * scale[i] * scale[j]
         barrier()
+        factored = False
+        if lane == 0:
+            factored = cholesky(scaled, 6, factor)
+        factored = lane_verdict(scratch, lane, factored) != 0.0
+        if factored:
+            trace = 0.0
+            for i in range(6):
+                trace += scaled[i, i]
+            bound = trace * inverse_trace(factor, scratch[FREE + 3], lane, lanes)
+            if bound < CERTAIN_CONDITION:
+                if lane == 0:
+                    factored_solution(scale, b, xi, factor, rows)
+                barrier()
+                return SOLVED, 0.0
         eigenvalues = rows[1]
         symmetric_eigen(scaled, eigenvalues, scratch[FREE + 1], scratch, lane, lanes)
         if eigenvalues[0] <= eigenvalues[5] / MAX_CONDITION:
             return ILL_CONDITIONED, eigenvalues[5] / max(eigenvalues[0], 1e-300)
+        if not factored:
+            return NOT_DEFINITE, 0.0
         if lane == 0:
-            status = cholesky_solution(scaled, scale, b, xi, scratch[FREE + 2], rows)
-        return int(lane_verdict(scratch, lane, status)), 0.0
+            factored_solution(scale, b, xi, factor, rows)
+        barrier()
+        return SOLVED, 0.0
 
     @jit
     def change_entry(i: int, j: int, cx: float, cy: float, cz: float) -> float:
@@ -376,4 +441,5 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
         discounted_joint=discounted_joint,
         increment=increment,
         cholesky=cholesky,
+        inverse_trace=inverse_trace,
     )
