@@ -59,10 +59,13 @@ ROUNDS = 5  # a sweep of the 6x6 in the parallel ordering
 CERTAIN_CONDITION = MAX_CONDITION / 2
 
 
-def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace:
+def build_ops(
+    jit: Callable[[Any], Any], barrier: Any = None, max_sweeps: int = MAX_SWEEPS
+) -> SimpleNamespace:
     """symmetric_eigen, scaled_solution, discounted_joint and increment (and the Cholesky
     factorisation they use) compiled with `jit`; `barrier` (a compiled function of no
-    arguments) synchronises the lanes, None for one lane."""
+    arguments) synchronises the lanes, None for one lane. `max_sweeps` caps the team's Jacobi
+    sweeps (benchmarks time a sweep by capping it)."""
     one = build_lane_ops(jit)
     # Local names: numba resolves the functions a compiled function calls from its closure.
     product, product_tn, product_nt = one.product, one.product_tn, one.product_nt
@@ -159,7 +162,7 @@ def build_ops(jit: Callable[[Any], Any], barrier: Any = None) -> SimpleNamespace
             scratch[V0, i, j] = 1.0 if i == j else 0.0
         barrier()
         now = 0  # the iterates are scratch[W0 + now], scratch[V0 + now]
-        for _ in range(MAX_SWEEPS):
+        for _ in range(max_sweeps):
             if off_diagonal_negligible(scratch[W0 + now], 6):  # every lane, the same answer
                 break
             for round_ in range(ROUNDS):
