@@ -60,7 +60,7 @@ KINTINUOUS_CUDA_GRAPHS=1 timeout 80 python3 -m kintinuous_ref.program.cli benchm
 echo "benchmark moving volume: exit $?, $(($(date +%s) - start)) s wall, compilation included"
 summary "$out/bench_cuda_moving.json"
 # where the warm pipeline's host time goes with graphs on: profile.txt and cuda_warm.prof
-KINTINUOUS_CUDA_GRAPHS=1 timeout 70 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 10 \
+KINTINUOUS_CUDA_GRAPHS=1 timeout 70 python3 benchmarks/warm_profile.py "$data" --backend cuda "${@:3}" --frames 20 \
     --top 40 --out "$out/cuda_warm.prof" >"$out/profile.txt" 2>/dev/null
 echo "profile: exit $?"
 # each kernel's own GPU time per frame (launched one by one between CUDA events)

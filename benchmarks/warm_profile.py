@@ -1,8 +1,11 @@
 """Where a warm pipeline spends its time: cProfile over `kintinuous benchmark` after a first run
 has compiled every kernel, so compilation stays out of the profile (the first run's time is
-printed apart).
+printed apart). Only the frames after the first `--skip` of the timed run are profiled, and not
+their reading from disk: the first frames of a run allocate its buffers and, on a GPU, launch
+kernel by kernel and capture their graphs, which later frames replay.
 
-    python benchmarks/warm_profile.py DATASET --backend cuda --frames 30 [--set K=V] [--out F]
+    python benchmarks/warm_profile.py DATASET --backend cuda --frames 30 [--skip 6] [--set K=V]
+        [--out F]
     python benchmarks/warm_profile.py DATASET --loops [--frames 30] [--json F]
 
 Prints the stages' medians, the functions with the most time of their own and the project's
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import itertools
 import json
 import os
 import pstats
@@ -42,6 +46,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--top", type=int, default=25, help="rows of each listing")
+    parser.add_argument("--skip", type=int, default=6, help="frames run before the profile")
     parser.add_argument("--out", type=Path, help="write the profile here")
     parser.add_argument("--loops", action="store_true", help="time each cpu loop, no profiler")
     parser.add_argument("--json", type=Path, help="with --loops: write the loop report here")
@@ -61,11 +66,11 @@ def main() -> None:
             args.json.write_text(json.dumps(report, indent=1) + "\n")
         return
     profiler = cProfile.Profile()
-    result = profiler.runcall(benchmark, args.dataset, frames=args.frames, **run)
+    result, frames = profile_steady_frames(profiler, args.dataset, args.frames, args.skip, run)
     medians = {stage: round(t["median"], 2) for stage, t in result["timing_ms"].items()}
-    print(f"medians (ms), frames 2..{args.frames}, profiled: {medians}")
-    # The benchmark runs 2 frames to warm up, then `frames` timed ones.
-    frames = args.frames + 2
+    print(f"medians (ms), frames 2..{args.frames}, profiled from frame {args.skip}: {medians}")
+    if not frames:
+        parser.error(f"--skip {args.skip} leaves no frame of {args.frames} to profile")
     if args.out:
         profiler.dump_stats(args.out)
     stats = pstats.Stats(profiler)
@@ -83,6 +88,43 @@ def main() -> None:
                 f"{1000 * own / frames:8.2f} {1000 * cumulative / frames:8.2f} "
                 f"{calls / frames:8.1f}  {where}"
             )
+
+
+def profile_steady_frames(
+    profiler: cProfile.Profile, dataset: str, frames: int, skip: int, run: dict
+) -> tuple[dict[str, Any], int]:
+    """`benchmark` with `profiler` on from the frame after the first `skip` of each run until
+    the run ends, off while a frame is read: (the benchmark's result, the frames profiled)."""
+    from kintinuous_ref import pipeline
+
+    unprofiled = pipeline.run
+    profiled = [0]
+
+    def steady(frames: Iterable[Any]) -> Iterator[Any]:
+        iterator = iter(frames)
+        for index in itertools.count():
+            profiler.disable()
+            try:
+                frame = next(iterator)
+            except StopIteration:
+                return
+            if index >= skip:
+                profiled[0] += 1
+                profiler.enable()
+            yield frame
+
+    def run_profiled(frames, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
+        try:
+            return unprofiled(steady(frames), *args, **options)
+        finally:
+            profiler.disable()
+
+    pipeline.run = run_profiled
+    try:
+        result = benchmark(dataset, frames=frames, **run)
+    finally:
+        pipeline.run = unprofiled
+    return result, profiled[0]
 
 
 class LoopClock:
