@@ -33,8 +33,9 @@
 # scratch in a dozen lines. How fast each backend is (and how that grows with the volume) is
 # measured in lesson 15, the speed appendix.
 #
-# Prerequisites: none; this is the first lesson. About 15 s warm (the first run of the course
-# also compiles the numba kernels: one to two minutes, once).
+# Prerequisites: none; this is the first lesson. Its time, warm, is in
+# notebooks/README.md's table (the first run of the course also compiles the numba kernels,
+# once; the README says how long that took).
 
 # %%
 # %matplotlib inline

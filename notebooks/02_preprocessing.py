@@ -33,8 +33,8 @@
 # 6. `kintinuous_fast` against the reference, within the tolerances of the tests,
 # 7. a real frame (redkitchen, or a TUM sequence you have).
 #
-# Prerequisites: lesson 0 (poses), lesson 1 (the camera model). About 10 s warm
-# (notebooks/README.md lists each lesson's measured time).
+# Prerequisites: lesson 0 (poses), lesson 1 (the camera model). Its time, warm,
+# is in notebooks/README.md's table.
 
 # %%
 # %matplotlib inline

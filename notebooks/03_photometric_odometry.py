@@ -30,7 +30,7 @@
 #
 # Along the way: the cost that Gauss-Newton lowers is not the error, which can rise while the cost
 # falls. Prerequisites: lessons 0 (the twist), 1 (the camera model) and 2 (the pyramid).
-# About 15 s warm (notebooks/README.md lists each lesson's measured time).
+# Its time, warm, is in notebooks/README.md's table.
 
 # %%
 # %matplotlib inline
@@ -340,9 +340,9 @@ assert int(history[best_step, 0]) == 1  # the best estimate of the run came at l
 # The same pair without the pyramid, every step at full resolution. Here (160x120, a smooth
 # multi-scale texture, an image motion of about 3 pixels) it converges too: the pyramid is built for
 # 640x480 frames, where level 3 is 80x60 pixels. At 160x120, level 3 is 20x15 pixels, and its
-# few points (counted in the first picture) can stop matching at all under a larger motion
-# (the coarse level then reports too few correspondences): the pyramid depth should follow the
-# image size.
+# few points (counted in the first picture) could stop matching at all under a larger motion
+# (the coarse level would then report too few correspondences; not shown here): the pyramid
+# depth should follow the image size.
 
 # %%
 single_history = []
@@ -400,7 +400,7 @@ assert not any(ok for _, light, _, ok, _, _ in rows if light < 0.1)
 
 # %% [markdown]
 # The same desk pair with the exposure turned down (both images scaled and re-quantised to 8
-# bits): the interest points vanish level by level and the estimate degrades, then fails.
+# bits): the interest points thin out as the light falls, and in the dark the estimate fails.
 
 # %%
 levels_of_light = [1.0, 0.5, 0.25, 0.12, 0.06, 0.03]
@@ -440,6 +440,7 @@ for light, count, error, scaled_error in zip(
         f"g scaled: error {scaled_error:.2f} mm"
     )
 assert np.isfinite(errors[0]) and not np.isfinite(errors[-1])
+assert all(np.diff([sum(count) for count in counts]) < 0)  # fewer points with less light
 assert all(np.isfinite(scaled_errors)), "with scaled thresholds every exposure tracks"
 assert max(scaled_errors) < 3.0, "and at every exposure to the full-light error's 2 mm or so"
 
@@ -448,9 +449,9 @@ assert max(scaled_errors) < 3.0, "and at every exposure to the full-light error'
 # RGB-D odometry's (the method): the interest-point test $|\nabla I| > g$ uses absolute grey
 # levels, and dimming the image by a factor scales every gradient by it. Scaling $g$ with the
 # exposure (dashed line) keeps the same pixels, and the pair tracks at every exposure down to
-# 3 % of the light, about 2 mm off as in full light (every error is asserted under 3 mm); the
-# 8-bit quantisation of a dark image costs less than the noise does. A real camera's
-# auto-exposure does much of this scaling; the fixed thresholds fail where it cannot keep up.
+# 3 % of the light, about 2 mm off as in full light (every error is asserted under 3 mm). A
+# real camera's auto-exposure does much of this scaling; the fixed thresholds fail where it
+# cannot keep up.
 
 # %% [markdown]
 # ## The same with `kintinuous_fast`

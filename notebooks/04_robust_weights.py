@@ -31,7 +31,7 @@
 # 5. the distribution of RGB-D residuals on a real pair of frames and the weights they get.
 #
 # Prerequisites: lesson 0 (Gauss-Newton, normal equations), lesson 3 (RGB-D residuals) helps.
-# About 10 s warm (notebooks/README.md lists each lesson's measured time).
+# Its time, warm, is in notebooks/README.md's table.
 
 # %%
 # %matplotlib inline
@@ -415,7 +415,7 @@ if REAL is not None:
 # 2. **Breakdown.** Outliers on one side only (a second surface behind the first, say) are
 #    harder than the symmetric ones above. Repeat the line fit with 10, 20, 30, 40 and 50 % of
 #    the points replaced by uniform values in $[1.5, 3]$ and Huber IRLS from least squares, 30
-#    steps. From which fraction on is the error $\max|(a, b) - 	ext{truth}|$ above 0.1
+#    steps. From which fraction on is the error $\max|(a, b) - \text{truth}|$ above 0.1
 #    (`your_breakdown_percent`, one of 10..50, or `0` if never)? Build the data as the check
 #    does: `rng = np.random.default_rng(p)`, `ys = y_clean.copy()`,
 #    `ys[rng.choice(60, 60 * p // 100, replace=False)] = rng.uniform(1.5, 3, 60 * p // 100)`

@@ -29,7 +29,7 @@
 # 5. two real frames (redkitchen, or a TUM sequence you have) registered the same way.
 #
 # Prerequisites: lessons 0 (the twist, Gauss-Newton) and 1 (the volume and its raycast).
-# About 16 s warm (notebooks/README.md lists each lesson's measured time).
+# Its time, warm, is in notebooks/README.md's table.
 
 # %%
 # %matplotlib inline
@@ -385,6 +385,8 @@ print(
 )
 assert gaps["after ICP"] < gaps["before (previous pose)"] / 3  # the clouds close up
 assert abs(gaps["after ICP"] - at_truth) < 0.5e-3  # as close as the true pose gets them
+assert gaps["after ICP"] < config.volume.size / config.volume.resolution / 2  # half a voxel
+assert 0.35 < overlap.mean() < 0.65  # about half the frame has a model point near
 
 # %% [markdown]
 # ## Where ICP is blind: the corridor
@@ -513,6 +515,7 @@ assert 180 < np.abs(along["Cholesky"]).max() < 220  # once 20 cm: the slide
 # Minimum norm finds no motion along the axis, so its error is the true step (to 2 mm), never more.
 np.testing.assert_allclose(along["minimum norm"], -true_steps, atol=2.0)
 assert np.abs(along["damped"]).max() <= np.abs(true_steps).max() + 2.0
+assert 10.5 < np.abs(true_steps).min() and np.abs(true_steps).max() < 12.5  # "about 11-12 mm"
 
 # %% [markdown]
 # The slide is the solver's, not the cost's: Cholesky's error along the corridor reaches 20 cm

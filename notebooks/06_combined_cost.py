@@ -596,6 +596,8 @@ assert max(across) - across[0] < 0.2
 quoted(table["1 x RGB-D (default w)"][1] / table["1 x RGB-D (default w)"][0], 1, 0.2)
 for value, text in zip(across, (1.1, 1.1, 1.2, 0.45), strict=True):
     quoted(value, text, 0.1)
+steps_across = np.diff(across)
+assert (steps_across > 0).any() and (steps_across < 0).any()  # "does not move monotonically"
 
 # %% [markdown]
 # Along the corridor the error falls with every step of $w$, from 33 mm at $w = 0.1$ to 1.6 mm

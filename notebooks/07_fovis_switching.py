@@ -25,7 +25,8 @@
 # 3. a second and a half of corridor, pair by pair: ICP, FOVIS, and the switched choice against
 #    the truth, and what the rule catches and what it lets through.
 #
-# Prerequisites: lesson 5 (ICP), lesson 11's measures are used informally. About 15 s warm.
+# Prerequisites: lesson 5 (ICP), lesson 11's measures are used informally. Its time,
+# warm, is in notebooks/README.md's table.
 
 # %%
 # %matplotlib inline
@@ -334,7 +335,7 @@ assert largest_change < 1.0  # "the same errors to within a millimetre"
 # %% [markdown]
 # Here the start makes no difference that matters (every pair's error within a millimetre of
 # the other start's, printed above): at 1.2 cm a frame ICP slides into the same corridor
-# minimum from either start, and where it fails it fails from both. The start matters for
+# minimum from either start. The start matters for
 # steps of 10-20 cm with turns, which lead ICP from the previous pose into another minimum, as
 # on redkitchen taken every 20th frame (docs/odometry.md measures it); exercise 4 looks for it.
 
@@ -422,8 +423,8 @@ if REAL is not None:
 # 3. **Outliers.** Set `config.fovis.clique_tolerance` to 0.5 m (with
 #    `dataclasses.replace`) and rerun pair (20, 21): how many matches join the clique, and how
 #    does the error change?
-# 4. **Large steps.** Track the desk's frames 0, 9, 18, ..., 45 (steps of about 11 cm; the
-#    `desk` scenario, a perfect model as above) with `fovis/icp` both ways
+# 4. **Large steps.** Track the desk's frames 0, 9, 18, ..., 45 (nine frames apart: how long
+#    are the steps? the `desk` scenario, a perfect model as above) with `fovis/icp` both ways
 #    (`fovis.dense_from_fovis` True and False): do the two starts give different errors? Then
 #    track `load_course_data()`'s frames 0, 20, ..., 280 with `fovis/icp+rgbd` both ways,
 #    against a model raycast from a volume fused so far, and compare the largest errors.

@@ -39,8 +39,9 @@
 # 4. the same on real frames (the shared redkitchen frames, or a TUM sequence you have).
 #
 # Prerequisites: lessons 3, 5, 6, 7 (the trackers) and 11 (the metrics; its ranking score is
-# eq. 16). About 20 s warm: each run is the whole pipeline (track, fuse, raycast) with the
-# `kintinuous_fast` CPU backend, which computes what the reference computes.
+# eq. 16). Each run is the whole pipeline (track, fuse, raycast) with the `kintinuous_fast` CPU
+# backend, which computes what the reference computes; the lesson's time, warm, is in
+# notebooks/README.md's table.
 
 # %%
 # %matplotlib inline

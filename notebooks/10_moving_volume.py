@@ -27,7 +27,7 @@
 # 4. the slices merged into one mesh, seams joined exactly, checked against the true surface and
 #    against a fixed volume that loses what leaves it.
 #
-# Prerequisites: lesson 1 (TSDF fusion). About 45 s warm on the shared 2-core machine.
+# Prerequisites: lesson 1 (TSDF fusion). Its time, warm, is in notebooks/README.md's table.
 
 # %%
 # %matplotlib inline
@@ -145,6 +145,8 @@ frames = [Frame(i, float(scene.trajectory.timestamps[i]), *scene.render(i)) for 
 moving_run = pipeline.run(frames, scene.camera, config, groundtruth=scene.trajectory)
 moving = moving_run.moving
 origins = np.array(moving_run.volume_origins)
+# the corridor's floor is at z = 0 and its ceiling at 2.6 m: the window spans neither
+assert origins[:, 2].min() > 0.0 and origins[:, 2].max() + config.volume.size < 2.6
 print(
     f"{moving.shifts} shifts over {FRAMES} frames, {moving.store.count} slices so far; "
     f"volume memory {moving_run.volume.tsdf.nbytes / 2**20:.1f} MiB of TSDF, unchanged"
@@ -222,6 +224,8 @@ print(
     f"merged mesh: {vertex_count} vertices ({slice_vertices - vertex_count} seam vertices "
     f"shared by two slices), {triangle_count} triangles"
 )
+assert slice_vertices > vertex_count  # seam vertices merged
+assert len(np.unique(merged.points, axis=0)) == vertex_count  # none left doubled at a seam
 
 fixed_config = with_overrides(config, {"volume.moving": False})
 fixed_run = pipeline.run(frames, scene.camera, fixed_config, groundtruth=scene.trajectory)

@@ -27,9 +27,9 @@
 # 3. the simulated kernel's 6x6 system against the reference, and the block partials it leaves,
 # 4. the grid-stride loop looping: fewer threads than pixels, each thread taking several.
 #
-# Prerequisites: lesson 5 (ICP). About 20 s warm; the simulator is thousands of times slower
-# than a GPU, which is why the frame is tiny. The simulator must be switched on before numba is
-# first imported, hence the first cell.
+# Prerequisites: lesson 5 (ICP). Its time, warm, is in notebooks/README.md's table. The
+# simulator runs each CUDA thread as Python, far slower than a GPU, which is why the frame is
+# tiny. It must be switched on before numba is first imported, hence the first cell.
 
 # %%
 # %matplotlib inline
@@ -83,6 +83,7 @@ upper_triangle, right_side, cost_and_count = 6 * 7 // 2, 6, 2
 assert upper_triangle + right_side + cost_and_count == 29 == sums.SLOT_EXTRA  # add_row's share
 assert sums.NV == 30  # and the valid-pixel counter after them
 assert reduction.MAX_BLOCKS == 1024 and reduction.reduction_blocks(HEIGHT * WIDTH) == 38
+assert reduction.BLOCK == 128 and 38 * reduction.BLOCK == 4864 and HEIGHT * WIDTH == 4800
 
 # %% [markdown]
 # ## The tree, in plain Python
@@ -162,8 +163,7 @@ np.testing.assert_allclose(simulated.b, reference.b, rtol=0, atol=1e-10 * np.abs
 # frame has 307,200 pixels and the cap of 1024 blocks gives 131,072 threads, so each thread takes
 # two or three. To see that here, the cap is lowered to 8 blocks for one run: 1,024 threads for
 # the 4,800 pixels, so thread $t$ takes pixels $t, t + 1024, t + 2048, \ldots$, four or five
-# each. The system must not change (the sums only come in another order), and the simulator,
-# with fewer Python threads, is faster too.
+# each. The system must not change (the sums only come in another order).
 #
 # Which block summed which pixel: pixel $i$ goes to thread $i \bmod G$, i.e. to block
 # $\lfloor (i \bmod G) / B \rfloor$, in round $\lfloor i / G \rfloor$ of its thread's loop.
@@ -237,7 +237,7 @@ print(
 # The same simulated kernel on real depth: real frame 101 against frame 100's own vertices and
 # normals (carried into the world at its ground-truth pose), at 40x30 (a quarter of the
 # threads: the simulator runs each as a Python thread), evaluated at frame 101's ground-truth
-# pose. Real depth has holes and noise, so fewer pixels pair; the kernel's system must still
+# pose. Real depth has holes and noise, so not every pixel pairs; the kernel's system must still
 # equal the reference's to rounding, on any sequence. The frames come from the course's one
 # loader, `load_course_data()` (notebooks/README.md): the shared 7-Scenes redkitchen frames, or
 # a TUM RGB-D sequence you have; without either the cell prints one line and skips.
@@ -301,8 +301,8 @@ if REAL is not None:
 #   then reduces a block's accumulators by a tree in shared memory in $\log_2 B$ synchronised
 #   steps; the host adds the block partials and solves the 6x6 system.
 # - The sums are float64 (float32 sums over a whole frame would lose small increments), and
-#   only their order differs from the NumPy reference: the systems agree to rounding (under
-#   1e-12 of the largest entry), whether each thread takes one pixel or several.
+#   only their order differs from the NumPy reference: the systems agree to rounding, under
+#   1e-12 of the largest entry with a pixel per thread and under 1e-10 with several.
 # - numba's CUDA simulator runs the same kernel code on the CPU, thread by thread: slow, but it
 #   lets the kernel be read, stepped through and tested without a GPU.
 #

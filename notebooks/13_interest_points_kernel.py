@@ -34,9 +34,9 @@
 # 5. the same kernels on real frames.
 #
 # Prerequisites: lessons 3 (RGB-D odometry: interest points, warp, weights) and 12 (a reduction
-# kernel, the simulator). About 30 s warm; the simulator runs each CUDA thread as a Python thread,
-# which is why the frames are tiny. It must be switched on before numba is first imported, hence
-# the first cell.
+# kernel, the simulator). Its time, warm, is in notebooks/README.md's table; the simulator runs
+# each CUDA thread as a Python thread, which is why the frames are tiny. It must be switched on
+# before numba is first imported, hence the first cell.
 
 # %%
 # %matplotlib inline
@@ -211,7 +211,8 @@ print("kintinuous_fast's interest_kernel: the same set")
 # Where each pixel went: its block, its round, and whether it is an interest point. Pixel $i$ is
 # taken by thread $i \bmod G$, of block $\lfloor (i \bmod G) / B \rfloor$, in round
 # $\lfloor i / G \rfloor$. The blocks take interleaved strips of 128 pixels, so every block sees
-# every part of the image and the work per block stays even.
+# every part of the image and the work per block stays even (here the blocks' interest points
+# differ by under a fifth).
 
 # %%
 pixel = np.arange(pixels)
@@ -220,7 +221,9 @@ pixel_round = (pixel // threads).reshape(HEIGHT, WIDTH)
 is_interest = np.zeros(pixels, dtype=bool)
 is_interest[kernel_list] = True
 per_block = np.bincount(pixel_block.ravel()[is_interest], minlength=BLOCKS)
+print(f"interest points per block: {per_block.min()}-{per_block.max()}")
 assert per_block.sum() == len(reference_list)
+assert per_block.max() < 1.2 * per_block.min()  # "differ by under a fifth"
 
 fig, axes = plt.subplots(1, 4, figsize=(17, 3.2))
 block_colours = plt.get_cmap("tab10", BLOCKS)

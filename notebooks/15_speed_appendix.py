@@ -36,9 +36,9 @@
 # an order of magnitude, so the text below quotes no timing: the cells print them, and assert
 # only relations measured in the same run that hold by a wide margin.
 #
-# Prerequisites: the lessons whose code is timed (1, 3, 6, 9; 8 for the seven trackers). About
-# 20 s warm; the images are 160x120 or smaller, so the numbers say how the code scales on this
-# machine, not what a 640x480 Kinect stream costs.
+# Prerequisites: the lessons whose code is timed (1, 3, 6, 9; 8 for the seven trackers). Its
+# time, warm, is in notebooks/README.md's table; the images are 160x120 or smaller, so the
+# numbers say how the code scales on this machine, not what a 640x480 Kinect stream costs.
 
 # %%
 # %matplotlib inline
@@ -211,13 +211,13 @@ print(
 # is placed, not tracked), on the synthetic desk at 120x90 with a 64^3 volume, for each backend
 # that runs here. With a compiled backend each configuration is run once over two frames untimed
 # first (the kernels load or compile), then timed. The reference, which compiles nothing, is
-# timed over three frames only (its raycast alone takes a good part of a second per frame): it
-# is the readable NumPy specification, not a fast path. The table also counts each run's failed
-# frames, since a failed frame is not fused and costs less.
+# timed over three frames only: it is the readable NumPy specification, not a fast path. The
+# table also counts each run's failed frames, since a failed frame is not fused and costs less.
 
 # %%
 table_config = with_overrides(Config(), {"volume.resolution": 64, "volume.size": 3.0})
 table_scene = make_scenario("desk", frames=9, width=120, height=90, seed=0, noise=True)
+assert round(640 * 480 / (120 * 90)) == 28  # "a twenty-eighth of their pixels"
 desk_frames = [
     Frame(i, float(table_scene.trajectory.timestamps[i]), *table_scene.render(i)) for i in range(9)
 ]
@@ -279,9 +279,9 @@ print()
 print_table("VI", 1, paper.PIPELINE_MS)
 
 # %% [markdown]
-# The medians side by side, on a logarithmic axis (the backends differ by orders of magnitude),
-# with the paper's averages (quoted) for reference. The paper's GPU ran 640x480 frames; ours
-# have about a twenty-eighth of their pixels, so only the shape of the chart compares: which
+# The medians side by side, on a logarithmic axis (so that every backend fits), with the
+# paper's averages (quoted) for reference. The paper's GPU ran 640x480 frames; ours have 120x90,
+# a twenty-eighth of their pixels, so only the shape of the chart compares: which
 # configurations cost more than which.
 
 # %%
@@ -345,7 +345,7 @@ assert below_fovis == ["fovis/icp"]
 # come from the course's one loader, `load_course_data()` (notebooks/README.md): the shared
 # 7-Scenes redkitchen frames, or a TUM RGB-D sequence you have; without either the cell prints
 # one line and skips. Timings vary with the machine, so on any sequence the cell checks only
-# that a frame's total is at least its longest stage.
+# that the median total is at least the median of its longest stage.
 
 # %%
 # $KINTINUOUS_COURSE_DATA, else the shared redkitchen, else a downloaded TUM sequence
