@@ -102,6 +102,51 @@ def test_segment_launches_then_captures_then_replays(graphs):
 
 
 @on_device
+def test_a_signed_segment_replays_without_running_its_launcher(graphs, monkeypatch):
+    from kintinuous_fast.targets import TRAFFIC, to_host
+
+    monkeypatch.setattr(graphs.RECORDER, "verify", False)  # as on a GPU
+    add = _add
+    values = cuda.to_device(np.zeros(8))
+    calls = []
+
+    def launcher():
+        calls.append(1)
+        add[1, 8](values, 1.0)
+        add[1, 8](values, 2.0)
+
+    before = graphs.segment_counts().get("adds", [0, 0, 0]).copy()
+    launches = TRAFFIC.launches
+    for _ in range(4):
+        graphs.signed("adds", (values, 1.0, 2.0), launcher)
+    counts = np.subtract(graphs.segment_counts()["adds"], before)
+    assert counts.tolist() == [1, 1, 2]  # launched, captured, then replayed alone
+    assert len(calls) == 2
+    assert TRAFFIC.launches - launches == 4 * 2  # the counter still sees every launch
+    if not numba_config.ENABLE_CUDASIM:  # the simulator has no graph to replay
+        assert np.array_equal(to_host(values), np.full(8, 4 * 3.0))
+
+
+@on_device
+def test_a_signature_that_misses_an_input_is_caught_when_verified(graphs, monkeypatch):
+    from kintinuous_fast.targets import to_host
+
+    monkeypatch.setattr(graphs.RECORDER, "verify", True)  # the simulator's default
+    add = _add
+    values = cuda.to_device(np.zeros(8))
+    amounts = iter([1.0, 1.0, 1.0, 5.0])
+
+    def launcher():
+        add[1, 8](values, next(amounts))  # the amount is not in the signature
+
+    for _ in range(3):
+        graphs.signed("add some", (values,), launcher)
+    assert np.array_equal(to_host(values), np.full(8, 3.0))  # verified calls launch
+    with pytest.raises(graphs.SignatureMismatch, match="add some"):
+        graphs.signed("add some", (values,), launcher)
+
+
+@on_device
 def test_a_refused_capture_launches_one_by_one_from_then_on(graphs, monkeypatch):
     from kintinuous_fast.targets import to_host
 
@@ -316,7 +361,7 @@ def test_pipeline_replays_its_repeating_stages_and_equals_launching():
         return tuple(int(a - b) for a, b in zip(now, before, strict=True))
 
     last = frames_count - 1
-    stages = ("preprocess_frame", "estimate_dense", "colour_weights", "integrate")
+    stages = ("preprocess_frame", "estimate_dense", "dense estimate", "colour_weights", "integrate")
     for stage in (*stages, "predict_surface"):
         assert per_frame(stage, last)[:2] == (0, 0), (stage, ways)
         assert per_frame(stage, last - 1)[:2] == (0, 0), (stage, ways)

@@ -21,7 +21,12 @@ solve.solve does, applies the increment (eq. 4) and writes the new pose with the
 ICP and RGB-D read. Where the reference leaves a level early (a step below
 tracking.converged_step) or fails (no solution), the solve kernel closes the gate
 (sums.cuda.gated) and the level's or the frame's remaining kernels return at once: the launches
-stay the same for every frame, so the sequence could be captured once and replayed.
+stay the same for every frame, so the sequence is captured once and replayed.
+
+The sequence is a function of its plan (FrameOnDevice.plan: the method, the iteration counts,
+the settings and each level's kernel arguments, each once) and the workspace, so it is a signed
+segment (targets.cuda_graphs.signed): once its graph exists, a frame with the same plan replays
+it without the Python that launches and keys its hundred-odd kernels.
 """
 
 from __future__ import annotations
@@ -87,6 +92,7 @@ from kintinuous_fast.odometry.sums.cuda import (
 )
 from kintinuous_fast.targets import pinhole, to_host
 from kintinuous_fast.targets.cuda import BLOCK_2D, copy_up, grid_1d, grid_2d
+from kintinuous_fast.targets.cuda_graphs import signed
 
 # ----------------------------------------------------------------------------------------------
 # Host side
@@ -109,9 +115,14 @@ class _Level:
 
 class Workspace:
     """Every device buffer one frame's estimate uses, made once per camera pyramid and method
-    and reused by every frame (the host then allocates nothing per frame)."""
+    and reused by every frame (the host then allocates nothing per frame). `token` tells
+    workspaces apart in a signature: a number no other workspace of the process has."""
+
+    made = 0
 
     def __init__(self, shapes: tuple[tuple[int, int], ...], uses_icp: bool, uses_rgbd: bool):
+        Workspace.made += 1
+        self.token = Workspace.made
         self.state = cuda.to_device(np.zeros(STATE_SIZE))
         self.poses = cuda.to_device(np.zeros((7, 4, 4)))
         self.icp_poses, self.rgbd_poses = self.poses[POSES_ICP], self.poses[POSES_RGBD]
@@ -227,33 +238,55 @@ class FrameOnDevice:
         return to_host(self.space.state)
 
     def launch(self) -> None:
-        """Every kernel of the frame, in order."""
-        space = self.space
-        begin_kernel[1, 1](space.state, space.flags, space.counts, space.tally)
+        """Every kernel of the frame, in order: a signed segment (targets.cuda_graphs.signed)
+        whose signature is the workspace and the plan, so that with graphs on a frame whose
+        plan repeats an earlier one's replays without running the Python that launches."""
+        plan = self.plan()
+        signed("dense estimate", (self.space.token, plan), lambda: self._launch(plan))
+
+    def plan(self) -> tuple:
+        """Everything the frame's launches take beyond the workspace, each once: (method,
+        iterations, finest level, solve settings, the stale-stream test's images, per level
+        None or (pixels, Algorithm 1's arguments or None, ICP's and RGB-D's kernel arguments))."""
+        iterations, finest = tuple(self.tracker.iterations), self.tracker.finest_level
         before, now = self.previous.levels[0], self.current.levels[0]
-        repeats_kernel[grid_2d(*now.depth.shape), BLOCK_2D](
-            stage(before.depth), now.depth, stage(before.intensity), now.intensity, space.flags
+        repeats = (stage(before.depth), now.depth, stage(before.intensity), now.intensity)
+        levels = tuple(
+            (self._pixels(level), self._interest_arguments(level), *self.arguments(level))
+            if iterations[level] or level == finest
+            else None
+            for level in range(len(iterations))
         )
         method = METHOD_MODES[self.tracker.method]
+        return (method, iterations, finest, self.settings, repeats, levels)
+
+    def _launch(self, plan: tuple) -> None:
+        """The launches of `plan` (and the workspace): nothing else may vary them."""
+        method, iterations, finest, settings, repeats, levels = plan
+        space = self.space
+        begin_kernel[1, 1](space.state, space.flags, space.counts, space.tally)
+        repeats_kernel[grid_2d(*repeats[1].shape), BLOCK_2D](*repeats, space.flags)
         mode_kernel[1, 1](space.flags, space.state, method)
-        iterations = self.tracker.iterations
-        finest = self.tracker.finest_level
         for level in reversed(range(len(iterations))):
-            if iterations[level] or level == finest:
-                self._interest_points(level)
+            if levels[level] is None:
+                continue
+            pixels, interest, icp_arguments, rgbd_arguments = levels[level]
+            if interest is not None:
+                interest_kernel[grid_1d(pixels, BLOCK), BLOCK](*interest[0])
+                interest_data_kernel[grid_1d(pixels, BLOCK), BLOCK](*interest[1])
+            partials = space.levels[level]
             for _ in range(iterations[level]):
-                self._systems(level, level)
-                partials = space.levels[level]
+                self._systems(levels[level], level, level)
                 solve_kernel[1, SOLVE_THREADS](
                     partials.icp_partials,
                     partials.rgbd_partials,
                     space.tally,
                     space.state,
                     space.poses,
-                    self.settings,
+                    settings,
                     level,
                 )
-        self._systems(finest, ANY_LEVEL, rows=False)
+        self._systems(levels[finest], finest, ANY_LEVEL, rows=False)
         finish_kernel[1, 1](
             space.levels[finest].icp_partials,
             space.tally,
@@ -263,32 +296,34 @@ class FrameOnDevice:
             finest,
         )
 
-    def _interest_points(self, level: int) -> None:
-        """Algorithm 1 at `level` into the level's fixed lists (rgbd/cuda.py's kernels)."""
+    def _pixels(self, level: int) -> int:
+        return self.levels[level].camera.height * self.levels[level].camera.width
+
+    def _interest_arguments(self, level: int) -> tuple | None:
+        """Algorithm 1's two kernels' arguments at `level` (rgbd/cuda.py's kernels: into the
+        level's fixed lists), None without RGB-D."""
         if self.rgbd is None:
-            return
+            return None
         rgbd, image = self.rgbd, self.levels[level]
         buffers = self.space.levels[level]
-        count = buffers.count
         threshold = rgbd.min_gradient[min(level, len(rgbd.min_gradient) - 1)]
         depth, dx, dy = stage(image.depth), stage(image.intensity_dx), stage(image.intensity_dy)
-        pixels = image.depth.shape[0] * image.depth.shape[1]
-        interest_kernel[grid_1d(pixels, BLOCK), BLOCK](
-            dx, dy, depth, float(threshold) ** 2, True, float(rgbd.max_depth), count,
+        select = (
+            dx, dy, depth, float(threshold) ** 2, True, float(rgbd.max_depth), buffers.count,
             buffers.indices,
         )  # fmt: skip
-        interest_data_kernel[grid_1d(pixels, BLOCK), BLOCK](
-            buffers.indices, count, depth, stage(image.intensity), dx, dy,
+        gather = (
+            buffers.indices, buffers.count, depth, stage(image.intensity), dx, dy,
             pinhole(image.camera), buffers.points, buffers.values, buffers.gradient,
         )  # fmt: skip
+        return select, gather
 
-    def _systems(self, level: int, gate_level: int, rows: bool = True) -> None:
+    def _systems(self, planned: tuple, level: int, gate_level: int, rows: bool = True) -> None:
         """ICP's block partials and RGB-D's pair list (and, with `rows`, its block partials)
-        at `level` for the estimate on the device; `gate_level` = the level whose convergence
-        skips them, ANY_LEVEL for the inlier check."""
+        at `level` (`planned`: its entry of the plan) for the estimate on the device;
+        `gate_level` = the level whose convergence skips them, ANY_LEVEL for the inlier check."""
         space, buffers = self.space, self.space.levels[level]
-        pixels = self.levels[level].camera.height * self.levels[level].camera.width
-        icp_arguments, rgbd_arguments = self.arguments(level)
+        pixels, _, icp_arguments, rgbd_arguments = planned
         if icp_arguments is not None:
             icp_kernel[reduction_blocks(pixels), BLOCK](*icp_arguments, space.state, gate_level)
         if rgbd_arguments is None:

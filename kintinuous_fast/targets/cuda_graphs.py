@@ -18,7 +18,15 @@ pinned host buffer of its own (a `Staging`), the copy is queued in stream order 
 wait, and a captured copy is a graph node that reads that pinned buffer at the replay.
 
 A graph replays the same kernels with the same argument values and reads device and pinned
-host memory as they are at the replay, so equal keys mean equal work. Keys repeat only where a
+host memory as they are at the replay, so equal keys mean equal work.
+
+Recording still runs a segment's Python and keys every argument of every launch: about a
+microsecond a launch on the host, most of a replayed frame's host time. A *signed* segment
+(`signed`) goes further: its launches are a function of a short signature (the arguments they
+take, each once), so once the signature's graph exists it replays without running the Python
+that launches. In the simulator, and on a GPU with KINTINUOUS_CUDA_GRAPHS_VERIFY=1, the Python
+runs at every call anyway and its key is checked against the signature's, so a signature that
+misses an input fails (SignatureMismatch) instead of replaying other work. Keys repeat only where a
 stage reuses its buffers (targets.cuda.pooled_array); a segment with a host array argument is
 never captured, since numba copies such an argument for each launch.
 
@@ -45,6 +53,8 @@ MAX_KEYS = 256
 MAX_GRAPHS = 64
 # The environment variable that turns graphs on ("1") or off ("0") for a process.
 ENVIRONMENT = "KINTINUOUS_CUDA_GRAPHS"
+# The environment variable that makes a GPU check every signed segment's launches ("1").
+VERIFY_ENVIRONMENT = "KINTINUOUS_CUDA_GRAPHS_VERIFY"
 
 
 class CaptureFailed(Exception):
@@ -53,6 +63,11 @@ class CaptureFailed(Exception):
 
 class NotCapturable(Exception):
     """A launch argument a graph cannot hold (a host array, a record, an unknown object)."""
+
+
+class SignatureMismatch(RuntimeError):
+    """A signed segment launched other work than its signature's key recorded before: the
+    signature misses something its launches depend on (a bug in the caller)."""
 
 
 @dataclass
@@ -86,6 +101,14 @@ class Upload:
 
 
 @dataclass
+class Signed:
+    """What a signature stands for: its launches' key and how many kernels they launch."""
+
+    key: Any
+    launches: int
+
+
+@dataclass
 class _Recorder:
     enabled: bool = False
     depth: int = 0  # segments entered and not yet left
@@ -97,6 +120,8 @@ class _Recorder:
     counts: dict[str, list[int]] = field(default_factory=dict)
     stream: Any = None  # the stream of uploads and replays, made on first use
     refusals: list[str] = field(default_factory=list)  # why captures failed, in order
+    signed: OrderedDict = field(default_factory=OrderedDict)  # signature key -> Signed
+    verify: bool = False  # signed segments record and check their launches at every call
 
 
 def enabled_by_default() -> bool:
@@ -109,7 +134,13 @@ def enabled_by_default() -> bool:
     return not numba_config.ENABLE_CUDASIM
 
 
-RECORDER = _Recorder(enabled=enabled_by_default())
+def verify_by_default() -> bool:
+    """Signed segments are checked in the simulator (whose replays launch again anyway) and,
+    with KINTINUOUS_CUDA_GRAPHS_VERIFY=1, on a GPU."""
+    return bool(numba_config.ENABLE_CUDASIM) or os.environ.get(VERIFY_ENVIRONMENT) == "1"
+
+
+RECORDER = _Recorder(enabled=enabled_by_default(), verify=verify_by_default())
 
 
 def enable(on: bool = True) -> None:
@@ -133,6 +164,7 @@ def forget() -> None:
     flush()
     RECORDER.seen.clear()
     RECORDER.graphs.clear()
+    RECORDER.signed.clear()
 
 
 def segment(function: Callable) -> Callable:
@@ -188,13 +220,20 @@ def flush() -> None:
     """Run the recorded launches (the module docstring's rules). Called at a segment's end and
     before every copy between host and device, which must see the launches made before it."""
     launches, RECORDER.pending = RECORDER.pending, []
-    if not launches:
-        return
-    counts = RECORDER.counts.setdefault(RECORDER.name, [0, 0, 0])
+    if launches:
+        _run(launches, _key_or_none(launches))
+
+
+def _key_or_none(launches: list[Launch | Upload]) -> SegmentKey | None:
     try:
-        key = _key(launches)
+        return _key(launches)
     except NotCapturable:
-        key = None
+        return None
+
+
+def _run(launches: list[Launch | Upload], key: SegmentKey | None) -> None:
+    """Replay, capture or launch the segment's `launches` by their `key`."""
+    counts = RECORDER.counts.setdefault(RECORDER.name, [0, 0, 0])
     if key is not None and key in RECORDER.graphs:
         RECORDER.graphs.move_to_end(key)
         _replay(RECORDER.graphs[key], launches)
@@ -215,6 +254,48 @@ def flush() -> None:
             _remember(RECORDER.seen, key, True, MAX_KEYS)
         _launch_each(launches)
         counts[0] += 1
+
+
+def signed(name: str, signature: tuple, launcher: Callable[[], None]) -> None:
+    """`launcher()`'s kernel launches as a segment of their own, `name`, that once captured
+    replays without calling `launcher`: the caller vouches that the launches are a function of
+    `signature` (a tuple of what they take: device arrays, numbers, tuples of them). Launches
+    recorded before the call run first, as their enclosing segment's. With graphs off,
+    `launcher()` launches as it would anyway."""
+    if not RECORDER.enabled:
+        launcher()
+        return
+    flush()
+    try:
+        signature_key = SegmentKey((name, *(_argument_key(item) for item in signature)))
+    except NotCapturable:  # recorded and keyed launch by launch, as any segment
+        signature_key = None
+    known = None if signature_key is None else RECORDER.signed.get(signature_key)
+    if known is not None and known.key in RECORDER.graphs and not RECORDER.verify:
+        from kintinuous_fast.targets import TRAFFIC  # the package imports this module
+
+        TRAFFIC.launches += known.launches
+        RECORDER.graphs.move_to_end(known.key)
+        _replay(RECORDER.graphs[known.key], [])
+        RECORDER.counts.setdefault(name, [0, 0, 0])[2] += 1
+        return
+    outer_name = RECORDER.name
+    RECORDER.depth += 1
+    RECORDER.name = name
+    try:
+        launcher()
+        launches, RECORDER.pending = RECORDER.pending, []
+        if any(isinstance(launch, Upload) for launch in launches):  # a replay would skip it
+            raise ValueError(f"{name}: a signed segment launches kernels and copies nothing")
+        key = _key_or_none(launches)
+        if known is not None and known.key != key:
+            raise SignatureMismatch(f"{name}: the same signature launched other work")
+        if signature_key is not None and key is not None:
+            _remember(RECORDER.signed, signature_key, Signed(key, len(launches)), MAX_KEYS)
+        _run(launches, key)
+    finally:
+        RECORDER.depth -= 1
+        RECORDER.name = outer_name
 
 
 def _refuse(key: tuple, error: Exception) -> None:
@@ -435,6 +516,8 @@ def _check(result: tuple) -> None:
 __all__ = [
     "ENVIRONMENT",
     "NotCapturable",
+    "SignatureMismatch",
+    "Signed",
     "Staging",
     "device_address",
     "enable",
@@ -445,6 +528,7 @@ __all__ = [
     "recording",
     "segment",
     "segment_counts",
+    "signed",
     "upload",
     "work_stream",
 ]
