@@ -81,6 +81,22 @@ def test_pooled_array_is_reused_only_when_unreferenced():
 
 
 @on_device
+def test_pooled_arrays_come_back_as_a_group_only_when_none_is_referenced():
+    from kintinuous_fast.targets.cuda import pooled_arrays
+
+    specs = (((4, 3), "<f4"), ((4, 3), "<f4"), ((2,), "<f8"))
+    first = pooled_arrays("test group", specs)
+    assert [(a.shape, a.dtype.str) for a in first] == list(specs)
+    first_ids = [id(array) for array in first]
+    held = first[1]
+    del first
+    second = pooled_arrays("test group", specs)
+    assert not {id(array) for array in second} & set(first_ids)  # one of the first is held
+    del second, held
+    assert [id(array) for array in pooled_arrays("test group", specs)] == first_ids
+
+
+@on_device
 def test_segment_launches_then_captures_then_replays(graphs):
     from kintinuous_fast.targets import to_host
 
@@ -361,7 +377,7 @@ def test_pipeline_replays_its_repeating_stages_and_equals_launching():
         return tuple(int(a - b) for a, b in zip(now, before, strict=True))
 
     last = frames_count - 1
-    stages = ("preprocess_frame", "estimate_dense", "dense estimate", "colour_weights", "integrate")
+    stages = ("preprocess", "estimate_dense", "dense estimate", "colour_weights", "integrate")
     for stage in (*stages, "predict_surface"):
         assert per_frame(stage, last)[:2] == (0, 0), (stage, ways)
         assert per_frame(stage, last - 1)[:2] == (0, 0), (stage, ways)

@@ -100,7 +100,23 @@ def pooled_array(role: str, shape: tuple[int, ...], dtype: Any) -> Any:
     return arrays[-1]
 
 
-def _references(arrays: list[Any], index: int) -> tuple[int, int, int]:
+def pooled_arrays(role: str, specs: tuple[tuple[tuple[int, ...], str], ...]) -> tuple[Any, ...]:
+    """Device arrays for `role`, one per (shape, dtype string) of `specs`, taken and given back
+    together: a group made before none of whose arrays is referred to any more, else a new one.
+    For a stage that writes many arrays of one size (a frame's pyramid): pooled_array would
+    scan its size's whole list for each of them, here one scan finds a free group."""
+    key = ("group", role, specs)
+    groups = _POOL.setdefault(key, [])
+    baselines = _POOL_BASELINES.setdefault(key, [])
+    for group, baseline in zip(groups, baselines, strict=True):
+        if all(_references(group, index) == baseline[index] for index in range(len(group))):
+            return group
+    groups.append(tuple(cuda.device_array(shape, dtype=dtype) for shape, dtype in specs))
+    baselines.append([_references(groups[-1], index) for index in range(len(specs))])
+    return groups[-1]
+
+
+def _references(arrays: list[Any] | tuple, index: int) -> tuple[int, int, int]:
     """How many references the array and its memory have: measured once when only the pool
     holds it (the baseline), then compared. A view refers to the memory, not to the array: in
     the simulator by a Python reference to its NumPy buffer, on a GPU by a weak proxy that
