@@ -267,7 +267,9 @@ def signed(name: str, signature: tuple, launcher: Callable[[], None]) -> None:
         return
     flush()
     try:
-        signature_key = SegmentKey((name, *(_argument_key(item) for item in signature)))
+        parts: list = [name]
+        _open_keys(signature, parts)
+        signature_key = SegmentKey(tuple(parts))
     except NotCapturable:  # recorded and keyed launch by launch, as any segment
         signature_key = None
     known = None if signature_key is None else RECORDER.signed.get(signature_key)
@@ -387,8 +389,28 @@ def _key(launches: list[Launch | Upload]) -> SegmentKey:
     return SegmentKey(tuple(parts))
 
 
-# Argument types keyed by value, looked up by type first (the common ones), by class after.
-_NUMBER_TYPES = frozenset({bool, int, float, np.bool_, np.int32, np.int64, np.float32, np.float64})
+def _open_keys(items: tuple, parts: list) -> None:
+    """Each item's key appended to `parts`, a tuple's items in place after its length (a bare
+    int, where a number's key is a pair): a signature's nested tuples keyed without a generator
+    per tuple."""
+    for item in items:
+        kind = type(item)
+        if kind is tuple:
+            parts.append(len(item))
+            _open_keys(item, parts)
+        elif kind in _NUMBER_TYPES:
+            parts.append((kind, item))
+        else:
+            kept = getattr(item, "__dict__", None)
+            cached = None if kept is None else kept.get("_graph_key")
+            parts.append(_argument_key(item) if cached is None else cached)
+
+
+# Argument types keyed by value, looked up by type first (the common ones), by class after
+# (None among them: an estimator a method lacks).
+_NUMBER_TYPES = frozenset(
+    {bool, int, float, np.bool_, np.int32, np.int64, np.float32, np.float64, type(None)}
+)
 _NUMBERS = (bool, int, float, np.bool_, np.integer, np.floating)
 
 
