@@ -5,14 +5,14 @@
 # (kintinuous_fast/targets/cuda_graphs.py), each JSON with the launches, host waits and bytes to
 # the host per frame and per stage; the ATE over 300 frames; the moving volume; a profile of the
 # host; each kernel's GPU time; the solve step by part. Where cuda_device_prepare.sh put a
-# baseline tree beside the data folder (baseline/), the 512^3 benchmark and the kernel times run
-# on it too, in the same call.
+# baseline tree beside the data folder (baseline/), the 256^3 benchmark (the frame rate goal's
+# size, run right after the working tree's) and the kernel times run on it too, in the same call.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
 # (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel;
 # options go to `kintinuous benchmark`, e.g. --set volume.moving=false).
 # Writes cuda_tests.log, bench_cuda_512_graphs.json, bench_cuda_256_graphs.json,
 # ate_cuda.json, bench_cuda_moving.json, profile.txt, cuda_warm.prof, kernel_times.json and
-# solve_parts.json (and baseline_bench_cuda_512_graphs.json, baseline_kernel_times.json) into
+# solve_parts.json (and baseline_bench_cuda_256_graphs.json, baseline_kernel_times.json) into
 # OUT_DIR (default: the current folder): more files than the device tool brings back, so give
 # a local folder and pack it into the tool's $OUT afterwards (cuda_device_prepare.sh).
 set -u
@@ -46,9 +46,9 @@ bench() {  # bench NAME RESOLUTION [on_baseline]: 100 frames with graphs, its JS
     summary "$out/$name.json"
 }
 extra=("${@:3}")
-bench bench_cuda_512_graphs 512
-[ -n "$baseline" ] && bench baseline_bench_cuda_512_graphs 512 on_baseline
 bench bench_cuda_256_graphs 256
+[ -n "$baseline" ] && bench baseline_bench_cuda_256_graphs 256 on_baseline
+bench bench_cuda_512_graphs 512
 # the whole pipeline's ATE over 300 frames, to compare with the cpu backend's on the same settings
 KINTINUOUS_CUDA_GRAPHS=1 timeout 100 python3 benchmarks/combined_weightings.py "$data" --size 640x480 \
     --resolution 256 --methods --weightings huber --backend cuda "${@:3}" --json "$out/ate_cuda.json" | tail -3
