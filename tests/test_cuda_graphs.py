@@ -378,7 +378,7 @@ def test_pipeline_replays_its_repeating_stages_and_equals_launching():
 
     last = frames_count - 1
     stages = ("preprocess", "estimate_dense", "dense estimate", "colour_weights", "integrate")
-    for stage in (*stages, "predict_surface"):
+    for stage in (*stages, "fusion", "raycast", "predict_surface"):
         assert per_frame(stage, last)[:2] == (0, 0), (stage, ways)
         assert per_frame(stage, last - 1)[:2] == (0, 0), (stage, ways)
         assert per_frame(stage, last)[2] >= 1

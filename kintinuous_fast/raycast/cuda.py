@@ -24,7 +24,7 @@ from kintinuous_fast.targets.cuda import (
     kernel,
     pooled_array,
 )
-from kintinuous_fast.targets.cuda_graphs import segment
+from kintinuous_fast.targets.cuda_graphs import segment, signed
 from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.cuda import constants_to_device, volume_placement
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
@@ -71,16 +71,25 @@ def empty_space(volume: FastTsdfVolume) -> Any:
     distances): one thread per brick marks those holding an observed negative voxel, then the
     chessboard distance to them, one axis at a time (the max-norm distance is separable), less
     the one brick by which the reference grows them."""
+    distance, scratch = _empty_space_buffers(volume)
+    _empty_space_into(distance, scratch, volume.tsdf_weight, volume_placement(volume))
+    return distance
+
+
+def _empty_space_buffers(volume: FastTsdfVolume) -> tuple[Any, Any]:
+    """(brick distances, scratch) for empty_space."""
     bricks = -(-volume.resolution // BRICK)
     distance = pooled_array("empty space", (bricks,) * 3, np.int64)
-    scratch = pooled_array("empty space", (bricks,) * 3, np.int64)
-    blocks = grid_1d(bricks**3)
-    _negative_brick_kernel[blocks, BLOCK_1D](volume.tsdf_weight, volume_placement(volume), distance)
+    return distance, pooled_array("empty space", (bricks,) * 3, np.int64)
+
+
+def _empty_space_into(distance: Any, scratch: Any, tsdf_weight: Any, placement: Any) -> None:
+    blocks = grid_1d(distance.size)
+    _negative_brick_kernel[blocks, BLOCK_1D](tsdf_weight, placement, distance)
     for axis in range(3):
         source, target = (distance, scratch) if axis % 2 == 0 else (scratch, distance)
         _axis_distance_kernel[blocks, BLOCK_1D](source, target, axis)
     _grown_distance_kernel[blocks, BLOCK_1D](scratch, distance)  # three passes ended in scratch
-    return distance
 
 
 @kernel
@@ -229,27 +238,26 @@ def _cast(
     colour: bool,
     stride: int,
 ) -> ModelPrediction:
-    """raycast's maps as device arrays."""
+    """raycast's maps as device arrays. The buffers and the pose's copy up come first; the
+    launches are a signed segment (targets.cuda_graphs.signed) of their arguments."""
     check_stride(stride)
     shape = (camera.height, camera.width)
     vertices = pooled_array("raycast", (*shape, 3), np.float32)
     normals = pooled_array("raycast", (*shape, 3), np.float32)
     colours = pooled_array("raycast", (*shape, 3), np.uint8)
-    if stride > 1:  # the pixels cast are all written; only those left out need clearing
-        _clear_kernel[grid_2d(*shape), BLOCK_2D](vertices, normals, colours)
     has_colour = colour and volume.colour is not None
-    colour_volume = volume.colour if has_colour else _no_colour_volume()
+    placement = volume_placement(volume)
     pose = np.asarray(pose, dtype=np.float64)
     # the volume's origin (changed by a shift) is read from volume_placement, the pose from a
     # device matrix (it changes every frame); the intrinsics are fixed for the run
     intrinsics, rotation, origin, _, voxel_size = view_constants(volume, pose, camera)
-    cast_grid = grid_2d(-(-shape[0] // stride), -(-shape[1] // stride))
-    _raycast_kernel[cast_grid, BLOCK_2D](
+    empty = _empty_space_buffers(volume) if skip_empty else None
+    cast = (
         volume.tsdf_weight,
-        colour_volume,
+        volume.colour if has_colour else _no_colour_volume(),
         has_colour,
-        volume_placement(volume),
-        empty_space(volume) if skip_empty else _map_that_skips_nothing(),
+        placement,
+        _map_that_skips_nothing() if empty is None else empty[0],
         _map_that_skips_nothing(),  # no finer level
         tuple(float(x) for x in intrinsics),
         constants_to_device("raycast pose", np.vstack([rotation, origin])),
@@ -260,4 +268,20 @@ def _cast(
         colours,
         int(stride),
     )
+    signed("raycast", (empty, cast), lambda: _launch_cast(empty, cast))
     return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)
+
+
+def _launch_cast(empty: tuple | None, cast: tuple) -> None:
+    """_cast's launches: the cleared maps where pixels are left out (a stride above 1: the
+    pixels cast are all written), the brick distances where empty space is skipped, the rays."""
+    tsdf_weight, placement, (vertices, normals, colours), stride = (
+        cast[0], cast[3], cast[10:13], cast[13],
+    )  # fmt: skip
+    shape = vertices.shape[:2]
+    if stride > 1:
+        _clear_kernel[grid_2d(*shape), BLOCK_2D](vertices, normals, colours)
+    if empty is not None:
+        _empty_space_into(*empty, tsdf_weight, placement)
+    cast_grid = grid_2d(-(-shape[0] // stride), -(-shape[1] // stride))
+    _raycast_kernel[cast_grid, BLOCK_2D](*cast)

@@ -31,7 +31,7 @@ from kintinuous_fast.targets.cuda import (
     pooled_array,
     to_device,
 )
-from kintinuous_fast.targets.cuda_graphs import segment
+from kintinuous_fast.targets.cuda_graphs import segment, signed
 from kintinuous_fast.tsdf import ops as integration
 from kintinuous_fast.tsdf import voxel
 from kintinuous_fast.tsdf.volume import (
@@ -235,9 +235,13 @@ def volume_placement(volume: FastTsdfVolume) -> Any:
 def largest_depth(depth: Any) -> Any:
     """The largest valid depth of a device depth map as a (1,) device array (0 without any)."""
     largest = pooled_array("largest depth", (1,), np.float32)
+    _largest_depth_into(largest, depth)
+    return largest
+
+
+def _largest_depth_into(largest: Any, depth: Any) -> None:
     _fill_kernel[1, 1](largest, 0)
     _max_depth_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, largest)
-    return largest
 
 
 def volume_reach(volume: FastTsdfVolume, pose: np.ndarray) -> float:
@@ -303,9 +307,8 @@ def integrate(
     if box is None:
         return
     d_depth = to_device(depth, np.float32)
-    integrate_in_box(
-        volume, d_depth, pose, camera, colour, colour_weights, box, largest_depth(d_depth)
-    )
+    largest = pooled_array("largest depth", (1,), np.float32)
+    integrate_in_box(volume, d_depth, pose, camera, colour, colour_weights, box, largest)
 
 
 def frame_constants(volume: FastTsdfVolume, pose: np.ndarray, box: tuple) -> Any:
@@ -329,22 +332,27 @@ def integrate_in_box(
     largest: Any = None,
 ) -> None:
     """integrate's fusion of a device depth map over the voxel index box [lo, hi) = `box`,
-    each column bounded by z <= largest[0] + mu where `largest` (a (1,) float32 device array)
-    is given; None visits every voxel of the box (what the tests compare with)."""
+    each column bounded by z <= the frame's largest depth + mu where `largest` (a (1,) float32
+    device array, which receives that depth) is given; None visits every voxel of the box (what
+    the tests compare with). The copies up come first; the launches are a signed segment
+    (targets.cuda_graphs.signed) of their arguments, which with graphs on replays without this
+    Python once its graph exists."""
+    placement, constants = volume_placement(volume), frame_constants(volume, pose, box)
     ray_distance = pooled_array("ray distance", (camera.height * camera.width + 1,), np.float32)
-    grid = grid_2d(camera.height, camera.width)
-    _ray_distance_kernel[grid, BLOCK_2D](depth, pinhole(camera), ray_distance)
     fuse_colour, colour, colour_weights, colour_volume = _colour_arguments(
         volume, depth, colour, colour_weights
     )
-    n = volume.resolution
-    _integrate_kernel[grid_2d(n, n), BLOCK_2D](  # x: k (contiguous in memory), y: j
+    default_weights = fuse_colour and colour_weights is None
+    if default_weights:
+        colour_weights = pooled_array("colour weights", (depth.size,), np.float32)
+    bounded = largest is not None
+    fusion = (
         volume.tsdf_weight,
         colour_volume,
-        volume_placement(volume),
-        frame_constants(volume, pose, box),
-        _placeholder((1,), "float32") if largest is None else largest,
-        largest is not None,
+        placement,
+        constants,
+        largest if bounded else _placeholder((1,), "float32"),
+        bounded,
         tuple(projection_constants(camera)),
         image_size(camera),
         ray_distance,
@@ -353,26 +361,41 @@ def integrate_in_box(
         colour_weights,
         fuse_colour,
     )
+    launches = (depth, pinhole(camera), largest, ray_distance, default_weights, fusion)
+    signed("fusion", launches, lambda: _fuse(*launches))
+
+
+def _fuse(
+    depth: Any, camera: tuple, largest: Any, ray_distance: Any, default_weights: bool, fusion: tuple
+) -> None:
+    """integrate_in_box's launches: the largest depth where the columns are bounded by it,
+    each pixel's ray distance, the default colour weights (fusion's 12th argument) where none
+    were given, the fusion."""
+    if largest is not None:
+        _largest_depth_into(largest, depth)
+    _ray_distance_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, camera, ray_distance)
+    if default_weights:
+        _depth_weights_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, fusion[11])
+    n = fusion[0].shape[0]  # the volume's resolution
+    _integrate_kernel[grid_2d(n, n), BLOCK_2D](*fusion)  # x: k (contiguous in memory), y: j
 
 
 def _colour_arguments(
     volume: FastTsdfVolume, depth: Any, colour: Any, colour_weights: Any
 ) -> tuple[bool, Any, Any, Any]:
     """tsdf.volume.colour_inputs on the device without a host wait: (fuse_colour, colour (H W,
-    3) uint8, colour weights (H W) float32, colour volume), the default weights (1 where the
-    float32 depth is > 0; where a wider input depth is > 0 but not its float32, the ray
-    distance is -inf and no voxel reads the weight) made by a kernel, placeholders kept on the
-    device for the run."""
+    3) uint8, colour weights (H W) float32 or None where they default to 1 where the float32
+    depth is > 0 (a kernel makes them; where a wider input depth is > 0 but not its float32,
+    the ray distance is -inf and no voxel reads the weight), colour volume), placeholders kept
+    on the device for the run."""
     colour_volume = volume.colour
     if colour_volume is None:
         colour_volume = _placeholder((1, 1, 1, 4), "uint8")
     if colour is None or volume.colour is None:
         return False, _placeholder((1, 3), "uint8"), _placeholder((1,), "float32"), colour_volume
-    if colour_weights is None:
-        colour_weights = pooled_array("colour weights", (depth.size,), np.float32)
-        _depth_weights_kernel[grid_2d(*depth.shape), BLOCK_2D](depth, colour_weights)
     colour = to_device(colour, np.uint8).reshape(-1, 3)
-    colour_weights = to_device(colour_weights, np.float32).reshape(-1)
+    if colour_weights is not None:
+        colour_weights = to_device(colour_weights, np.float32).reshape(-1)
     return True, colour, colour_weights, colour_volume
 
 

@@ -5,6 +5,7 @@ reference's TsdfVolume, and the moving volume's view of it (SlabView)."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -232,6 +233,24 @@ def view_constants(volume: FastTsdfVolume, pose: np.ndarray, camera: Intrinsics)
     )
 
 
+@functools.lru_cache(maxsize=16)
+def _frustum_rays(camera: Intrinsics) -> np.ndarray:
+    """The camera centre (a zero ray) and the rays through the image's four outer corners at
+    z = 1, (5, 3): the frustum's apex and edges, the same for every frame of a camera."""
+    w, h = camera.width - 0.5, camera.height - 0.5
+    corners = np.array([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h]])
+    rays = np.column_stack(
+        [
+            (corners[:, 0] - camera.cx) / camera.fx,
+            (corners[:, 1] - camera.cy) / camera.fy,
+            np.ones(4),
+        ]
+    )
+    rays = np.vstack([np.zeros(3), rays])
+    rays.flags.writeable = False  # shared by every call
+    return rays
+
+
 def frustum_box(
     volume: FastTsdfVolume, max_depth: float, pose: np.ndarray, camera: Intrinsics
 ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -244,16 +263,7 @@ def frustum_box(
     if not max_depth > 0:
         return None
     far = float(max_depth) + volume.truncation
-    w, h = camera.width - 0.5, camera.height - 0.5
-    corners = np.array([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h]])
-    rays = np.column_stack(
-        [
-            (corners[:, 0] - camera.cx) / camera.fx,
-            (corners[:, 1] - camera.cy) / camera.fy,
-            np.ones(4),
-        ]
-    )
-    points = np.vstack([np.zeros(3), far * rays])
+    points = far * _frustum_rays(camera)
     coords = volume.world_to_voxel(points @ pose[:3, :3].T + pose[:3, 3])
     n = volume.resolution
     lo = np.clip(np.floor(coords.min(axis=0)).astype(np.int64) - 1, 0, n)
