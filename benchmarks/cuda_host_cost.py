@@ -11,8 +11,9 @@ fixed 24^3 volume. The first `--warmup` frames run their kernels, which makes ev
 buffers and graphs; after them every kernel and replay is skipped (the buffers keep the last
 real frame's values, so each stage still takes the same branches) and the signed segments are
 not checked, as on a GPU. What is timed is then only the host: the stages' medians in
-milliseconds, the launches and graph replays per frame, and with `--profile N` the N functions
-with the most time of their own. Driver calls (graph launches, the pinned copies, the one
+milliseconds, the launches and graph replays per frame, the launches the host's Python still
+records and the arguments it keys, and with `--profile N` the N functions with the most time of
+their own. Driver calls (graph launches, the pinned copies, the one
 wait) are not in it: on a GPU they add tens of microseconds.
 """
 
@@ -49,7 +50,25 @@ CONFIG = Config(
 )
 
 
-def skip_kernels_after(warmup: int, frames: list[Frame], profile: cProfile.Profile | None):
+def count_recorded(counts: list[int]) -> None:
+    """Count each launch that the host's Python records (counts[0]) and each argument that a
+    segment's key reads (counts[1]): what a replayed frame still pays per launch."""
+    record, key = cuda_graphs.record, cuda_graphs._key
+
+    def counted_record(dispatcher: object, configuration: object, arguments: tuple) -> None:
+        counts[0] += 1
+        record(dispatcher, configuration, arguments)
+
+    def counted_key(launches: list) -> object:
+        counts[1] += sum(len(getattr(launch, "arguments", ())) for launch in launches)
+        return key(launches)
+
+    cuda_graphs.record, cuda_graphs._key = counted_record, counted_key
+
+
+def skip_kernels_after(
+    warmup: int, frames: list[Frame], profile: cProfile.Profile | None, recorded: list[int]
+):
     """The frames, with every kernel launch and replay skipped from frame `warmup` on (uploads
     still copy) and the profile, if any, running over those frames only."""
     launch_each = cuda_graphs._launch_each
@@ -65,6 +84,7 @@ def skip_kernels_after(warmup: int, frames: list[Frame], profile: cProfile.Profi
         if index == warmup:
             skipping = True
             cuda_graphs.RECORDER.verify = False  # as on a GPU: signed segments replay alone
+            count_recorded(recorded)
             if profile is not None:
                 profile.enable()
         yield frame
@@ -85,9 +105,10 @@ def main() -> None:
         for index in range(count)
     ]
     profile = cProfile.Profile() if args.profile else None
+    recorded = [0, 0]
     started = time.perf_counter()
     result = pipeline.run(
-        skip_kernels_after(args.warmup, frames, profile),
+        skip_kernels_after(args.warmup, frames, profile, recorded),
         desk.camera,
         CONFIG,
         "icp+rgbd",
@@ -101,6 +122,8 @@ def main() -> None:
     print(f"launches per frame {np.median([t.launches for t in traffic]):.0f}, "
           f"graph replays {np.median([t.graph_replays for t in traffic]):.0f}, "
           f"tracking failures {result.tracking_failures}")  # fmt: skip
+    print(f"per frame, the host's Python recorded {recorded[0] / args.frames:.0f} launches "
+          f"and keyed {recorded[1] / args.frames:.0f} of their arguments")  # fmt: skip
     if profile is not None:
         stats = pstats.Stats(profile)
         stats.sort_stats("tottime").print_stats(args.profile)
