@@ -342,58 +342,62 @@ plt.show()
 #
 # - **On the desk** all three trackers stay within about a centimetre after alignment (ATE
 #   maximum 9.0 to 10.4 mm). ICP and ICP+RGB-D lead RGB-D alone on the median ATE (1.8 against
-#   3.8 mm), and RGB-D's drift is six times theirs (51 against 8.5 mm/s): without the
+#   3.8 mm), and RGB-D's drift is six times theirs (50 against 8.6 mm/s): without the
 #   alignment, RGB-D ends 57 mm off, the other two 15 mm.
-# - **In the corridor ICP slides**, by up to 39 mm in one frame, and its drift, 561 mm/s, is
-#   faster than the camera walks (357 mm/s). Its path runs **backwards**: it moves 219 mm the
-#   wrong way along the corridor while the camera walks 416 mm forward, and ends 0.65 m from the
-#   truth. The ATE hides most of this: the best rigid alignment turns ICP's path round by 144
-#   degrees, laying the backward path over the forward one, and leaves a median error of 25 mm.
-#   The ATE measures the shape of a trajectory, not whether it goes the right way; the drift and
-#   the end-point error show it.
+# - **In the corridor ICP slides**, by 3 to 4 cm in its worst frame, and its drift, over half a
+#   metre per second, is faster than the camera walks (357 mm/s). Its path runs **backwards**:
+#   it moves about 0.2 m the wrong way along the corridor while the camera walks 416 mm
+#   forward, and ends more than 0.6 m from the truth. The ATE hides most of this: the best rigid
+#   alignment turns ICP's path round by more than 130 degrees, laying the backward path over
+#   the forward one, and leaves a median error of about 25 mm. (ICP's numbers here are given
+#   rounded: along its blind direction the solve turns the smallest difference into a slide,
+#   lesson 5, so they are the most fragile in the table.) The ATE measures the shape of a
+#   trajectory, not whether it goes the right way; the drift and the end-point error show it.
 # - **RGB-D and ICP+RGB-D hold the corridor**: they end 37 and 8 mm off.
-# - **ICP+RGB-D ranks first** on both columns: on the median ATE (0.150 against RGB-D's 0.309),
-#   as the paper's combined tracker does in Table I, and on the maximum (0.186 against 0.199),
-#   where in Table I FOVIS/RGB-D ranks first. Its largest frame-to-frame error, 11.6 mm, is its
-#   first frame in the corridor: it estimated 0.1 mm of the camera's 11.3 mm step along the
-#   corridor, where RGB-D alone was 1.4 mm off, so the ICP half of its cost held the camera back
-#   along ICP's blind direction (lesson 6 weighs the two halves).
+# - **ICP+RGB-D ranks first** on both columns: on the median ATE (0.15 against RGB-D's 0.31),
+#   as the paper's combined tracker does in Table I, and on the maximum (0.19 against 0.20),
+#   where in Table I FOVIS/RGB-D ranks first (two decimals: every score shares ICP's corridor
+#   errors in its sums). Its largest frame-to-frame error, 11.6 mm, is its first frame in the
+#   corridor: it estimated 0.1 mm of the camera's 11.3 mm step along the corridor, where RGB-D
+#   alone was 1.4 mm off, so the ICP half of its cost held the camera back along ICP's blind
+#   direction (lesson 6 weighs the two halves).
 #
 # Two scenes of about a second are far too few to rank trackers seriously: the point is the
 # procedure, which the package's evaluation runs on the TUM sequences of the paper.
 
 # %%
 desk_ate_max = [1000 * results[t, "desk"].ate_max for t in trackers]
-assert 9.0 - 0.3 <= min(desk_ate_max) and max(desk_ate_max) <= 10.4 + 0.3, desk_ate_max
-quoted(1000 * results["icp", "desk"].ate_median, 1.8, 0.2)
-quoted(1000 * results["icp+rgbd", "desk"].ate_median, 1.8, 0.2)
-quoted(1000 * results["rgbd", "desk"].ate_median, 3.8, 0.3)
-quoted(1000 * results["rgbd", "desk"].drift_rmse_m_per_s, 51, 2)
+quoted(min(desk_ate_max), 9.0, 0.1)
+quoted(max(desk_ate_max), 10.4, 0.1)
+quoted(1000 * results["icp", "desk"].ate_median, 1.8, 0.1)
+quoted(1000 * results["icp+rgbd", "desk"].ate_median, 1.8, 0.1)
+quoted(1000 * results["rgbd", "desk"].ate_median, 3.8, 0.1)
+quoted(1000 * results["rgbd", "desk"].drift_rmse_m_per_s, 50, 1)
 for tracker in ("icp", "icp+rgbd"):
-    quoted(1000 * results[tracker, "desk"].drift_rmse_m_per_s, 8.5, 0.5)
+    quoted(1000 * results[tracker, "desk"].drift_rmse_m_per_s, 8.6, 0.1)
     quoted(1000 * end_error[tracker, "desk"], 15, 1)
 quoted(
     results["rgbd", "desk"].drift_rmse_m_per_s / results["icp", "desk"].drift_rmse_m_per_s, 6, 0.5
 )
-quoted(1000 * end_error["rgbd", "desk"], 57, 2)
+quoted(1000 * end_error["rgbd", "desk"], 57, 1)
 icp_corridor = results["icp", "corridor"]
-# ICP's slide along its blind direction amplifies the smallest difference in the sums: the
-# tolerances on its corridor numbers are wider.
-quoted(1000 * icp_corridor.rpe_trans_max, 39, 4)
-quoted(1000 * icp_corridor.drift_rmse_m_per_s, 561, 40)
-quoted(1000 * speed, 357, 3)
+# ICP's slide along its blind direction amplifies the smallest difference in the sums, so the
+# text gives its corridor numbers rounded, and the bounds are the rounded statements.
+assert 30 < 1000 * icp_corridor.rpe_trans_max < 45  # 3 to 4 cm in its worst frame
+assert 0.5 < icp_corridor.drift_rmse_m_per_s < 0.7  # over half a metre per second
+quoted(1000 * speed, 357, 1)
 assert icp_corridor.drift_rmse_m_per_s > speed
-quoted(1000 * travel["icp", "corridor"], -219, 20)
-quoted(1000 * walk, 416, 2)
-quoted(end_error["icp", "corridor"], 0.65, 0.05)
-quoted(turn, 144, 8)
-quoted(1000 * icp_corridor.ate_median, 25, 2)
-quoted(1000 * end_error["rgbd", "corridor"], 37, 2)
+quoted(travel["icp", "corridor"], -0.2, 0.05)  # about 0.2 m the wrong way
+quoted(1000 * walk, 416, 1)
+assert 0.6 < end_error["icp", "corridor"] < 0.7  # more than 0.6 m from the truth
+assert 130 < turn < 180  # turned round by more than 130 degrees
+quoted(1000 * icp_corridor.ate_median, 25, 2.5)  # about 25 mm
+quoted(1000 * end_error["rgbd", "corridor"], 37, 1)
 quoted(1000 * end_error["icp+rgbd", "corridor"], 8, 1)
-for column, ours, theirs in (("ate_median", 0.150, 0.309), ("ate_max", 0.186, 0.199)):
+for column, ours, theirs in (("ate_median", 0.15, 0.31), ("ate_max", 0.19, 0.20)):
     assert min(ranks[column], key=ranks[column].get) == "icp+rgbd"
-    quoted(ranks[column]["icp+rgbd"], ours, 0.0005)
-    quoted(ranks[column]["rgbd"], theirs, 0.0005)
+    quoted(ranks[column]["icp+rgbd"], ours, 0.01)
+    quoted(ranks[column]["rgbd"], theirs, 0.01)
 assert min(paper.RANK_SCORES["ate_median"], key=paper.RANK_SCORES["ate_median"].get) == "icp+rgbd"
 assert min(paper.RANK_SCORES["ate_max"], key=paper.RANK_SCORES["ate_max"].get) == "fovis/rgbd"
 combined_run = runs["icp+rgbd", "corridor"].trajectory
@@ -414,10 +418,10 @@ print(
     f"{rgbd_first_mm:.1f} mm"
 )
 assert worst == 0
-quoted(1000 * results["icp+rgbd", "corridor"].rpe_trans_max, 11.6, 0.3)
-quoted(1000 * estimated_step, 0.1, 0.2)
+quoted(1000 * results["icp+rgbd", "corridor"].rpe_trans_max, 11.6, 0.1)
+quoted(1000 * estimated_step, 0.1, 0.05)
 quoted(1000 * true_step, 11.3, 0.1)
-quoted(rgbd_first_mm, 1.4, 0.2)
+quoted(rgbd_first_mm, 1.4, 0.1)
 
 # %% [markdown]
 # ## Real data: scoring a real run, with and without the alignment
@@ -496,8 +500,8 @@ if REAL is not None:
 # - Eq. 16 reproduces the paper's Table I rank scores from its published errors to the last
 #   printed digit.
 # - The alignment can hide a path that runs the wrong way: ICP's in the corridor has a median
-#   ATE of 25 mm and ends 0.65 m off. Read the ATE together with the drift or the end-point
-#   error.
+#   ATE of about 25 mm and ends more than 0.6 m off. Read the ATE together with the drift or the
+#   end-point error.
 #
 # ## Exercises
 #
