@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from kintinuous_ref.program.output_folder import (
     waiting_lock,
     write_text_atomic,
 )
+from kintinuous_ref.program.read_ahead import ReadAhead, readers_for
 from kintinuous_ref.program.warmup import compile_estimate, kernels_to_compile, warm_up
 from kintinuous_ref.signals import Interrupted
 from kintinuous_ref.strict_json import dumps as strict_dumps
@@ -390,21 +391,23 @@ def _first_depth(sequence: FrameSequence, start: int) -> np.ndarray | None:
 
 
 def _bad_frames_checked(
-    sequence: FrameSequence, start: int, count: int, skip: bool, skipped: list[str]
+    items: Iterable[tuple[int, Frame | None, BaseException | None]],
+    skip: bool,
+    skipped: list[str],
 ) -> Iterator[Frame]:
-    """The frames start.. of a sequence; an unreadable one (corrupt, wrong size) is a
+    """The frames of ReadAhead's items; an unreadable one (corrupt, wrong size) is a
     DatasetError naming the frame and its file, or with `skip` left out and listed in
-    `skipped`."""
-    for index in range(start, start + count):
-        try:
-            frame = sequence[index]
-        except DatasetError as err:
-            message = f"frame {index}: {err}"
-            if not skip:
-                raise DatasetError(message) from None
-            skipped.append(message)
+    `skipped`, when the run reaches it."""
+    for index, frame, error in items:
+        if error is None:
+            yield frame
             continue
-        yield frame
+        if not isinstance(error, DatasetError):
+            raise error
+        message = f"frame {index}: {error}"
+        if not skip:
+            raise DatasetError(message) from None
+        skipped.append(message)
 
 
 # (backend, odometry) pairs whose kernels this process has compiled or loaded already
@@ -510,9 +513,13 @@ def reconstruct(
 
             bar = tqdm(total=total, unit="frame", desc="reconstruct")
         skipped: list[str] = []
+        frames = range(start, start + total)
+        reader = ReadAhead(
+            sequence.__getitem__, frames, goes_on_after=DatasetError, readers=readers_for()
+        )
         try:
             result = run(
-                _bad_frames_checked(sequence, start, total, skip_bad_frames, skipped),
+                _bad_frames_checked(reader, skip_bad_frames, skipped),
                 sequence.camera,
                 config,
                 odometry,
@@ -528,6 +535,8 @@ def reconstruct(
             if bar is not None:
                 bar.close()
             raise
+        finally:
+            reader.close()  # the sequence is this thread's again
         info = {
             "dataset": str(sequence.path),
             "odometry": odometry,
