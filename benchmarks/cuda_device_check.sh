@@ -4,17 +4,19 @@
 # --backend cuda` at 512^3 and 256^3 with the launches replayed as CUDA graphs
 # (kintinuous_fast/targets/cuda_graphs.py), each JSON with the launches, host waits and bytes to
 # the host per frame and per stage; the ATE over 300 frames; the moving volume; a profile of the
-# host; each kernel's GPU time; the solve step by part. Where cuda_device_prepare.sh put a
-# baseline tree beside the data folder (baseline/), the 256^3 benchmark (the frame rate goal's
-# size, run right after the working tree's) and the kernel times run on it too, in the same call.
+# host; each kernel's GPU time; the solve step by part; the host's share of a frame as the
+# simulator measures it here (cuda_host_cost.py). Where cuda_device_prepare.sh put a baseline
+# tree beside the data folder (baseline/), the 256^3 benchmark (the frame rate goal's size, run
+# right after the working tree's) and the kernel times run on it too, in the same call.
 # Usage, from the repository root: benchmarks/cuda_device_check.sh TUM_FOLDER [OUT_DIR [OPTION...]]
-# (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and a NumPy wheel;
+# (benchmarks/cuda_device_prepare.sh makes the folder that travels: the data and the wheels;
 # options go to `kintinuous benchmark`, e.g. --set volume.moving=false).
 # Writes cuda_tests.log, bench_cuda_512_graphs.json, bench_cuda_256_graphs.json,
-# ate_cuda.json, bench_cuda_moving.json, profile.txt, cuda_warm.prof, kernel_times.json and
-# solve_parts.json (and baseline_bench_cuda_256_graphs.json, baseline_kernel_times.json) into
-# OUT_DIR (default: the current folder): more files than the device tool brings back, so give
-# a local folder and pack it into the tool's $OUT afterwards (cuda_device_prepare.sh).
+# ate_cuda.json, bench_cuda_moving.json, profile.txt, cuda_warm.prof, kernel_times.json,
+# solve_parts.json and host_cost.txt (and baseline_bench_cuda_256_graphs.json,
+# baseline_kernel_times.json) into OUT_DIR (default: the current folder): more files than the
+# device tool brings back, so give a local folder and pack it into the tool's $OUT afterwards
+# (cuda_device_prepare.sh).
 set -u
 data=${1:?usage: cuda_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
@@ -71,4 +73,7 @@ timeout 60 python3 benchmarks/cuda_kernel_times.py "$data" "${@:3}" --frames 10 
     grep -v Warning
 # the Gauss-Newton step by part: partial sums, eigenproblems, a Jacobi sweep, the barriers
 timeout 40 python3 benchmarks/solve_kernel_time.py --json "$out/solve_parts.json" 2>&1 | grep -v Warn
+# the host's share of a replayed frame as the simulator measures it, on this machine's CPU: to
+# set beside the real frames above (what the measure without a GPU stands for)
+timeout 40 python3 benchmarks/cuda_host_cost.py 2>&1 | grep -v Warn | tee "$out/host_cost.txt"
 date -u

@@ -2,7 +2,8 @@
 # Prepares, on this machine, the folder that travels to a lent GPU machine for
 # cuda_device_check.sh: .device/ (kept out of git through .git/info/exclude) with a NumPy 2.4
 # wheel for the machine's Python 3.12 (its numba-cuda needs NumPy < 2.5, and nothing can be
-# fetched there) and a copy of the TUM RGB-D folder the checks read (the shared data does not
+# fetched there), a greenlet wheel (the simulator's blocks with barriers, cuda_host_cost.py)
+# and a copy of the TUM RGB-D folder the checks read (the shared data does not
 # travel). About 57 MB with the 300 redkitchen frames; a call carries 64 MiB with the repository.
 # With a BASELINE commit, its source tree goes into .device/baseline too (about 2 MB), and the
 # check times it beside the working tree in the same call: GPUs of one kind differ by about a
@@ -29,6 +30,6 @@ if [ -n "$baseline" ]; then
 fi
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
-    --platform manylinux2014_x86_64 -d .device/wheels "numpy>=2.4,<2.5"
+    --platform manylinux2014_x86_64 -d .device/wheels "numpy>=2.4,<2.5" "greenlet>=3.0"
 cp -r "$data" .device/data
 du -sh .device
