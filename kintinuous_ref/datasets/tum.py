@@ -194,6 +194,9 @@ class FrameSequence(ABC):
     timestamps: np.ndarray  # (N,) seconds, one per frame
     groundtruth: Trajectory | None
     groundtruth_path: Path | None  # where the ground truth came from (for messages)
+    # Whether several threads may read frames at once (each read opens its own files); a reader
+    # that seeks in one open file (a bag, a log) reads from one thread at a time.
+    parallel_reads: bool = False
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -240,6 +243,8 @@ class FrameSequence(ABC):
 
 class TumSequence(FrameSequence):
     """A TUM RGB-D folder; frames are read from disk only when asked for (lazily)."""
+
+    parallel_reads = True  # two image files a frame, each opened by its read
 
     def __init__(
         self,

@@ -3,10 +3,11 @@
 Reading a 640x480 RGB-D pair (two image files decoded) takes milliseconds of host time, about
 9 ms on the 2-core VM of docs/benchmarks.md: more than a GPU pipeline's whole frame. Read in
 turn with the work, it adds to every frame; read ahead, it overlaps the frames before, since
-OpenCV's decoders release the interpreter lock. Only the reading thread touches the sequence
-while the frames are read, and `close` waits for it, so the sequence is the caller's again
-afterwards. Several threads (one per four cores) decode in parallel, each its share of the
-indices, so that a GPU run is not bound by one thread's decoding.
+OpenCV's decoders release the interpreter lock. Only the reading threads touch the sequence
+while the frames are read, and `close` waits for them, so the sequence is the caller's again
+afterwards. Where the sequence allows it (FrameSequence.parallel_reads: a TUM folder, whose
+reads each open their own files), several threads (one per four cores) decode in parallel, each
+its share of the indices, so that a GPU run is not bound by one thread's decoding.
 
 Each item is (index, frame or the error that reading it raised), in index order: what to do
 with an unreadable frame (stop, or skip and count it) stays with the caller, and happens when

@@ -513,9 +513,10 @@ def reconstruct(
 
             bar = tqdm(total=total, unit="frame", desc="reconstruct")
         skipped: list[str] = []
+        readers = readers_for() if sequence.parallel_reads else 1
         frames = range(start, start + total)
         reader = ReadAhead(
-            sequence.__getitem__, frames, goes_on_after=DatasetError, readers=readers_for()
+            sequence.__getitem__, frames, goes_on_after=DatasetError, readers=readers
         )
         try:
             result = run(
