@@ -1,4 +1,4 @@
-"""Frames read and decoded on a thread of their own, a few ahead of the pipeline.
+"""Frames read and decoded on threads of their own, a few ahead of the pipeline.
 
 Reading a 640x480 RGB-D pair (two image files decoded) takes milliseconds of host time, about
 9 ms on the 2-core VM of docs/benchmarks.md: more than a GPU pipeline's whole frame. Read in
