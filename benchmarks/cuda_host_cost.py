@@ -2,19 +2,20 @@
 still runs (the stages' own code, recording launches, keys, pooled buffers, the record's
 reading), which on a GPU lies on the frame's critical path (docs/benchmarks.md).
 
-    python benchmarks/cuda_host_cost.py [--frames 40] [--warmup 5] [--profile N]
+    python benchmarks/cuda_host_cost.py [--frames 40] [--warmup 8] [--profile N]
 
 The cuda backend runs the pipeline in numba's simulator with graphs on (the tests' quicker
 scheduling, tests/quick_simulator.py): the desk at 40x30, the default odometry (icp+rgbd,
 10/5/4 iterations over three levels, so the frame launches what a 640x480 frame launches) and a
 fixed 24^3 volume. The first `--warmup` frames run their kernels, which makes every stage's
-buffers and graphs; after them every kernel and replay is skipped (the buffers keep the last
+buffers and graphs (a stage's pooled buffers settle into their cycle within the first six or
+so frames); after them every kernel and replay is skipped (the buffers keep the last
 real frame's values, so each stage still takes the same branches) and the signed segments are
 not checked, as on a GPU. What is timed is then only the host: the stages' medians in
 milliseconds, the launches and graph replays per frame, the launches the host's Python still
 records and the arguments it keys, and with `--profile N` the N functions with the most time of
-their own. Driver calls (graph launches, the pinned copies, the one
-wait) are not in it: on a GPU they add tens of microseconds.
+their own. Driver calls (graph launches, the pinned copies, the one wait) are not in it: on a
+GPU they add tens of microseconds.
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ def skip_kernels_after(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=40, help="frames timed")
-    parser.add_argument("--warmup", type=int, default=5, help="frames whose kernels run")
+    parser.add_argument("--warmup", type=int, default=8, help="frames whose kernels run")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="list N functions")
     args = parser.parse_args()
     count = args.warmup + args.frames

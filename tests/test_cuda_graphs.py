@@ -377,8 +377,8 @@ def test_pipeline_replays_its_repeating_stages_and_equals_launching():
         return tuple(int(a - b) for a, b in zip(now, before, strict=True))
 
     last = frames_count - 1
-    stages = ("preprocess", "estimate_dense", "dense estimate", "colour_weights", "integrate")
-    for stage in (*stages, "fusion", "raycast", "predict_surface"):
+    stages = ("preprocess", "estimate_dense", "dense estimate", "colour weights", "integrate")
+    for stage in (*stages, "fusion", "raycast", "predict_surface", "model pyramid"):
         assert per_frame(stage, last)[:2] == (0, 0), (stage, ways)
         assert per_frame(stage, last - 1)[:2] == (0, 0), (stage, ways)
         assert per_frame(stage, last)[2] >= 1

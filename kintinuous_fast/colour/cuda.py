@@ -19,7 +19,7 @@ from kintinuous_fast.targets.cuda import (
     pooled_array,
     to_device,
 )
-from kintinuous_fast.targets.cuda_graphs import segment
+from kintinuous_fast.targets.cuda_graphs import segment, signed
 from kintinuous_fast.tsdf.ops import build_colour_weight
 from kintinuous_ref.colour import angle_weight
 from kintinuous_ref.config import ColourConfig
@@ -42,7 +42,7 @@ def colour_weights(frame: PreprocessedFrame, config: ColourConfig):
     """Weight (H, W) float32 of each pixel's colour update; 0 = do not update (paper VI-B)."""
     depth = to_device(frame.depth, np.float32)
     out = pooled_array("colour weights", depth.shape, np.float32)
-    _weights_kernel[grid_2d(*depth.shape), BLOCK_2D](
+    weights = (
         depth,
         to_device(frame.colour_mask, np.bool_),
         to_device(frame.levels[0].normals, np.float32),
@@ -50,4 +50,11 @@ def colour_weights(frame: PreprocessedFrame, config: ColourConfig):
         bool(config.angle_weighting),
         out,
     )
+    signed("colour weights", weights, lambda: _launch_weights(weights))
     return like_input(out, frame.depth)
+
+
+def _launch_weights(weights: tuple) -> None:
+    """colour_weights' one launch (a signed segment: it replays without this Python)."""
+    depth = weights[0]
+    _weights_kernel[grid_2d(*depth.shape), BLOCK_2D](*weights)

@@ -194,21 +194,29 @@ def model_pyramid(vertices: Any, normals: Any, levels: int) -> list[tuple[Any, A
     Each coarser level is copied by a kernel into a contiguous array rather than taken as a
     strided view: numba builds a view of a device array with a Python loop over its elements,
     which costs about half a second a frame at 640x480 (docs/benchmarks.md, "Numbers behind
-    the fast stages")."""
+    the fast stages"). The copies are a signed segment (targets.cuda_graphs.signed) of the
+    maps, the finest given and the coarser ones pooled."""
     if not is_device(vertices):
         return host_model_pyramid(vertices, normals, levels)
     pyramid = [(vertices, normals)]
     for _ in range(1, levels):
-        finer_vertices, finer_normals = pyramid[-1]
-        pyramid.append((_every_other_pixel(finer_vertices), _every_other_pixel(finer_normals)))
+        pyramid.append(tuple(_half_map(finer) for finer in pyramid[-1]))
+    maps = tuple(pyramid)
+    signed("model pyramid", maps, lambda: _subsample_pyramid(maps))
     return pyramid
 
 
-def _every_other_pixel(source: Any) -> Any:
-    height, width = source.shape[0] // 2, source.shape[1] // 2
-    out = pooled_array("preprocess", (height, width, source.shape[2]), dtype=source.dtype)
-    _launch(_subsample_kernel, (height, width), source, out)
-    return out
+def _half_map(finer: Any) -> Any:
+    """A pooled map of half `finer`'s size."""
+    shape = (finer.shape[0] // 2, finer.shape[1] // 2, finer.shape[2])
+    return pooled_array("preprocess", shape, dtype=finer.dtype)
+
+
+def _subsample_pyramid(pyramid: tuple) -> None:
+    """Each coarser level's two maps from the finer level's pixels (2u, 2v)."""
+    for finer, coarser in zip(pyramid, pyramid[1:], strict=False):
+        for source, out in zip(finer, coarser, strict=True):
+            _launch(_subsample_kernel, out.shape, source, out)
 
 
 def metric_depth(depth: Any, max_depth: float, depth_scale: float = 5000.0) -> Any:

@@ -289,6 +289,8 @@ def signed(name: str, signature: tuple, launcher: Callable[[], None]) -> None:
         launches, RECORDER.pending = RECORDER.pending, []
         if any(isinstance(launch, Upload) for launch in launches):  # a replay would skip it
             raise ValueError(f"{name}: a signed segment launches kernels and copies nothing")
+        if not launches:  # nothing to launch (a pyramid of one level): no graph either
+            return
         key = _key_or_none(launches)
         if known is not None and known.key != key:
             raise SignatureMismatch(f"{name}: the same signature launched other work")
