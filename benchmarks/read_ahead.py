@@ -15,6 +15,7 @@ in turn and read ahead.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 
 import numpy as np
@@ -35,20 +36,14 @@ def stand_in_frame(host_ms: float, wait_ms: float) -> None:
 def loop_ms(sequence: FrameSequence, frames: int, readers: int, host_ms: float, wait_ms: float):
     """Milliseconds a frame of a loop over `frames` frames (median of its frames), the frames
     read ahead by `readers` threads (0: read in turn)."""
-    laps = []
     indices = range(frames)
-    if readers:
-        with ReadAhead(sequence.__getitem__, indices, readers=readers) as items:
-            last = time.perf_counter()
-            for _ in items:
-                stand_in_frame(host_ms, wait_ms)
-                now = time.perf_counter()
-                laps.append(now - last)
-                last = now
-    else:
-        last = time.perf_counter()
-        for index in indices:
-            sequence[index]
+    with contextlib.ExitStack() as stack:
+        if readers:
+            items = stack.enter_context(ReadAhead(sequence.__getitem__, indices, readers=readers))
+        else:
+            items = (sequence[index] for index in indices)
+        laps, last = [], time.perf_counter()
+        for _ in items:
             stand_in_frame(host_ms, wait_ms)
             now = time.perf_counter()
             laps.append(now - last)

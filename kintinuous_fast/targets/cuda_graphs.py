@@ -384,17 +384,14 @@ def _key(launches: list[Launch | Upload]) -> SegmentKey:
             continue
         parts += (id(launch.dispatcher), launch.grid, launch.block, launch.shared_memory)
         parts.append(len(launch.arguments))
-        for argument in launch.arguments:  # a device array's kept key inline: most arguments
-            kept = getattr(argument, "__dict__", None)
-            cached = None if kept is None else kept.get("_graph_key")
-            parts.append(_argument_key(argument) if cached is None else cached)
+        _open_keys(launch.arguments, parts)
     return SegmentKey(tuple(parts))
 
 
 def _open_keys(items: tuple, parts: list) -> None:
     """Each item's key appended to `parts`, a tuple's items in place after its length (a bare
-    int, where a number's key is a pair): a signature's nested tuples keyed without a generator
-    per tuple."""
+    int, where a number's key is a pair): a launch's arguments and a signature's nested tuples
+    keyed without a generator per tuple, a device array's kept key read inline (most items)."""
     for item in items:
         kind = type(item)
         if kind is tuple:
