@@ -238,8 +238,10 @@ assert abs(crossing) < 0.5 * volume.voxel_size
 # truncated); the band $|F| < 1$ runs from red through white (the surface, $F = 0$) to blue, at
 # most $\mu$ behind it; grey was never observed (weight 0): everything more than $\mu$ behind a
 # surface (the update stops there, T2) and everything outside the camera's view. Along each
-# ray the colour goes from red to blue over $2\mu$; cut vertically, as here, the band looks
-# widest where the rays meet a surface at a slant, as on the horizontal surfaces.
+# ray the colour goes from red to blue over $2\mu$. Across a surface the band is therefore
+# $2\mu \sin\alpha$ thick, $\alpha$ the angle between the ray and the surface: the full $2\mu$ on
+# the vertical face that the rays meet nearly head-on, thinner on the floor, which they meet at a
+# slant. The cell after the picture measures both.
 
 # %%
 wide_config = with_overrides(config, {"volume.truncation_distance": 0.15})
@@ -280,14 +282,49 @@ plt.title(
 )
 plt.show()
 
+# %%
+# The band's thickness across two surfaces of the slice, against 2 mu sin(alpha): the vertical
+# face above the desk (rows at heights 0.95-1.2 m, counted along y) and the floor (columns at
+# y = -0.2 to 0.6 m, below 0.3 m, counted along z). Each surface lies where |F| is smallest.
+heights = z0 + wide.voxel_size * np.arange(wide.resolution)  # slice rows
+widths = y0 + wide.voxel_size * np.arange(wide.resolution)  # slice columns
+face_rows, face_columns = np.flatnonzero((heights > 0.95) & (heights < 1.2)), widths > 0.1
+floor_rows, floor_columns = heights < 0.3, (widths > -0.2) & (widths < 0.6)
+face, floor = np.ix_(face_rows, face_columns), np.ix_(floor_rows, floor_columns)
+face_thickness = wide.voxel_size * np.median(band[face].sum(axis=1))
+floor_counts = band[floor].sum(axis=0)
+floor_thickness = wide.voxel_size * np.median(floor_counts[floor_counts > 0])
+closest = np.abs(np.nan_to_num(tsdf_slice, nan=9.0))  # |F|, unobserved voxels never smallest
+face_y = np.mean(widths[face_columns][np.argmin(closest[face], axis=1)])
+floor_z = np.median(heights[floor_rows][np.argmin(closest[floor], axis=0)][floor_counts > 0])
+
+
+def band_across(surface_point: np.ndarray, surface_normal: np.ndarray) -> float:
+    """2 mu sin(alpha) for the ray from the camera to a point of a surface with that normal."""
+    ray = surface_point - poses[0][:3, 3]
+    return 2 * wide.truncation * abs(ray @ surface_normal) / np.linalg.norm(ray)
+
+
+x_slice = wide.voxel_to_world(np.array([i, 0, 0]))[0]
+face_expected = band_across(np.array([x_slice, face_y, 1.1]), np.array([0.0, 1.0, 0.0]))
+floor_expected = band_across(np.array([x_slice, 0.2, floor_z]), np.array([0.0, 0.0, 1.0]))
+print(f"band across the vertical face: {100 * face_thickness:.1f} cm (2 mu sin alpha = "
+      f"{100 * face_expected:.1f} cm); across the floor: {100 * floor_thickness:.1f} cm "
+      f"({100 * floor_expected:.1f} cm); 2 mu = {100 * 2 * wide.truncation:.0f} cm")  # fmt: skip
+assert abs(face_thickness - face_expected) <= wide.voxel_size  # to a voxel
+assert abs(floor_thickness - floor_expected) <= wide.voxel_size
+assert floor_thickness < 0.75 * face_thickness  # thinner where the rays meet it at a slant
+
 # %% [markdown]
 # ## Raycasting the model
 #
 # To see (and track against) the fused surface, a ray leaves the camera through every pixel and
-# marches through the volume in steps of $0.8\,\mu$: the TSDF changes by at most one $\mu$ per
-# $\mu$ travelled, so a smaller step cannot jump over a zero crossing. Between the last sample in
-# front ($F(t - \Delta) > 0$) and the first behind ($F(t) < 0$) the surface is found by linear
-# interpolation,
+# marches through the volume in steps of $\Delta = 0.8\,\mu$. The step has to stay below $\mu$:
+# behind a surface only a band about $\mu$ deep is ever updated (T2; grey beyond it in the
+# slice), so a longer step can leap from free space in front of the surface straight into
+# unobserved space behind it and miss the crossing, while a shorter one always puts a sample
+# inside that band. Between the last sample in front ($F(t - \Delta) > 0$) and the first behind
+# ($F(t) < 0$) the surface is found by linear interpolation,
 #
 # $$ t^* = t - \Delta\,\frac{F(t)}{F(t) - F(t - \Delta)}, \qquad \text{(T4)} $$
 #
@@ -295,6 +332,33 @@ plt.show()
 #
 # $$ \mathbf{n} = \frac{\nabla F}{\lVert \nabla F \rVert}. \qquad \text{(T5)} $$
 #
+# (The package refines $t^*$ once more, a regula falsi step: it samples $F$ at $t^*$ and
+# interpolates again towards the sample on the other side of the surface; `raycast.py` says why.)
+#
+# The step rule on the 1-D ray of the first section: march the fused `F_1d` from 200 starting
+# offsets with steps of 0.5 to 2 $\mu$, a sample counting only where both voxels around it were
+# observed (as in the package), and count how often the march finds the surface.
+
+
+# %%
+def march_finds(step: float, start: float) -> bool:
+    """Whether a march from `start` in steps `step` meets an observed + to - change of F_1d."""
+    t = np.arange(start, ray_voxels[-1], step)
+    k = np.clip(((t - ray_voxels[0]) / 0.01).astype(int), 0, len(ray_voxels) - 2)
+    observed = (W_1d[k] > 0) & (W_1d[k + 1] > 0)
+    F = np.interp(t, ray_voxels, F_1d)
+    return bool(np.any(observed[:-1] & observed[1:] & (F[:-1] > 0) & (F[1:] <= 0)))
+
+
+found_share = {}
+for fraction in (0.5, 0.8, 1.0, 1.5, 2.0):
+    starts = ray_voxels[0] + np.linspace(0, fraction * mu_1d, 200, endpoint=False)
+    found_share[fraction] = float(np.mean([march_finds(fraction * mu_1d, s0) for s0 in starts]))
+print("share of starts that find the surface, by step / mu:", found_share)
+assert all(found_share[f] == 1.0 for f in (0.5, 0.8, 1.0))  # a step up to mu never misses
+assert found_share[1.5] < 1.0 and found_share[2.0] < 0.8  # longer steps leap over the band
+
+# %% [markdown]
 # Now fuse every 6th frame of three seconds of the sequence (the camera sweeps around the table)
 # at the ground-truth poses, and raycast the model from the first camera after 1, 3 and 15
 # frames. The noise-free rendering of the same view is the truth to compare with.
