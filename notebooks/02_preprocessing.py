@@ -108,10 +108,11 @@ assert abs(axial_noise(1.8) - 0.0049) < 0.0001 and abs(axial_noise(1.0) - 0.0019
 #
 # `metric_depth` divides integer sensor units by the depth scale (TUM: 5000 per metre) and sets
 # 0, the code for "no measurement", wherever the reading is missing, not finite, or beyond
-# `preprocess.max_depth` = 6 m. The 6 m cut-off is this code's choice (the paper converts to
-# metres and says nothing of a range): a structured-light sensor's error grows with the square
-# of the depth (at 6 m $\sigma$ is about 6 cm), so far readings would add more noise than
-# surface.
+# `preprocess.max_depth` = 6 m. The paper converts to metres and says nothing of a range; the
+# 6 m is the authors' released code's (its RGB-D odometry drops readings beyond `MAX_DEPTH` =
+# 6 m), and the package applies it to every reading: a structured-light sensor's error grows
+# with the square of the depth (at 6 m $\sigma$ is about 6 cm), so far readings would add more
+# noise than surface.
 
 # %%
 print(inspect.getsource(preprocess.metric_depth))
@@ -386,6 +387,36 @@ plt.show()
 print(f"{(magnitude >= 12).sum()} level-0 pixels reach the RGB-D tracker's g = 12")
 
 # %% [markdown]
+# **The released code's scale differs.** The authors' code (`computeDerivativeImages`) folds the
+# blur into one 3x3 kernel, columns $\pm(0.52201, 0.79451, 0.52201)$, and still multiplies its
+# response by the Sobel's $1/8$. On a ramp that kernel answers $2(2 \cdot 0.52201 + 0.79451) =
+# 3.68$ per unit slope instead of the Sobel's 8, so its gradients are 0.46 times the slope, and
+# its thresholds $g$ = 12 / 5 / 3 / 1, compared with those gradients, keep only pixels whose slope
+# is at least about 26 / 11 / 6.5 / 2.2 intensity levels per pixel. The package keeps the
+# numbers 12 / 5 / 3 / 1 but applies them to the exact slope, so it keeps more pixels (its
+# Jacobian, lesson 3, also reads the exact slope, where the released code's reads 0.46 of it).
+
+# %%
+from scipy import ndimage  # noqa: E402
+
+released_kernel = np.array([[0.52201, 0.0, -0.52201], [0.79451, 0.0, -0.79451],
+                            [0.52201, 0.0, -0.52201]])  # fmt: skip
+released_dx = ndimage.convolve(ramp.astype(np.float64), released_kernel) / 8  # times Sobel's 1/8
+released_gain = float(np.median(released_dx[inner]) / 0.7)
+equivalent_g = [g / released_gain for g in config.rgbd.min_gradient]
+print(
+    f"released kernel on the ramp: {released_gain:.3f} x the slope; its g = 12 / 5 / 3 / 1 in "
+    "slope units: " + " / ".join(f"{g:.1f}" for g in equivalent_g)
+)
+print(
+    f"level-0 pixels of the synthetic frame: {(magnitude >= 12).sum()} reach 12 (the package), "
+    f"{(magnitude >= equivalent_g[0]).sum()} reach {equivalent_g[0]:.1f} (the released code)"
+)
+assert abs(released_gain - 3.67706 / 8) < 1e-6 and round(released_gain, 2) == 0.46
+np.testing.assert_allclose(equivalent_g, [26.1, 10.9, 6.5, 2.2], atol=0.05)
+assert (magnitude >= equivalent_g[0]).sum() < (magnitude >= 12).sum()
+
+# %% [markdown]
 # ## 6. The same with `kintinuous_fast`
 #
 # The fast backend computes every step with numba row loops (CPU) or one CUDA thread per pixel,
@@ -468,7 +499,8 @@ if REAL is not None:
 # ## Summary
 #
 # - Depth is converted to metres with 0 for "no measurement"; readings beyond 6 m are dropped
-#   (a choice of this code, where the sensor's noise reaches about 6 cm).
+#   (not in the paper: the released code's RGB-D cut-off, where the sensor's noise reaches about
+#   6 cm).
 # - The bilateral filter (KinectFusion's; $\sigma_s$ 4.5 px, $\sigma_r$ 3 cm, 13x13) averages
 #   only neighbours at a similar depth: on a plane facing the camera it removes nearly all the
 #   noise and it keeps depth edges, where a plain Gaussian of the same width is off by more than
@@ -480,7 +512,9 @@ if REAL is not None:
 #   neighbours below and right; from exact depth they are the planes' normals to float32
 #   rounding, from noisy depth only after the filter.
 # - Intensity is $0.299R + 0.587G + 0.114B$ and its gradients a Sobel after a $\sigma = 0.8$
-#   blur (IV-A.1), scaled to intensity per pixel: exact on a ramp.
+#   blur (IV-A.1), scaled to intensity per pixel: exact on a ramp. The authors' released code
+#   folds the blur into one 3x3 kernel that reads 0.46 of the slope, so its thresholds
+#   12 / 5 / 3 / 1 select slopes about 2.2 times steeper than the package's same numbers do.
 # - `kintinuous_fast` computes the same frame within the tests' tolerances.
 #
 # ## Exercises
