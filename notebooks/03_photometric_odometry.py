@@ -83,14 +83,18 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 #
 # **Interest points (Algorithm 1).** Only pixels with a usable image gradient carry information:
 # $\left(\partial I / \partial x\right)^2 + \left(\partial I / \partial y\right)^2 \ge g^2$, with
-# a minimum gradient $g$ per pyramid level. The paper names this input of Algorithm 1 ("minimum
-# gradient scale for pyramid level") but prints no values; the package uses the authors'
-# released code's $g$ = 12 / 5 / 3 / 1 intensity levels per pixel from the finest to the
-# coarsest level (`config.rgbd.min_gradient`). The points are kept as a *list* (not a mask) and
-# their 3D points are computed once per level.
+# a minimum gradient $g$ per pyramid level. Algorithm 1 writes the test as $g^2 > s$ with
+# $s$ the level's "minimum gradient scale" and prints no values; the authors' released code
+# passes the squares of its minimum gradient magnitudes as $s$ and keeps the pixels with
+# $\ge$, as the package does, with $g$ = 12 / 5 / 3 / 1 from the finest to the coarsest level
+# (`config.rgbd.min_gradient`). The package measures the gradient in intensity levels per pixel
+# of slope; the released code's derivative kernel reads 0.46 of that (lesson 2), so there the
+# same numbers keep only slopes about 2.2 times steeper. The points are kept as a *list* (not a
+# mask) and their 3D points are computed once per level.
 #
 # **Correspondences (Algorithm 2).** A warped point is kept when it lands inside the previous
-# image and the previous depth there agrees with $z'$ to within $d_s$ = 7 cm (occlusion test).
+# image and the previous depth there agrees with $z'$ to within $d_s$ (occlusion test). The
+# paper gives no value for $d_s$; the package's 7 cm is the released code's `MAX_DEPTH_DELTA`.
 #
 # Two frames of the desk scene: the previous one at a ground-truth pose, the current one rendered
 # after a known motion (3.7 cm and 1.5 degrees, a fast hand-held camera at 30 Hz).
@@ -165,11 +169,12 @@ print(
 #
 # $$ r_k = I_n(\mathbf{p}') - I_{n+1}(\mathbf{p}), $$
 #
-# with $I_n$ sampled bilinearly so the cost is smooth in sub-pixel motion. The sign does not
-# change the step: flipping $r$ flips its Jacobian $J$ too, and the normal equations
-# $J^\top J\,\xi = -J^\top r$ contain only $J^\top J$ and $J^\top r$, which do not change (checked
-# numerically below, after the Jacobian). What matters is that $J$ is the derivative of the $r$
-# actually used. For the update we
+# with $I_n$ sampled bilinearly so the cost is smooth in sub-pixel motion (the released code
+# rounds $\mathbf{p}'$ to the nearest pixel). The sign does not change the step: flipping $r$
+# flips its Jacobian $J$ too, and the normal equations $J^\top J\,\xi = -J^\top r$ contain only
+# $J^\top J$ and $J^\top r$, which do not change (checked numerically below, after the
+# Jacobian). What matters is that $J$ is the derivative of the $r$ actually used. For the
+# update we
 # perturb the current camera-to-world pose on the left, $T' = \exp(\hat\xi)\, T$ (eq. 4), with the
 # twist $\xi = [\omega^\top\, \mathbf{u}^\top]^\top$ and
 #
@@ -191,7 +196,11 @@ print(
 # Steinbruecker et al. do, but prints no weight. The package takes the one of OpenCV's RGB-D
 # odometry and of the authors' released code: every row is scaled by
 # $w_k = 1/(\sigma' + |r_k|)$, so occlusions and specular highlights with large $|r_k|$ get
-# little say. Each Gauss-Newton step then solves the weighted least-squares problem
+# little say. With $\sigma'$ the RMS, as the paper defines it: the released code's
+# `std::sqrt((float)sigma / rgbSize == 0 ? 1 : rgbSize)` parses as
+# `sqrt((sigma / rgbSize == 0) ? 1 : rgbSize)` and so uses $\sqrt{k_c}$ instead (an
+# operator-precedence slip; the cell after the Jacobian check compares the two on the desk
+# pair). Each Gauss-Newton step then solves the weighted least-squares problem
 #
 # $$ \arg\min_\xi \lVert J_{rgbd}\, \xi + r_{rgbd} \rVert^2 \qquad (3) $$
 #
@@ -244,6 +253,15 @@ paper_jacobian, paper_residuals = -desk_jacobian, -desk_residuals
 paper_step = np.linalg.solve(paper_jacobian @ paper_jacobian.T, -paper_jacobian @ paper_residuals)
 np.testing.assert_allclose(paper_step, package_step, rtol=1e-9, atol=1e-12)
 print("Algorithm 2's sign, I_{n+1}(p) - I_n(p'), gives the same Gauss-Newton step")
+
+# sigma' on the same correspondences: the RMS (the paper, the package) against what the released
+# code's expression evaluates to, (sigma / k_c == 0 ? 1 : k_c) under the square root.
+k_c, sigma_sum = len(pairs.residuals), float(np.sum(pairs.residuals**2))
+rms_sigma = np.sqrt(sigma_sum / k_c)
+released_sigma = np.sqrt(1 if sigma_sum / k_c == 0 else k_c)
+print(f"{k_c} pairs: sigma' = RMS {rms_sigma:.1f} intensity levels; released code "
+      f"{released_sigma:.1f}")  # fmt: skip
+assert released_sigma == np.sqrt(k_c) and released_sigma > 3 * rms_sigma
 
 # %% [markdown]
 # ## Coarse to fine
@@ -309,12 +327,13 @@ assert 0.02 < rotation_deg < 0.1
 # **The cost is not the error.** Look at the full-resolution steps (level 0) above: the error
 # *rises* while Gauss-Newton keeps lowering the cost. The minimum of the full-resolution cost is
 # not the true motion: sensor noise in depth and colour, the blur behind the image gradients,
-# and the current image's gradient standing in for the warped one (see the Jacobian check) all
-# shift it by a millimetre or two. Below, the weighted cost per pair (left) and the error
-# (right) at every step of level 0. The best estimate of the whole run came at level 1; the
-# finest level, run to convergence, moves away from it. This is a property of this small
-# noisy pair, not a proof that fewer iterations are better in general, but it is a warning
-# against judging a tracker by how far it lowers its own cost.
+# and the current image's gradient standing in for the warped one (see the Jacobian check) can
+# each shift it by a millimetre or two (which of them dominates is not separated here). Below,
+# the weighted cost per pair (left) and the error (right) at every step of level 0. The best
+# estimate of the whole run came at level 1; the finest level, run to convergence, moves away
+# from it. This is a property of this small noisy pair, not a proof that fewer iterations are
+# better in general, but it is a warning against judging a tracker by how far it lowers its own
+# cost.
 
 # %%
 finest = history[:, 0] == 0
@@ -378,8 +397,10 @@ print(f"pyramid:              {translation_mm:.2f} mm, {rotation_deg:.3f} deg")
 # Photoconsistency needs texture *and light*. The synthetic *dark* scene is the furnished room
 # with the light turned down to 2% for the middle third of the sequence. The minimum gradients
 # $g$ are absolute (intensity levels per pixel), so in a dim image no pixel qualifies: no interest
-# points, no correspondences, nothing to solve. The tracker reports the failure (and the pipeline
-# falls back to a constant-velocity guess and does not fuse the frame) instead of returning noise.
+# points, no correspondences, nothing to solve. The tracker reports the failure (`ok=False`, with
+# the reason) instead of returning noise; the pipeline then does not fuse the frame and moves
+# the camera by its constant-velocity guess (`tracking.fallback`; lesson 8 runs it, not shown
+# here).
 
 # %%
 dark = make_scenario("dark", frames=90, width=WIDTH, height=HEIGHT, seed=0, noise=True)
@@ -527,8 +548,11 @@ if REAL is not None:
 #   (eq. 3-5), coarse to fine.
 # - The residual's sign (the package's $I_n(\mathbf{p}') - I_{n+1}(\mathbf{p})$ against
 #   Algorithm 2's $I_{n+1}(\mathbf{p}) - I_n(\mathbf{p}')$) does not change the step.
-# - The thresholds $g$ = 12 / 5 / 3 / 1 and the 10 / 7 / 7 / 7 iterations come from the authors'
-#   released code; the paper gives neither.
+# - The thresholds $g$ = 12 / 5 / 3 / 1, the 10 / 7 / 7 / 7 iterations and $d_s$ = 7 cm come
+#   from the authors' released code; the paper gives none of them. The package departs from
+#   that code in three places: bilinear instead of nearest-pixel sampling of $I_n$, gradients in
+#   exact slope units (the code's read 0.46 of the slope), and $\sigma'$ the RMS residual, as the
+#   paper says (the code's precedence slip computes $\sqrt{k_c}$).
 # - Lowering the cost is not lowering the error: at full resolution the cost keeps falling while
 #   the error grows from 0.8 to 2.1 mm on this noisy pair.
 # - Without light there are no gradients, no interest points and no estimate; the tracker says
