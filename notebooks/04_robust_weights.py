@@ -154,6 +154,40 @@ for name in ("Huber k = 1.345", "Tukey c = 4.685"):
     psi = np.gradient(losses[name], residual_axis)
     ratio = psi[away] / residual_axis[away]  # central differences blur the kink at k by 0.5 %
     np.testing.assert_allclose(ratio, weights_shown[name][away], atol=5e-3)
+# Tukey's influence is zero beyond c: those residuals have no say at all; Huber's never is.
+assert np.all(weights_shown["Tukey c = 4.685"][np.abs(residual_axis) >= c_tukey] == 0)
+assert weights_shown["Huber k = 1.345"].min() > 0
+
+# %% [markdown]
+# The "95 %" of the tunings: for Gaussian residuals of spread 1 the variance of an M-estimate is
+# $E[\psi^2] / E[\psi']^2$ times that of least squares, so its efficiency is
+# $E[\psi']^2 / E[\psi^2]$, two integrals against the Gaussian density.
+
+# %%
+import scipy.integrate  # noqa: E402
+import scipy.stats  # noqa: E402
+
+
+def gaussian_efficiency(psi, psi_prime, limit: float) -> float:  # noqa: ANN001
+    """E[psi']^2 / E[psi^2] for standard Gaussian residuals (psi zero beyond `limit`)."""
+    density = scipy.stats.norm.pdf
+    slope = scipy.integrate.quad(lambda r: psi_prime(r) * density(r), -limit, limit)[0]
+    inside = scipy.integrate.quad(lambda r: psi(r) ** 2 * density(r), -limit, limit)[0]
+    return slope**2 / (inside + 2 * psi(limit) ** 2 * scipy.stats.norm.sf(limit))
+
+
+efficiency = {
+    "Huber": gaussian_efficiency(
+        lambda r: r if abs(r) < k_huber else np.sign(r) * k_huber, lambda r: 1.0, k_huber
+    ),
+    "Tukey": gaussian_efficiency(
+        lambda r: r * (1 - (r / c_tukey) ** 2) ** 2 * (abs(r) < c_tukey),
+        lambda r: (1 - (r / c_tukey) ** 2) * (1 - 5 * (r / c_tukey) ** 2),
+        c_tukey,
+    ),
+}
+print("efficiency at the Gaussian:", ", ".join(f"{k} {v:.4f}" for k, v in efficiency.items()))
+assert all(abs(value - 0.95) < 0.001 for value in efficiency.values())
 
 # %% [markdown]
 # ## IRLS from scratch on the line
@@ -285,8 +319,10 @@ print(
 # original algorithm ... including usage of $\sigma'$ for weighting". The formula itself is not
 # in the paper: each row $(J_k, r_k)$ is scaled by $w_k = 1/(\sigma' + |r_k|)$ in OpenCV's
 # implementation, which the paper's GPU code is based on, and in the authors' code; the package
-# follows them. Scaling a row by $w_k$ weighs it by $w_k^2$ in the normal equations, so the IRLS
-# weight is $W(r) = 1/(\sigma'+|r|)^2$, and the influence $\psi(r) = r/(\sigma'+|r|)^2$ peaks at
+# follows them, with $\sigma'$ the RMS the paper defines (the authors' code computes
+# $\sqrt{k_c}$ instead, an operator-precedence slip shown in lesson 3). Scaling a row by $w_k$
+# weighs it by $w_k^2$ in the normal equations, so the IRLS weight is
+# $W(r) = 1/(\sigma'+|r|)^2$, and the influence $\psi(r) = r/(\sigma'+|r|)^2$ peaks at
 # $|r| = \sigma'$ and then falls like $1/|r|$: it redescends, like Tukey's, but never to zero.
 # Unlike ICP's fixed scale, $\sigma'$ is re-estimated from the residuals at every iteration.
 
@@ -398,7 +434,8 @@ if REAL is not None:
 # - ICP's rows in the package are Huber-weighted with a fixed 5 mm spread ($k$ = 6.7 mm), the
 #   package's choice beyond the paper; its system is exactly $J^\top W J$, $J^\top W\mathbf{r}$.
 # - The RGB-D tracker scales each row by $1/(\sigma'+|r|)$ with $\sigma'$ the RMS residual: the
-#   paper names $\sigma'$, the formula is OpenCV's and the authors' code. Its influence peaks at
+#   paper names $\sigma'$, the formula is OpenCV's and the authors' code (whose $\sigma'$ is
+#   $\sqrt{k_c}$ by a slip). Its influence peaks at
 #   $|r| = \sigma'$ and falls off beyond.
 # - Real photometric residuals have heavier tails than a Gaussian, and the weights take most of
 #   their say away.
