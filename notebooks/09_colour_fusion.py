@@ -83,16 +83,22 @@ frames = {index: frame_at(index) for index in fused_indices}
 # \qquad W \leftarrow \min(W + w_c,\, 255), $$
 #
 # and the raycast reads the colour at a surface point by trilinear interpolation of the voxels
-# around it (VI-A).
+# around it (VI-A; the meshes below are coloured the same way at their vertices). The paper
+# prints no formula for the update: it extends the colour volume of PCL's KinFu and says only
+# that it is a moving average "in a similar fashion to the surface reconstruction". The update
+# above, with its own colour weight $W$, is the package's. The authors' released code differs:
+# it averages each colour against the voxel's *depth* weight (at most 128), with a colour
+# weight of 2 per update (times the angle weight below when that is on).
 #
 # ## Artifact reduction (VI-B)
 #
 # **Discontinuity check.** The paper calls a pixel a boundary pixel if "some of its neighbors
 # are more than a given distance away from it", in its 7x7 neighbourhood; it gives neither the
-# count nor the distance. The package's choice (`config.preprocess.discontinuity_max_bad` and
-# `discontinuity_jump`): more than 5 neighbours differ from it by more than 0.2 m (or have no
-# depth). Boundary pixels carry the colour of whatever lies on the other side of the edge
-# (misregistration, diffraction, depth noise), so they are not fused at all: $w_c = 0$.
+# count nor the distance. The package takes those of the authors' released code
+# (`config.preprocess.discontinuity_max_bad` and `discontinuity_jump`): more than 5 neighbours
+# differ from it by more than 0.2 m (or have no depth). Boundary pixels carry the colour of
+# whatever lies on the other side of the edge (misregistration, diffraction, depth noise), so
+# they are not fused at all: $w_c = 0$.
 #
 # **Angle of observation.** With $\mathbf{n}$ the pixel's normal in the camera frame, the angle
 # between the surface and the viewing direction is
@@ -100,7 +106,11 @@ frames = {index: frame_at(index) for index in fused_indices}
 # $$ \cos\theta = [0\;0\;1] \cdot \mathbf{n} = n_z, \qquad (15) $$
 #
 # and $w_c = |\cos\theta|$: colours seen straight on outweigh colours seen at a grazing angle
-# (stretched texture, more edge pixels).
+# (stretched texture, more edge pixels). The paper says only that $\cos\theta$ weights the
+# update; the absolute value is needed because the package's normals face the camera
+# ($n_z < 0$). The authors' released code saturates the weight instead,
+# $2\min(1, n_z / 0.75)$, so that every view within about 41 degrees of straight on counts
+# fully; the package follows the paper's plain cosine.
 
 # %%
 assert config.preprocess.discontinuity_window == 7  # the paper's 7x7
@@ -502,6 +512,7 @@ for angle, errors in sweep.items():
     )
 corrected = {angle: e["plain"] - e["angle weighting only"] for angle, e in sweep.items()}
 assert corrected[60.0] < corrected[75.0]  # steeper views: more to correct
+assert sweep[60.0]["plain"] < sweep[75.0]["plain"]  # ... because plain fusion is blurrier
 assert sweep[80.0]["plain"] < sweep[75.0]["plain"]  # at 80 degrees plain fusion comes closer
 
 # %% [markdown]
