@@ -110,6 +110,7 @@ print("logical voxel -> array cell:", dict(enumerate(cells_of_logical.tolist()))
 # %%
 print(inspect.getsource(moving_volume.shift_for))
 print(inspect.getsource(moving_volume.MovingVolume.shift_axis))
+assert Config().volume.shift_threshold == 14 and Config().volume.min_extract_weight == 8
 
 # %% [markdown]
 # **Extraction.** The leaving slab is triangulated by marching cubes *together with the first
@@ -118,7 +119,8 @@ print(inspect.getsource(moving_volume.MovingVolume.shift_axis))
 # edge it lies on (global voxel + axis), so neighbouring slices share their seam vertices
 # exactly. (The paper extracts the slab's surface points and triangulates them by greedy
 # projection; marching cubes closes the seams by construction. docs/moving_volume.md describes
-# the difference.) Vertices whose voxels were seen fewer than 8 times are dropped.
+# the difference.) Vertices whose voxels were seen fewer than 8 times are dropped
+# (`volume.min_extract_weight`; fewer while fewer frames have been fused).
 #
 # ## A walk down the corridor
 #
@@ -204,7 +206,7 @@ bars.set_ylabel("triangles")
 plt.show()
 print(f"{len(shift_frames)} frames shifted the window, at frames {shift_frames.tolist()}")
 assert triangles[-1] > max(triangles[:-1])  # the window at the end holds the most
-assert triangles[0] < max(triangles[:-1])  # the first slice carries little
+assert max(triangles[:3]) < 0.1 * max(triangles[:-1])  # the first slices carry little
 
 # %% [markdown]
 # ## One mesh from the slices, and what a fixed volume keeps
@@ -243,8 +245,10 @@ for name, surface in (("moving", merged), ("fixed", fixed)):
         f"{extent[1]:.2f} m, mean distance to the true surface {1000 * distance.mean():.1f} mm"
     )
 assert merged.points[:, 0].max() > fixed.points[:, 0].max() + 0.3
+assert merged.points[:, 0].min() < fixed.points[:, 0].min() + 0.05  # and loses no start
 assert len(merged.points) > len(fixed.points)
 assert max(mean_distance.values()) < 1e-3  # both within a millimetre of the truth
+assert abs(mean_distance["moving"] - mean_distance["fixed"]) < 0.25e-3  # a fraction of a mm
 
 fig, axes = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
 for ax, (name, surface) in zip(
@@ -261,8 +265,10 @@ plt.show()
 
 # %% [markdown]
 # The fixed volume keeps only what lies inside the first window; the moving volume keeps the
-# whole walk, with the same memory. Both surfaces sit within a millimetre of the truth (on
-# average over their vertices, printed above): extraction by slices costs no accuracy.
+# wall the whole walk saw (from the same start, more than 30 cm further along), with the same
+# memory. Both surfaces sit within a millimetre of the truth on average over their vertices,
+# and within a quarter of a millimetre of each other (printed above; the moving one over a
+# longer stretch of wall): extracting by slices keeps the fixed volume's accuracy.
 
 # %% [markdown]
 # ## Real data: a moving volume over real frames
