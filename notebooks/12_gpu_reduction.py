@@ -15,9 +15,11 @@
 # # 12. A GPU kernel you can read: the ICP reduction under numba's CUDA simulator
 #
 # Every dense estimator of the paper ends each Gauss-Newton iteration the same way: one row
-# $(J_k, r_k)$ per pixel or pair, summed into the 6x6 normal equations $J^\top J$ and
-# $J^\top r$ (eq. 10 and 13). On the GPU the paper does this "using a tree reduction on the GPU
-# followed by Cholesky factorization of the linear system on the CPU" (IV-A.3). This lesson
+# $(J_k, r_k)$ per pixel or pair, summed into the 6x6 matrix $J^\top J$ and the 6-vector
+# $J^\top r$ of the normal equations of a linear least-squares problem (eq. 3 for RGB-D, eq. 10
+# for ICP, eq. 12-13 for the two together). The paper solves eq. 3 "using a tree reduction on
+# the GPU followed by Cholesky factorization of the linear system on the CPU" (IV-A.3), and
+# computes ICP's and the joint products the same way (V-B). This lesson
 # reads the package's CUDA kernel for ICP (`kintinuous_fast.odometry.icp.cuda`), runs it **without
 # a GPU** under numba's CUDA simulator (each CUDA thread becomes a Python thread) on a tiny
 # 80x60 frame, and checks it against the NumPy reference of lesson 5.
@@ -300,9 +302,9 @@ if REAL is not None:
 #   which goes round once the pixels outnumber the threads),
 #   then reduces a block's accumulators by a tree in shared memory in $\log_2 B$ synchronised
 #   steps; the host adds the block partials and solves the 6x6 system.
-# - The sums are float64 (float32 sums over a whole frame would lose small increments), and
-#   only their order differs from the NumPy reference: the systems agree to rounding, under
-#   1e-12 of the largest entry with a pixel per thread and under 1e-10 with several.
+# - The sums are float64, as the NumPy reference's are, and only their order differs: the
+#   systems agree to rounding, under 1e-12 of the largest entry with a pixel per thread and
+#   under 1e-10 with several.
 # - numba's CUDA simulator runs the same kernel code on the CPU, thread by thread: slow, but it
 #   lets the kernel be read, stepped through and tested without a GPU.
 #
