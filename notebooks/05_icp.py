@@ -107,7 +107,10 @@ plt.show()
 # projected into the camera the model was rendered from; the model vertex $\mathbf{v}_m^k$ and
 # normal $\mathbf{n}_m^k$ stored at that pixel are its partner. Each pixel is one GPU thread and
 # costs one projection. A pair is rejected when the two points are more than 10 cm apart or their
-# normals differ by more than 20 degrees (KinectFusion's thresholds; `config.icp`).
+# normals differ by more than 20 degrees (KinectFusion's thresholds; `config.icp`). KinectFusion
+# and the authors' released code test the sine, $\lVert \mathbf{n} \times \mathbf{n}_m \rVert <
+# \sin 20°$, which also passes normals nearly opposite (160-180 degrees apart); the package tests
+# the cosine, $\mathbf{n} \cdot \mathbf{n}_m \ge \cos 20°$, and rejects them.
 #
 # The source of the package's association (the function being taught):
 
@@ -120,7 +123,8 @@ print(inspect.getsource(icp.associate))
 # first check on a real sequence: if most pixels fail the distance test, the motion was larger
 # than the projective association can bridge. Here "no model" is large because the 3 m volume
 # does not reach the far walls of the room (their pixels have depth but no fused surface), and
-# the normal test rejects many pixels because normals from noisy 160x120 depth are rough.
+# the normal test rejects many pixels, in part because normals from noisy 160x120 depth are
+# rough. The cell after the picture checks both.
 
 # %%
 points, point_normals = icp.valid_points(current.levels[0].vertices, current.levels[0].normals)
@@ -169,6 +173,10 @@ world, matched, matched_normals = icp.associate(
 kept_count = world.shape[1]
 assert kept_count == (labels == 4).sum()  # the picture's test is the package's test
 assert (config.icp.distance_threshold, config.icp.angle_threshold_deg) == (0.10, 20.0)
+# Two normals 174 degrees apart: the sine test passes them, the package's cosine test does not.
+n_a, n_b = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.1, -1.0]) / np.hypot(0.1, 1.0)
+assert np.linalg.norm(np.cross(n_a, n_b)) < np.sin(np.radians(20.0))
+assert n_a @ n_b < np.cos(np.radians(20.0))
 names = ["no depth", "no model", "> 10 cm", "> 20 deg", "kept"]
 fig, ax = plt.subplots(figsize=(6, 3.6))
 shown = ax.imshow(labels, cmap=plt.get_cmap("viridis", 5), vmin=-0.5, vmax=4.5)
@@ -182,6 +190,28 @@ for code, name in enumerate(names):
     print(f"{name:9s}: {label_counts[code]:5d} pixels")
 assert label_counts[1] == label_counts.max()  # "no model" is the largest share
 assert label_counts[3] > 0.1 * labels.size  # and the normal test rejects many (over a tenth)
+
+# %%
+# Why: where the "no model" pixels lie, and the normal test on the same view rendered without
+# noise (same pose, same preprocessing).
+current_world = se3.transform_points(previous_pose, current.levels[0].vertices).reshape(-1, 3)
+in_volume = np.all(
+    (current_world >= volume.origin) & (current_world <= volume.origin + volume.size), axis=1
+)
+outside_share = 1 - in_volume[labels.ravel() == 1].mean()
+noise_free = preprocess.preprocess_frame(
+    *scenario.render_at(current_pose, noise=False), camera, config.preprocess
+)
+noise_free_counts = np.bincount(
+    rejection_map(previous_pose, 0.10, 20.0, noise_free).ravel(), minlength=5
+)
+print(
+    f"{100 * outside_share:.1f} % of the 'no model' pixels lie outside the volume; normal test: "
+    f"{label_counts[3]} pixels rejected with the noisy depth, {noise_free_counts[3]} without noise"
+)
+assert outside_share > 0.99  # the volume does not reach them
+# Noise accounts for a good part of the normal rejections, not all of them.
+assert 0.5 * label_counts[3] < noise_free_counts[3] < 0.75 * label_counts[3]
 
 # %% [markdown]
 # ## The point-to-plane cost (eq. 6-10)
