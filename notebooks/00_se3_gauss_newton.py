@@ -14,8 +14,8 @@
 # %% [markdown]
 # # 0. Rigid motions and Gauss-Newton: the primer
 #
-# Every tracker of the paper (ICP, RGB-D odometry, their sum in eq. 11) estimates a camera pose
-# the same way: write a cost whose residuals depend on the pose, linearise it with a small
+# Every dense tracker of the paper (ICP, RGB-D odometry, their sum in eq. 11) estimates a camera
+# pose the same way: write a cost whose residuals depend on the pose, linearise it with a small
 # motion $\xi$ (a **twist**), solve the normal equations for $\xi$, apply it, repeat. This
 # lesson builds those pieces from scratch and checks each against the package:
 #
