@@ -16,12 +16,31 @@
 #
 # The paper's own GPU contribution (section IV-A.2/3) is not the tree reduction of lesson 12 but
 # two **list compactions**. Algorithm 1 turns the image of gradients into a *list* of interest
-# points (the pixels with $\nabla I^2 \ge s^2$), instead of OpenCV's mask; Algorithm 2 turns that
-# list into a shorter list of correspondences, the points whose warp lands in the previous image
-# with an agreeing depth, and sums the squared intensity differences $\sigma$ on the way (eq.
-# 3's weighting divides by $\sigma' = \sqrt{\sigma / k_c}$). Both gather their kept items in a
-# **per-block list in shared memory** and then reserve room in the global list with **one
-# global atomic per block**, after van den Braak et al.
+# points, instead of OpenCV's mask; Algorithm 2 turns that list into a shorter list of
+# correspondences, the points whose warp lands in the previous image with an agreeing depth,
+# and sums the intensity differences into $\sigma$ on the way, for the weighting of eq. 3 by
+# $\sigma' = \sqrt{\sigma / k_c}$. Both first gather their kept items in a **per-block list in
+# shared memory**, with atomics on a counter in shared memory ("a basic parallel reduction
+# exploiting shared memory in each CUDA thread block", after van den Braak et al.).
+#
+# Where the kernels of this lesson depart from the two algorithms as printed:
+#
+# - **The copy to the global list.** As printed, both copy a block's list out with one global
+#   `atomicInc` *per item* (and Algorithm 2 one `atomicAdd` on $\sigma$ per item). The kernels
+#   here, like `kintinuous_fast`'s, reserve the block's whole run of slots with **one global
+#   atomic per block** (an add of the block's count, which returns where its run starts), and
+#   Algorithm 2 adds the block's share of $\sigma$ with one more. A section below counts what
+#   this saves.
+# - **$\sigma$.** As printed, Algorithm 2 adds $t_{a3} = I_{n+1}(p) - I_n(p')$, the difference
+#   itself; the square root in $\sigma'$ and the OpenCV code the paper builds on (lesson 4) sum
+#   its square, and so do the kernels here.
+# - **The tests.** Algorithm 1 prints its test as $g^2 > s$ and tests no depth; the package
+#   keeps the pixels with $g^2 \ge s^2$, $s$ a gradient in intensity levels per pixel (lesson
+#   3), and the kernel below also tests the depth in the same pass (the reference does it right
+#   after). The paper prints no value for Algorithm 2's $d_s$; the package uses the OpenCV
+#   code's default, 7 cm.
+# - **Pixels per thread.** Algorithm 1 gives each thread $\nu$ adjacent pixels of a row; the
+#   kernels here stride over the image (below).
 #
 # This lesson writes both as numba.cuda kernels, runs them under numba's CUDA simulator at 80x60
 # (no GPU needed), and checks them against the NumPy reference (`kintinuous_ref.odometry.rgbd`)
@@ -96,8 +115,8 @@ print(f"{len(reference_list)} interest points with depth among {WIDTH * HEIGHT} 
 # %% [markdown]
 # ## The kernel
 #
-# The paper's Algorithm 1 gives each thread $\nu$ pixels. Here the same idea is written as a
-# **grid-stride loop**: with $G$ threads in the grid, thread $g$ takes pixels
+# The paper's Algorithm 1 gives each thread $\nu$ adjacent pixels. Here the same idea is
+# written as a **grid-stride loop**: with $G$ threads in the grid, thread $g$ takes pixels
 # $g, g + G, g + 2G, \ldots$, so any image size runs on a bounded grid. Each round of the loop:
 #
 # 1. thread 0 of the block empties the block's shared list (`local_count = 0`); barrier,
@@ -254,11 +273,13 @@ plt.show()
 #
 # The simplest list compaction lets every passing thread take its slot in the *global* list
 # directly: one global atomic per interest point, all on the same counter, so on a GPU they
-# serialise (each must see the previous one's result). The per-block list replaces them by
-# shared-memory atomics (on-chip, contended only by the block's 128 threads) and **one** global
-# atomic per block and round. The cost moves to three extra barriers per round and a copy from
-# shared to global memory, which the GPU does at full width. The kernel above counts its global
-# atomics per block; a list with one global atomic per point would make one per interest point.
+# serialise (each must see the previous one's result). Algorithm 1 as printed gathers the
+# points in shared memory first but still makes one global `atomicInc` per point when it
+# copies them out. The kernel above keeps the shared-memory atomics (on-chip, contended only by
+# the block's 128 threads) and makes **one** global atomic per block and round. The cost moves
+# to three extra barriers per round and a copy from shared to global memory, which the GPU does
+# at full width. The kernel counts its global atomics per block; one global atomic per point, as
+# printed, is one per interest point.
 #
 # Counted on this frame (the simulator cannot time a GPU; lesson 15 times real kernels where a
 # GPU is present), and on a 640x480 frame with the same fraction of interest points and the
@@ -276,8 +297,8 @@ small = len(kernel_list), int(block_atomics.sum())  # (per interest point, measu
 full = round(fraction * 640 * 480), atomics_per_block_round(640 * 480, MAX_BLOCKS)
 assert MAX_BLOCKS == 1024 and BLOCK == 128  # the numbers of the text
 for label, (direct, listed) in (("80x60, 4 blocks", small), ("640x480, 1024 blocks", full)):
-    print(f"{label:22s}: {direct:6d} global atomics one per point, {listed:5d} one per block and "
-          f"round ({direct / listed:.0f} times fewer)")  # fmt: skip
+    print(f"{label:22s}: {direct:6d} global atomics one per point (as printed), {listed:5d} one "
+          f"per block and round ({direct / listed:.0f} times fewer)")  # fmt: skip
 assert small[1] == atomics_per_block_round(pixels, BLOCKS)  # the kernel's count, as computed
 assert small[0] > 10 * small[1] and full[0] > 10 * full[1]  # "more than ten times fewer"
 
@@ -289,12 +310,14 @@ assert small[0] > 10 * small[1] and full[0] > 10 * full[1]  # "more than ten tim
 # correspondences out. Each interest point is warped into the previous image (eq. 2), and kept
 # when it lands inside and the previous depth there agrees with the warped depth to within
 # $d_s$ = 7 cm; a kept pair also adds $r^2$ to the global sum $\sigma$. Here the block adds its
-# pairs' $r^2$ first and then makes one global atomic for $\sigma$, as it does for the list.
+# pairs' $r^2$ first and then makes one global atomic for $\sigma$, as it does for the list (as
+# printed, Algorithm 2 makes one per pair for each).
 # The per-point maths (warp, bilinear sample, the depth test) is the package's device function
 # `_warp_point`, which lesson 3's reference defines and `kintinuous_fast` is tested equal to.
 #
 # Then the reduction of lesson 12 on the list: each thread takes pairs $j, j + G, \ldots$,
-# weights each row by $w = 1 / (\sigma' + |r|)$ with $\sigma' = \sqrt{\sigma / k_c}$ read from
+# weights each row by $w = 1 / (\sigma' + |r|)$ (the OpenCV code's weight: the paper names
+# only $\sigma'$, lesson 4) with $\sigma' = \sqrt{\sigma / k_c}$ read from
 # what Algorithm 2 left on the device, adds $w^2 [J^\top J, J^\top r, r^2, 1]$ to its
 # accumulator, and the block's tree (`block_reduce`) leaves one partial per block for the host.
 
@@ -538,13 +561,16 @@ if REAL is not None:
 # %% [markdown]
 # ## Summary
 #
-# - Algorithms 1 and 2 are list compactions: each thread tests its items, takes a slot in its
-#   block's shared list with a shared-memory atomic, and the block reserves room in the global
-#   list with one global atomic; the lists come out in atomic order (compare them as sets).
+# - Algorithms 1 and 2 are list compactions: each thread tests its items and takes a slot in
+#   its block's shared list with a shared-memory atomic; here the block then reserves room in
+#   the global list with one global atomic (as printed, the paper's copy makes one per item);
+#   the lists come out in atomic order (compare them as sets).
 # - A grid-stride loop makes any image size run on a bounded grid; with barriers inside, its
 #   rounds must be the block's, the same for every thread, and `i < n` guards only the work.
-# - Per-block lists turn one global atomic per kept item into one per block and round: more
-#   than ten times fewer, on this frame and on a 640x480 frame (counted above).
+# - Reserving a block's run at once turns one global atomic per kept item into one per block
+#   and round: more than ten times fewer, on this frame and on a 640x480 frame (counted above).
+# - Algorithm 2's $\sigma$ is a sum of *squared* differences (as printed it adds the
+#   differences; $\sigma' = \sqrt{\sigma / k_c}$ needs the squares).
 # - Algorithm 2 also sums $\sigma$ with atomics, which the weighted reduction reads on the
 #   device: the kernels' pairs, $\sigma$ and 6x6 system equal the NumPy reference's to rounding.
 #
