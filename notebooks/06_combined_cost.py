@@ -23,8 +23,9 @@
 #
 # This notebook derives eq. 6-13, then measures on the synthetic *corridor* scene what each cost
 # alone does along the corridor, what their sum does, and how that depends on the weight $w$
-# and on the units the two costs are added in. It shows that the authors' released code answers
-# the question of the units (it converges to eq. 11 with ICP in metres and $w = 0.1$), and
+# and on the units the two costs are added in. It shows that the authors' released code's
+# combination answers the question of the units (on the package's RGB-D rows it converges to
+# eq. 11 with ICP in metres and $w = 0.1$), and
 # ends with whole runs over the corridor and a *desk* scene, to see what each weighting costs
 # over a sequence.
 #
@@ -149,8 +150,9 @@ plt.show()
 # $w = 0.1$ empirically and does not say in which units $E_{icp}$ is summed. The authors'
 # released code answers it: it adds $A_{rgbd} + 100 A_{icp}$ and $b_{rgbd} + 10 b_{icp}$
 # (`combined.weighting = "original-code"`; `"elasticfusion"` is the same system), and this
-# lesson shows that it converges to the minimiser of eq. 11 with $w = 0.1$ and $E_{icp}$ in
-# square metres: the literal sum, `"paper-metres"` with $w = 0.1$. The package's other
+# lesson shows that, applied to the package's RGB-D rows, it converges to the minimiser of
+# eq. 11 with $w = 0.1$ and $E_{icp}$ in square metres: the literal sum, `"paper-metres"` with
+# $w = 0.1$ (the code's own RGB-D rows are scaled differently, see below). The package's other
 # weightings are its own, not the paper's:
 #
 # - `"paper"`, despite its name, divides $E_{icp}$ by its own mean squared residual
@@ -846,10 +848,11 @@ if REAL is not None:
 #   do not settle (still centimetres after 60 iterations on a corridor pair). The package uses
 #   $w$ on both sides, as stacking eq. 12 gives.
 # - What $w$ means depends on the units the costs are summed in, which the paper does not state.
-#   The authors' code ($A_{rgbd} + 100 A_{icp}$, $b_{rgbd} + 10 b_{icp}$) converges to eq. 11
-#   with $w = 0.1$ and ICP in metres: run to convergence, it and the literal sum end at the same
-#   poses (median gap 0.0000 mm on the corridor and the desk). Its 100 only changes the step,
-#   and so how far a fixed 10/5/4 iterations get (up to 0.1 mm apart on the corridor pairs).
+#   The authors' code ($A_{rgbd} + 100 A_{icp}$, $b_{rgbd} + 10 b_{icp}$), on the package's
+#   RGB-D rows, converges to eq. 11 with $w = 0.1$ and ICP in metres: run to convergence, it
+#   and the literal sum end at the same poses (median gap 0.0000 mm on the corridor and the
+#   desk). Its 100 only changes the step, and so how far a fixed 10/5/4 iterations get (up to
+#   0.1 mm apart on the corridor pairs).
 # - In those units the photometric term dominates: the authors' weighting holds the corridor's
 #   pairs (0.5 mm per frame, RGB-D alone 0.6 mm) but over a desk run drifts like RGB-D alone
 #   (56 mm off at the end, RGB-D 57 mm). The normalised sum (`"paper"`, which divides ICP by
