@@ -14,10 +14,13 @@
 # %% [markdown]
 # # 14. Loop closure and map deformation
 #
-# Beyond the paper: its authors' follow-up (Whelan, Kaess, Leonard, McDonald, IROS 2013; the
-# journal Kintinuous, IJRR 2015) stops drift from piling up when the camera comes back to a
-# place it has seen. Three pieces, each small (`kintinuous_ref/loop_closure/`,
-# `docs/loop_closure.md`):
+# Beyond the paper, whose conclusion lists "closing large loops via SLAM pose-graph
+# optimisation" as ongoing work: its authors' follow-up (Whelan, Kaess, Leonard, McDonald,
+# IROS 2013; the journal Kintinuous, IJRR 2015) stops drift from piling up when the camera
+# comes back to a place it has seen. Three pieces, each small (`kintinuous_ref/loop_closure/`,
+# `docs/loop_closure.md`). The three steps are the follow-up's; how each is done here (ORB
+# features matched directly rather than through a bag of words, the checks below, dynamic
+# covariance scaling in the pose graph) is the package's own, described in docs/loop_closure.md:
 #
 # 1. **place recognition**: is this keyframe a place seen before, and where was the camera then?
 # 2. a **pose graph** that spreads the error the loop reveals over the keyframes;
@@ -48,8 +51,10 @@ settings = LoopClosureConfig()
 # accepted only after four checks: enough ratio-test matches; a rigid motion that most matched
 # 3D points agree on (RANSAC over triples, Horn's closed form); the tracker's own ICP+RGB-D from
 # that motion, with a small residual and most points paired; and the paired pixels' intensities
-# agreeing. The `revisit` scenario's lap comes back to its start after 240 frames; the `twins`
-# scenario has two identical bays 5 m apart.
+# agreeing. (A fifth, last gate refuses a loop that would move the keyframe further from where
+# odometry put it than the path between the two makes plausible; exercise 1 meets it.) The
+# `revisit` scenario's lap comes back to its start after 240 frames; the `twins` scenario has
+# two identical bays 5 m apart.
 
 
 # %%
@@ -174,7 +179,8 @@ assert optimised < 0.5 * drifted
 # Below, the tracker slid 5 cm along its x axis on one edge only (edge 15: a bare wall, say)
 # and was exact elsewhere. Three graphs: every edge alike; edge 15 declared weak along x
 # (sigma 30 cm there, as a tracker that observed nothing along x would say); and, for contrast,
-# the wrong edge (5) declared weak.
+# the wrong edge (5) declared weak, which helps little: its largest error is still more than
+# three quarters of the one with every edge alike.
 
 # %%
 slide = np.eye(4)
@@ -212,7 +218,7 @@ for label, errors in spread.items():
     print(f"{label:17s} largest error {1000 * errors.max():5.1f} mm")
 assert spread["every edge alike"].max() > 0.025  # the slide, spread along the lap
 assert spread["edge 15 weak"].max() < 0.005  # put back where it happened
-assert spread["edge 5 weak"].max() > 0.02  # a covariance that is wrong helps nothing
+assert spread["edge 5 weak"].max() > 0.75 * spread["every edge alike"].max()  # helps little
 
 # %% [markdown]
 # On the `revisit` scenario the tracker's errors are spread along the lap in every direction,
@@ -233,7 +239,8 @@ assert spread["edge 5 weak"].max() > 0.02  # a covariance that is wrong helps no
 # its old pose to the pose graph's.
 #
 # Here a flat 2 x 1 m sheet was mapped bent (up to 15 cm at one end, as drift bends a room);
-# pinning both ends and the middle to their true places straightens all of it.
+# pinning both ends and the middle to their true places straightens all of it: every point ends
+# within 2 cm of flat, on average within 5 mm.
 
 # %%
 u, v = np.meshgrid(np.linspace(-1, 1, 40), np.linspace(-0.5, 0.5, 20))
@@ -309,7 +316,7 @@ assert round(damped[-1], 3) == 0.022 and all(np.diff(damped) <= 0)
 # %% [markdown]
 # ## Real data: which views are the same place
 #
-# The same four checks on real frames from the course's loader (`load_course_data()`,
+# The same checks on real frames from the course's loader (`load_course_data()`,
 # notebooks/README.md: the shared 7-Scenes *redkitchen* frames, or a TUM sequence of yours):
 # frame 0 as the old keyframe, and frames 15, 30, 60 and 150 (0.5 to 5 s later) as queries, at
 # 160x120. Where a loop is accepted, its relative pose is compared with the ground truth
