@@ -281,9 +281,10 @@ plt.show()
 # at full width. The kernel counts its global atomics per block; one global atomic per point, as
 # printed, is one per interest point.
 #
-# Counted on this frame (the simulator cannot time a GPU; lesson 15 times real kernels where a
-# GPU is present), and on a 640x480 frame with the same fraction of interest points and the
-# grid of 1,024 blocks that `kintinuous_fast` caps its reductions at:
+# Counted, not timed (the simulator cannot time a GPU; lesson 15 times the whole CUDA backend
+# where a GPU is present, not these kernels alone), on this frame and on a 640x480 frame with
+# the same fraction of interest points and the grid of 1,024 blocks that `kintinuous_fast` caps
+# its reductions at:
 
 
 # %%
