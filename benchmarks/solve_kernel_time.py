@@ -5,7 +5,8 @@ with its gate closed (the launch alone); then the step's parts (solve/ops.py), e
 in a kernel of the same block: one eigenproblem, the scaled solution (its condition check and
 Cholesky), the discounted joint system and the increment (one thread); then one eigenproblem
 of a matrix with spread eigenvalues with its Jacobi sweeps capped at 0, 1 and 2 (what a sweep
-costs, and what the rest does), and on one warp whose barrier is the warp's (what the block's
+costs, and what the rest does), started from the eigenvectors of a matrix near it (the solve
+kernel's warm start), and on one warp whose barrier is the warp's (what the block's
 barriers cost).
 
     python benchmarks/solve_kernel_time.py [--launches 60] [--json F]
@@ -59,13 +60,17 @@ def partials(vector: np.ndarray, blocks: int, seed: int) -> np.ndarray:
     return shares[:, None] * vector[None, :]
 
 
-def median_launch(launch: Callable[[], None], launches: int) -> float:
+def median_launch(
+    launch: Callable[[], None], launches: int, prepare: Callable[[], None] | None = None
+) -> float:
     """Median microseconds of `launch()` (one kernel launch) between two events, the first
-    launch (which compiles) left out."""
+    launch (which compiles) left out; `prepare()`, outside the events, before each."""
     scratch = cuda.to_device(np.zeros(1, dtype=np.float32))
     pairs = []
     for _ in range(launches + 1):
         before, after = cuda.event(), cuda.event()
+        if prepare is not None:
+            prepare()
         _hold[1, 1](scratch, HOLD_STEPS)
         before.record()
         launch()
@@ -84,14 +89,20 @@ def time_steps(mode: int, settings: tuple, blocks: int, launches: int, closed: b
     tally, state, poses = (cuda.to_device(x) for x in (np.zeros(2), state, poses))
     icp = cuda.to_device(partials(packed_system(1, 20_000), blocks, 1))
     rgbd = cuda.to_device(partials(packed_system(2, 8_000), blocks, 2))
-    arguments = (icp, rgbd, tally, state, poses, settings, 0)
-    us = median_launch(lambda: solve_kernel[1, SOLVE_THREADS](*arguments), launches)
+    basis = cuda.to_device(np.eye(6))  # each step from the identity, as a frame's first
+    arguments = (icp, rgbd, tally, state, poses, basis, settings, 0)
+    us = median_launch(
+        lambda: solve_kernel[1, SOLVE_THREADS](*arguments),
+        launches,
+        lambda: basis.copy_to_device(np.eye(6)),
+    )
     if state.copy_to_host()[slots.FAILED] != closed:
         raise RuntimeError("a step failed: the timing would not be a step's")
     return us
 
 
 _symmetric_eigen, _scaled_solution = _ops.symmetric_eigen, _ops.scaled_solution
+_symmetric_eigen_from = _ops.symmetric_eigen_from
 _discounted_joint, _increment = _ops.discounted_joint, _ops.increment
 
 
@@ -107,18 +118,24 @@ def eigen_kernel(symmetric_eigen: Any, lanes: int) -> Any:
 
 
 @cuda.jit
+def _eigen_from_kernel(a, basis, values, vectors):
+    scratch = cuda.shared.array((SCRATCH_MATRICES, 6, 6), float64)
+    _symmetric_eigen_from(a, basis, values, vectors, scratch, cuda.threadIdx.x, SOLVE_THREADS)
+
+
+@cuda.jit
 def _scaled_solution_kernel(a, b, xi):
     scratch = cuda.shared.array((SCRATCH_MATRICES, 6, 6), float64)
     _scaled_solution(a, b, xi, scratch, cuda.threadIdx.x, SOLVE_THREADS)
 
 
 @cuda.jit
-def _discounted_joint_kernel(a, b, joint_a, joint_b):
+def _discounted_joint_kernel(a, b, basis, joint_a, joint_b):
     scratch = cuda.shared.array((SCRATCH_MATRICES, 6, 6), float64)
     t = cuda.threadIdx.x
     centre, threshold = (0.4, 1.5, 1.1), 0.02
     _discounted_joint(
-        a, b, 20_000, 1.0, a, b, 0.3, *centre, threshold, joint_a, joint_b, scratch, t,
+        a, b, 20_000, 1.0, a, b, 0.3, *centre, threshold, basis, joint_a, joint_b, scratch, t,
         SOLVE_THREADS,
     )  # fmt: skip
 
@@ -150,13 +167,22 @@ def symmetric(seed: int, spread: bool) -> np.ndarray:
     return np.ascontiguousarray((a + a.T) / 2 * scale[:, None] * scale[None, :])
 
 
-def sweeps_needed(a: np.ndarray) -> int:
-    """The Jacobi sweeps the team's eigensolver takes on `a`, run as plain Python (one lane)."""
+def near(a: np.ndarray, seed: int, change: float = 1e-3) -> np.ndarray:
+    """`a` changed symmetrically by `change` of its largest entry: a later Gauss-Newton step's
+    information against an earlier one's."""
+    noise = np.random.default_rng(seed).normal(size=a.shape) * change * np.abs(a).max()
+    return a + (noise + noise.T) / 2
+
+
+def sweeps_needed(a: np.ndarray, basis: np.ndarray | None = None) -> int:
+    """The Jacobi sweeps the team's eigensolver takes on `a` from `basis` (None: the
+    identity), run as plain Python (one lane)."""
     full = None
+    basis = np.eye(6) if basis is None else basis
     for cap in (30, *range(30)):
         values, vectors = np.empty(6), np.empty((6, 6))
-        build_ops(lambda function: function, max_sweeps=cap).symmetric_eigen(
-            a, values, vectors, np.zeros((SCRATCH_MATRICES, 6, 6)), 0, 1
+        build_ops(lambda function: function, max_sweeps=cap).symmetric_eigen_from(
+            a, basis, values, vectors, np.zeros((SCRATCH_MATRICES, 6, 6)), 0, 1
         )
         if full is None:
             full = values
@@ -173,6 +199,7 @@ def time_parts(launches: int) -> dict[str, float]:
     a_ = cuda.to_device(a + np.triu(a, 1).T)
     b_ = cuda.to_device(unpacked[SLOT_B : SLOT_B + 6])
     scaled = cuda.to_device(symmetric(1, spread=False))
+    basis = cuda.to_device(np.eye(6))
     values, vectors, xi = cuda.device_array(6), cuda.device_array((6, 6)), cuda.device_array(6)
     joint_a, joint_b = cuda.device_array((6, 6)), cuda.device_array(6)
     step = cuda.to_device(np.array([1e-3, -2e-3, 3e-3, 1e-2, 0.0, -5e-3]))
@@ -184,11 +211,15 @@ def time_parts(launches: int) -> dict[str, float]:
         "one eigenproblem": lambda: eigen[block](scaled, values, vectors),
         "scaled solution": lambda: _scaled_solution_kernel[block](a_, b_, xi),
         "discounted joint system": lambda: _discounted_joint_kernel[block](
-            a_, b_, joint_a, joint_b
+            a_, b_, basis, joint_a, joint_b
         ),
         "increment (one thread)": lambda: _increment_kernel[block](step, pose, out),
     }
-    return {name: median_launch(launch, launches) for name, launch in launches_of.items()}
+    identity = np.eye(6)  # the discounted joint system's eigenproblem from the identity
+    return {
+        name: median_launch(launch, launches, lambda: basis.copy_to_device(identity))
+        for name, launch in launches_of.items()
+    }
 
 
 def time_sweeps(launches: int) -> dict[str, float]:
@@ -209,6 +240,12 @@ def time_sweeps(launches: int) -> dict[str, float]:
     kernel = eigen_kernel(_symmetric_eigen, SOLVE_THREADS)
     rows[f"spread eigenproblem ({needed} sweeps)"] = median_launch(
         lambda: kernel[1, SOLVE_THREADS](a, values, vectors), launches
+    )
+    # from the eigenvectors of a matrix 1e-3 away, as a step starts from the last step's
+    basis = np.linalg.eigh(near(spread, 5))[1]
+    warm, basis_ = sweeps_needed(spread, basis), cuda.to_device(basis)
+    rows[f"spread eigenproblem, warm start ({warm} sweeps)"] = median_launch(
+        lambda: _eigen_from_kernel[1, SOLVE_THREADS](a, basis_, values, vectors), launches
     )
     # numba's simulator has no syncwarp (its one-warp block synchronises as a block)
     warp_barrier = _barrier if cuda_is_simulated() else _warp_barrier

@@ -122,6 +122,54 @@ def test_symmetric_eigen_equals_eigh(seed: int) -> None:
         np.testing.assert_allclose(overlap, np.eye(apart.sum()), rtol=0, atol=1e-8)
 
 
+def eigen_from(ops_: object, a: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    values, vectors = np.full(6, np.nan), np.full((6, 6), np.nan)
+    ops_.symmetric_eigen_from(a, basis, values, vectors, scratch(), *ONE_LANE)
+    return values, vectors
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_symmetric_eigen_from_a_basis_equals_eigh(seed: int) -> None:
+    """From any orthonormal basis the same eigenpairs (the tolerances above); from the identity
+    symmetric_eigen's, bit for bit."""
+    rotation = np.linalg.qr(np.random.default_rng(seed).normal(size=(6, 6)))[0]
+    for a in spectra(seed):
+        values, vectors = eigen_from(CPU, a, rotation)
+        expected = np.linalg.eigh(a)[0]
+        largest = max(np.abs(expected).max(), 1e-300)
+        np.testing.assert_allclose(values, expected, rtol=0, atol=1e-12 * largest)
+        np.testing.assert_allclose(vectors.T @ vectors, np.eye(6), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(a @ vectors, vectors * values, rtol=0, atol=1e-12 * largest)
+        cold_values, cold_vectors = np.empty(6), np.empty((6, 6))
+        CPU.symmetric_eigen(a, cold_values, cold_vectors, scratch(), *ONE_LANE)
+        from_identity = eigen_from(CPU, a, np.eye(6))
+        np.testing.assert_array_equal(from_identity[0], cold_values)
+        np.testing.assert_array_equal(from_identity[1], cold_vectors)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("kind", ["random", "corridor"])
+def test_a_basis_near_the_eigenvectors_saves_sweeps(seed: int, kind: str) -> None:
+    """The warm start's point: a Gauss-Newton step's information is close to the last step's,
+    and from the last step's eigenvectors three sweeps give its eigenpairs to rounding, where
+    from the identity they leave the eigenvectors 1e-9 to 1e-4 off (it needs 4-5 sweeps)."""
+    three_sweeps = ops.build_ops(lambda function: function, max_sweeps=3)  # plain Python
+    a = (random_system if kind == "random" else corridor_system)(seed).A
+    a = (a + a.T) / 2
+    change = np.random.default_rng(seed + 50).normal(size=(6, 6)) * 1e-3 * np.abs(a).max()
+    nearby = a + (change + change.T) / 2
+    expected = np.linalg.eigh(nearby)[0]
+    largest = np.abs(expected).max()
+
+    def residual(values: np.ndarray, vectors: np.ndarray) -> float:
+        return np.abs(nearby @ vectors - vectors * values).max() / largest
+
+    warm = eigen_from(three_sweeps, nearby, np.linalg.eigh(a)[1])
+    np.testing.assert_allclose(warm[0], expected, rtol=0, atol=1e-12 * largest)
+    assert residual(*warm) < 1e-12
+    assert residual(*eigen_from(three_sweeps, nearby, np.eye(6))) > 1e-10
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("weak", [None, 0, 4])
 def test_scaled_solution_equals_the_host(seed: int, weak: int | None) -> None:
@@ -249,8 +297,9 @@ def test_cholesky_stops_at_a_pivot_that_is_not_positive() -> None:
 
 
 def joint_arguments(icp: LinearSystem, rgbd: LinearSystem, centre: np.ndarray, threshold: float):
+    """discounted_joint's inputs, its eigenproblem started from the identity."""
     return (icp.A, icp.b, icp.count, 1 / ref_combined.icp_scale(icp) ** 2, rgbd.A, rgbd.b, 0.3,
-            *centre, threshold)  # fmt: skip
+            *centre, threshold, np.eye(6))  # fmt: skip
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -287,6 +336,14 @@ def test_discounted_joint_equals_the_host(seed: int, kind: str, threshold: float
     assert discounted != np.array_equal(out_a, plain)  # the sum itself where none is weak
     if kind == "corridor":
         assert shares.min() < 1e-2 * threshold  # the walking direction keeps under 1 %
+    # the eigenvectors are left in the basis, and the next call starts from them
+    basis, vectors = arguments[-1], ref_combined.information_spectrum(icp, centre)[1]
+    np.testing.assert_allclose(basis.T @ basis, np.eye(6), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.abs(np.diag(basis.T @ vectors)), 1.0, rtol=0, atol=1e-8)
+    warm_a, warm_b = np.full((6, 6), np.nan), np.full(6, np.nan)
+    CPU.discounted_joint(*arguments, warm_a, warm_b, scratch(), *ONE_LANE)
+    np.testing.assert_allclose(warm_a, host_a, rtol=0, atol=1e-12 * np.abs(host_a).max())
+    np.testing.assert_allclose(warm_b, host_b, rtol=0, atol=1e-12 * np.abs(host_b).max())
 
 
 def near_rotation(seed: int, drift: float = 1e-9) -> np.ndarray:
@@ -360,12 +417,13 @@ def test_the_ops_in_a_one_thread_kernel() -> None:
     k = ops.SCRATCH_MATRICES
 
     @cuda.jit
-    def kernel(icp_a, icp_b, rgbd_a, rgbd_b, scalars, pose, values, vectors, a, b, xi, status,
-               out):  # fmt: skip
+    def kernel(icp_a, icp_b, rgbd_a, rgbd_b, scalars, pose, basis, values, vectors, a, b, xi,
+               status, out):  # fmt: skip
         scratch = cuda.local.array((k, 6, 6), float64)
         symmetric_eigen(icp_a, values, vectors, scratch, 0, 1)
         discounted_joint(icp_a, icp_b, 600, scalars[0], rgbd_a, rgbd_b, scalars[1], scalars[2],
-                         scalars[3], scalars[4], scalars[5], a, b, scratch, 0, 1)  # fmt: skip
+                         scalars[3], scalars[4], scalars[5], basis, a, b, scratch, 0,
+                         1)  # fmt: skip
         solved, condition = scaled_solution(a, b, xi, scratch, 0, 1)
         status[0] = solved
         status[1] = condition
@@ -381,6 +439,7 @@ def test_the_ops_in_a_one_thread_kernel() -> None:
     device = [cuda.to_device(x) for x in host]
     status, out = cuda.to_device(np.zeros(2)), cuda.to_device(np.zeros((4, 4)))
     inputs = [np.ascontiguousarray(x) for x in (icp.A, icp.b, rgbd.A, rgbd.b, scalars, pose)]
+    inputs.append(np.eye(6))
     kernel[1, 1](*inputs, *device, status, out)
     values, vectors, a, b, xi = (x.copy_to_host() for x in device)
 
@@ -425,9 +484,10 @@ def block_partials(system: LinearSystem, blocks: int, seed: int) -> np.ndarray:
     return shares[:, None] * packed(system)[None, :]
 
 
-def block_step(icp, rgbd, pose, mode, settings, blocks=37, level=1, failed=False):  # noqa: ANN001, ANN201
+def block_step(icp, rgbd, pose, mode, settings, blocks=37, level=1, failed=False, basis=None):  # noqa: ANN001, ANN201, E501
     """solve_kernel once on a block, from partials of `icp` and `rgbd` over `blocks` blocks
-    (RGB-D's over 5 blocks), `pose` the estimate: (state, poses) after it."""
+    (RGB-D's over 5 blocks), `pose` the estimate, `basis` (a device array; None: the identity)
+    where the discount's eigenproblem starts: (state, poses) after it."""
     from kintinuous_fast.odometry import frame_kernels as slots
     from kintinuous_fast.odometry.frame_on_device import _initial_poses
     from kintinuous_fast.odometry.frame_solve import SOLVE_THREADS, solve_kernel
@@ -439,7 +499,8 @@ def block_step(icp, rgbd, pose, mode, settings, blocks=37, level=1, failed=False
     arrays = [cuda.to_device(x) for x in (np.zeros(2), state, poses)]
     icp_partials = cuda.to_device(block_partials(icp, blocks, 1))
     rgbd_partials = cuda.to_device(block_partials(rgbd, 5, 2))
-    solve_kernel[1, SOLVE_THREADS](icp_partials, rgbd_partials, *arrays, settings, level)
+    basis = cuda.to_device(np.eye(6)) if basis is None else basis
+    solve_kernel[1, SOLVE_THREADS](icp_partials, rgbd_partials, *arrays, basis, settings, level)
     return arrays[1].copy_to_host(), arrays[2].copy_to_host(), previous
 
 
@@ -469,6 +530,13 @@ def test_the_joint_step_on_a_block(blocks: int) -> None:
     xi, reason = ref.solve(joint)
     assert reason == "" and state[slots.FAILED] == 0 and state[slots.DONE_LEVEL] == -1
     assert_pose_step(poses, previous, ref.apply_increment(xi, pose))
+    # from another basis (as a later step starts) the same step, its eigenvectors left there
+    basis = cuda.to_device(np.linalg.qr(np.random.default_rng(blocks).normal(size=(6, 6)))[0])
+    _, poses, previous = block_step(icp, rgbd, pose, slots.JOINT, settings, blocks, basis=basis)
+    assert_pose_step(poses, previous, ref.apply_increment(xi, pose))
+    vectors = ref_combined.information_spectrum(icp, pose[:3, 3])[1]
+    overlap = np.abs(basis.copy_to_host().T @ vectors)
+    np.testing.assert_allclose(overlap, np.eye(6), rtol=0, atol=1e-8)
 
 
 @pytest.mark.skipif(bool(cuda_status()), reason="no CUDA GPU: runs in the simulator child")

@@ -59,8 +59,10 @@ PREVIOUS_INVERSE, MODEL_INVERSE = 5, 6
 
 
 @kernel
-def begin_kernel(state, flags, counts, tally):
-    """The frame's state zeroed, no level done; one thread."""
+def begin_kernel(state, flags, counts, tally, basis):
+    """The frame's state zeroed, no level done, the solve kernel's eigenvector basis the
+    identity (so that a frame's steps start from the same basis however long the run); one
+    thread."""
     for s in range(state.shape[0]):
         state[s] = 0.0
     state[DONE_LEVEL] = -1.0
@@ -70,6 +72,9 @@ def begin_kernel(state, flags, counts, tally):
         counts[s] = 0
     tally[0] = 0.0
     tally[1] = 0.0
+    for i in range(6):
+        for j in range(6):
+            basis[i, j] = 1.0 if i == j else 0.0
 
 
 @kernel

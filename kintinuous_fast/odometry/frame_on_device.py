@@ -129,6 +129,7 @@ class Workspace:
         self.flags = cuda.to_device(np.zeros(3, dtype=np.int32))
         self.counts = cuda.to_device(np.zeros(len(shapes), dtype=np.int32))
         self.tally = cuda.to_device(np.zeros(2))
+        self.basis = cuda.to_device(np.eye(6))  # the solve kernel's warm start
         self.no_partials = cuda.to_device(np.zeros((1, NV)))
         self.levels = [self._level(h * w, uses_icp, uses_rgbd) for h, w in shapes]
         for index, level in enumerate(self.levels):  # a view made once: numba's cost per view
@@ -264,7 +265,7 @@ class FrameOnDevice:
         """The launches of `plan` (and the workspace): nothing else may vary them."""
         method, iterations, finest, settings, repeats, levels = plan
         space = self.space
-        begin_kernel[1, 1](space.state, space.flags, space.counts, space.tally)
+        begin_kernel[1, 1](space.state, space.flags, space.counts, space.tally, space.basis)
         repeats_kernel[grid_2d(*repeats[1].shape), BLOCK_2D](*repeats, space.flags)
         mode_kernel[1, 1](space.flags, space.state, method)
         for level in reversed(range(len(iterations))):
@@ -283,6 +284,7 @@ class FrameOnDevice:
                     space.tally,
                     space.state,
                     space.poses,
+                    space.basis,
                     settings,
                     level,
                 )

@@ -139,10 +139,11 @@ def _weights(sums, weighting, rgbd_weight, icp_code_scale):
 
 
 @cuda.jit(device=True)
-def _system(t, sums, mode, settings, pose, systems, vectors, scratch):
+def _system(t, sums, mode, settings, pose, basis, systems, vectors, scratch):
     """The step's normal equations into systems[JOINT_SYSTEM], vectors[JOINT_SYSTEM] and their
     row count: ICP's, RGB-D's or the joint system of the two (combined.joint_system with
-    settings' weighting). Every thread calls it and gets the same count."""
+    settings' weighting; the discount's eigenproblem starts from `basis` and leaves its
+    eigenvectors there). Every thread calls it and gets the same count."""
     _unpack(t, sums, systems, vectors)
     a, b = systems[JOINT_SYSTEM], vectors[JOINT_SYSTEM]
     icp_a, icp_b = systems[ICP_SYSTEM], vectors[ICP_SYSTEM]
@@ -158,7 +159,8 @@ def _system(t, sums, mode, settings, pose, systems, vectors, scratch):
             count = sums[0, SLOT_COUNT]
             _discounted_joint(
                 icp_a, icp_b, count, scale_a, rgbd_a, rgbd_b, rgbd_scale,
-                pose[0, 3], pose[1, 3], pose[2, 3], threshold, a, b, scratch, t, SOLVE_THREADS,
+                pose[0, 3], pose[1, 3], pose[2, 3], threshold, basis, a, b, scratch, t,
+                SOLVE_THREADS,
             )  # fmt: skip
             return sums[0, SLOT_COUNT] + sums[1, SLOT_COUNT]
     for e in range(t, 36, SOLVE_THREADS):
@@ -204,11 +206,13 @@ def _update_poses(poses, updated):
 
 
 @kernel
-def solve_kernel(icp_partials, rgbd_partials, tally, state, poses, settings, level):
+def solve_kernel(icp_partials, rgbd_partials, tally, state, poses, basis, settings, level):
     """One Gauss-Newton step (solve.refine's loop body) on a block of SOLVE_THREADS: the
     partial sums added, the system formed and solved, the increment applied; the gate closed on
     failure or convergence. `settings` = (min_count, converged, weighting, rgbd_weight, original
-    code's ICP scale, degeneracy threshold)."""
+    code's ICP scale, degeneracy threshold). `basis` (6, 6): the eigenvectors of the last
+    step's discount (the identity at a frame's start), where this step's eigenproblem starts:
+    consecutive steps' information matrices are close, so it takes fewer Jacobi sweeps."""
     t = cuda.threadIdx.x
     ranges = cuda.shared.array((2, RANGES, NV), float64)
     sums = cuda.shared.array((2, NV), float64)
@@ -221,7 +225,8 @@ def solve_kernel(icp_partials, rgbd_partials, tally, state, poses, settings, lev
         return
     _add_partials(t, icp_partials, rgbd_partials, ranges, sums)
     min_count, converged = settings[0], settings[1]
-    count = _system(t, sums, int(state[MODE]), settings, poses[0], systems, vectors, scratch)
+    mode = int(state[MODE])
+    count = _system(t, sums, mode, settings, poses[0], basis, systems, vectors, scratch)
     if t == 0:
         tally[0] = 0.0  # the next step's Algorithm 2 lists from zero
         tally[1] = 0.0

@@ -149,18 +149,10 @@ def build_ops(
         return rank
 
     @jit
-    def symmetric_eigen(
-        a: Any, values: Any, vectors: Any, scratch: Any, lane: int, lanes: int
-    ) -> None:
-        """np.linalg.eigh of the symmetric 6x6 `a` (unchanged): eigenvalues ascending into
-        `values` (6,), unit eigenvectors as the columns of `vectors` (6, 6), by Jacobi in the
-        parallel ordering. Uses scratch[W0:V1 + 1] and rows ROTATION_C..ROTATION_DELTA of
-        scratch[ROWS], which its callers fill only after it."""
-        for e in range(lane, ELEMENTS, lanes):
-            i, j = e // 6, e % 6
-            scratch[W0, i, j] = a[i, j]
-            scratch[V0, i, j] = 1.0 if i == j else 0.0
-        barrier()
+    def sweeps(values: Any, vectors: Any, scratch: Any, lane: int, lanes: int) -> None:
+        """Jacobi's sweeps from the iterate scratch[W0] and the rotations so far scratch[V0]
+        until the off-diagonal is negligible (or `max_sweeps`), then the diagonal ascending
+        into `values` and the rotations' columns in the same order into `vectors`."""
         now = 0  # the iterates are scratch[W0 + now], scratch[V0 + now]
         for _ in range(max_sweeps):
             if off_diagonal_negligible(scratch[W0 + now], 6):  # every lane, the same answer
@@ -184,6 +176,45 @@ def build_ops(
                 values[rank] = scratch[W0 + now, j, j]
             vectors[i, rank] = scratch[V0 + now, i, j]
         barrier()
+
+    @jit
+    def symmetric_eigen(
+        a: Any, values: Any, vectors: Any, scratch: Any, lane: int, lanes: int
+    ) -> None:
+        """np.linalg.eigh of the symmetric 6x6 `a` (unchanged): eigenvalues ascending into
+        `values` (6,), unit eigenvectors as the columns of `vectors` (6, 6), by Jacobi in the
+        parallel ordering. Uses scratch[W0:V1 + 1] and rows ROTATION_C..ROTATION_DELTA of
+        scratch[ROWS], which its callers fill only after it."""
+        for e in range(lane, ELEMENTS, lanes):
+            i, j = e // 6, e % 6
+            scratch[W0, i, j] = a[i, j]
+            scratch[V0, i, j] = 1.0 if i == j else 0.0
+        barrier()
+        sweeps(values, vectors, scratch, lane, lanes)
+
+    @jit
+    def symmetric_eigen_from(
+        a: Any, basis: Any, values: Any, vectors: Any, scratch: Any, lane: int, lanes: int
+    ) -> None:
+        """symmetric_eigen started from `basis` (6, 6), orthonormal columns: Jacobi rotates
+        B^T a B and accumulates its rotations on B. Where B holds the eigenvectors of a matrix
+        near `a` (the last Gauss-Newton step's), B^T a B is nearly diagonal and Jacobi, which
+        converges quadratically, needs fewer sweeps. With B = I every sum is exact and the
+        result is symmetric_eigen's, bit for bit. Uses what symmetric_eigen uses."""
+        for e in range(lane, ELEMENTS, lanes):  # B^T a
+            i, j = e // 6, e % 6
+            scratch[W1, i, j] = product_tn(basis, a, i, j, 6)
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # B^T a B
+            i, j = e // 6, e % 6
+            scratch[V1, i, j] = product(scratch[W1], basis, i, j, 6)
+        barrier()
+        for e in range(lane, ELEMENTS, lanes):  # its symmetric part; the rotations start at B
+            i, j = e // 6, e % 6
+            scratch[W0, i, j] = (scratch[V1, i, j] + scratch[V1, j, i]) / 2
+            scratch[V0, i, j] = basis[i, j]
+        barrier()
+        sweeps(values, vectors, scratch, lane, lanes)
 
     @jit
     def system_status(A: Any, b: Any) -> int:
@@ -351,6 +382,7 @@ def build_ops(
         cy: float,
         cz: float,
         threshold: float,
+        basis: Any,
         out_a: Any,
         out_b: Any,
         scratch: Any,
@@ -360,7 +392,9 @@ def build_ops(
         """(out_a, out_b) = combined.py's _discounted_joint (the joint normal equations of
         eq. 12-13, "degeneracy-aware"): the ICP system with its weak directions discounted, its
         information measured about the centre (cx, cy, cz), times `icp_weight`, plus the RGB-D
-        system times `rgbd_weight`. Uses all of scratch."""
+        system times `rgbd_weight`. The information's eigenproblem starts from `basis` (6, 6),
+        orthonormal columns (the identity, or the eigenvectors the last call left there:
+        symmetric_eigen_from), and leaves its eigenvectors there. Uses all of scratch."""
         f0, f1, f2, f3, f4 = FREE, FREE + 1, FREE + 2, FREE + 3, FREE + 4
         rows = scratch[ROWS]
         for e in range(lane, ELEMENTS, lanes):  # M
@@ -386,7 +420,10 @@ def build_ops(
             scratch[f3, i, j] = scratch[f0, i, j] * scale_j
         barrier()
         eigenvalues, eigenvectors = rows[1], scratch[f2]
-        symmetric_eigen(scratch[f1], eigenvalues, eigenvectors, scratch, lane, lanes)
+        symmetric_eigen_from(scratch[f1], basis, eigenvalues, eigenvectors, scratch, lane, lanes)
+        for e in range(lane, ELEMENTS, lanes):  # no lane reads `basis` again in this call
+            i, j = e // 6, e % 6
+            basis[i, j] = eigenvectors[i, j]
         weak = False
         for k in range(6):
             weak = weak or kept_share(eigenvalues[k], threshold) < 1.0
@@ -440,6 +477,7 @@ def build_ops(
 
     return SimpleNamespace(
         symmetric_eigen=symmetric_eigen,
+        symmetric_eigen_from=symmetric_eigen_from,
         scaled_solution=scaled_solution,
         discounted_joint=discounted_joint,
         increment=increment,

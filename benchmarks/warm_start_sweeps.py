@@ -1,0 +1,103 @@
+"""How many Jacobi sweeps the discount's eigenproblem takes on real frames, from the identity
+and from the last Gauss-Newton step's eigenvectors (the solve kernel's warm start,
+odometry/frame_solve.py): counted, so no GPU is needed and the machine's speed cannot move it.
+
+    python benchmarks/warm_start_sweeps.py DATA/redkitchen [--frames 60] [--every 3]
+
+The reference tracker (icp+rgbd, the defaults) runs on every `--every`-th of the first
+`--frames` frames at 160x120 and each step's information matrix (the one
+`combined.information_spectrum` decomposes) is kept. Each is then solved by the team's
+eigensolver (solve/ops.py, run as plain Python on one lane) from the identity, and from the
+eigenvectors the step before it left, the basis reset to the identity at each frame's start as
+the device does. A solve's sweeps: the least cap on sweeps that gives the uncapped eigenpairs
+bit for bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from there_and_back import scaled
+
+from kintinuous_fast.odometry.solve.ops import SCRATCH_MATRICES, build_ops
+from kintinuous_ref import pipeline
+from kintinuous_ref.config import Config
+from kintinuous_ref.datasets import tum
+from kintinuous_ref.odometry import combined
+
+SIZE = (160, 120)
+CAPPED = [build_ops(lambda function: function, max_sweeps=cap) for cap in range(13)]
+
+
+def recorded_informations(data: Path, frames: int, every: int) -> list[np.ndarray | None]:
+    """Each step's information matrix in order, None where a frame begins."""
+    sequence = tum.open_sequence(data)
+    chosen = [scaled(sequence[index], SIZE) for index in range(0, frames, every)]
+    kept: list[np.ndarray | None] = []
+    decompose = np.linalg.eigh
+
+    class Recording:  # the module's np.linalg, its eigh keeping what it is given
+        def __getattr__(self, name: str) -> object:
+            return getattr(np.linalg, name)
+
+        @staticmethod
+        def eigh(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            kept.append(np.array(matrix))
+            return decompose(matrix)
+
+    class NumpyRecording:
+        linalg = Recording()
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(np, name)
+
+    real_numpy, combined.np = combined.np, NumpyRecording()
+    try:
+        pipeline.run(
+            chosen, sequence.camera.resized(*SIZE), Config(), "icp+rgbd",
+            progress=lambda _result: kept.append(None),
+        )  # fmt: skip
+    finally:
+        combined.np = real_numpy
+    return kept
+
+
+def solved(matrix: np.ndarray, basis: np.ndarray) -> tuple[int, np.ndarray]:
+    """(sweeps, eigenvectors) of `matrix` from `basis`."""
+    results = []
+    for ops in CAPPED:
+        values, vectors = np.empty(6), np.empty((6, 6))
+        scratch = np.zeros((SCRATCH_MATRICES, 6, 6))
+        ops.symmetric_eigen_from(matrix, basis, values, vectors, scratch, 0, 1)
+        results.append((values, vectors))
+    final = results[-1]
+    for cap, (values, vectors) in enumerate(results):
+        if np.array_equal(values, final[0]) and np.array_equal(vectors, final[1]):
+            return cap, final[1]
+    return len(CAPPED) - 1, final[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", type=Path, help="a TUM-format folder (redkitchen)")
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--every", type=int, default=3)
+    args = parser.parse_args()
+    cold, warm = [], []
+    basis = np.eye(6)
+    for matrix in recorded_informations(args.data, args.frames, args.every):
+        if matrix is None:  # a new frame: the device resets its basis
+            basis = np.eye(6)
+            continue
+        cold.append(solved(matrix, np.eye(6))[0])
+        sweeps, basis = solved(matrix, basis)
+        warm.append(sweeps)
+    print(f"{len(cold)} eigenproblems, sweeps per eigenproblem (mean, max, count of each):")
+    for name, counts in (("from the identity", cold), ("warm start", warm)):
+        print(f"  {name:18} {np.mean(counts):.2f}  {max(counts)}  {np.bincount(counts).tolist()}")
+
+
+if __name__ == "__main__":
+    main()
