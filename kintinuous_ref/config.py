@@ -117,7 +117,7 @@ class RgbdConfig:
     iterations: tuple[int, ...] = (10, 7, 7, 7)  # finest to coarsest, RGB-D alone
     combined_iterations: tuple[int, ...] = (10, 5, 4)  # when combined with ICP
     min_gradient: tuple[float, ...] = (12.0, 5.0, 3.0, 1.0)  # per level, finest to coarsest
-    max_depth_change: float = 0.07  # the paper's d_s, metres
+    max_depth_change: float = 0.07  # d_s, metres: the authors' code's (the paper gives none)
     max_depth: float = 6.0
     # grad I in the Jacobian: "current" = current image at p (paper, Steinbruecker, OpenCV),
     # "warped" = previous image sampled at the warped p' (the cost's exact derivative)

@@ -4,10 +4,10 @@ Sturm, Engelhard, Endres, Burgard, Cremers, "A Benchmark for the Evaluation of R
 Systems", IROS 2012. P_1..P_n are the estimated poses, Q_1..Q_n the ground truth (camera-to-world),
 after associating the two trajectories by timestamp.
 
-- Absolute trajectory error (ATE, Sturm eq. 2-3, paper Table I): the positions of P are aligned
+- Absolute trajectory error (ATE, Sturm eq. 4-5, paper Table I): the positions of P are aligned
   to those of Q by the rigid motion S that minimises the squared distances (Horn 1987; Umeyama
   1991 without scale); F_i = Q_i^-1 S P_i and the error is ||trans(F_i)||.
-- Relative pose error (Sturm eq. 1): E_i = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j).
+- Relative pose error (Sturm eq. 1-2): E_i = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j).
   Frame to frame (paper Tables II, III): j = i + 1 in the associated list; the translation
   ||trans(E_i)|| in metres and the rotation angle of E_i in degrees.
   Drift (paper Table IV): j = the pose closest in time to t_i + 1 s; the RMSE of ||trans(E_i)||,
@@ -100,7 +100,7 @@ def align_rigid(source: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def absolute_trajectory_errors(estimate: Trajectory, groundtruth: Trajectory) -> np.ndarray:
-    """||trans(Q_i^-1 S P_i)|| = ||q_i - S p_i|| per associated pose (Sturm eq. 2), metres."""
+    """||trans(Q_i^-1 S P_i)|| = ||q_i - S p_i|| per associated pose (Sturm eq. 4), metres."""
     alignment = align_rigid(estimate.positions, groundtruth.positions)
     aligned = estimate.positions @ alignment[:3, :3].T + alignment[:3, 3]
     return np.linalg.norm(groundtruth.positions - aligned, axis=1)

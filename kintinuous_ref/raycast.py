@@ -2,9 +2,10 @@
 (KinectFusion's surface prediction; paper III and VI-A). ICP tracks the next frame against this.
 
 For each pixel a ray leaves the camera centre through the pixel centre. It starts where it enters
-the volume and marches in steps of 0.8 x truncation (docs/parameters.md: the TSDF changes by at most
-one truncation per truncation of distance, so a step below mu cannot jump over a zero crossing
-from the +1 side) sampling the TSDF trilinearly. The first change of sign from + to - is the
+the volume and marches in steps of 0.8 x truncation (docs/parameters.md: behind a surface only a
+band about one truncation deep is ever observed, so a step shorter than that always puts a
+sample inside the band, where a longer one can leap from free space into unobserved space and
+miss the crossing) sampling the TSDF trilinearly. The first change of sign from + to - is the
 surface; its position is refined by linear interpolation of the two samples around it,
 
     t* = t - step F(t) / (F(t) - F(t - step)),

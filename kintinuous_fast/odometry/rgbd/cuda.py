@@ -1,13 +1,16 @@
 # ruff: noqa: ANN001, ANN201  (numba kernels: argument types come from the call)
-"""kintinuous_ref.odometry.rgbd as CUDA kernels around rgbd/ops.py, following the paper's GPU
-design (section IV-A.2/3):
+"""kintinuous_ref.odometry.rgbd as CUDA kernels around rgbd/ops.py, after the paper's GPU
+design (section IV-A.2/3), whose Algorithms 1-2 list each kept item in a block's shared memory
+and then copy it out with one global atomic per item:
 
 - Algorithm 1 (interest points): each block collects its pixels that pass the gradient test in a
   shared-memory list (shared-memory atomics), then reserves room in the global list with ONE
-  global atomic per block and copies its list there.
+  global atomic per block (not per item: atomics on one address serialise) and copies its list
+  there.
 - Algorithm 2 (correspondences): the same per-block shared list for the warped interest points
-  that pass the image and d_s tests; each listed pair then adds r^2 to the global
-  intensity-difference sum and takes its slot in the global correspondence list with atomics.
+  that pass the image and d_s tests; the block adds its pairs' r^2 by a tree and makes one
+  atomic for the global intensity-difference sum and one for its room in the global
+  correspondence list (the printed algorithm makes one of each per pair).
 - The robustly weighted rows of the listed pairs: per-thread sums reduced by a tree in shared
   memory per block (odometry/sums/cuda.py), one partial per block for the host to add.
 
