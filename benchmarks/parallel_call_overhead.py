@@ -7,7 +7,9 @@ loop from Python) against a numba gufunc on numba's threading layer (`guvectoriz
 The loop does `reps` multiply-adds on each of 64 items, cut into 8 parts. Between two calls the
 calling thread runs Python for `gap` microseconds, as the odometry does between its loops (the
 GIL held). Prints the median time of a call in microseconds: on one thread, with run_parallel
-and with the gufunc, and each one's speed-up over one thread (docs/benchmarks.md).
+and with the gufunc, and each one's speed-up over one thread (docs/benchmarks.md); then how
+long a call takes that every thread of a team of 2, 3, ... must join (a rendezvous of one part
+per thread): the cost of starting a whole team.
 """
 
 from __future__ import annotations
@@ -21,7 +23,14 @@ import numba
 import numpy as np
 from numba import guvectorize
 
-from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
+from kintinuous_fast.targets.cpu import (
+    LOOP_COSTS,
+    atomic_fetch_add,
+    claimed_items,
+    parallel_part,
+    run_parallel,
+    spin_below,
+)
 
 ITEMS, PARTS = 64, 8
 
@@ -37,6 +46,27 @@ def _multiply_adds(x: float, reps: int) -> float:
 def _helper_loop(claims, parts, values, reps):  # noqa: ANN001, ANN202
     for item in claimed_items(claims, values.shape[0], parts):
         values[item] = _multiply_adds(values[item], reps)
+
+
+@parallel_part()
+def _rendezvous(claims, parts, arrived, spins):  # noqa: ANN001, ANN202
+    """One part per thread, each waiting until every part has begun (at most `spins` loads):
+    the call lasts until the last thread of the team has joined."""
+    for _ in claimed_items(claims, parts, parts):
+        atomic_fetch_add(arrived, 0)
+        spin_below(arrived, 0, parts, spins)
+
+
+def team_join(threads: int, calls: int) -> float:
+    """Median microseconds of a call that every one of `threads` threads must join."""
+    arrived = np.zeros(1, dtype=np.int64)
+
+    def call() -> None:
+        arrived[0] = 0
+        LOOP_COSTS.per_item.pop(_rendezvous, None)  # unknown work: every thread joins
+        run_parallel(_rendezvous, arrived, 2_000_000, parts=threads)
+
+    return median_call(call, 100, calls)
 
 
 @guvectorize(
@@ -102,6 +132,13 @@ def main() -> None:
                 f"{gap:6d} {reps:10d} | {one:10.1f} {helpers:10.1f} ({one / helpers:4.2f})"
                 f" {gufunc:10.1f} ({one / gufunc:4.2f})"
             )
+    # How long a whole team takes to join one call: each helper takes the GIL in turn to join
+    # (its Python between the watch and the loop), so this grows with the team if that is what
+    # a large team waits for.
+    joins = {n: team_join(n, args.calls) for n in range(2, numba.get_num_threads() + 1)}
+    print("team join, 100 us of Python before each call: " + ", ".join(
+        f"{n} threads {us:.0f} us" for n, us in joins.items()
+    ))  # fmt: skip
 
 
 if __name__ == "__main__":
