@@ -21,6 +21,7 @@ import numpy as np
 
 from kintinuous_ref.config import Config
 from kintinuous_ref.errors import ConfigError
+from kintinuous_ref.signals import Interrupted
 
 DEFAULT_FRAMES = 30
 
@@ -92,6 +93,11 @@ def benchmark(
             predict_model=True,
             synchronize_stages=synchronize_stages,
         )
+        if result.interrupted:  # a table of the frames before the signal would pass for the whole
+            raise Interrupted(
+                result.signal_name,
+                f"{result.reason} after {result.frames} of {length} frames: no timings printed",
+            )
     timing = {stage: timing_stats(values[1:]) for stage, values in result.timings_ms.items()}
     total = timing.get("total", {}).get("median")
     traffic = {stage: traffic_stats(frames[1:]) for stage, frames in result.traffic.items()}

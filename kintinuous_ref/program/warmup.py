@@ -43,6 +43,7 @@ from kintinuous_ref.datasets.tum import Frame
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.odometry import DENSE_METHODS, METHODS
 from kintinuous_ref.pipeline import GROUNDTRUTH, STAGES, run
+from kintinuous_ref.signals import Interrupted
 
 # What a run still has to compile, by what it calls and what numba's cache holds: the kernels of
 # a run with known poses (preprocessing, integration, colour), those a tracked run adds to them
@@ -189,6 +190,8 @@ def _mesh_warmup(backend: Backend, result: Any) -> float:
 def _run_warmup(backend: Backend, config: Config, method: str) -> Any:
     frames, camera, trajectory = warmup_frames()
     result = run(frames, camera, small_config(config), method, trajectory, backend)
+    if result.interrupted:  # run() keeps a signal as its result's; the command ends on it
+        raise Interrupted(result.signal_name)
     if result.error is not None:
         raise result.error
     return result
