@@ -17,7 +17,9 @@ Open3D runs right after our default column, and `--rounds R` repeats both (and t
 columns but the reference) R times, pooling the frames: a noisy host then slows both sides
 alike, and the ratios of each round are printed too. `--threads N` runs both on N threads
 (numba's thread count, and OpenMP's, which Open3D's CPU kernels use); the default is each
-library's own (every core). `--default-only` leaves out the fast-odometry and 1/3/6 columns.
+library's own (every core). `--default-only` leaves out the fast-odometry and 1/3/6 columns;
+`--converged-steps 1e-4,3e-4` adds a cpu column for each of those early-stop thresholds
+(`tracking.converged_step`: a level ends at a step shorter than it; 1e-5 by default).
 The row "odometry cpu" is the odometry's CPU time per frame (the process's, every thread's:
 on one thread what the odometry's work costs, which other jobs on the machine disturb far
 less than its wall time).
@@ -74,6 +76,12 @@ def open3d_iterations(config: Config) -> Config:
     same passes over each pyramid level as its tracker, with two cost terms to its one."""
     rgbd = replace(config.rgbd, combined_iterations=OPEN3D_ITERATIONS)
     return replace(config, rgbd=rgbd)
+
+
+def stop_at(config: Config, step: float) -> Config:
+    """`config` with a level of the dense trackers ending at a step shorter than `step`
+    (tracking.converged_step; the default is 1e-5)."""
+    return replace(config, tracking=replace(config.tracking, converged_step=step))
 
 
 def run_ours(sequence, backend: str, config: Config, frames: int) -> dict:  # noqa: ANN001
@@ -207,6 +215,9 @@ def run_columns(sequence, config: Config, args: argparse.Namespace, with_referen
         runs[backend] = run_ours(sequence, backend, config, frames)
         if backend == "cpu":
             add_open3d()
+            for step in args.converged_steps:
+                stopping = stop_at(config, step)
+                runs[f"cpu stop {step:g}"] = run_ours(sequence, "cpu", stopping, frames)
             if args.default_only:
                 continue
             runs["cpu fast-odo"] = run_ours(sequence, "cpu", fast_odometry(config), frames)
@@ -314,6 +325,13 @@ def main() -> None:
     parser.add_argument("--threads", type=int, help="threads for both (default: every core)")
     parser.add_argument(
         "--default-only", action="store_true", help="no fast-odometry or 1/3/6 columns"
+    )
+    parser.add_argument(
+        "--converged-steps",
+        type=lambda text: [float(value) for value in text.split(",") if value],
+        default=[],
+        help="comma-separated tracking.converged_step values: a cpu column for each, run after "
+        "Open3D's",
     )
     args = parser.parse_args()
     threads = set_threads(args.threads)
