@@ -71,3 +71,49 @@ def copy(tmp_path) -> Path:
     target = tmp_path / "seq"
     shutil.copytree(TINY, target)
     return target
+
+
+def _listed(folder: Path, frame: int, column: int) -> Path:
+    rows = [row.split() for row in (folder / "associations.txt").read_text().splitlines()]
+    rows = [row for row in rows if row and not row[0].startswith("#")]
+    return folder / rows[frame][column]
+
+
+def _as_jpeg_sequence(folder: Path) -> None:
+    """The colour images of `folder` as JPEGs (as 7-Scenes and many recorders store them)."""
+    import cv2
+
+    listing = folder / "associations.txt"
+    for frame in range(10):
+        png = _listed(folder, frame, 1)
+        cv2.imwrite(str(png.with_suffix(".jpg")), cv2.imread(str(png)))
+        png.unlink()
+    listing.write_text(listing.read_text().replace(".png 1", ".jpg 1"))
+
+
+@pytest.mark.parametrize("kind", ["jpeg", "png"])
+def test_a_colour_image_cut_short_stops_the_run_there(copy, tmp_path, capfd, kind):
+    # libjpeg decodes a cut JPEG with its lower rows grey and only a warning: the frame was
+    # fused as if whole ("fused 10 of 10 frames", exit 0)
+    if kind == "jpeg":
+        _as_jpeg_sequence(copy)
+    image = _listed(copy, 6, 1)
+    whole = image.read_bytes()
+    image.write_bytes(whole[: len(whole) // 2])
+    out = tmp_path / "out"
+    status = cli.main(
+        ["reconstruct", str(copy), "--out", str(out), *SMALL, "--odometry", "groundtruth"]
+    )
+    err = capfd.readouterr().err
+    assert status == 2
+    what = {
+        "jpeg": "JPEG has no end-of-image marker after its last scan",
+        "png": "PNG has no IEND chunk at its end",
+    }[kind]
+    assert _errors(err) == [
+        f"kintinuous: error: frame 6: {image}: cannot read colour image: the file is cut short "
+        f"(the {what}, {len(whole) // 2} bytes); copy it again from the source; the 6 frames "
+        f"done are saved in {out}"
+    ]
+    assert "Premature end" not in err and "libpng" not in err  # no decoder's own line
+    assert len(tum.read_trajectory(out / "trajectory.txt")) == 6  # the frames before it kept

@@ -377,8 +377,35 @@ def _read_timestamped_files(path: Path) -> list[tuple[float, str]]:
     return entries
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC: the last 8 bytes of every PNG
+_JPEG_START, _JPEG_SCAN, _JPEG_END = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"
+
+
+def _check_whole(path: Path, kind: str) -> None:
+    """Refuse (DatasetError) a colour or depth (`kind`) image whose file is cut short. libjpeg
+    decodes a cut JPEG with its missing rows grey and only a warning on stderr, and libpng
+    prints an error line of its own: the check comes before either decoder. A file that cannot
+    be read is left to the decoder, whose refusal says so."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return
+    cut = None
+    if data.startswith(_PNG_SIGNATURE) and _PNG_END not in data[-64:]:
+        cut = "the PNG has no IEND chunk at its end"
+    elif data.startswith(_JPEG_START) and not data.rfind(_JPEG_END) > data.rfind(_JPEG_SCAN) > 0:
+        cut = "the JPEG has no end-of-image marker after its last scan"
+    if cut is not None:
+        raise DatasetError(
+            f"{path}: cannot read {kind} image: the file is cut short ({cut}, {len(data)} "
+            "bytes); copy it again from the source"
+        )
+
+
 def _read_colour(path: Path) -> np.ndarray:
     """A PNG or JPEG colour image as (H, W, 3) uint8 RGB (OpenCV reads BGR)."""
+    _check_whole(path, "colour")
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise DatasetError(f"{path}: cannot read colour image (missing or not an image)")
@@ -387,6 +414,7 @@ def _read_colour(path: Path) -> np.ndarray:
 
 def _read_depth(path: Path, depth_scale: float) -> np.ndarray:
     """A 16-bit single-channel PNG as float32 metres (raw / depth_scale); 0 stays 0 (no depth)."""
+    _check_whole(path, "depth")
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise DatasetError(f"{path}: cannot read depth image (missing or not an image)")
