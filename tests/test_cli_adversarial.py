@@ -4,6 +4,7 @@ settings that no image can satisfy, and two commands into one output. Each test 
 exit status, the one line on stderr and what is left on disk. docs/reliability.md lists these
 cases."""
 
+import json
 import shutil
 from pathlib import Path
 
@@ -117,3 +118,35 @@ def test_a_colour_image_cut_short_stops_the_run_there(copy, tmp_path, capfd, kin
     ]
     assert "Premature end" not in err and "libpng" not in err  # no decoder's own line
     assert len(tum.read_trajectory(out / "trajectory.txt")) == 6  # the frames before it kept
+
+
+def test_a_signal_during_the_save_still_writes_the_report(tmp_path, monkeypatch, capsys):
+    # the signal lands while the preview renders, after the trajectory and the mesh: the folder
+    # held them without report.json, so nothing said how the run had ended
+    from kintinuous_ref import mesh
+
+    def render_preview(*args, **kwargs):
+        raise Interrupted("SIGTERM")
+
+    monkeypatch.setattr(mesh, "render_preview", render_preview)
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(TINY), "--out", str(out), *SMALL, "--odometry", "groundtruth"]
+    status = cli.main(argv)
+    assert status == 143
+    assert _errors(capsys.readouterr().err) == [
+        f"kintinuous: SIGTERM during the save: saved trajectory.txt, mesh.ply, "
+        f"volume_origins.txt, report.json in {out}; NOT saved: preview.png"
+    ]
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "interrupted" and report["reason"] == "SIGTERM during the save"
+    assert report["frames"] == 10 and report["last_frame"] == 9
+    assert report["saved"] == ["trajectory.txt", "mesh.ply", "volume_origins.txt", "report.json"]
+    assert report["not_saved"] == {"preview.png": "SIGTERM during the save"}
+    assert len(tum.read_trajectory(out / "trajectory.txt")) == 10
+    assert sorted(p.name for p in out.iterdir()) == [
+        "mesh.ply",
+        "report.json",
+        "slices",
+        "trajectory.txt",
+        "volume_origins.txt",
+    ]

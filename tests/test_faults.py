@@ -134,16 +134,21 @@ def test_a_second_signal_during_the_save_says_what_was_and_was_not_saved(tmp_pat
     assert code == 143, stderr
     assert re.fullmatch(
         rf"kintinuous: SIGTERM during the save: saved trajectory.txt, mesh.ply, "
-        rf"volume_origins.txt in {re.escape(str(out))}; NOT saved: preview.png, report.json",
+        rf"volume_origins.txt, report.json in {re.escape(str(out))}; NOT saved: preview.png",
         _last_line(stderr),
     ), _last_line(stderr)
     assert sorted(p.name for p in out.iterdir()) == [
         "mesh.ply",
+        "report.json",
         "slices",
         "trajectory.txt",
         "volume_origins.txt",
     ]
-    assert _poses(out) >= 3 and _vertices(out) > 0
+    report = _report(out)
+    assert report["status"] == "interrupted"
+    assert report["reason"] == "interrupted by SIGINT; SIGTERM during the save"
+    assert report["not_saved"] == {"preview.png": "SIGTERM during the save"}
+    assert _poses(out) == report["frames"] >= 3 and _vertices(out) > 0
     _no_partial_files(out)
 
 

@@ -341,6 +341,39 @@ def write_outputs(
     return report
 
 
+def _save_interrupted_report(
+    out: Path,
+    info: dict[str, Any],
+    result: PipelineResult,
+    saved: list[str],
+    names: list[str],
+    signal_name: str,
+) -> None:
+    """report.json of a save cut short by `signal_name`: how the run ended and which of `names`
+    were not saved, so that the folder never holds a trajectory without its report. A further
+    signal or a failed write leaves it out (the message then names it among the not saved)."""
+    during = f"{signal_name} during the save"
+    report = {
+        **info,
+        "status": "interrupted",
+        "reason": f"{result.reason}; {during}" if result.reason else during,
+        "last_frame": result.last_frame,
+        "frames": result.frames,
+        "fused_frames": int(np.sum(result.fused)),
+        "tracking_failures": result.tracking_failures,
+        "interrupted": True,
+        "saved": [*saved, "report.json"],
+        "not_saved": {
+            name: during for name in names if name not in saved and name != "report.json"
+        },
+    }
+    try:
+        write_text_atomic(out / "report.json", strict_dumps(report, indent=2) + "\n")
+    except (KeyboardInterrupt, OSError):
+        return
+    saved.append("report.json")
+
+
 def _loop_closure_trajectories(
     result: PipelineResult, groundtruth: Trajectory | None, attempt: Callable
 ) -> None:
@@ -566,6 +599,8 @@ def reconstruct(
             names = ["trajectory.txt", "mesh.ply", "preview.png", "report.json"]
             if result.moving is not None:
                 names.insert(2, "volume_origins.txt")
+            if "report.json" not in saved:  # how the run ended, written in milliseconds
+                _save_interrupted_report(out, info, result, saved, names, name)
             missing = [n for n in names if n not in saved]
             raise Interrupted(
                 name,
