@@ -150,3 +150,21 @@ def test_a_signal_during_the_save_still_writes_the_report(tmp_path, monkeypatch,
         "trajectory.txt",
         "volume_origins.txt",
     ]
+
+
+@pytest.mark.parametrize(
+    ("levels", "command"), [(0, "reconstruct"), (8, "reconstruct"), (0, "benchmark")]
+)
+def test_a_pyramid_no_image_can_have_is_refused_before_any_work(tmp_path, capsys, levels, command):
+    # 0 levels, or 8 halvings of a 120-pixel side, ended in an internal error at the first frame
+    out = tmp_path / "out"
+    argv = [command, str(TINY), *SMALL, "--odometry", "groundtruth", "--frames", "3"]
+    argv += ["--set", f"preprocess.pyramid_levels={levels}"]
+    argv += ["--out", str(out)] if command == "reconstruct" else []
+    status = cli.main(argv)
+    assert status == 2
+    assert _errors(capsys.readouterr().err) == [
+        f"kintinuous: error: preprocess.pyramid_levels {levels}: a 160x120 image has levels "
+        "1..7 (each half the size of the one before); choose one in that range (the default is 4)"
+    ]
+    assert not out.exists()

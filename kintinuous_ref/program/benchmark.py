@@ -69,7 +69,12 @@ def benchmark(
     next, while frames/s is right either way."""
     from kintinuous_ref import pipeline
     from kintinuous_ref.backend import load_backend
-    from kintinuous_ref.program.reconstruct import check_start, open_dataset, prepare_kernels
+    from kintinuous_ref.program.reconstruct import (
+        check_pyramid,
+        check_start,
+        open_dataset,
+        prepare_kernels,
+    )
 
     if frames < 2:
         raise ConfigError(f"--frames must be at least 2 (the first is a warm-up), got {frames}")
@@ -77,6 +82,7 @@ def benchmark(
     chosen = load_backend(backend)
     sequence = open_dataset(dataset, frames_needed=start + frames)
     check_start(start, sequence)
+    check_pyramid(config, sequence.camera.width, sequence.camera.height)
     groundtruth = None
     if sequence.groundtruth is not None:
         groundtruth = sequence.groundtruth_for_frames()

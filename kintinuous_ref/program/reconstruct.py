@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from kintinuous_ref.backend import REFERENCE, Backend, load_backend
-from kintinuous_ref.config import Config
+from kintinuous_ref.config import Config, PreprocessConfig
 from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
 from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
 from kintinuous_ref.loop_closure.closer import LoopCloser
@@ -172,6 +172,20 @@ def check_start(start: int, sequence: FrameSequence) -> None:
     """Refuse a first frame outside the sequence (ConfigError naming --start and its range)."""
     if not 0 <= start < len(sequence):
         raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
+
+
+def check_pyramid(config: Config, width: int, height: int) -> None:
+    """Refuse (ConfigError) a preprocess.pyramid_levels no run can use: none, or more than
+    halving a `width` x `height` image leaves a pixel for (the coarsest level would be empty, and
+    the reference ends in an internal error at the first frame)."""
+    levels = config.preprocess.pyramid_levels
+    most = max(min(width, height).bit_length(), 1)  # levels whose short side keeps a pixel
+    if not 1 <= levels <= most:
+        raise ConfigError(
+            f"preprocess.pyramid_levels {levels}: a {width}x{height} image has levels 1..{most} "
+            f"(each half the size of the one before); choose one in that range (the default "
+            f"is {PreprocessConfig.pyramid_levels})"
+        )
 
 
 def check_output(out: str | Path, overwrite: bool = False) -> Path:
@@ -524,6 +538,7 @@ def reconstruct(
             # optional for a tracker: the run goes on from the identity, and says so
             warnings.append(f"{err}: ground truth not used; the run starts at the identity")
     check_run(config, odometry, groundtruth, backend, loop_closure, dataset=str(sequence.path))
+    check_pyramid(config, sequence.camera.width, sequence.camera.height)
     if plausibility_checks:
         first_pose = np.eye(4) if groundtruth is None else groundtruth.poses[start]
         warnings += check_inputs(
