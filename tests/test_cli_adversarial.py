@@ -168,3 +168,29 @@ def test_a_pyramid_no_image_can_have_is_refused_before_any_work(tmp_path, capsys
         "1..7 (each half the size of the one before); choose one in that range (the default is 4)"
     ]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["tum", "seq.klg"])
+def test_a_second_convert_into_an_output_being_written_is_refused(tmp_path, capsys, name):
+    # the two shared one temporary name beside the output: the second removed the first's
+    # half-written folder (the first then failed on a file of it) or wrote into the same log
+    import fcntl
+    import os
+
+    out = tmp_path / name
+    lock = tmp_path / f".{name}.lock"
+    handle = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)  # what a live convert holds
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        os.write(handle, f"4242 kintinuous convert a {out}\n".encode())
+        status = cli.main(["convert", str(TINY), str(out)])
+    finally:
+        os.close(handle)
+    assert status == 2
+    assert _errors(capsys.readouterr().err) == [
+        f"kintinuous: error: {out}: being written by pid 4242 (kintinuous convert a {out}); "
+        "wait for it to end or choose another output"
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [lock.name]  # nothing written
+    assert cli.main(["convert", str(TINY), str(out)]) == 0  # once it has ended
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # its lock file removed too

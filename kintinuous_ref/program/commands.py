@@ -15,7 +15,7 @@ from kintinuous_ref import __version__
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.program.arguments import MIRROR_VARIABLE
 from kintinuous_ref.program.config_options import configured
-from kintinuous_ref.program.output_folder import locked
+from kintinuous_ref.program.output_folder import claimed, locked
 from kintinuous_ref.strict_json import dumps as strict_dumps
 
 if TYPE_CHECKING:
@@ -152,6 +152,11 @@ def open_from_options(
 
 
 def run_convert(args: argparse.Namespace) -> None:
+    with claimed(args.out):  # a second convert into the same output is refused while it lives
+        _convert(args)
+
+
+def _convert(args: argparse.Namespace) -> None:
     from kintinuous_ref.datasets import klg, tum
 
     sequence = open_from_options(args.source, args, need_camera=False)

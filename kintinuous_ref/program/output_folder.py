@@ -100,6 +100,34 @@ def waiting_lock(lock: Path) -> Iterator[None]:
         _unlock(lock, handle)
 
 
+@contextlib.contextmanager
+def claimed(path: str | Path) -> Iterator[Path]:
+    """Hold `path`, a file or folder a command is about to make whole (convert's log or TUM
+    folder), while the block runs: an exclusive flock on `.NAME.lock` beside it. FolderInUse when
+    another live process holds it: two writers would share one temporary name beside `path`,
+    and each would remove or overwrite the other's."""
+    path = Path(path)
+    whole = Path(os.path.abspath(path))  # "." and "x/.." name the folder they stand for
+    if not whole.name:  # the root: it exists, so the writer refuses it
+        yield path
+        return
+    lock = whole.with_name(f".{whole.name}.lock")
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        handle = _lock(lock, wait=False)
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot write beside it ({err.strerror or err})") from None
+    if handle is None:
+        raise FolderInUse(
+            f"{path}: being written by {holder(lock)}; wait for it to end or choose another output"
+        )
+    try:
+        _write_holder(handle, None)
+        yield path
+    finally:
+        _unlock(lock, handle)
+
+
 def _lock(lock: Path, wait: bool) -> int | None:
     """An open descriptor of `lock` holding its exclusive flock, or None when another process
     holds it (and not `wait`). A file removed by its holder as it let go is opened anew, so two
