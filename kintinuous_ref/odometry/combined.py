@@ -11,7 +11,7 @@ has the normal equations
 
 the stacked system [J_icp; v J_rgbd] with v = sqrt(w): simply the weighted sum of the two 6x6
 systems. (The paper prints eq. 13 with v, not w, on the right-hand side, which is not the
-normal equations of its stack and does not converge to eq. 11's minimum; lesson 6 runs both.)
+normal equations of its stack: with w = 0.1 its steps do not settle; lesson 6 runs both.)
 Three pyramid levels, 10 / 5 / 4 iterations from finest to coarsest.
 
 Units and the weight. The paper sets w = 0.1 "to reflect the difference in metrics" without
