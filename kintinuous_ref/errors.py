@@ -9,6 +9,11 @@ class DatasetError(KintinuousError):
     """A sequence on disk that cannot be read: missing, corrupt or inconsistent files."""
 
 
+class ImageSizeError(DatasetError):
+    """An image whose size differs from the camera's: every frame is likely to differ alike, so
+    a run refuses it before its work rather than skipping it."""
+
+
 class ConfigError(KintinuousError):
     """A parameter outside its sensible range."""
 

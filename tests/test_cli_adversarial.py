@@ -194,3 +194,39 @@ def test_a_second_convert_into_an_output_being_written_is_refused(tmp_path, caps
     assert sorted(p.name for p in tmp_path.iterdir()) == [lock.name]  # nothing written
     assert cli.main(["convert", str(TINY), str(out)]) == 0  # once it has ended
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # its lock file removed too
+
+
+def test_intrinsics_of_another_image_size_are_refused_before_any_work(copy, tmp_path, capsys):
+    # a camera for 320x240 with 160x120 images: the run made an output folder holding a failed
+    # report of 0 frames, so the rerun with the right camera needed --overwrite
+    intrinsics = copy / "intrinsics.json"
+    camera = json.loads(intrinsics.read_text())
+    camera.update(width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5)
+    intrinsics.write_text(json.dumps(camera))
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(copy), "--out", str(out), *SMALL, "--odometry", "groundtruth"]
+    status = cli.main(argv)
+    assert status == 2
+    assert _errors(capsys.readouterr().err) == [
+        f"kintinuous: error: frame 0: {_listed(copy, 0, 3)}: image is 160x120 but the camera is "
+        f"320x240 (the camera of {intrinsics})"
+    ]
+    assert not out.exists()
+
+
+def test_a_first_frame_that_cannot_be_read_is_refused_before_any_work(copy, tmp_path, capsys):
+    # the checks before the work read the first frame and dropped its error, and the run then
+    # failed at it into a new output folder
+    depth = _listed(copy, 0, 3)
+    depth.write_bytes(b"not a png")
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(copy), "--out", str(out), *SMALL, "--odometry", "groundtruth"]
+    status = cli.main(argv)
+    errors = _errors(capsys.readouterr().err)
+    assert status == 2
+    assert len(errors) == 1 and errors[0].startswith(f"kintinuous: error: frame 0: {depth}: ")
+    assert "saved" not in errors[0]
+    assert not out.exists()
+    # with --skip-bad-frames the run goes ahead without it
+    assert cli.main([*argv, "--skip-bad-frames"]) == 0
+    assert len(tum.read_trajectory(out / "trajectory.txt")) == 9

@@ -37,7 +37,7 @@ from kintinuous_ref.datasets.tum import (
     associate,
     read_trajectory,
 )
-from kintinuous_ref.errors import DatasetError
+from kintinuous_ref.errors import DatasetError, ImageSizeError
 
 # (colour, depth, camera info): TUM RGB-D's bags, then the RealSense driver's aligned topics.
 TOPIC_SETS = (
@@ -108,7 +108,7 @@ class BagSequence(FrameSequence):
         depth = _depth_image(found["depth"], self.path, index)
         for what, image in (("colour", colour), ("depth", depth)):
             if image.shape[:2] != (self.camera.height, self.camera.width):
-                raise DatasetError(
+                raise ImageSizeError(
                     f"{self.path}: frame {index}: {what} image is {image.shape[1]}x"
                     f"{image.shape[0]} but the camera is {self.camera.width}x{self.camera.height}"
                 )

@@ -27,7 +27,7 @@ from kintinuous_ref.camera import (
     load_intrinsics_json,
     parse_intrinsics,
 )
-from kintinuous_ref.errors import DatasetError
+from kintinuous_ref.errors import DatasetError, ImageSizeError
 from kintinuous_ref.strict_json import dumps as strict_dumps
 
 
@@ -268,7 +268,7 @@ class TumSequence(FrameSequence):
         # each image against the camera, so that the message names the one whose size is wrong
         for path, image in ((entry.depth, depth), (entry.colour, colour)):
             if image.shape[:2] != (self.camera.height, self.camera.width):
-                raise DatasetError(
+                raise ImageSizeError(
                     f"{path}: image is {image.shape[1]}x{image.shape[0]} but the camera is "
                     f"{self.camera.width}x{self.camera.height}"
                 )

@@ -20,7 +20,13 @@ import numpy as np
 from kintinuous_ref.backend import REFERENCE, Backend, load_backend
 from kintinuous_ref.config import Config, PreprocessConfig
 from kintinuous_ref.datasets.tum import Frame, FrameSequence, Trajectory
-from kintinuous_ref.errors import ConfigError, DatasetError, InternalError, KintinuousError
+from kintinuous_ref.errors import (
+    ConfigError,
+    DatasetError,
+    ImageSizeError,
+    InternalError,
+    KintinuousError,
+)
 from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.pipeline import GROUNDTRUTH, PipelineResult, check_run, error_reason, run
 from kintinuous_ref.plausibility import check_inputs, run_warnings
@@ -428,13 +434,21 @@ def _camera_source(sequence: FrameSequence) -> str:
     return str(listed) if listed.is_file() else str(sequence.path)
 
 
-def _first_depth(sequence: FrameSequence, start: int) -> np.ndarray | None:
-    """The depth (metres) of the run's first frame, for the checks before the work; None when
-    it cannot be read, which the run itself then reports (or skips)."""
+def _first_depth(
+    sequence: FrameSequence, start: int, skip_bad_frames: bool, camera_source: str
+) -> np.ndarray | None:
+    """The depth (metres) of the run's first frame, read before the work so that a frame no run
+    can use is refused before an output folder exists: an image whose size is not the camera's
+    (every frame would differ alike), or a frame that cannot be read. With `skip_bad_frames` an
+    unreadable first frame is None, and the run leaves it out."""
     try:
         return sequence[start].depth
-    except DatasetError:
-        return None
+    except ImageSizeError as err:
+        raise ImageSizeError(f"frame {start}: {err} (the camera of {camera_source})") from None
+    except DatasetError as err:
+        if skip_bad_frames:
+            return None
+        raise DatasetError(f"frame {start}: {err}") from None
 
 
 def _bad_frames_checked(
@@ -539,16 +553,11 @@ def reconstruct(
             warnings.append(f"{err}: ground truth not used; the run starts at the identity")
     check_run(config, odometry, groundtruth, backend, loop_closure, dataset=str(sequence.path))
     check_pyramid(config, sequence.camera.width, sequence.camera.height)
+    camera_source = camera_source or _camera_source(sequence)
+    depth = _first_depth(sequence, start, skip_bad_frames, camera_source)
     if plausibility_checks:
         first_pose = np.eye(4) if groundtruth is None else groundtruth.poses[start]
-        warnings += check_inputs(
-            config,
-            sequence.camera,
-            camera_source or _camera_source(sequence),
-            _first_depth(sequence, start),
-            first_pose,
-            start,
-        )
+        warnings += check_inputs(config, sequence.camera, camera_source, depth, first_pose, start)
     _warn(warnings)
     with locked(out):  # a second run into `out` is refused until this one ends
         out = prepare_output(out, overwrite)
