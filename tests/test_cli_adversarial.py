@@ -230,3 +230,50 @@ def test_a_first_frame_that_cannot_be_read_is_refused_before_any_work(copy, tmp_
     # with --skip-bad-frames the run goes ahead without it
     assert cli.main([*argv, "--skip-bad-frames"]) == 0
     assert len(tum.read_trajectory(out / "trajectory.txt")) == 9
+
+
+@pytest.mark.parametrize(
+    ("odometry", "setting", "key", "iterations", "levels"),
+    [
+        ("icp", "icp.iterations=[10,5,4,4,4]", "icp.iterations", [10, 5, 4, 4, 4], 4),
+        ("icp", "preprocess.pyramid_levels=2", "icp.iterations", [10, 5, 4], 2),
+        ("rgbd", "preprocess.pyramid_levels=3", "rgbd.iterations", [10, 7, 7, 7], 3),
+        (
+            "fovis/icp+rgbd",
+            "preprocess.pyramid_levels=1",
+            "rgbd.combined_iterations",
+            [10, 5, 4],
+            1,
+        ),
+    ],
+)
+def test_iterations_for_more_levels_than_the_pyramid_are_refused_before_any_work(
+    tmp_path, capsys, odometry, setting, key, iterations, levels
+):
+    # the tracker needs one pyramid level per count: it failed on every frame, said only by a
+    # warning after the run
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(TINY), "--out", str(out), *SMALL, "--odometry", odometry]
+    status = cli.main([*argv, "--frames", "3", "--set", setting])
+    assert status == 2
+    assert _errors(capsys.readouterr().err) == [
+        f"kintinuous: error: {key} {iterations}: counts for {len(iterations)} pyramid levels, "
+        f"but preprocess.pyramid_levels is {levels}, so --odometry {odometry} would fail on "
+        f"every frame; give {key} at most {levels} counts or preprocess.pyramid_levels at "
+        f"least {len(iterations)}"
+    ]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("odometry", ["icp", "rgbd", "fovis", "fovis/rgbd", "icp+rgbd"])
+def test_every_tracker_runs_with_the_default_pyramid(odometry):
+    from kintinuous_ref.config import Config
+    from kintinuous_ref.program.reconstruct import check_tracker_levels
+
+    check_tracker_levels(Config(), odometry)  # no error
+
+
+def test_a_benchmark_with_iterations_for_more_levels_is_refused(capsys):
+    argv = ["benchmark", str(TINY), "--frames", "3", "--odometry", "icp", *SMALL]
+    assert cli.main([*argv, "--set", "preprocess.pyramid_levels=2"]) == 2
+    assert _errors(capsys.readouterr().err)[0].startswith("kintinuous: error: icp.iterations")

@@ -82,7 +82,7 @@ def benchmark(
     chosen = load_backend(backend)
     sequence = open_dataset(dataset, frames_needed=start + frames)
     check_start(start, sequence)
-    check_pyramid(config, sequence.camera.width, sequence.camera.height)
+    check_pyramid(config, sequence.camera.width, sequence.camera.height, odometry)
     groundtruth = None
     if sequence.groundtruth is not None:
         groundtruth = sequence.groundtruth_for_frames()

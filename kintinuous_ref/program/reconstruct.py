@@ -29,7 +29,7 @@ from kintinuous_ref.errors import (
 )
 from kintinuous_ref.loop_closure.closer import LoopCloser
 from kintinuous_ref.pipeline import GROUNDTRUTH, PipelineResult, check_run, error_reason, run
-from kintinuous_ref.plausibility import check_inputs, run_warnings
+from kintinuous_ref.plausibility import ITERATION_KEYS, check_inputs, run_warnings
 from kintinuous_ref.program.output_folder import (
     atomic,
     check_folder_path,
@@ -180,10 +180,11 @@ def check_start(start: int, sequence: FrameSequence) -> None:
         raise ConfigError(f"--start {start} outside the sequence's frames 0..{len(sequence) - 1}")
 
 
-def check_pyramid(config: Config, width: int, height: int) -> None:
+def check_pyramid(config: Config, width: int, height: int, odometry: str = GROUNDTRUTH) -> None:
     """Refuse (ConfigError) a preprocess.pyramid_levels no run can use: none, or more than
     halving a `width` x `height` image leaves a pixel for (the coarsest level would be empty, and
-    the reference ends in an internal error at the first frame)."""
+    the reference ends in an internal error at the first frame); or fewer than the tracker of
+    `odometry` runs iterations on (check_tracker_levels)."""
     levels = config.preprocess.pyramid_levels
     most = max(min(width, height).bit_length(), 1)  # levels whose short side keeps a pixel
     if not 1 <= levels <= most:
@@ -191,6 +192,26 @@ def check_pyramid(config: Config, width: int, height: int) -> None:
             f"preprocess.pyramid_levels {levels}: a {width}x{height} image has levels 1..{most} "
             f"(each half the size of the one before); choose one in that range (the default "
             f"is {PreprocessConfig.pyramid_levels})"
+        )
+    check_tracker_levels(config, odometry)
+
+
+def check_tracker_levels(config: Config, odometry: str) -> None:
+    """Refuse (ConfigError) iterations for more pyramid levels than preprocessing builds: the
+    dense tracker of `odometry` (a FOVIS switch's too) needs one level per count, and without
+    them fails on every frame, which the run would only report after its work."""
+    key = ITERATION_KEYS.get(odometry.removeprefix("fovis/"))
+    if key is None:
+        return  # ground truth, or FOVIS alone: no dense levels
+    section, name = key.split(".")
+    iterations = list(getattr(getattr(config, section), name))
+    levels = config.preprocess.pyramid_levels
+    if len(iterations) > levels:
+        raise ConfigError(
+            f"{key} {iterations}: counts for {len(iterations)} pyramid levels, but "
+            f"preprocess.pyramid_levels is {levels}, so --odometry {odometry} would fail on "
+            f"every frame; give {key} at most {levels} counts or preprocess.pyramid_levels at "
+            f"least {len(iterations)}"
         )
 
 
@@ -552,7 +573,7 @@ def reconstruct(
             # optional for a tracker: the run goes on from the identity, and says so
             warnings.append(f"{err}: ground truth not used; the run starts at the identity")
     check_run(config, odometry, groundtruth, backend, loop_closure, dataset=str(sequence.path))
-    check_pyramid(config, sequence.camera.width, sequence.camera.height)
+    check_pyramid(config, sequence.camera.width, sequence.camera.height, odometry)
     camera_source = camera_source or _camera_source(sequence)
     depth = _first_depth(sequence, start, skip_bad_frames, camera_source)
     if plausibility_checks:
