@@ -135,38 +135,96 @@ TUM_CAMERAS = {
 DEFAULT_CAMERA = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 
 
+INTRINSICS_FIELDS = ("fx", "fy", "cx", "cy", "width", "height")  # depth_scale is optional
+_EXPECTED_FIELDS = "fx, fy, cx, cy, width, height and optionally depth_scale"
+
+
 def load_intrinsics_json(path: Path) -> Intrinsics:
-    """Read `{"fx","fy","cx","cy","width","height","depth_scale"}` from a JSON file."""
+    """Read `{"fx","fy","cx","cy","width","height","depth_scale"}` from a JSON file; a
+    DatasetError that names the file and the field missing or invalid otherwise."""
     path = Path(path)
-    try:
-        values = json.loads(path.read_text())
-        return Intrinsics(
-            fx=float(values["fx"]),
-            fy=float(values["fy"]),
-            cx=float(values["cx"]),
-            cy=float(values["cy"]),
-            width=int(values["width"]),
-            height=int(values["height"]),
-            depth_scale=float(values.get("depth_scale", TUM_DEPTH_SCALE)),
+    values = _intrinsics_object(path, _read_intrinsics_text(path))
+    missing = [name for name in INTRINSICS_FIELDS if name not in values]
+    if missing:
+        raise DatasetError(
+            f"{path}: not a valid intrinsics file: no {', '.join(missing)} (expected "
+            f"{_EXPECTED_FIELDS})"
         )
+    numbers = {name: _number_field(path, values, name) for name in ("fx", "fy", "cx", "cy")}
+    numbers["depth_scale"] = (
+        _number_field(path, values, "depth_scale") if "depth_scale" in values else TUM_DEPTH_SCALE
+    )
+    try:
+        return Intrinsics(
+            width=_size_field(path, values, "width"),
+            height=_size_field(path, values, "height"),
+            **numbers,
+        )
+    except ConfigError as err:
+        raise DatasetError(f"{path}: not a valid intrinsics file ({err!s})") from None
+
+
+def _read_intrinsics_text(path: Path) -> str:
+    try:
+        return path.read_text()
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except UnicodeDecodeError:
         raise DatasetError(f"{path}: not a text file; expected intrinsics JSON") from None
     except OSError as err:
         raise DatasetError(f"{path}: cannot read ({err.strerror or err})") from None
+
+
+def _intrinsics_object(path: Path, text: str) -> dict:
+    """The JSON object of an intrinsics file; anything else is a DatasetError naming it."""
+    try:
+        values = json.loads(text)
     except RecursionError:
         raise DatasetError(f"{path}: not a valid intrinsics file (nested too deeply)") from None
-    except (
-        json.JSONDecodeError,
-        KeyError,
-        TypeError,
-        ValueError,
-        OverflowError,
-        AttributeError,
-        ConfigError,
-    ) as err:
-        raise DatasetError(f"{path}: not a valid intrinsics file ({err!s})") from None
+    except json.JSONDecodeError as err:
+        raise DatasetError(f"{path}: not a valid intrinsics file (not JSON: {err})") from None
+    if not isinstance(values, dict):
+        raise DatasetError(
+            f"{path}: not a valid intrinsics file: a JSON {_json_kind(values)}, expected an "
+            f"object with {_EXPECTED_FIELDS}"
+        )
+    return values
+
+
+def _json_kind(value: object) -> str:
+    kinds = {list: "list", str: "string", bool: "boolean", type(None): "null"}
+    return kinds.get(type(value), "number")
+
+
+def _shown(value: object) -> str:
+    """A field's value for a one-line message, cut to a readable length."""
+    text = json.dumps(value) if not isinstance(value, float) else repr(value)
+    return text if len(text) <= 40 else f"{text[:37]}..."
+
+
+def _number_field(path: Path, values: dict, name: str) -> float:
+    """Field `name` as a number (a JSON number, or a string holding one)."""
+    value = values[name]
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        return float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(
+            f"{path}: not a valid intrinsics file: {name} {_shown(value)} is not a number"
+        ) from None
+
+
+def _size_field(path: Path, values: dict, name: str) -> int:
+    """Field `name` (width or height) as a positive whole number of pixels: an image has no
+    fraction of a pixel, and truncating one would describe another camera."""
+    number = _number_field(path, values, name)
+    if not (number.is_integer() and number >= 1):
+        raise DatasetError(
+            f"{path}: not a valid intrinsics file: {name} {_shown(values[name])} is not a "
+            "whole number of pixels of at least 1"
+        )
+    return int(number)
 
 
 def camera_from_folder_name(folder: Path) -> Intrinsics | None:

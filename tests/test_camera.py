@@ -64,3 +64,49 @@ def test_bad_intrinsics_are_reported(tmp_path):
     with pytest.raises(ConfigError, match="positive"):
         Intrinsics(-1, 1, 0, 0, 10, 10)
     assert parse_intrinsics("525,525,319.5,239.5").fx == 525
+
+
+FIELDS = "fx, fy, cx, cy, width, height and optionally depth_scale"
+WHOLE = {"fx": 131.25, "fy": 131.25, "cx": 79.5, "cy": 59.5, "width": 160, "height": 120}
+
+
+@pytest.mark.parametrize(
+    ("content", "what"),
+    [
+        ("{}", f"no fx, fy, cx, cy, width, height (expected {FIELDS})"),
+        ("[]", f"a JSON list, expected an object with {FIELDS}"),
+        ('"fx"', f"a JSON string, expected an object with {FIELDS}"),
+        (json.dumps({**WHOLE, "cx": None}), "cx null is not a number"),
+        (json.dumps({k: v for k, v in WHOLE.items() if k != "cy"}), f"no cy (expected {FIELDS})"),
+        (json.dumps({**WHOLE, "fx": "wide"}), 'fx "wide" is not a number'),
+        (json.dumps({**WHOLE, "fy": True}), "fy true is not a number"),
+        (
+            json.dumps({**WHOLE, "width": 160.5}),
+            "width 160.5 is not a whole number of pixels of at least 1",
+        ),
+        (
+            json.dumps({**WHOLE, "height": 0}),
+            "height 0 is not a whole number of pixels of at least 1",
+        ),
+        (
+            json.dumps({**WHOLE, "height": -120}),
+            "height -120 is not a whole number of pixels of at least 1",
+        ),
+        (json.dumps({**WHOLE, "depth_scale": [5000]}), "depth_scale [5000] is not a number"),
+    ],
+)
+def test_an_intrinsics_file_names_the_field_missing_or_invalid(tmp_path, content, what):
+    # `{}` said "not a valid intrinsics file ('fx')", `[]` "list indices must be integers...",
+    # and a width of 160.5 was read as 160
+    path = tmp_path / "intrinsics.json"
+    path.write_text(content)
+    with pytest.raises(DatasetError) as caught:
+        load_intrinsics_json(path)
+    assert str(caught.value) == f"{path}: not a valid intrinsics file: {what}"
+
+
+def test_a_whole_size_written_as_a_float_is_read(tmp_path):
+    path = tmp_path / "intrinsics.json"
+    path.write_text(json.dumps({**WHOLE, "width": 160.0}))
+    camera = load_intrinsics_json(path)
+    assert (camera.width, camera.height) == (160, 120) and isinstance(camera.width, int)
