@@ -301,3 +301,29 @@ def test_a_table_of_datasets_that_do_not_exist_is_refused_before_any_run(
     assert len(error) == 1 and error[0].startswith("kintinuous: error: none of the 2 datasets")
     assert f"{log}: log file not found" in error[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["--shift-threshold", "0"],
+            "--shift-threshold (volume.shift_threshold) must be 1..16 voxels, got 0",
+        ),
+        (["--resolution", "4"], "--resolution (volume.resolution) must be in 8..1024, got 4"),
+        (
+            ["--volume-size", "-1"],
+            "--volume-size (volume.size): volume size must be positive, got -1.0 m",
+        ),
+        (
+            ["--set", "volume.shift_threshold=17"],
+            "--set: shift threshold must be 1..16 voxels, got 17",
+        ),
+    ],
+)
+def test_a_volume_option_out_of_range_is_named(tmp_path, capsys, argv, message):
+    # "shift threshold must be 1..16 voxels, got 0" named no option the user had typed
+    out = tmp_path / "out"
+    assert cli.main(["reconstruct", str(TINY), "--out", str(out), *argv]) == 2
+    assert _errors(capsys.readouterr().err) == [f"kintinuous: error: {message}"]
+    assert not out.exists()

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from kintinuous_ref import __version__
 from kintinuous_ref.errors import KintinuousError
 from kintinuous_ref.program.arguments import MIRROR_VARIABLE
-from kintinuous_ref.program.config_options import configured
+from kintinuous_ref.program.config_options import configured, volume_from_options
 from kintinuous_ref.program.output_folder import claimed, locked
 from kintinuous_ref.strict_json import dumps as strict_dumps
 
@@ -64,12 +64,12 @@ def run_evaluate(args: argparse.Namespace) -> None:
 
 def run_reconstruct(args: argparse.Namespace) -> None:
     from kintinuous_ref.backend import load_backend
-    from kintinuous_ref.config import ColourConfig, Config, VolumeConfig, fast_odometry
+    from kintinuous_ref.config import ColourConfig, Config, fast_odometry
     from kintinuous_ref.pipeline import check_settings
     from kintinuous_ref.program import reconstruct
 
     config = Config(
-        volume=VolumeConfig(
+        volume=volume_from_options(
             resolution=args.resolution,
             size=args.volume_size,
             shift_threshold=args.shift_threshold,
@@ -197,7 +197,7 @@ def run_download(args: argparse.Namespace) -> None:
 
 
 def run_table(args: argparse.Namespace) -> int:
-    from kintinuous_ref.config import Config, VolumeConfig
+    from kintinuous_ref.config import Config
     from kintinuous_ref.program.evaluation import evaluate_methods, method_title
 
     size = parse_size(args.size)
@@ -205,7 +205,7 @@ def run_table(args: argparse.Namespace) -> int:
         from kintinuous_ref.program.evaluation.runs import dask_client
 
         dask_client(args.scheduler).close()  # fail early: dask missing or scheduler unreachable
-    config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
+    config = Config(volume=volume_from_options(resolution=args.resolution, size=args.volume_size))
     config = configured(config, args.config, args.set)
 
     def done(outcome, finished: int, total: int) -> None:  # noqa: ANN001
@@ -271,10 +271,10 @@ def table_command(args: argparse.Namespace) -> str:
 
 
 def run_benchmark(args: argparse.Namespace) -> None:
-    from kintinuous_ref.config import Config, VolumeConfig, fast_odometry
+    from kintinuous_ref.config import Config, fast_odometry
     from kintinuous_ref.program.benchmark import benchmark, format_table
 
-    config = Config(volume=VolumeConfig(resolution=args.resolution, size=args.volume_size))
+    config = Config(volume=volume_from_options(resolution=args.resolution, size=args.volume_size))
     config = configured(config, args.config, args.set)
     if args.fast_odometry:
         config = fast_odometry(config)

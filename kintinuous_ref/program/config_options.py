@@ -12,6 +12,30 @@ from typing import Any
 
 from kintinuous_ref.errors import ConfigError
 
+# The volume's command-line options: the start of VolumeConfig's message for the field each sets,
+# and what it becomes, so that a refused value names the option the user typed (a --set of the
+# same key keeps VolumeConfig's own words, after "--set: ")
+VOLUME_OPTIONS = (
+    ("shift threshold ", "--shift-threshold (volume.shift_threshold) "),
+    ("volume resolution ", "--resolution (volume.resolution) "),
+    ("volume size ", "--volume-size (volume.size): volume size "),
+)
+
+
+def volume_from_options(**fields: Any) -> Any:
+    """A VolumeConfig of the command line's --resolution, --volume-size, --shift-threshold (and
+    other `fields`): a value out of its range is a ConfigError naming the option and its key."""
+    from kintinuous_ref.config import VolumeConfig
+
+    try:
+        return VolumeConfig(**fields)
+    except ConfigError as err:
+        message = str(err)
+        for start, option in VOLUME_OPTIONS:
+            if message.startswith(start):
+                raise ConfigError(option + message.removeprefix(start)) from None
+        raise
+
 
 def configured(config: Any, path: Path | None, settings: list[str]) -> Any:
     """`config` with the values of a JSON file (nested or dotted keys) and then of KEY=VALUE
