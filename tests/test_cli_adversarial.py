@@ -327,3 +327,22 @@ def test_a_volume_option_out_of_range_is_named(tmp_path, capsys, argv, message):
     assert cli.main(["reconstruct", str(TINY), "--out", str(out), *argv]) == 2
     assert _errors(capsys.readouterr().err) == [f"kintinuous: error: {message}"]
     assert not out.exists()
+
+
+def test_a_benchmark_past_the_sequences_end_says_how_many_frames_it_times(capsys):
+    # --start 8 --frames 5 on 10 frames timed 1 frame, said only by the table's header
+    argv = ["benchmark", str(TINY), *SMALL, "--odometry", "groundtruth", "--frames", "5"]
+    assert cli.main([*argv, "--start", "8"]) == 0
+    captured = capsys.readouterr()
+    assert _errors(captured.err) == [
+        "kintinuous: warning: --frames 5 from --start 8: the sequence ends at frame 9, so 2 "
+        "frames run (1 timed)"
+    ]
+    assert "1 timed frames" in captured.out
+    assert cli.main([*argv, "--start", "9"]) == 2  # nothing left to time
+    captured = capsys.readouterr()
+    assert _errors(captured.err) == [
+        "kintinuous: error: --start 9 leaves 1 frame of the sequence's 10 (frames 0..9); a "
+        "benchmark needs at least 2 (the first is a warm-up): choose --start at most 8"
+    ]
+    assert captured.out == ""

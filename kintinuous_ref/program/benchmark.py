@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import platform
 import subprocess
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -86,7 +87,7 @@ def benchmark(
     groundtruth = None
     if sequence.groundtruth is not None:
         groundtruth = sequence.groundtruth_for_frames()
-    count = min(frames, len(sequence) - start)
+    count = frames_to_time(frames, start, len(sequence))
     prepare_kernels(chosen, config, odometry)  # a compile announced, and its time kept
     for length in (min(2, count), count):  # the warm-up, then the timed run
         result = pipeline.run(
@@ -124,6 +125,27 @@ def benchmark(
         "traffic_per_stage": traffic,
         "stages_synchronized": synchronize_stages,
     }
+
+
+def frames_to_time(frames: int, start: int, length: int) -> int:
+    """The frames a benchmark of `frames` from `start` runs on a sequence of `length`: fewer
+    than asked is said in one line on stderr, so that the table's "timed frames" is not the
+    only sign; fewer than 2 (a warm-up and one timed frame) is refused (ConfigError)."""
+    count = min(frames, length - start)
+    if count < 2:
+        raise ConfigError(
+            f"--start {start} leaves {count} frame of the sequence's {length} (frames "
+            f"0..{length - 1}); a benchmark needs at least 2 (the first is a warm-up): choose "
+            f"--start at most {length - 2}"
+        )
+    if count < frames:
+        print(
+            f"kintinuous: warning: --frames {frames} from --start {start}: the sequence ends at "
+            f"frame {length - 1}, so {count} frames run ({count - 1} timed)",
+            file=sys.stderr,
+            flush=True,
+        )
+    return count
 
 
 def format_table(report: dict[str, Any]) -> str:
