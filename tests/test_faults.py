@@ -326,3 +326,69 @@ def test_synth_larger_than_memory_is_one_line(tmp_path):
         "kintinuous: error: out of memory (ask for fewer or smaller frames, or a smaller volume)"
     ]
     assert not list(out.glob("rgb/*.png"))
+
+
+def _synth(out: Path, **options) -> int:
+    """Render 3 frames of `desk` at 160x120 into `out`; the frames this call rendered."""
+    from kintinuous_ref.datasets import synthetic
+
+    counts: list[int] = []
+    synthetic.write_scenario(
+        "desk", out, frames=3, width=160, height=120, on_rendering=counts.append, **options
+    )
+    return counts[0]
+
+
+def test_a_render_stopped_while_it_makes_the_surface_lists_no_frames(tmp_path, monkeypatch):
+    # the listings were written before scene.ply: a Ctrl-C while the surface was made left a
+    # folder that listed its frames without it, which the cache took for complete ever after
+    from kintinuous_ref.datasets import synthetic
+    from kintinuous_ref.program.reconstruct import rendered_frames
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "desk"
+    with monkeypatch.context() as patch:
+        patch.setattr(synthetic.Scenario, "surface_mesh", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            _synth(out)
+    assert rendered_frames(out) == 0 and not (out / "scene.ply").exists()
+    assert _synth(out) == 0  # the frames kept, the surface and the listings added
+    assert rendered_frames(out) == 3 and (out / "scene.ply").is_file()
+    assert not [p.name for p in out.rglob("*") if ".partial" in p.name]
+
+
+def test_a_cached_scenario_without_its_surface_gets_it(tmp_path, monkeypatch):
+    # a cache folder left listing its frames without scene.ply was never completed
+    from kintinuous_ref.program.reconstruct import open_dataset, rendered_frames
+
+    monkeypatch.setenv("KINTINUOUS_CACHE", str(tmp_path))
+    open_dataset("desk", frames_needed=3)
+    folder = tmp_path / "desk"
+    (folder / "scene.ply").unlink()
+    image = sorted((folder / "rgb").iterdir())[0]
+    before = image.stat().st_mtime_ns
+    open_dataset("desk", frames_needed=2)  # fewer than rendered: all 3 stay listed
+    assert (folder / "scene.ply").is_file()
+    assert rendered_frames(folder) == 3 and image.stat().st_mtime_ns == before
+
+
+def test_synth_again_into_its_folder_says_it_rendered_nothing(tmp_path, capsys):
+    # it printed "wrote 3 frames" again, having rendered none
+    from kintinuous_ref.program import cli
+
+    out = tmp_path / "desk"
+    argv = ["synth", "desk", "--out", str(out), "--frames", "3", "--width", "160"]
+    argv += ["--height", "120"]
+    assert cli.main(argv) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == f"wrote 3 frames of 'desk' to {out}"
+    assert cli.main(argv) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        f"{out} already holds the 3 frames of 'desk': none rendered"
+    )
+    (out / "depth" / sorted(p.name for p in (out / "depth").iterdir())[1]).unlink()
+    assert cli.main(argv) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        f"wrote 1 frame of 'desk' to {out} (2 already there)"
+    )

@@ -33,6 +33,7 @@ def run_synth(args: argparse.Namespace) -> None:
         raise KintinuousError("synth needs a SCENARIO and --out DIR (or --list)")
     if args.frames < 1:
         raise KintinuousError(f"--frames must be at least 1 (frames to render), got {args.frames}")
+    counts: list[int] = []
     with locked(args.out) as out:
         synthetic.write_scenario(
             args.scenario,
@@ -45,8 +46,23 @@ def run_synth(args: argparse.Namespace) -> None:
             progress=True,
             workers=max(1, args.workers),
             mesh_spacing=args.mesh_spacing,
+            on_rendering=counts.append,
         )
-    print(f"wrote {args.frames} frames of '{args.scenario}' to {args.out}")
+    print(synth_summary(args.scenario, args.out, args.frames, counts[0]))
+
+
+def synth_summary(scenario: str, out: str, frames: int, rendered: int) -> str:
+    """What `synth` did: the frames it rendered, and those the folder already held."""
+
+    def counted(count: int) -> str:
+        return f"{count} frame{'' if count == 1 else 's'}"
+
+    if rendered == frames:
+        return f"wrote {counted(frames)} of '{scenario}' to {out}"
+    if rendered == 0:
+        return f"{out} already holds the {counted(frames)} of '{scenario}': none rendered"
+    already = frames - rendered
+    return f"wrote {counted(rendered)} of '{scenario}' to {out} ({already} already there)"
 
 
 def run_evaluate(args: argparse.Namespace) -> None:

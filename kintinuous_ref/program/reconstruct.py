@@ -140,9 +140,16 @@ def open_dataset(
     )
     # Runs started together render it once: the others wait, then find it rendered.
     with waiting_lock(folder.with_name(f".{folder.name}.lock")):
-        if rendered_frames(folder) < needed:
+        rendered = rendered_frames(folder)
+        # a render stopped while it made the true surface (by an older version, which listed
+        # the frames first) is completed, its frames kept and still listed
+        if rendered < needed or not (folder / "scene.ply").is_file():
             synthetic.write_scenario(
-                dataset, folder, frames=SCENARIO_FRAMES, progress=progress, render=needed
+                dataset,
+                folder,
+                frames=SCENARIO_FRAMES,
+                progress=progress,
+                render=max(needed, rendered),
             )
     return tum.open_sequence(folder, intrinsics)
 

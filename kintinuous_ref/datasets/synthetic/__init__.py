@@ -13,7 +13,9 @@ scenarios (the five layouts), revisits (loop closure: a drifting lap, perceptual
 from __future__ import annotations
 
 import json
+import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -216,8 +218,20 @@ def _write_frames(
             (out / "rgb" / names[index], colour[..., ::-1]),  # OpenCV writes BGR
             (out / "depth" / names[index], units.astype(np.uint16)),
         ):
-            write_image(path, image, options)
+            _write_whole(path, image, options)
     return len(indices)
+
+
+def _write_whole(path: Path, image: np.ndarray, options: list[int]) -> None:
+    """`image` written under a temporary name and renamed: a render stopped during the write
+    (Ctrl-C) leaves no half image that a later render would take for a written frame."""
+    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        write_image(partial, image, options)
+    except DatasetError as err:  # named as the image the user asked for
+        partial.unlink(missing_ok=True)
+        raise DatasetError(str(err).replace(str(partial), str(path), 1)) from None
+    os.replace(partial, path)
 
 
 def write_scenario(
@@ -232,6 +246,7 @@ def write_scenario(
     workers: int = 1,
     mesh_spacing: float = 0.05,
     render: int | None = None,
+    on_rendering: Callable[[int], None] | None = None,
 ) -> Path:
     """Render a scenario into a TUM-layout folder; returns the folder.
 
@@ -244,6 +259,8 @@ def write_scenario(
     associations.txt, groundtruth.txt (camera-to-world, TUM format), intrinsics.json,
     scene.ply (ground-truth surface, binary PLY with per-vertex RGB) and scenario.json.
     workers > 1 renders frames in that many processes; mesh_spacing: the mesh's edge length (m).
+    `on_rendering`, once the folder is complete, is given how many frames this call rendered
+    (0 when the folder held them all).
     """
     if workers < 1:
         raise ConfigError(f"workers must be at least 1, got {workers}")
@@ -301,6 +318,10 @@ def write_scenario(
         lines += [f"{t:.6f} {kind}/{n}" for t, n in zip(timestamps[:rendered], names, strict=False)]
         return "\n".join(lines) + "\n"
 
+    # before the listings, so that associations.txt is written last: a folder that lists its
+    # frames holds its surface too (a render stopped while the mesh is made lists none)
+    if not (same and (out / "scene.ply").is_file()):
+        _write_surface(scenario, out / "scene.ply", mesh_spacing)
     write_file(out / "rgb.txt", listing("rgb").replace("# rgb images", "# color images"))
     write_file(out / "depth.txt", listing("depth"))
     pairs = [
@@ -310,12 +331,19 @@ def write_scenario(
     write_file(out / "associations.txt", "\n".join(pairs) + "\n")
     write_trajectory(out / "groundtruth.txt", scenario.trajectory)
     write_file(out / "intrinsics.json", strict_dumps(scenario.camera.to_json(), indent=2) + "\n")
-    if not (same and (out / "scene.ply").is_file()):
-        mesh = scenario.surface_mesh(mesh_spacing)
-        try:
-            mesh.save(str(out / "scene.ply"), binary=True, texture="rgb")
-        except OSError as err:
-            raise DatasetError(
-                f"{out / 'scene.ply'}: cannot write ({err.strerror or err})"
-            ) from None
+    if on_rendering is not None:
+        on_rendering(len(missing))
     return out
+
+
+def _write_surface(scenario: Scenario, path: Path, mesh_spacing: float) -> None:
+    """The scenario's true surface as a binary PLY, written under a temporary name and
+    renamed, so that a stopped write leaves no partial scene.ply."""
+    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+    mesh = scenario.surface_mesh(mesh_spacing)
+    try:
+        mesh.save(str(partial), binary=True, texture="rgb")
+        os.replace(partial, path)
+    except OSError as err:
+        partial.unlink(missing_ok=True)
+        raise DatasetError(f"{path}: cannot write ({err.strerror or err})") from None
