@@ -181,8 +181,8 @@ def test_frames_are_read_lazily(tmp_path, monkeypatch):
     times = tuple(i / 30 for i in range(40))
     sequence = tum.open_sequence(write_sequence(tmp_path / "seq", times, times))
     reads = []
-    real_imread = cv2.imread
-    monkeypatch.setattr(cv2, "imread", lambda *a: reads.append(a[0]) or real_imread(*a))
+    real_imdecode = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: reads.append(a[0]) or real_imdecode(*a))
     assert len(tum.open_sequence(tmp_path / "seq")) == 40
     assert reads == []  # opening reads only the list files
     frames = list(sequence.frames(start=10, count=3))

@@ -382,15 +382,15 @@ _PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC: the last 8 bytes 
 _JPEG_START, _JPEG_SCAN, _JPEG_END = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"
 
 
-def _check_whole(path: Path, kind: str) -> None:
-    """Refuse (DatasetError) a colour or depth (`kind`) image whose file is cut short. libjpeg
-    decodes a cut JPEG with its missing rows grey and only a warning on stderr, and libpng
-    prints an error line of its own: the check comes before either decoder. A file that cannot
-    be read is left to the decoder, whose refusal says so."""
+def _whole_file(path: Path, kind: str) -> bytes:
+    """The bytes of a colour or depth (`kind`) image, refused (DatasetError) when missing or
+    cut short. libjpeg decodes a cut JPEG with its missing rows grey and only a warning on
+    stderr, and libpng prints an error line of its own: the check comes before either
+    decoder, which then decodes these bytes (the file is read once)."""
     try:
         data = Path(path).read_bytes()
     except OSError:
-        return
+        raise DatasetError(f"{path}: cannot read {kind} image (missing or not an image)") from None
     cut = None
     if data.startswith(_PNG_SIGNATURE) and _PNG_END not in data[-64:]:
         cut = "the PNG has no IEND chunk at its end"
@@ -401,23 +401,27 @@ def _check_whole(path: Path, kind: str) -> None:
             f"{path}: cannot read {kind} image: the file is cut short ({cut}, {len(data)} "
             "bytes); copy it again from the source"
         )
+    return data
+
+
+def _decoded(path: Path, kind: str, flags: int) -> np.ndarray:
+    """The image of `path` decoded by OpenCV with `flags`, or a DatasetError."""
+    data = _whole_file(path, kind)
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags) if data else None
+    if image is None:
+        raise DatasetError(f"{path}: cannot read {kind} image (missing or not an image)")
+    return image
 
 
 def _read_colour(path: Path) -> np.ndarray:
     """A PNG or JPEG colour image as (H, W, 3) uint8 RGB (OpenCV reads BGR)."""
-    _check_whole(path, "colour")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise DatasetError(f"{path}: cannot read colour image (missing or not an image)")
+    image = _decoded(path, "colour", cv2.IMREAD_COLOR)
     return np.ascontiguousarray(image[..., ::-1])
 
 
 def _read_depth(path: Path, depth_scale: float) -> np.ndarray:
     """A 16-bit single-channel PNG as float32 metres (raw / depth_scale); 0 stays 0 (no depth)."""
-    _check_whole(path, "depth")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise DatasetError(f"{path}: cannot read depth image (missing or not an image)")
+    raw = _decoded(path, "depth", cv2.IMREAD_UNCHANGED)
     if raw.ndim != 2:
         raise DatasetError(
             f"{path}: depth image has {raw.shape[2]} channels, expected one 16-bit channel"
