@@ -82,7 +82,7 @@ def run_reconstruct(args: argparse.Namespace) -> None:
     from kintinuous_ref.backend import load_backend
     from kintinuous_ref.config import ColourConfig, Config, fast_odometry
     from kintinuous_ref.pipeline import check_settings
-    from kintinuous_ref.program import reconstruct
+    from kintinuous_ref.program import reconstruct, results
 
     config = Config(
         volume=volume_from_options(
@@ -104,7 +104,7 @@ def run_reconstruct(args: argparse.Namespace) -> None:
     check_settings(config, args.odometry, load_backend(args.backend), args.loop_closure)
     # held from before the dataset is read: a second run into the folder is refused at once
     with locked(args.out) as out:
-        reconstruct.check_output(out, args.overwrite)
+        results.check_output(out, args.overwrite)
         frames_needed = args.start + args.frames if args.frames else None
         sequence = open_from_options(args.dataset, args, frames_needed=frames_needed)
         report = reconstruct.reconstruct(
