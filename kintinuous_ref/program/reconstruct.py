@@ -133,8 +133,8 @@ def open_dataset(
     # Runs started together render it once: the others wait, then find it rendered.
     with waiting_lock(folder.with_name(f".{folder.name}.lock")):
         rendered = rendered_frames(folder)
-        # a render stopped while it made the true surface (by an older version, which listed
-        # the frames first) is completed, its frames kept and still listed
+        # a cache that lists its frames but lacks its true surface (a render stopped while it
+        # made it) is completed, its frames kept and still listed
         if rendered < needed or not (folder / "scene.ply").is_file():
             synthetic.write_scenario(
                 dataset,
