@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 from cuda_kernel_times import HOLD_STEPS, _hold
+from jacobi_sweeps import sweeps_taken
 from numba import cuda, float64
 
 from kintinuous_fast import cuda_is_simulated
@@ -174,23 +175,6 @@ def near(a: np.ndarray, seed: int, change: float = 1e-3) -> np.ndarray:
     return a + (noise + noise.T) / 2
 
 
-def sweeps_needed(a: np.ndarray, basis: np.ndarray | None = None) -> int:
-    """The Jacobi sweeps the team's eigensolver takes on `a` from `basis` (None: the
-    identity), run as plain Python (one lane)."""
-    full = None
-    basis = np.eye(6) if basis is None else basis
-    for cap in (30, *range(30)):
-        values, vectors = np.empty(6), np.empty((6, 6))
-        build_ops(lambda function: function, max_sweeps=cap).symmetric_eigen_from(
-            a, basis, values, vectors, np.zeros((SCRATCH_MATRICES, 6, 6)), 0, 1
-        )
-        if full is None:
-            full = values
-        elif np.array_equal(values, full):
-            return cap
-    return 30
-
-
 def time_parts(launches: int) -> dict[str, float]:
     """Median microseconds of each part of the step on its own, on one system's numbers."""
     unpacked = packed_system(1, 20_000)
@@ -236,14 +220,14 @@ def time_sweeps(launches: int) -> dict[str, float]:
         rows[name] = median_launch(
             lambda k=kernel: k[1, SOLVE_THREADS](a, values, vectors), launches
         )
-    needed = sweeps_needed(spread)
+    needed = sweeps_taken(spread)[0]
     kernel = eigen_kernel(_symmetric_eigen, SOLVE_THREADS)
     rows[f"spread eigenproblem ({needed} sweeps)"] = median_launch(
         lambda: kernel[1, SOLVE_THREADS](a, values, vectors), launches
     )
     # from the eigenvectors of a matrix 1e-3 away, as a step starts from the last step's
     basis = np.linalg.eigh(near(spread, 5))[1]
-    warm, basis_ = sweeps_needed(spread, basis), cuda.to_device(basis)
+    warm, basis_ = sweeps_taken(spread, basis)[0], cuda.to_device(basis)
     rows[f"spread eigenproblem, warm start ({warm} sweeps)"] = median_launch(
         lambda: _eigen_from_kernel[1, SOLVE_THREADS](a, basis_, values, vectors), launches
     )

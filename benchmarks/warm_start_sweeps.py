@@ -9,8 +9,7 @@ The reference tracker (icp+rgbd, the defaults) runs on every `--every`-th of the
 `combined.information_spectrum` decomposes) is kept. Each is then solved by the team's
 eigensolver (solve/ops.py, run as plain Python on one lane) from the identity, and from the
 eigenvectors the step before it left, the basis reset to the identity at each frame's start as
-the device does. A solve's sweeps: the least cap on sweeps that gives the uncapped eigenpairs
-bit for bit.
+the device does (sweeps counted by jacobi_sweeps.py).
 """
 
 from __future__ import annotations
@@ -19,16 +18,15 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from jacobi_sweeps import sweeps_taken
 from there_and_back import scaled
 
-from kintinuous_fast.odometry.solve.ops import SCRATCH_MATRICES, build_ops
 from kintinuous_ref import pipeline
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets import tum
 from kintinuous_ref.odometry import combined
 
 SIZE = (160, 120)
-CAPPED = [build_ops(lambda function: function, max_sweeps=cap) for cap in range(13)]
 
 
 def recorded_informations(data: Path, frames: int, every: int) -> list[np.ndarray | None]:
@@ -64,21 +62,6 @@ def recorded_informations(data: Path, frames: int, every: int) -> list[np.ndarra
     return kept
 
 
-def solved(matrix: np.ndarray, basis: np.ndarray) -> tuple[int, np.ndarray]:
-    """(sweeps, eigenvectors) of `matrix` from `basis`."""
-    results = []
-    for ops in CAPPED:
-        values, vectors = np.empty(6), np.empty((6, 6))
-        scratch = np.zeros((SCRATCH_MATRICES, 6, 6))
-        ops.symmetric_eigen_from(matrix, basis, values, vectors, scratch, 0, 1)
-        results.append((values, vectors))
-    final = results[-1]
-    for cap, (values, vectors) in enumerate(results):
-        if np.array_equal(values, final[0]) and np.array_equal(vectors, final[1]):
-            return cap, final[1]
-    return len(CAPPED) - 1, final[1]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data", type=Path, help="a TUM-format folder (redkitchen)")
@@ -91,8 +74,8 @@ def main() -> None:
         if matrix is None:  # a new frame: the device resets its basis
             basis = np.eye(6)
             continue
-        cold.append(solved(matrix, np.eye(6))[0])
-        sweeps, basis = solved(matrix, basis)
+        cold.append(sweeps_taken(matrix)[0])
+        sweeps, basis = sweeps_taken(matrix, basis)
         warm.append(sweeps)
     print(f"{len(cold)} eigenproblems, sweeps per eigenproblem (mean, max, count of each):")
     for name, counts in (("from the identity", cold), ("warm start", warm)):
