@@ -279,6 +279,30 @@ def test_a_benchmark_with_iterations_for_more_levels_is_refused(capsys):
     assert _errors(capsys.readouterr().err)[0].startswith("kintinuous: error: icp.iterations")
 
 
+def test_a_table_of_datasets_that_do_not_exist_is_refused_before_any_run(
+    tmp_path, capsys, monkeypatch
+):
+    # every method ran on the missing path and failed, and the command wrote a table of
+    # failures before its exit status 1
+    monkeypatch.setenv("KINTINUOUS_CACHE", str(tmp_path / "cache"))
+    missing, log = tmp_path / "nonexistent", tmp_path / "nothing.klg"
+    out = tmp_path / "out"
+    options = ["--out", str(out), "--frames", "3", "--backend", "ref"]
+    assert cli.main(["table", str(missing), *options]) == 2
+    captured = capsys.readouterr()
+    assert _errors(captured.err) == [
+        f"kintinuous: error: {missing}: neither a dataset folder nor a scenario (desk, "
+        "corridor, dark, floor, loop, revisit, twins), nor a .klg log, a bag or a downloaded "
+        "sequence"
+    ]
+    assert captured.out == "" and not out.exists()
+    assert cli.main(["table", str(missing), str(log), *options]) == 2
+    error = _errors(capsys.readouterr().err)
+    assert len(error) == 1 and error[0].startswith("kintinuous: error: none of the 2 datasets")
+    assert f"{log}: log file not found" in error[0]
+    assert not out.exists()
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [

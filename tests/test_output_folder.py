@@ -126,7 +126,7 @@ def test_table_into_a_held_folder_is_refused(tmp_path, capsys):
     out = tmp_path / "table"
     holder = _hold(out)
     try:
-        assert main(_table(out, str(tmp_path / "none"), "icp")) == 2
+        assert main(_table(out, _no_frames(tmp_path / "none"), "icp")) == 2
     finally:
         holder.kill()
         holder.wait()
@@ -219,20 +219,27 @@ def test_a_slices_folder_holding_a_slice_is_an_earlier_result(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["slices"]  # changed nothing
 
 
+def _no_frames(folder: Path) -> str:
+    """An empty folder: a dataset that exists, whose runs fail at once (a table of datasets
+    none of which exists is refused before any run)."""
+    folder.mkdir(parents=True)
+    return str(folder)
+
+
 def _table(out: Path, dataset: str, method: str, *extra: str) -> list[str]:
     return ["table", dataset, "--methods", method, "--out", str(out), *SMALL, *extra]
 
 
 def test_table_refuses_a_used_folder_and_overwrite_leaves_no_old_run(tmp_path, capsys):
-    # Datasets that do not exist: their runs fail at once, yet each writes its run folder and
-    # the table, as a real run does.
+    # Datasets without frames: their runs fail at once, yet each writes its run folder and the
+    # table, as a real run does.
     out = tmp_path / "table"
-    assert main(_table(out, str(tmp_path / "first"), "icp")) == 1
+    assert main(_table(out, _no_frames(tmp_path / "first"), "icp")) == 1
     first = (out / "table.md").read_text()
     assert (out / "runs" / "first" / "icp" / "report.json").is_file()
     (out / "notes.txt").write_text("mine")
     capsys.readouterr()
-    assert main(_table(out, str(tmp_path / "second"), "rgbd")) == 2
+    assert main(_table(out, _no_frames(tmp_path / "second"), "rgbd")) == 2
     assert capsys.readouterr().err == (
         f"kintinuous: error: {out}: holds an earlier result (table.md, table.json, "
         "fig4_ranking_median.png, fig5_ranking_max.png, trajectories.png, runs); pass "
@@ -249,9 +256,10 @@ def test_table_refuses_a_used_folder_and_overwrite_leaves_no_old_run(tmp_path, c
     )
 
 
-def test_table_refuses_a_folder_holding_other_files(tmp_path, capsys):
+def test_table_refuses_a_folder_holding_other_files(tmp_path, tmp_path_factory, capsys):
     (tmp_path / "notes.txt").write_text("mine")
-    assert main(_table(tmp_path, str(tmp_path / "none"), "icp")) == 2
+    dataset = _no_frames(tmp_path_factory.mktemp("datasets") / "none")
+    assert main(_table(tmp_path, dataset, "icp")) == 2
     assert capsys.readouterr().err == (
         f"kintinuous: error: {tmp_path}: is not empty (notes.txt); pass --overwrite to write the "
         "table among its files, or choose another --out\n"

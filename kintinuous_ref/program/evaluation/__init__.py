@@ -24,7 +24,7 @@ from typing import Any
 from kintinuous_ref.backend import load_backend
 from kintinuous_ref.config import Config
 from kintinuous_ref.datasets.tum import Trajectory
-from kintinuous_ref.errors import ConfigError, KintinuousError
+from kintinuous_ref.errors import ConfigError, DatasetError, KintinuousError
 from kintinuous_ref.program.evaluation.runs import (
     FAILED,
     OK,
@@ -131,6 +131,29 @@ def open_datasets(
     return datasets
 
 
+def check_some_dataset_exists(names: list[str]) -> None:
+    """Refuse (DatasetError, one line) a table none of whose datasets exists: every run would
+    fail, and the table would hold nothing but failures. A table that names some datasets that
+    exist goes ahead, its missing ones reported as failed runs. Nothing is rendered here: an
+    existing path or a scenario's name is enough."""
+    from kintinuous_ref.datasets import synthetic
+    from kintinuous_ref.program.reconstruct import open_dataset
+
+    reasons = []
+    for name in names:
+        if Path(name).exists() or name in synthetic.list_scenarios():
+            return
+        try:
+            open_dataset(name, need_camera=False)  # a downloaded sequence opens; others fail
+        except KintinuousError as err:
+            reasons.append(str(err))
+            continue
+        return
+    if len(reasons) == 1:
+        raise DatasetError(reasons[0])
+    raise DatasetError(f"none of the {len(reasons)} datasets exists: {'; '.join(reasons)}")
+
+
 def _unique(label: str, datasets: list[Dataset]) -> str:
     taken = {d.label for d in datasets}
     candidate, n = label, 2
@@ -173,6 +196,7 @@ def evaluate_methods(
     load_backend(backend)  # a clear error before any run
     config = config or Config()
     config.validate()
+    check_some_dataset_exists(datasets)
     with locked(out) as folder:
         prepare_table_folder(folder, overwrite)
         return _evaluate_into(
