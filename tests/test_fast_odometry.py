@@ -48,6 +48,39 @@ def test_cpu_lists_keep_the_reference_order():
     )
 
 
+def test_equivalence_cpu_repeated_streams():
+    # The compiled comparisons stop early; their answers are np.array_equal's and np.any's.
+    from types import SimpleNamespace
+
+    from kintinuous_ref.odometry import repeated_streams
+
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.5, 4.0, (60, 80)).astype(np.float32)
+    intensity = rng.uniform(0, 255, (60, 80)).astype(np.float32)
+
+    def frame(depth, intensity):  # noqa: ANN001, ANN202 (what repeated_streams reads)
+        return SimpleNamespace(levels=[SimpleNamespace(depth=depth, intensity=intensity)])
+
+    last_pixel = depth.copy()
+    last_pixel[-1, -1] += 1e-3
+    with_nan = depth.copy()
+    with_nan[30, 40] = np.nan
+    blind = np.zeros_like(depth)
+    first = frame(depth, intensity)
+    cases = [
+        (first, frame(depth.copy(), intensity.copy()), (True, True)),
+        (first, frame(last_pixel, intensity), (False, True)),
+        (first, frame(depth, intensity[::-1].copy()), (True, False)),
+        (frame(with_nan, intensity), frame(with_nan.copy(), intensity), (False, True)),
+        (frame(blind, intensity), frame(blind.copy(), intensity), (False, False)),
+        (first, frame(depth[:, :40], intensity[:, :40]), (False, False)),
+        (None, first, (False, False)),
+    ]
+    for previous, current, expected in cases:
+        assert repeated_streams(previous, current) == expected
+        assert cpu.repeated_streams(previous, current) == expected
+
+
 # Poses after a fixed number of iterations: every row agrees to ~1 ulp and every sum to ~1e-12
 # relative, so one Gauss-Newton step agrees to ~1e-12 m; the brief's bound 1e-6 m / 1e-5 rad
 # leaves room for the CUDA sums' atomic order. At convergence both stop at the same step (their

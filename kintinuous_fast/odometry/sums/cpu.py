@@ -20,7 +20,7 @@ import numpy as np
 
 from kintinuous_fast.odometry import ops as geometry_ops
 from kintinuous_fast.targets import to_host
-from kintinuous_fast.targets.cpu import parallel_part, run_parallel
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
 
 from . import NV, SLOT_B, SLOT_COST, SLOT_COUNT, chunks_for
 from .ops import build_ops
@@ -85,11 +85,11 @@ def add_block(acc, weighted, rows, count):  # noqa: ANN001, ANN201
         acc[target] += total
 
 
-@numba.njit(cache=True)
-def _copy_maps(source, target):  # noqa: ANN001, ANN202
-    """target[...] = source for (h, w, 3) maps: NumPy copies a strided map 3 values at a time,
-    this unrolled loop whole pixels."""
-    for v in range(source.shape[0]):
+@LOOP
+def _copy_map_rows(claims, parts, source, target):  # noqa: ANN001, ANN202
+    """target[v] = source[v] for the rows v this thread claims of (h, w, 3) maps: NumPy copies
+    a strided map 3 values at a time, this unrolled loop whole pixels."""
+    for v in claimed_items(claims, source.shape[0], parts):
         for u in range(source.shape[1]):
             target[v, u, 0] = source[v, u, 0]
             target[v, u, 1] = source[v, u, 1]
@@ -99,13 +99,15 @@ def _copy_maps(source, target):  # noqa: ANN001, ANN202
 def stage(array: Any) -> Any:
     """Arrays as the loops take them: C-contiguous NumPy (device arrays are downloaded). One
     layout means one compiled specialisation per loop (the model pyramid's strided levels are
-    copied once per frame)."""
+    copied once per frame, on every thread: the copy reads the raycast's maps, which are
+    seldom still in the cache by then, so it waits on memory, which two cores fetch faster
+    than one)."""
     if array is None:
         return None
     array = to_host(array)
     if array.ndim == 3 and array.shape[2] == 3 and not array.flags.c_contiguous:
         copy = np.empty(array.shape, dtype=array.dtype)
-        _copy_maps(array, copy)
+        run_parallel(_copy_map_rows, array, copy)
         return copy
     return np.ascontiguousarray(array)
 
