@@ -70,28 +70,49 @@ _robust_weight = _ops.robust_weight
 
 
 @LOOP
-def _interest_mask_loop(claims, parts, dx, dy, depth, g2, use_depth, max_depth, mask):
+def _gradient_mask_loop(claims, parts, dx, dy, g2, mask):
+    """mask[v, u] = Algorithm 1's gradient test, for the rows this thread claims."""
     for v in claimed_items(claims, dx.shape[0], parts):
         for u in range(dx.shape[1]):
-            keep = _is_interest(dx, dy, v, u, g2)
-            if keep and use_depth:
-                keep = _has_depth(depth, v, u, max_depth)
-            mask[v, u] = keep
+            mask[v, u] = _is_interest(dx, dy, v, u, g2)
+
+
+@INLINE
+def _is_interest_point(dx, dy, depth, v, u, g2, max_depth):
+    """prepare_level's test of pixel (v, u): Algorithm 1's gradient test, then valid depth."""
+    return _is_interest(dx, dy, v, u, g2) and _has_depth(depth, v, u, max_depth)
 
 
 @LOOP
-def _interest_data_loop(
-    claims, parts, indices, depth, intensity, dx, dy, camera, points, values, grad
-):
+def _interest_counts_loop(claims, parts, dx, dy, depth, g2, max_depth, counts):
+    """counts[v] = the interest points of row v (_is_interest_point)."""
+    for v in claimed_items(claims, dx.shape[0], parts):
+        count = 0
+        for u in range(dx.shape[1]):
+            count += _is_interest_point(dx, dy, depth, v, u, g2, max_depth)
+        counts[v] = count
+
+
+@LOOP
+def _interest_rows_loop(claims, parts, starts, images, g2, max_depth, camera, out):
+    """The interest points of each row v this thread claims, from column starts[v] of `out` =
+    (flat indices, 3D points, intensities, gradients), in row-major order: what np.flatnonzero
+    of their mask and a gather at those indices give, read row by row. `images` = (depth,
+    intensity, dx, dy)."""
+    depth, intensity, dx, dy = images
+    indices, points, values, grad = out
     width = depth.shape[1]
-    for k in claimed_items(claims, indices.shape[0], parts):
-        i = indices[k]
-        v = i // width
-        u = i - v * width
-        points[0, k], points[1, k], points[2, k] = _backproject(u, v, float(depth[v, u]), camera)
-        values[k] = float(intensity[v, u])
-        grad[0, k] = float(dx[v, u])
-        grad[1, k] = float(dy[v, u])
+    for v in claimed_items(claims, depth.shape[0], parts):
+        k = starts[v]
+        for u in range(width):
+            if _is_interest_point(dx, dy, depth, v, u, g2, max_depth):
+                indices[k] = v * width + u
+                x, y, z = _backproject(u, v, float(depth[v, u]), camera)
+                points[0, k], points[1, k], points[2, k] = x, y, z
+                values[k] = float(intensity[v, u])
+                grad[0, k] = float(dx[v, u])
+                grad[1, k] = float(dy[v, u])
+                k += 1
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -258,30 +279,15 @@ def _rgbd_system_loop(
 # Host side
 
 
-def _interest_mask(dx, dy, depth, min_gradient, max_depth) -> np.ndarray:
-    mask = np.empty(dx.shape, dtype=np.bool_)
-    use_depth = depth is not None
-    run(
-        _interest_mask_loop,
-        dx.size,
-        dx,
-        dy,
-        depth if use_depth else dx,
-        float(min_gradient) ** 2,
-        use_depth,
-        float(max_depth),
-        mask,
-    )
-    return mask
-
-
 def interest_points(
     intensity_dx: np.ndarray, intensity_dy: np.ndarray, min_gradient: float
 ) -> np.ndarray:
     """Algorithm 1: flat indices (ascending) of the pixels with dx^2 + dy^2 >= g^2."""
     dx, dy = stage(intensity_dx), stage(intensity_dy)
     check_image("intensity_dy", dy, dx.shape)
-    return np.flatnonzero(_interest_mask(dx, dy, None, min_gradient, 0.0))
+    mask = np.empty(dx.shape, dtype=np.bool_)
+    run(_gradient_mask_loop, dx.size, dx, dy, float(min_gradient) ** 2, mask)
+    return np.flatnonzero(mask)
 
 
 def prepare_level(
@@ -293,16 +299,22 @@ def prepare_level(
     min_gradient: float,
     max_depth: float,
 ) -> InterestPoints:
-    """Interest points with valid depth and their 3D points, intensities and gradients."""
+    """Interest points with valid depth and their 3D points, intensities and gradients: counted
+    row by row, then written row by row from each row's first column (no mask image, no
+    gather at scattered indices)."""
     depth, intensity = stage(depth), stage(intensity)
     dx, dy = stage(intensity_dx), stage(intensity_dy)
     check_images("current", camera, depth=depth, intensity=intensity, dx=dx, dy=dy)
-    indices = np.flatnonzero(_interest_mask(dx, dy, depth, min_gradient, max_depth))
-    n = len(indices)
-    points, values, gradient = np.empty((3, n)), np.empty(n), np.empty((2, n))
-    images = (indices, depth, intensity, dx, dy)
-    run(_interest_data_loop, n, *images, pinhole(camera), points, values, gradient)
-    return InterestPoints(indices, points, values, gradient)
+    tests = (float(min_gradient) ** 2, float(max_depth))
+    counts = np.empty(depth.shape[0], dtype=np.int64)
+    run(_interest_counts_loop, depth.size, dx, dy, depth, *tests, counts)
+    starts = np.zeros_like(counts)
+    np.cumsum(counts[:-1], out=starts[1:])
+    n = int(counts.sum())
+    out = (np.empty(n, dtype=np.intp), np.empty((3, n)), np.empty(n), np.empty((2, n)))
+    images = (depth, intensity, dx, dy)
+    run(_interest_rows_loop, depth.size, starts, images, *tests, pinhole(camera), out)
+    return InterestPoints(*out)
 
 
 def _previous_images(depth, intensity, dx, dy, camera) -> tuple[tuple, bool]:
