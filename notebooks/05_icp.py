@@ -554,15 +554,24 @@ assert 195 < np.abs(along["Cholesky"]).max() < 205  # once 20 cm: the slide
 # millimetre.
 np.testing.assert_allclose(along["minimum norm"], -true_steps, atol=1.5)
 assert 10.5 < np.abs(true_steps).min() and np.abs(true_steps).max() < 12.5  # "about 11-12 mm"
-assert np.abs(along["damped"]).max() < 12.5  # at most that
+# The damped solve shortens the unseen step in most frames, not in every one.
+damped_beyond = np.abs(along["damped"]) - np.abs(true_steps)
+print(
+    f"damped: |error| under the frame's unseen step in {(damped_beyond < 0).sum()} of "
+    f"{len(damped_beyond)} frames, {damped_beyond.max():.1f} mm beyond it in the other"
+)
+assert (damped_beyond < 0).sum() == 9  # "in nine of the ten frames"
+assert 0.2 < damped_beyond.max() < 0.5  # "0.3 mm beyond it in the other"
+assert 7.5 < np.median(np.abs(along["damped"])) < 8.5  # "median about 8 mm"
 
 # %% [markdown]
 # The slide is the solver's, not the cost's: Cholesky's error along the corridor reaches 20 cm
 # in one frame, while the minimum-norm solve's is the step it did not see, to about a millimetre
-# (about 11-12 mm), and the damped solve's at most that. Neither recovers the motion, and no
-# solve can: the information is not in the geometry. That is the method's limit, and why the
-# paper adds colour (RGB-D odometry sees the wall texture move, lessons 3 and 6) and FOVIS
-# (lesson 7).
+# (about 11-12 mm). The damped solve's error is under the unseen step in nine of the ten frames
+# (median about 8 mm) and 0.3 mm beyond it in the other: damping shrinks the step along the
+# blind axis, it does not measure it. Neither recovers the motion, and no solve can: the
+# information is not in the geometry. That is the method's limit, and why the paper adds colour
+# (RGB-D odometry sees the wall texture move, lessons 3 and 6) and FOVIS (lesson 7).
 
 # %% [markdown]
 # ## Real data
@@ -651,8 +660,8 @@ if REAL is not None:
 #   gap under half a voxel).
 # - How the nearly singular corridor system is solved is the implementation's choice: Cholesky
 #   turns noise into a slide (up to 20 cm in one frame), a minimum-norm solve takes no step
-#   along the blind axis (its error is the unseen step, about 11-12 mm), a damped one a short
-#   one.
+#   along the blind axis (its error is the unseen step, about 11-12 mm), a damped one a step
+#   whose error is under the unseen one in nine frames of ten.
 #
 # ## Exercises
 #
