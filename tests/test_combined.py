@@ -243,6 +243,24 @@ def test_the_combined_inlier_check_stands_on_either_term(room):
     assert combined.inlier_fraction(current) == rgbd_fraction
 
 
+def test_the_combined_inlier_check_counts_icp_only_where_rgbd_falls_short(room, monkeypatch):
+    # The check asks whether either term reaches the least fraction: where RGB-D's does, ICP's
+    # pairs (a pass over every valid point) are not counted; below it, the larger of the two.
+    previous, current, icp, rgbd = room
+    icp_fraction, rgbd_fraction = icp.inlier_fraction(current), rgbd.inlier_fraction(current)
+    assert 0.9 < icp_fraction < rgbd_fraction < 0.99
+    counted = []
+    count_icp = icp.inlier_fraction
+    monkeypatch.setattr(icp, "inlier_fraction", lambda *a: counted.append(a) or count_icp(*a))
+    combined = CombinedProblem(icp, rgbd)
+    assert combined.inlier_fraction(current, enough=0.1) == rgbd_fraction
+    assert combined.inlier_fraction(current, enough=rgbd_fraction) == rgbd_fraction
+    assert counted == []
+    for enough in (0.99, None):  # RGB-D's short of it, or no bound: both counted
+        assert combined.inlier_fraction(current, enough=enough) == rgbd_fraction
+    assert counted == [(current, 0), (current, 0)]
+
+
 @pytest.mark.parametrize("kernel", ["huber", "tukey"])
 def test_robust_weightings_are_degeneracy_aware_on_robust_icp_rows(room, kernel):
     # combined.weighting "huber" / "tukey": the default combination of the robustly weighted ICP

@@ -262,7 +262,12 @@ def estimate_dense(
     )
     if reason:
         return pose, reason
-    fraction = problem.inlier_fraction(pose, tracker.finest_level)
+    level, least = tracker.finest_level, tracking.min_inlier_fraction
+    if isinstance(problem, systems.CombinedProblem):
+        # Whether either term reaches the least fraction is all the check asks.
+        fraction = problem.inlier_fraction(pose, level, enough=least)
+    else:
+        fraction = problem.inlier_fraction(pose, level)
     return pose, tracker.check_estimate(pose, previous_pose, fraction)
 
 

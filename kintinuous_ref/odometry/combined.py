@@ -296,9 +296,18 @@ class CombinedProblem:
             self.degeneracy_threshold,
         )
 
-    def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
+    def inlier_fraction(
+        self, pose: np.ndarray, level: int = 0, enough: float | None = None
+    ) -> float:
         """The larger of the two terms' fractions: the joint estimate stands when either term
         matched enough of its own points. ICP's alone fails wherever most of the view lies
         beyond the volume (its far vertices can never match the model; the `loop` lap at
-        640x480), although RGB-D still tracks there; a frame of another scene fails both."""
-        return max(self.icp.inlier_fraction(pose, level), self.rgbd.inlier_fraction(pose, level))
+        640x480), although RGB-D still tracks there; a frame of another scene fails both.
+
+        `enough`: the fraction the caller compares against. Where RGB-D's reaches it, so does
+        the larger one, and RGB-D's is returned without counting ICP's pairs (a pass over
+        every valid point at full resolution); below it, the larger of the two as without."""
+        rgbd = self.rgbd.inlier_fraction(pose, level)
+        if enough is not None and rgbd >= enough:
+            return rgbd
+        return max(self.icp.inlier_fraction(pose, level), rgbd)
