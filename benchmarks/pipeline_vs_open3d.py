@@ -15,11 +15,14 @@ pose; accuracy is the ATE RMSE over the frames run (rigidly aligned, kintinuous_
 Stage times are medians over frames 2..N (the first frame compiles and has nothing to track).
 Open3D runs right after our default column, and `--rounds R` repeats both (and the other
 columns but the reference) R times, pooling the frames: a noisy host then slows both sides
-alike, and the ratios of each round are printed too. `--threads N` runs both on N threads
-(numba's thread count, and OpenMP's, which Open3D's CPU kernels use); the default is each
-library's own (every core). `--default-only` leaves out the fast-odometry and 1/3/6 columns;
-`--converged-steps 1e-4,3e-4` adds a cpu column for each of those early-stop thresholds
-(`tracking.converged_step`: a level ends at a step shorter than it; 1e-5 by default).
+alike, and the ratios of each round are printed too. From the second round on, the two swap
+places every round (Open3D right before our default column in rounds 2, 4, ...), so that
+neither side always runs first in the process or right after the other. `--threads N` runs
+both on N threads (numba's thread count, and OpenMP's, which Open3D's CPU kernels use); the
+default is each library's own (every core). `--default-only` leaves out the fast-odometry and
+1/3/6 columns; `--converged-steps 1e-4,3e-4` adds a cpu column for each of those early-stop
+thresholds (`tracking.converged_step`: a level ends at a step shorter than it; 1e-5 by
+default).
 The row "odometry cpu" is the odometry's CPU time per frame (the process's, every thread's:
 on one thread what the odometry's work costs, which other jobs on the machine disturb far
 less than its wall time).
@@ -195,9 +198,12 @@ def run_open3d(  # noqa: ANN001, PLR0913
     return row
 
 
-def run_columns(sequence, config: Config, args: argparse.Namespace, with_reference: bool) -> dict:  # noqa: ANN001
-    """One round: each backend's column (the cpu one followed at once by Open3D's, then the
-    cpu variants); the reference only `with_reference`."""
+def run_columns(  # noqa: ANN001
+    sequence, config: Config, args: argparse.Namespace, with_reference: bool, open3d_first: bool
+) -> dict:
+    """One round: each backend's column (the cpu one followed at once by Open3D's, or
+    preceded by it `open3d_first`, then the cpu variants); the reference only
+    `with_reference`."""
     runs: dict[str, dict] = {}
 
     def add_open3d() -> None:
@@ -212,9 +218,12 @@ def run_columns(sequence, config: Config, args: argparse.Namespace, with_referen
         if backend == "ref" and not with_reference:
             continue
         frames = args.ref_frames if backend == "ref" else args.frames
+        if backend == "cpu" and open3d_first:
+            add_open3d()
         runs[backend] = run_ours(sequence, backend, config, frames)
         if backend == "cpu":
-            add_open3d()
+            if not open3d_first:
+                add_open3d()
             for step in args.converged_steps:
                 stopping = stop_at(config, step)
                 runs[f"cpu stop {step:g}"] = run_ours(sequence, "cpu", stopping, frames)
@@ -347,7 +356,9 @@ def main() -> None:
     pooled: dict[str, dict] = {}
     rounds: list[dict[str, dict]] = []
     for round_index in range(args.rounds):
-        runs = run_columns(sequence, config, args, with_reference=round_index == 0)
+        runs = run_columns(
+            sequence, config, args, round_index == 0, open3d_first=round_index % 2 == 1
+        )
         rounds.append(runs)
         for name, row in runs.items():
             into = pooled.setdefault(name, {"ate_mm": row["ate_mm"]})
