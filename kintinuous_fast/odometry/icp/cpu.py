@@ -24,6 +24,7 @@ from kintinuous_fast.odometry.sums.cpu import (
     CHUNKS,
     LOOP,
     partials,
+    row_starts,
     run,
     stage,
 )
@@ -147,9 +148,8 @@ def _valid_points(vertices, normals) -> np.ndarray:
     the frame only: the ICP problem computes it once per level, not per iteration."""
     counts = np.empty(vertices.shape[0], dtype=np.int64)
     run(_valid_counts, vertices.shape[0] * vertices.shape[1], vertices, normals, counts)
-    starts = np.zeros_like(counts)
-    np.cumsum(counts[:-1], out=starts[1:])
-    points = np.empty((6, int(counts.sum())), dtype=np.result_type(vertices, normals))
+    starts, n = row_starts(counts)
+    points = np.empty((6, n), dtype=np.result_type(vertices, normals))
     run(_compact_loop, vertices.shape[0] * vertices.shape[1], vertices, normals, starts, points)
     return points
 

@@ -25,6 +25,7 @@ from kintinuous_fast.odometry.sums.cpu import (
     LOOP,
     add_block,
     partials,
+    row_starts,
     run,
     stage,
 )
@@ -308,9 +309,7 @@ def prepare_level(
     tests = (float(min_gradient) ** 2, float(max_depth))
     counts = np.empty(depth.shape[0], dtype=np.int64)
     run(_interest_counts_loop, depth.size, dx, dy, depth, *tests, counts)
-    starts = np.zeros_like(counts)
-    np.cumsum(counts[:-1], out=starts[1:])
-    n = int(counts.sum())
+    starts, n = row_starts(counts)
     out = (np.empty(n, dtype=np.intp), np.empty((3, n)), np.empty(n), np.empty((2, n)))
     images = (depth, intensity, dx, dy)
     run(_interest_rows_loop, depth.size, starts, images, *tests, pinhole(camera), out)

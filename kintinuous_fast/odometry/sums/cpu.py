@@ -36,6 +36,7 @@ __all__ = [
     "add_column",
     "add_row",
     "partials",
+    "row_starts",
     "run",
     "stage",
 ]
@@ -117,6 +118,14 @@ def run(loop: Any, count: int, *args: Any) -> None:
     repays (kintinuous_fast.targets.cpu.threads_for), the calling thread alone for the small
     loops of the coarse levels."""
     run_parallel(loop, *args, items=count)
+
+
+def row_starts(counts: np.ndarray) -> tuple[np.ndarray, int]:
+    """(each row's first column, the total) of a compaction whose rows keep counts[v] items:
+    what a loop writing row v from column starts[v] needs to keep the row-major order."""
+    starts = np.zeros_like(counts)
+    np.cumsum(counts[:-1], out=starts[1:])
+    return starts, int(counts.sum())
 
 
 def partials(count: int) -> np.ndarray:
