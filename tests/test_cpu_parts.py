@@ -2,13 +2,11 @@
 in closed form, a loop below its work threshold seen to run on the calling thread alone (the
 threads that ran its parts recorded), one above it shared, each loop's cost measured as it
 runs; the pipeline's poses and volume the same bits on 1, 2 and 7 threads, and with every
-loop forced onto all 7; and the joint ICP + RGB-D loop (one parallel call per iteration) the same
-bits as the two problems' separate systems summed, on each of those, and close to the
-reference's joint system."""
+loop forced onto all 7, on numba's threads and on the helper team; and the joint ICP + RGB-D
+loop (one parallel call per iteration) the same bits as the two problems' separate systems
+summed, on each of those, and close to the reference's joint system."""
 
 import textwrap
-import threading
-import time
 
 import numba
 import numpy as np
@@ -18,12 +16,16 @@ from threads_child import run_with_threads
 from kintinuous_fast.targets import cpu
 from kintinuous_fast.targets.cpu import (
     LOOP_COSTS,
+    MIN_SECONDS_PER_HELPER,
     MIN_SECONDS_PER_THREAD,
+    NEXT_PART,
     PARTS_PER_THREAD,
     LoopCosts,
+    claim_slot,
     claimed_items,
     parallel_part,
     run_parallel,
+    spin_below,
     threads_for,
 )
 
@@ -57,41 +59,40 @@ def test_a_loops_cost_is_its_seconds_per_item_times_the_items():
     assert costs.seconds("other", 100) is None
 
 
-def _recording_loop(idents):
-    """A loop whose parts record the thread that ran them; the calling thread waits (up to
-    10 s, however loaded the machine) for a helper to claim a part when there may be one."""
+@parallel_part()
+def _record_threads(claims, parts, thread_of_part, hold):  # noqa: ANN001, ANN202
+    """thread_of_part[p] = the slot (claim_slot: one per thread that joins) of the thread that
+    ran part p. With `hold`, the first thread to join waits (up to some seconds, however loaded
+    the machine) until every part is claimed, so that another thread that joins gets a part."""
+    slot = claim_slot(claims)
+    for part in claimed_items(claims, parts, parts):
+        thread_of_part[part] = slot
+        if hold and slot == 0:
+            spin_below(claims, NEXT_PART, parts, 300_000_000)
 
-    def loop(claims, parts):
-        for part in claimed_items(claims, parts, parts):
-            idents[part] = threading.get_ident()
-            if threading.current_thread() is threading.main_thread() and loop.shared:
-                deadline = time.monotonic() + 10.0
-                while claims[0] < parts and time.monotonic() < deadline:
-                    time.sleep(0.001)
 
-    return loop
+def _threads_of_parts(work_units: float, hold: bool) -> np.ndarray:
+    """The slot of the thread that ran each part of a call of _record_threads whose measured
+    work is `work_units` times the least work a thread joins for (-1: no such part)."""
+    thread_of_part = np.full(PARTS_PER_THREAD * numba.get_num_threads(), -1, dtype=np.int64)
+    minimum = MIN_SECONDS_PER_THREAD if cpu.native_threads() else MIN_SECONDS_PER_HELPER
+    LOOP_COSTS.record(_record_threads, 100, work_units * minimum)
+    run_parallel(_record_threads, thread_of_part, hold, items=100)
+    return thread_of_part
 
 
 def test_a_loop_below_its_work_threshold_runs_on_the_calling_thread_alone(every_thread):
-    idents = {}
-    loop = _recording_loop(idents)
-    loop.shared = False
-    LOOP_COSTS.record(loop, 100, 1.9 * MIN_SECONDS_PER_THREAD)  # less than two threads' work
-    run_parallel(loop, items=100)
-    assert len(idents) == PARTS_PER_THREAD  # the parts of one thread
-    assert set(idents.values()) == {threading.get_ident()}
+    thread_of_part = _threads_of_parts(1.9, hold=False)  # less than two threads' work
+    np.testing.assert_array_equal(thread_of_part[:PARTS_PER_THREAD], 0)  # one thread's parts
+    assert (thread_of_part[PARTS_PER_THREAD:] == -1).all()
 
 
-@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs a helper thread")
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs a second thread")
 def test_a_loop_above_its_work_threshold_is_shared(every_thread):
-    idents = {}
-    loop = _recording_loop(idents)
-    loop.shared = True
-    LOOP_COSTS.record(loop, 100, 2.5 * MIN_SECONDS_PER_THREAD)  # two threads' work
-    run_parallel(loop, items=100)
-    assert len(idents) == 2 * PARTS_PER_THREAD
-    assert len(set(idents.values())) == 2  # the calling thread and one helper
-    assert threading.get_ident() in idents.values()
+    thread_of_part = _threads_of_parts(2.5, hold=True)  # two threads' work
+    assert (thread_of_part[: 2 * PARTS_PER_THREAD] >= 0).all()
+    assert (thread_of_part[2 * PARTS_PER_THREAD :] == -1).all()
+    assert set(thread_of_part[thread_of_part >= 0]) == {0, 1}  # two threads, each with parts
 
 
 @parallel_part()
@@ -113,12 +114,13 @@ def test_each_call_measures_its_loops_cost(every_thread):
 
 
 # The child: the cpu pipeline over six 160x120 desk frames (icp+rgbd, 64^3) on each thread
-# count, and once with every loop on all 7 threads (no work threshold); prints each run's
+# count and path, and with every loop on all 7 threads (no work threshold); prints each run's
 # poses and volume as SHA-256 digests of their bytes.
 CHILD = textwrap.dedent(
     """
     import hashlib, json, numba
     import numpy as np
+    from threads_child import on_both_paths
     from kintinuous_fast import load_backend
     from kintinuous_fast.targets import cpu
     from kintinuous_ref.config import Config
@@ -131,26 +133,23 @@ CHILD = textwrap.dedent(
     stamps = scenario.trajectory.timestamps
     frames = [Frame(i, float(stamps[i]), *scenario.render(i)) for i in range(6)]
 
-    def digests(threads, minimum):
+    def digests(threads):
         numba.set_num_threads(threads)
-        cpu.MIN_SECONDS_PER_THREAD = minimum
         result = run(frames, scenario.camera, small_config(Config()), "icp+rgbd",
                      scenario.trajectory, load_backend("cpu"))
         volume = result.host_volume(result.volume)
         arrays = (np.stack(result.poses), volume.tsdf, volume.weight)
         return [hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest() for a in arrays]
 
-    minimum = cpu.MIN_SECONDS_PER_THREAD
-    runs = {f"{n} threads": digests(n, minimum) for n in (1, 2, 7)}
-    runs["7 threads, every loop shared"] = digests(7, 1e-12)
-    print(json.dumps(runs))
+    print(json.dumps(on_both_paths(digests)))
     """
 )
 
 
 def test_the_pipeline_gives_the_same_bits_on_1_2_and_7_threads():
     runs = run_with_threads(CHILD, 7)
-    first = runs["1 threads"]
+    assert len(runs) == 8
+    first = runs["the helper team, 1 threads"]
     for name, digests in runs.items():
         assert digests == first, name
     assert cpu.MIN_SECONDS_PER_THREAD == MIN_SECONDS_PER_THREAD  # the child's change stays there
@@ -159,13 +158,14 @@ def test_the_pipeline_gives_the_same_bits_on_1_2_and_7_threads():
 # The child: the joint ICP + RGB-D system of the analytic room (160x120, three levels, three
 # poses) from the fused loop (icp/cpu_joint.py, what CombinedProblem.system runs on the CPU) and
 # from the two problems' separate systems summed by combined.joint_system, on each thread count
-# and once with every loop forced onto all 7; prints each run's systems as SHA-256 digests of
+# and path, and with every loop forced onto all 7; prints each run's systems as SHA-256 digests of
 # their bytes, and each problem's RGB-D inlier fraction beside the base class's.
 JOINT_CHILD = textwrap.dedent(
     """
     import hashlib, json, numba
     import numpy as np
-    import test_fast_odometry_cases as cases  # the tests folder is on the child's path
+    import test_fast_odometry_cases as cases
+    from threads_child import on_both_paths  # the tests folder is on the child's path
     from kintinuous_fast.odometry import combined, cpu as odometry
     from kintinuous_fast.targets import cpu
     from kintinuous_ref.odometry.rgbd import RgbdProblem
@@ -182,9 +182,8 @@ JOINT_CHILD = textwrap.dedent(
         parts = (system.A, system.b, np.array([system.count, system.cost]))
         return hashlib.sha256(b"".join(p.tobytes() for p in parts)).hexdigest()
 
-    def systems(threads, minimum):
+    def systems(threads):
         numba.set_num_threads(threads)
-        cpu.MIN_SECONDS_PER_THREAD = minimum
         fused, separate, fractions = [], [], []
         joint = combined.CombinedProblem(*problems(), 0.3, "huber")
         for pose in cases.poses_to_try(previous, current):
@@ -201,17 +200,15 @@ JOINT_CHILD = textwrap.dedent(
                 fractions.append((rgbd.inlier_fraction(pose, level), base))
         return {"fused": fused, "separate": separate, "fractions": fractions}
 
-    minimum = cpu.MIN_SECONDS_PER_THREAD
-    runs = {f"{n} threads": systems(n, minimum) for n in (1, 2, 7)}
-    runs["7 threads, every loop shared"] = systems(7, 1e-12)
-    print(json.dumps(runs))
+    print(json.dumps(on_both_paths(systems)))
     """
 )
 
 
 def test_the_joint_loop_gives_the_separate_systems_bits_on_1_2_and_7_threads():
     runs = run_with_threads(JOINT_CHILD, 7)
-    first = runs["1 threads"]
+    assert len(runs) == 8
+    first = runs["the helper team, 1 threads"]
     for name, run in runs.items():
         # two calls at each pose and level, and the separate systems' sum once
         assert run["fused"][::2] == run["fused"][1::2] == run["separate"], name

@@ -1,22 +1,23 @@
 """The cpu backend's loops on several threads (kintinuous_fast.targets.cpu): every item of a
 loop's range is done exactly once, in parts that follow the closed form, whatever the number of
-threads and parts; each thread gets a work-array row of its own; an error in a helper thread
-reaches the caller; a call wakes only the sleeping helpers it wants; and a forked child runs its
-loops too."""
+threads and parts; each thread gets a work-array row of its own; an error on another thread
+reaches the caller; a signal during a loop is raised once every part is done; a call runs on
+no more threads than its work wants; and a forked child runs its loops too."""
 
 import _thread
 import multiprocessing
 import os
 import signal
 import threading
-import time
 
 import numba
 import numpy as np
 import pytest
 from threads_child import run_with_threads
 
+from kintinuous_fast.targets import cpu
 from kintinuous_fast.targets.cpu import (
+    LOOP_COSTS,
     NEXT_PART,
     PARTS_DONE,
     claim_slot,
@@ -24,6 +25,7 @@ from kintinuous_fast.targets.cpu import (
     parallel_part,
     run_parallel,
     run_parallel_above,
+    spin_below,
 )
 
 THREADS = sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)})
@@ -46,9 +48,19 @@ def threads(request):
     numba.set_num_threads(before)
 
 
+@pytest.fixture(params=["numba's threads", "the helper team"])
+def path(request, monkeypatch):
+    """Each of run_parallel's two ways of running a loop on several threads."""
+    if request.param == "the helper team":
+        monkeypatch.setattr(cpu, "native_threads", lambda: False)
+    elif not cpu.native_threads():
+        pytest.skip("numba's threading layer here does not spin (workqueue): the team runs")
+    return request.param
+
+
 @pytest.mark.parametrize("count", [0, 1, 7, 1000, 100_003])
 @pytest.mark.parametrize("parts", [None, 1, 3, 50])
-def test_every_item_is_done_once_with_a_slot_of_its_threads_own(threads, count, parts):
+def test_every_item_is_done_once_with_a_slot_of_its_threads_own(path, threads, count, parts):
     seen = np.zeros(count, dtype=np.int64)
     slots = np.full(count, -1, dtype=np.int64)
     run_parallel(_count_items, seen, slots, parts=parts)
@@ -67,19 +79,25 @@ def test_claimed_parts_are_the_closed_form_in_order():
     assert bounds == [0, 2, 5, 7, 10]
 
 
-@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs a helper thread")
-def test_an_error_in_a_helper_thread_is_raised_by_the_call(threads):
+@parallel_part()
+def _fail_on_the_second_thread(claims, parts, done):
+    """Each part done[part] = 1, but the second thread to join raises; the first waits (a
+    bounded spin) until every part is claimed, so the second gets one."""
+    slot = claim_slot(claims)
+    for part in claimed_items(claims, parts, parts):
+        if slot == 1:
+            raise ValueError("raised on the second thread")
+        done[part] = 1
+        spin_below(claims, NEXT_PART, parts, 30_000_000)
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs a second thread")
+def test_an_error_on_any_thread_is_raised_by_the_call(path, threads):
     if threads < 2:
-        pytest.skip("needs a helper thread")
-
-    def loop(claims, parts):  # a Python loop: the helper raises inside a part it claimed
-        for _ in claimed_items(claims, 200, parts):
-            if threading.current_thread() is not threading.main_thread():
-                raise ValueError("raised in a helper thread")
-            time.sleep(0.001)
-
-    with pytest.raises(ValueError, match="helper thread"):
-        run_parallel(loop, parts=200)
+        pytest.skip("needs a second thread")
+    # numba's threads report that the loop failed; the helper team raises the loop's error
+    with pytest.raises((RuntimeError, ValueError), match="failed on one of its threads|second"):
+        run_parallel(_fail_on_the_second_thread, np.zeros(8, dtype=np.int64), parts=8)
 
 
 def _items_done_in_a_child(count: int) -> list[int]:
@@ -90,8 +108,11 @@ def _items_done_in_a_child(count: int) -> list[int]:
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
 def test_a_forked_child_runs_loops_with_threads_of_its_own():
-    run_parallel(_count_items, np.zeros(10, dtype=np.int64), np.zeros(10, dtype=np.int64))
-    with multiprocessing.get_context("fork").Pool(1) as pool:  # forked after the team started
+    # on a helper team of its own where the parent's loops ran on GNU OpenMP's threads, which
+    # a forked child cannot start again
+    seen = np.zeros(5000, dtype=np.int64)
+    run_parallel(_count_items, seen, np.zeros(5000, dtype=np.int64), parts=8)
+    with multiprocessing.get_context("fork").Pool(1) as pool:  # forked after threads ran
         assert pool.apply(_items_done_in_a_child, (5000,)) == [1] * 5000
 
 
@@ -122,46 +143,73 @@ def test_the_pipeline_gives_the_same_bits_on_one_and_two_threads():
         np.testing.assert_array_equal(one, two)
 
 
-@pytest.mark.skipif(len(THREADS) < 2, reason="needs two threads")
-def test_a_signal_during_the_wait_is_raised_once_the_helpers_parts_are_done(threads):
-    if threads < 2:
-        pytest.skip("needs a helper thread")
-    written = np.zeros(2)
+@parallel_part()
+def _write_after_the_signal(claims, parts, signalled, written):
+    """Each part waits (a bounded spin) until signalled[0] is set, then sets written[part]."""
+    for part in claimed_items(claims, parts, parts):
+        spin_below(signalled, 0, 1, 300_000_000)
+        written[part] = 1
 
-    def loop(claims, parts):  # part 0 on the calling thread, part 1 on the helper
-        for part in claimed_items(claims, 2, parts):
-            if threading.current_thread() is threading.main_thread():
-                # until the helper holds the other part, however loaded the machine
-                deadline = time.monotonic() + 10.0
-                while claims[NEXT_PART] < 2 and time.monotonic() < deadline:
-                    time.sleep(0.001)
-            else:
-                while claims[PARTS_DONE] < 1:  # the caller is done with its part
-                    time.sleep(0.001)
-                time.sleep(0.005)  # and waits for this one by now
-                _thread.interrupt_main()  # Ctrl-C while the caller waits
-                time.sleep(0.05)
-            written[part] = 1.0
+
+def test_a_signal_during_a_loop_is_raised_once_every_part_is_done(path, threads):
+    # a run that a signal ends keeps whole frames: no thread writes into a loop's outputs after
+    # the call has raised
+    signalled, written = np.ones(1, dtype=np.int64), np.zeros(2 * threads, dtype=np.int64)
+    run_parallel(_write_after_the_signal, signalled, written, parts=written.size)  # compiled
+    signalled[0], written[:] = 0, 0
+    LOOP_COSTS.per_item.pop(_write_after_the_signal)  # unknown work again: every thread joins
+
+    def interrupt() -> None:  # Ctrl-C while the loop runs
+        _thread.interrupt_main()
+        signalled[0] = 1
 
     # Python's own handler, which interrupt_main needs: a process started in the background
     # by a shell without job control inherits SIGINT ignored, and Python then installs none.
     handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    timer = threading.Timer(0.05, interrupt)
     try:
         with pytest.raises(KeyboardInterrupt):
-            run_parallel(loop, parts=2)
+            timer.start()
+            run_parallel(_write_after_the_signal, signalled, written, parts=written.size)
     finally:
+        timer.join()
         signal.signal(signal.SIGINT, handler)
-    np.testing.assert_array_equal(written, [1.0, 1.0])  # the helper's part was finished first
+    np.testing.assert_array_equal(written, 1)
 
 
 @pytest.mark.parametrize("count", [0, 5, 99, 100, 1000])
-def test_loops_below_the_minimum_run_in_one_part_on_the_calling_thread(threads, count):
+def test_loops_below_the_minimum_run_in_one_part_on_the_calling_thread(path, threads, count):
     seen = np.zeros(count, dtype=np.int64)
     slots = np.full(count, -1, dtype=np.int64)
     run_parallel_above(100, _count_items, count, seen, slots)
     np.testing.assert_array_equal(seen, np.ones(count, dtype=np.int64))
     if count < 100:  # one part: a single thread, slot 0, did every item
         np.testing.assert_array_equal(slots, np.zeros(count, dtype=np.int64))
+
+
+# The child: numba's 7 threads, one call whose work is unknown (every thread may join), then
+# calls that the work rule gives two threads; prints how many threads ran each call's parts.
+JOIN_CHILD = """
+import json
+import numba, numpy as np
+from kintinuous_fast.targets import cpu
+from test_cpu_parts import _record_threads, _threads_of_parts
+
+first = np.full(7 * cpu.PARTS_PER_THREAD, -1, dtype=np.int64)
+cpu.run_parallel(_record_threads, first, True, items=100)
+pairs = [len(set(_threads_of_parts(2.5, hold=True).tolist()) - {-1}) for _ in range(20)]
+threads = numba.get_num_threads()
+first = len(set(first.tolist()))
+print(json.dumps({"first": first, "pairs": sorted(set(pairs)), "after": threads}))
+"""
+
+
+@pytest.mark.skipif(not cpu.native_threads(), reason="numba's threading layer does not spin")
+def test_a_call_runs_on_as_many_threads_as_its_work_wants():
+    result = run_with_threads(JOIN_CHILD, 7, timeout=300)
+    assert 2 <= result["first"] <= 7  # unknown work: any of the 7 threads may join
+    assert result["pairs"] == [2]  # two threads' work: two threads, never more
+    assert result["after"] == 7  # and the calls leave the thread count as it was
 
 
 # The child: a team of 6 helpers (NUMBA_NUM_THREADS=7), all asleep, then one call that wants
@@ -172,6 +220,7 @@ import numba, numpy as np
 from kintinuous_fast.targets import cpu
 from test_cpu_threads import _count_items
 
+cpu.native_threads = lambda: False  # the helper team's calls
 looked = []
 help_job = cpu._Job.help
 cpu._Job.help = lambda job: (looked.append(1), help_job(job))[1]

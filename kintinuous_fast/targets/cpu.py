@@ -2,15 +2,20 @@
 of each stage's ops.py, run on several threads. Used automatically where no GPU is present.
 
 Each loop is a plain numba function (`parallel_part` below) that `run_parallel` calls once on
-each of several threads (the calling one and helper threads kept for the purpose), without the
-GIL; the threads claim parts of its range one at a time (`claimed_items`) until none is left.
-numba's own parallel loops (`parallel=True`, prange) would do the same, but their
-transformation and the second compilation of each loop body cost about half of every kernel's
-compile time (docs/benchmarks.md). The claims and the waits are atomic operations on a small
-int64 array, so a thread that waits for another needs neither the GIL nor a wake-up.
+each of several threads, the calling one among them; the threads claim parts of its range one
+at a time (`claimed_items`) until none is left. The threads are numba's threading layer's
+(`run_on_threads`) where that layer keeps them waiting in a spin (OpenMP, TBB): they wait in
+native code and join a loop without the GIL, all at once. Where numba has only its workqueue,
+which wakes sleeping threads for each call, they are helper threads of our own (`_Team`), which
+take the GIL one after another to join. numba's own parallel loops (`parallel=True`, prange)
+would use numba's threads too, but their transformation and the second compilation of each
+loop body cost about half of every kernel's compile time (docs/benchmarks.md), and a prange's
+threads take only arrays and scalars where the loops take nested tuples. The claims and the
+waits are atomic operations on a small int64 array, so a thread that waits for another needs
+neither the GIL nor a wake-up.
 
 How many threads join a loop follows its work, measured as the loops run (`threads_for`): a
-loop too small to repay waking and joining a helper runs on the calling thread alone, so that
+loop too small to repay waking and joining another thread runs on the calling thread alone, so that
 more threads never make a stage slower. Its results are the same either way.
 """
 
@@ -20,7 +25,8 @@ import platform
 import threading
 import time
 from collections.abc import Callable
-from functools import lru_cache
+from functools import cache, lru_cache
+from types import FunctionType
 from typing import Any
 
 import numba
@@ -29,6 +35,7 @@ from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+from numba.np.ufunc.parallel import _launch_threads
 
 
 def parallel_part(**options: Any) -> Callable[[Any], Any]:
@@ -173,10 +180,9 @@ def claimed_items_in_passes(claims: Any, count: int, parts: int, first: int, spi
 # Parts a loop is cut into per thread, by default: with a few each, a thread that starts late,
 # finishes early or is descheduled evens out.
 PARTS_PER_THREAD = 4
-# How long an idle helper thread, or the calling thread waiting for the last parts, watches for
-# work before it sleeps (loads with a spin hint each: about 250 microseconds on the 2-core AMD
-# EPYC VM, whose PAUSE takes 30 ns): waking a sleeping thread takes tens of microseconds, as
-# long as many of the loops take.
+# How long a thread that waits for the first pass of a two-pass loop (claimed_items_in_passes)
+# watches for it before it leaves the loop (loads with a spin hint each: about 250 microseconds
+# on the 2-core AMD EPYC VM, whose PAUSE takes 30 ns).
 SPINS = 8_000
 
 
@@ -186,27 +192,33 @@ def threads() -> int:
     return numba.get_num_threads()
 
 
-# The least work, in seconds on one thread, that a thread joins a loop for. Waking a helper and
-# joining it costs 12-18 microseconds on an idle 2-core VM (benchmarks/parallel_call_overhead.py:
-# a loop of 16 microseconds takes 21 on two threads, one of 170 takes 103) and more on a busy
-# machine or a larger team; with at least 50 microseconds each, a thread that joins costs at
-# most about a third of what it does, and a loop of under 100 microseconds runs on the calling
-# thread alone.
-MIN_SECONDS_PER_THREAD = 50e-6
+# The least work, in seconds on one thread, that a thread joins a loop for. On numba's threads
+# a call on two costs about 7 microseconds more than the loop's own work on the idle 2-core VM
+# (benchmarks/parallel_call_overhead.py: a loop of 28 microseconds takes 18 on two threads, one
+# of 300 takes 155-170), and more on a busy machine or a larger team; with at least 15
+# microseconds each, a thread that joins costs at most about a third of what it does, and a
+# loop of under 30 microseconds runs on the calling thread alone.
+MIN_SECONDS_PER_THREAD = 15e-6
+# The same for a helper thread of the team (`_Team`), which takes the GIL to join: 12-18
+# microseconds on the idle 2-core VM (a loop of 16 microseconds takes 21 on two threads, one of
+# 170 takes 103).
+MIN_SECONDS_PER_HELPER = 50e-6
 
 
-def threads_for(seconds: float | None, team_size: int) -> int:
+def threads_for(
+    seconds: float | None, team_size: int, minimum: float = MIN_SECONDS_PER_THREAD
+) -> int:
     """How many threads (1..team_size) run a loop of `seconds` of work on one thread: one per
-    MIN_SECONDS_PER_THREAD of it; all of them while its work is not yet known (None)."""
+    `minimum` seconds of it; all of them while its work is not yet known (None)."""
     if seconds is None:
         return team_size
-    return max(1, min(team_size, int(seconds / MIN_SECONDS_PER_THREAD)))
+    return max(1, min(team_size, int(seconds / minimum)))
 
 
 class LoopCosts:
     """Each loop's measured cost: seconds of work on one thread per item, from its last call.
     A call on the calling thread alone is timed whole; on n threads the calling thread's own
-    time (it claims parts until none is left) times n, which a helper that joins late makes
+    time (it claims parts until none is left) times n, which a thread that joins late makes
     too large, never too small, so a loop once found worth sharing stays shared."""
 
     def __init__(self) -> None:
@@ -239,20 +251,172 @@ def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | N
     The loops write disjoint parts of their outputs, and their sums go into fixed chunks, so no
     result depends on the number of threads or parts."""
     items = work_items(args) if items is None else items
-    team_size = threads_for(LOOP_COSTS.seconds(loop, items), threads())
+    native = native_threads()
+    minimum = MIN_SECONDS_PER_THREAD if native else MIN_SECONDS_PER_HELPER
+    team_size = threads_for(LOOP_COSTS.seconds(loop, items), threads(), minimum)
     parts = PARTS_PER_THREAD * team_size if parts is None else parts
+    team_size = min(parts, team_size)
     claims = np.zeros(3, dtype=np.int64)
-    helpers = min(parts, team_size) - 1
     started = time.perf_counter()
-    if helpers <= 0:
+    if native and (team_size > 1 or loop not in LOOP_COSTS.per_item):
+        # a loop's first call goes through its launcher however small: a warm-up compiles it
+        launcher(loop)(team_size, claims, parts, *args)
+    elif team_size > 1:
+        job = _Job(loop, claims, parts, args, team_size - 1)
+        _team().post(job)
         loop(claims, parts, *args)
-        LOOP_COSTS.record(loop, items, time.perf_counter() - started)
-        return
-    job = _Job(loop, claims, parts, args, helpers)
-    _team().post(job)
-    loop(claims, parts, *args)
-    LOOP_COSTS.record(loop, items, (time.perf_counter() - started) * (helpers + 1))
-    _wait_for_parts(job)
+        _wait_for_parts(job)
+    else:
+        loop(claims, parts, *args)
+    LOOP_COSTS.record(loop, items, (time.perf_counter() - started) * team_size)
+
+
+def _launch(team: int, claims: Any, parts: int, *args: Any) -> None:
+    """The body of every loop's launcher (`launcher`), in which LOOP is that loop."""
+    if run_on_threads(team, LOOP, claims, parts, args):  # noqa: F821 (each launcher's own)
+        raise RuntimeError("a cpu loop failed on one of its threads; run it on one to see why")
+
+
+@cache
+def launcher(loop: Any) -> Any:
+    """`loop`'s launcher: `launcher(loop)(team, claims, parts, *args)` runs
+    loop(claims, parts, *args) once on each of `team` threads (`run_on_threads`). It is `_launch`
+    compiled with `loop` as its LOOP, a function of its own named after the loop, so that numba
+    caches it on disk like the loop: a closure over the loop would be keyed to the loop object,
+    which is new in every process."""
+    _launch_threads()
+    body = loop.py_func
+    names = {"LOOP": loop, "run_on_threads": run_on_threads, "__name__": __name__}
+    function = FunctionType(_launch.__code__, names, "launch")
+    function.__qualname__ = f"launch[{body.__module__}.{body.__qualname__}]"
+    return numba.njit(nogil=True, cache=True)(function)
+
+
+@intrinsic
+def run_on_threads(
+    typing_context: Any, team: Any, loop: Any, claims: Any, parts: Any, args: Any
+) -> Any:
+    """run_on_threads(team, loop, claims, parts, args) in numba code: loop(claims, parts, *args)
+    once on each of `team` of numba's threads, the calling one among them, through numba's
+    threading layer (`numba_parallel_for`, as a prange does); True where a call failed. The
+    threads wait for work in native code and join without the GIL, all at once, where helper
+    threads of Python's would take the GIL one after another. Unlike a prange, whose threads
+    take only arrays and scalars, the threads share the arguments as the caller holds them
+    (nested tuples included): one struct on the caller's stack, which lives until every
+    thread is done."""
+    loop_signature = typing_context.resolve_function_type(loop, (claims, parts, *args), {})
+    signature = types.boolean(team, loop, claims, parts, args)
+
+    def codegen(context: Any, builder: Any, sig: Any, values: Any) -> Any:
+        team_value, _, claims_value, parts_value, args_value = values
+        failed = ir.Constant(ir.IntType(8), 0)
+        shared_type = ir.LiteralStructType(
+            [claims_value.type, parts_value.type, args_value.type, failed.type]
+        )
+        shared = cgutils.alloca_once(builder, shared_type)
+        for field, value in enumerate((claims_value, parts_value, args_value, failed)):
+            builder.store(value, cgutils.gep_inbounds(builder, shared, 0, field))
+        kernel = _thread_kernel(context, builder.module, loop, loop_signature, shared_type)
+        intp = context.get_value_type(types.intp)
+        threads = context.cast(builder, team_value, sig.args[0], types.intp)
+        counts = cgutils.alloca_once_value(builder, threads)
+        steps = cgutils.alloca_once_value(builder, intp(0))
+        byte_pointer = ir.IntType(8).as_pointer()
+        parallel_for = cgutils.get_or_insert_function(
+            builder.module,
+            ir.FunctionType(ir.VoidType(), [byte_pointer] * 5 + [intp] * 3),
+            "numba_parallel_for",
+        )
+        pointers = [kernel, byte_pointer(None), counts, steps, shared]
+        threads_before = builder.call(_threads_function(builder.module, "get"), [])
+        builder.call(
+            parallel_for,
+            [builder.bitcast(p, byte_pointer) for p in pointers] + [intp(0), intp(0), threads],
+        )
+        # the threading layer leaves the calling thread's count at the team's
+        builder.call(_threads_function(builder.module, "set"), [threads_before])
+        flag = builder.load(cgutils.gep_inbounds(builder, shared, 0, 3))
+        return builder.icmp_unsigned("!=", flag, flag.type(0))
+
+    return signature, codegen
+
+
+def _threads_function(module: Any, verb: str) -> Any:
+    """The threading layer's get_num_threads (verb "get") or set_num_threads ("set") in C's
+    types: the count of threads that a parallel call made by this thread may use."""
+    count = ir.IntType(32)
+    if verb == "get":
+        return cgutils.get_or_insert_function(module, ir.FunctionType(count, []), "get_num_threads")
+    function_type = ir.FunctionType(ir.VoidType(), [count])
+    return cgutils.get_or_insert_function(module, function_type, "set_num_threads")
+
+
+def _thread_kernel(
+    context: Any, module: Any, loop: Any, loop_signature: Any, shared_type: Any
+) -> Any:
+    """The function each thread of `run_on_threads` calls, in the form numba's threading layer
+    calls (arrays, counts, steps, data): it loads the loop's arguments from the shared struct
+    (data) and calls the loop once, noting in the struct whether the call failed."""
+    byte_pointer = ir.IntType(8).as_pointer()
+    intp_pointer = context.get_value_type(types.intp).as_pointer()
+    kernel_type = ir.FunctionType(
+        ir.VoidType(), [byte_pointer.as_pointer(), intp_pointer, intp_pointer, byte_pointer]
+    )
+    kernel = ir.Function(module, kernel_type, module.get_unique_name("run_on_threads_kernel"))
+    kernel.linkage = "internal"
+    builder = ir.IRBuilder(kernel.append_basic_block())
+    shared = builder.bitcast(kernel.args[3], shared_type.as_pointer())
+    claims, parts, args = (
+        builder.load(cgutils.gep_inbounds(builder, shared, 0, field)) for field in range(3)
+    )
+    count = len(loop_signature.args) - 2
+    values = [claims, parts, *(builder.extract_value(args, i) for i in range(count))]
+    compiled = loop.dispatcher.overloads[tuple(loop_signature.args)]
+    context.active_code_library.add_linking_library(compiled.library)
+    function = context.declare_function(module, compiled.fndesc)
+    status, _ = context.call_conv.call_function(
+        builder, function, compiled.fndesc.restype, compiled.fndesc.argtypes, values
+    )
+    with builder.if_then(status.is_error, likely=False):
+        flag = cgutils.gep_inbounds(builder, shared, 0, 3)
+        builder.store_atomic(ir.Constant(ir.IntType(8), 1), flag, "monotonic", 1)
+    builder.ret_void()
+    return kernel
+
+
+# numba's threading layers whose threads wait for work in a spin before they sleep, as the
+# helper team's do: OpenMP, TBB. numba's own workqueue (the one layer every installation has,
+# where neither library is found) wakes sleeping threads for every call: 40-70 microseconds
+# more than the helper team on the 2-core VM for loops of 30-300 microseconds, so there the
+# loops keep to the helper team.
+SPINNING_LAYERS = ("omp", "tbb")
+
+
+@cache
+def _layer_spins() -> bool:
+    _launch_threads()
+    return numba.threading_layer() in SPINNING_LAYERS
+
+
+def native_threads() -> bool:
+    """Whether run_parallel runs loops on numba's threads (`launcher`) rather than on the helper
+    team (`_Team`): where numba's threading layer spins, and not in a child forked from a process
+    whose loops ran on GNU OpenMP's threads, which OpenMP cannot start again (numba ends a child
+    that tries)."""
+    return not _forked_from_openmp and _layer_spins()
+
+
+_forked_from_openmp = False
+
+
+def _after_fork_in_child() -> None:
+    global _forked_from_openmp
+    _team.cache_clear()  # a forked child has none of its parent's threads
+    if _layer_spins.cache_info().currsize:  # loops may have run on numba's threads
+        _forked_from_openmp = _forked_from_openmp or numba.threading_layer() == "omp"
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def _wait_for_parts(job: "_Job") -> None:
@@ -332,10 +496,6 @@ class _Team:
 @lru_cache(maxsize=1)
 def _team() -> _Team:
     return _Team(max(1, numba.config.NUMBA_NUM_THREADS - 1))
-
-
-# A forked child has none of its parent's threads: it starts a team of its own when it needs one.
-os.register_at_fork(after_in_child=_team.cache_clear)
 
 
 def run_parallel_above(minimum: int, loop: Any, count: int, *args: Any) -> None:

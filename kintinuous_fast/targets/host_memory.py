@@ -2,7 +2,7 @@
 
 Every frame the cpu odometry makes arrays of a few megabytes and frees them: the valid points of
 a 640x480 level (6.5 MB), the RGB-D correspondences (2.4 MB), the loops' work arrays on each
-helper thread. glibc's malloc returns such blocks to the system (it maps a block above its
+thread. glibc's malloc returns such blocks to the system (it maps a block above its
 threshold, which it raises only as larger blocks are freed, and trims a heap whose free top
 outgrows twice that), so the next frame's arrays start as fresh pages: on the 2-core VM about
 1400 page faults a frame in the odometry, each 1.7 us (a fresh 6.5 MB array written costs

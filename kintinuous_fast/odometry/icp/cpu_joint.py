@@ -4,7 +4,7 @@ over the CPU's problems): both systems in one parallel call, and their sums, the
 the degeneracy-aware joint system (combined.joint_system's default weightings) in one compiled
 function.
 
-Called apart, the two problems cost two wake-ups of the helper threads per iteration, and about
+Called apart, the two problems cost two wake-ups of the other threads per iteration, and about
 forty NumPy and Python calls between them (partials made and added up, LinearSystems unpacked,
 scaled and summed) that each take microseconds for nanoseconds of arithmetic. Here one loop
 runs the RGB-D correspondence chunks, then the ICP chunks, then the RGB-D rows chunks (rgbd/
