@@ -1,15 +1,18 @@
-"""What a parallel call costs on the CPU: the project's run_parallel (helper threads that call the
-loop from Python) against a numba gufunc on numba's threading layer (`guvectorize`, target
-"parallel", the outer dimension being the parts), on the same synthetic loop.
+"""What a parallel call costs on the CPU: the project's run_parallel on each of its paths (numba's
+threads through a launcher per loop, where numba's threading layer spins; the helper threads
+that call the loop from Python) against a numba gufunc on numba's threading layer
+(`guvectorize`, target "parallel", the outer dimension being the parts), on the same
+synthetic loop.
 
     python benchmarks/parallel_call_overhead.py [--calls 400] [--gaps 0,20,100] [--at-most N]
 
 The loop does `reps` multiply-adds on each of 64 items, cut into 8 parts. Between two calls the
 calling thread runs Python for `gap` microseconds, as the odometry does between its loops (the
-GIL held). Prints the median time of a call in microseconds: on one thread, with run_parallel
-and with the gufunc, and each one's speed-up over one thread (docs/benchmarks.md); then how
-long a call takes that every thread of a team of 2, 3, ... must join (a rendezvous of one part
-per thread): the cost of starting a whole team.
+GIL held). Prints numba's threading layer, then the median time of a call in microseconds: on
+one thread, through run_parallel on each path and through the gufunc, and each one's speed-up
+over one thread (docs/benchmarks.md); then how long a call takes that every thread of a team
+of 2, 3, ... must join (a rendezvous of one part per thread), on each path: the cost of
+starting a whole team.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numba
 import numpy as np
 from numba import guvectorize
 
+from kintinuous_fast.targets import cpu
 from kintinuous_fast.targets.cpu import (
     LOOP_COSTS,
     atomic_fetch_add,
@@ -101,6 +105,26 @@ def median_call(call: Callable[[], None], gap: float, calls: int) -> float:
     return 1e6 * statistics.median(times)
 
 
+PATHS = {"numba's threads": True, "helper team": False}
+
+
+def on_path(native: bool, call: Callable[[], float]) -> float | None:
+    """call() with run_parallel on numba's threads (native) or on the helper team; None where
+    numba's threading layer does not spin (run_parallel then always takes the team)."""
+    if native and not cpu.native_threads():
+        return None
+    spins = cpu.native_threads
+    cpu.native_threads = lambda: native
+    try:
+        return call()
+    finally:
+        cpu.native_threads = spins
+
+
+def speed(one: float, time_us: float | None) -> str:
+    return f"{'-':>10s} {'':6s}" if time_us is None else f"{time_us:10.1f} ({one / time_us:4.2f})"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=400)
@@ -114,31 +138,41 @@ def main() -> None:
     args = parser.parse_args()
     if args.at_most:
         numba.set_num_threads(args.at_most)
+    spins = cpu.native_threads()  # numba's threading layer started
+    layer = numba.threading_layer()
+    if not spins:
+        layer += " (it does not spin: run_parallel takes the helper team)"
     print(f"NUMBA_NUM_THREADS {numba.config.NUMBA_NUM_THREADS}, loops on at most "
-          f"{numba.get_num_threads()}")  # fmt: skip
+          f"{numba.get_num_threads()}, threading layer {layer}")  # fmt: skip
     values = np.ones(ITEMS)
     parts = np.arange(PARTS, dtype=np.int64)
     done = np.empty(PARTS)
-    print("gap us  work reps |  one thread  run_parallel (x)   gufunc (x)")
+    print("gap us  work reps |  one thread  numba's threads (x)   helper team (x)   gufunc (x)")
     for gap in (int(text) for text in args.gaps.split(",")):
         for reps in (200, 500, 2000, 20000):
+
+            def shared(reps: int = reps, gap: int = gap) -> float:
+                return median_call(
+                    lambda: run_parallel(_helper_loop, values, reps), gap, args.calls
+                )
+
             one = median_call(lambda r=reps: run_parallel(_helper_loop, values, r, parts=1),
                               gap, args.calls)  # fmt: skip
-            helpers = median_call(lambda r=reps: run_parallel(_helper_loop, values, r),
-                                  gap, args.calls)  # fmt: skip
             gufunc = median_call(lambda r=reps: _gufunc_part(parts, PARTS, values, r, done),
                                  gap, args.calls)  # fmt: skip
-            print(
-                f"{gap:6d} {reps:10d} | {one:10.1f} {helpers:10.1f} ({one / helpers:4.2f})"
-                f" {gufunc:10.1f} ({one / gufunc:4.2f})"
-            )
-    # How long a whole team takes to join one call: each helper takes the GIL in turn to join
-    # (its Python between the watch and the loop), so this grows with the team if that is what
-    # a large team waits for.
-    joins = {n: team_join(n, args.calls) for n in range(2, numba.get_num_threads() + 1)}
-    print("team join, 100 us of Python before each call: " + ", ".join(
-        f"{n} threads {us:.0f} us" for n, us in joins.items()
-    ))  # fmt: skip
+            times = [on_path(native, shared) for native in PATHS.values()] + [gufunc]
+            print(f"{gap:6d} {reps:10d} | {one:10.1f} " + "  ".join(speed(one, t) for t in times))
+    # How long a whole team takes to join one call: a helper takes the GIL in turn to join (its
+    # Python between the watch and the loop), so this grows with the team if that is what a
+    # large team waits for; numba's threads join from native code.
+    for name, native in PATHS.items():
+        joins = {
+            n: on_path(native, lambda n=n: team_join(n, args.calls))
+            for n in range(2, numba.get_num_threads() + 1)
+        }
+        print(f"team join on {name}, 100 us of Python before each call: " + ", ".join(
+            "-" if us is None else f"{n} threads {us:.0f} us" for n, us in joins.items()
+        ))  # fmt: skip
 
 
 if __name__ == "__main__":
