@@ -160,11 +160,12 @@ def cpu_backend() -> Backend:
     if reason:
         raise BackendUnavailable(f"backend 'cpu' does not work on this machine: {reason}")
     from kintinuous_fast.targets.cache import drop_stale_kernels
+    from kintinuous_fast.targets.cpu import threading_note
     from kintinuous_fast.targets.host_memory import hold_freed_memory
 
     drop_stale_kernels()  # kernels cached from other sources (targets/cache.py)
     hold_freed_memory()  # a frame's freed arrays serve the next one (targets/host_memory.py)
-    return FastBackend("cpu")
+    return FastBackend("cpu", threading_note())
 
 
 def cuda_backend() -> Backend:

@@ -246,3 +246,39 @@ def test_a_call_wakes_only_the_sleeping_helpers_it_wants():
     assert result["asleep"] == 6
     assert result["looked"] <= 1  # the one helper wanted (or none: the caller took both parts)
     assert result["seen"] == [2]  # every item done once by each of the two calls
+
+
+EDITED_LOOP = """
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part
+
+
+@parallel_part()
+def fill(claims, parts, out):
+    for item in claimed_items(claims, out.shape[0], parts):
+        out[item] = VALUE
+"""
+# The child: the edited loop's launcher on two threads; prints the values it wrote.
+FILL_CHILD = """
+import json, sys
+import numpy as np
+sys.path.insert(0, {folder!r})
+import edited_loop
+from kintinuous_fast.targets.cpu import launcher
+
+out = np.zeros(100)
+launcher(edited_loop.fill)(2, np.zeros(3, dtype=np.int64), 8, out)
+print(json.dumps(sorted(set(out.tolist()))))
+"""
+
+
+def test_a_launcher_runs_its_loop_as_last_edited(tmp_path):
+    # numba keeps each launcher, with its loop compiled in, in its on-disk cache: filed under
+    # the loop's source file, it is dropped when that file changes, as the loop is
+    module = tmp_path / "edited_loop.py"
+    child = FILL_CHILD.format(folder=str(tmp_path))
+    module.write_text(EDITED_LOOP.replace("VALUE", "1.0"))
+    assert run_with_threads(child, 2, timeout=300) == [1.0]
+    module.write_text(EDITED_LOOP.replace("VALUE", "2.0"))  # the same size: only its time differs
+    later = module.stat().st_mtime_ns + 10**10
+    os.utime(module, ns=(later, later))
+    assert run_with_threads(child, 2, timeout=300) == [2.0]

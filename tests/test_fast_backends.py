@@ -4,6 +4,7 @@ CUDA simulator in a child process (the simulator must be enabled before numba is
 import warnings
 from pathlib import Path
 
+import numba
 import pytest
 
 import kintinuous_fast
@@ -66,6 +67,18 @@ def test_info_command_lists_the_backends(capsys):
         assert ("yes" in line) == (status[name] == ""), line
     auto = "cuda" if not status["cuda"] else "cpu"
     assert f"auto -> {auto}" in out
+
+
+def test_info_says_which_threads_the_cpu_loops_run_on(capsys):
+    from kintinuous_fast.targets import cpu
+
+    assert cli.main(["info"]) == 0
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("cpu"))
+    assert f"{numba.get_num_threads()} threads" in line
+    if cpu.native_threads():  # OpenMP or TBB: the layer, by numba's name for it
+        assert f"numba's {numba.threading_layer()} threading layer" in line
+    else:
+        assert "our own helper team" in line and "libgomp1" in line
 
 
 @pytest.mark.skipif(

@@ -281,14 +281,19 @@ def _launch(team: int, claims: Any, parts: int, *args: Any) -> None:
 def launcher(loop: Any) -> Any:
     """`loop`'s launcher: `launcher(loop)(team, claims, parts, *args)` runs
     loop(claims, parts, *args) once on each of `team` threads (`run_on_threads`). It is `_launch`
-    compiled with `loop` as its LOOP, a function of its own named after the loop, so that numba
-    caches it on disk like the loop: a closure over the loop would be keyed to the loop object,
-    which is new in every process."""
+    compiled with `loop` as its LOOP, a function of its own, named after the loop and filed
+    under the loop's source file, so that numba caches it beside the loop and drops it when that
+    file changes, as it does the loop: a closure over the loop would be keyed to the loop
+    object, which is new in every process, and a launcher filed under this file would outlive
+    an edit to the loop."""
     _launch_threads()
-    body = loop.py_func
+    body = loop.py_func.__code__
+    code = _launch.__code__.replace(
+        co_filename=body.co_filename, co_firstlineno=body.co_firstlineno
+    )
     names = {"LOOP": loop, "run_on_threads": run_on_threads, "__name__": __name__}
-    function = FunctionType(_launch.__code__, names, "launch")
-    function.__qualname__ = f"launch[{body.__module__}.{body.__qualname__}]"
+    function = FunctionType(code, names, "launch")
+    function.__qualname__ = f"{loop.py_func.__qualname__}.launch"
     return numba.njit(nogil=True, cache=True)(function)
 
 
@@ -404,6 +409,17 @@ def native_threads() -> bool:
     whose loops ran on GNU OpenMP's threads, which OpenMP cannot start again (numba ends a child
     that tries)."""
     return not _forked_from_openmp and _layer_spins()
+
+
+def threading_note() -> str:
+    """How the loops share their work here, in words (`kintinuous info`)."""
+    count = f"{threads()} threads"
+    if _layer_spins():
+        return f"{count} of numba's {numba.threading_layer()} threading layer"
+    return (
+        f"{count} of our own helper team: numba found no OpenMP or TBB runtime, whose threads "
+        "join loops faster (Debian and Ubuntu: libgomp1)"
+    )
 
 
 _forked_from_openmp = False
