@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # The cpu backend on many cores, for the device machine's 16 (the only machine with that many
-# here; numba's CPU target needs no GPU): what one parallel call costs at 2, 8 and 16 threads
-# (benchmarks/parallel_call_overhead.py), then every stage and loop at 1-16 threads
-# (benchmarks/thread_sweep.py). About 3 minutes, the cpu kernels' first compile included.
+# here; numba's CPU target needs no GPU): what one parallel call costs at 2, 8 and 16 threads on
+# each of run_parallel's paths (benchmarks/parallel_call_overhead.py), then every stage and loop
+# at 1-16 threads on numba's threads (benchmarks/thread_sweep.py), and at 1, 8 and 16 on the
+# helper team (numba's workqueue layer asked for: it does not spin, so run_parallel takes the
+# team). About 4 minutes, the cpu kernels' first compile included.
 # Usage, from the repository root: benchmarks/cpu_device_check.sh TUM_FOLDER [OUT_DIR]
-# Writes sweep.json into OUT_DIR (default: the current folder).
+# Writes sweep.json and sweep_team.json into OUT_DIR (default: the current folder).
 set -u
 data=${1:?usage: cpu_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
@@ -21,4 +23,6 @@ NUMBA_NUM_THREADS=16 timeout 60 python3 benchmarks/parallel_call_overhead.py --c
     --gaps 100,1000 --at-most 2 | tail -10
 timeout 200 python3 benchmarks/thread_sweep.py "$data" --threads 1,2,4,8,16 --frames 30 \
     --set volume.moving=false --json "$out/sweep.json" | tail -48
+NUMBA_THREADING_LAYER=workqueue timeout 120 python3 benchmarks/thread_sweep.py "$data" \
+    --threads 1,8,16 --frames 30 --set volume.moving=false --json "$out/sweep_team.json" | head -12
 date -u

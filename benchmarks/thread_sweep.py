@@ -8,7 +8,7 @@ NUMBA_NUM_THREADS=N (numba fixes its thread count when it starts).
 Prints per stage the median ms per count and the speed-up against 1 thread (the smallest count
 swept if 1 is not), per loop its ms per frame per count, its calls per frame and ms per call at
 that baseline, and marks the loops that are slower at the largest count than at a smaller one,
-most time lost first: these are the loops where waking and joining the helper threads costs
+most time lost first: these are the loops where waking and joining the other threads costs
 more than the work they share. Counts above the cores this process may run on are skipped, since
 threads that share a core measure the scheduler, not the loops.
 """

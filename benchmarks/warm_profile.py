@@ -11,7 +11,7 @@ kernel by kernel and capture their graphs, which later frames replay.
 Prints the stages' medians, the functions with the most time of their own and the project's
 functions by cumulative time, per frame; `--out` keeps the profile for pstats or snakeviz.
 `--loops` (cpu backend) runs without the profiler and times every parallel loop instead: its
-wall time per frame (the helper threads' hand-over included; the median over the frames the
+wall time per frame (the other threads' hand-over included; the median over the frames the
 stages' medians cover) and, per stage, the time outside the loops, which is what the host's
 Python costs; `--json` writes the same numbers, with the thread count numba used, for
 benchmarks/thread_sweep.py.
@@ -161,7 +161,7 @@ class LoopClock:
 def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     """Run the benchmark with every kintinuous_fast module's run_parallel timed (the cpu loops
     are called through it) and return loop_report's summary: timing the calls from outside the
-    loops includes the helper threads' hand-over, which is what a thread count changes."""
+    loops includes the other threads' hand-over, which is what a thread count changes."""
     import kintinuous_fast.odometry.icp.cpu_joint as joint
     import kintinuous_fast.targets.cpu as threads
     from kintinuous_ref import pipeline
