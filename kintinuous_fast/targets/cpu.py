@@ -15,8 +15,8 @@ waits are atomic operations on a small int64 array, so a thread that waits for a
 neither the GIL nor a wake-up.
 
 How many threads join a loop follows its work, measured as the loops run (`threads_for`): a
-loop too small to repay waking and joining another thread runs on the calling thread alone, so that
-more threads never make a stage slower. Its results are the same either way.
+loop too small to repay waking and joining another thread runs on the calling thread alone, so
+that more threads never make a stage slower. Its results are the same either way.
 """
 
 import itertools
@@ -391,7 +391,7 @@ def _thread_kernel(
 
 # numba's threading layers whose threads wait for work in a spin before they sleep, as the
 # helper team's do: OpenMP, TBB. numba's own workqueue (the one layer every installation has,
-# where neither library is found) wakes sleeping threads for every call: 40-70 microseconds
+# where neither library is found) wakes sleeping threads for every call: 30-110 microseconds
 # more than the helper team on the 2-core VM for loops of 30-300 microseconds, so there the
 # loops keep to the helper team.
 SPINNING_LAYERS = ("omp", "tbb")
