@@ -412,12 +412,11 @@ def native_threads() -> bool:
 
 
 def threading_note() -> str:
-    """How the loops share their work here, in words (`kintinuous info`)."""
-    count = f"{threads()} threads"
+    """Which threads the loops share their work on here, in words (`kintinuous info`)."""
     if _layer_spins():
-        return f"{count} of numba's {numba.threading_layer()} threading layer"
+        return f"on numba's {numba.threading_layer()} threads"
     return (
-        f"{count} of our own helper team: numba found no OpenMP or TBB runtime, whose threads "
+        "on a helper team of our own: numba found no OpenMP or TBB runtime, whose threads "
         "join loops faster (Debian and Ubuntu: libgomp1)"
     )
 
