@@ -145,9 +145,14 @@ def test_the_pipeline_gives_the_same_bits_on_one_and_two_threads():
 
 @parallel_part()
 def _write_after_the_signal(claims, parts, signalled, written):
-    """Each part waits (a bounded spin) until signalled[0] is set, then sets written[part]."""
+    """Each part waits (a bounded spin) until signalled[0] is set, then sets written[part]; the
+    thread that joins second writes tens of milliseconds later (a bounded spin), so that a
+    call that returned before its other threads were done would miss those writes."""
+    slot = claim_slot(claims)
     for part in claimed_items(claims, parts, parts):
         spin_below(signalled, 0, 1, 300_000_000)
+        if slot > 0:
+            spin_below(signalled, 0, 2, 2_000_000)  # signalled[0] never reaches 2
         written[part] = 1
 
 

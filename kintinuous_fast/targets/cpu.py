@@ -251,9 +251,10 @@ def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | N
     The loops write disjoint parts of their outputs, and their sums go into fixed chunks, so no
     result depends on the number of threads or parts."""
     items = work_items(args) if items is None else items
-    native = native_threads()
+    available = threads()
+    native = available > 1 and native_threads()
     minimum = MIN_SECONDS_PER_THREAD if native else MIN_SECONDS_PER_HELPER
-    team_size = threads_for(LOOP_COSTS.seconds(loop, items), threads(), minimum)
+    team_size = threads_for(LOOP_COSTS.seconds(loop, items), available, minimum)
     parts = PARTS_PER_THREAD * team_size if parts is None else parts
     team_size = min(parts, team_size)
     claims = np.zeros(3, dtype=np.int64)
@@ -264,7 +265,11 @@ def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | N
     elif team_size > 1:
         job = _Job(loop, claims, parts, args, team_size - 1)
         _team().post(job)
-        loop(claims, parts, *args)
+        try:
+            loop(claims, parts, *args)
+        except KeyboardInterrupt:  # a signal as the caller's parts returned: the helpers' first
+            _wait_for_parts(job)
+            raise
         _wait_for_parts(job)
     else:
         loop(claims, parts, *args)
