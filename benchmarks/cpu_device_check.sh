@@ -4,9 +4,11 @@
 # each of run_parallel's paths (benchmarks/parallel_call_overhead.py), then every stage and loop
 # at 1-16 threads on numba's threads (benchmarks/thread_sweep.py), and at 1, 8 and 16 on the
 # helper team (numba's workqueue layer asked for: it does not spin, so run_parallel takes the
-# team). About 4 minutes, the cpu kernels' first compile included.
+# team), and at 8 and 16 on numba's threads with OpenMP's spin shortened. About 5 minutes, the
+# cpu kernels' first compile included.
 # Usage, from the repository root: benchmarks/cpu_device_check.sh TUM_FOLDER [OUT_DIR]
-# Writes sweep.json and sweep_team.json into OUT_DIR (default: the current folder).
+# Writes sweep.json, sweep_team.json and sweep_spin.json into OUT_DIR (default: the current
+# folder).
 set -u
 data=${1:?usage: cpu_device_check.sh TUM_FOLDER [OUT_DIR]}
 out=${2:-.}
@@ -25,4 +27,8 @@ timeout 200 python3 benchmarks/thread_sweep.py "$data" --threads 1,2,4,8,16 --fr
     --set volume.moving=false --json "$out/sweep.json" | tail -48
 NUMBA_THREADING_LAYER=workqueue timeout 120 python3 benchmarks/thread_sweep.py "$data" \
     --threads 1,8,16 --frames 30 --set volume.moving=false --json "$out/sweep_team.json" | head -12
+# OpenMP's threads spin for GOMP_SPINCOUNT (300,000 by default) before they sleep: between two
+# loops every core spins while the calling thread runs Python; a shorter spin, at 8 and 16
+GOMP_SPINCOUNT=10000 timeout 90 python3 benchmarks/thread_sweep.py "$data" \
+    --threads 8,16 --frames 30 --set volume.moving=false --json "$out/sweep_spin.json" | head -12
 date -u
