@@ -74,6 +74,7 @@ def test_info_says_which_threads_the_cpu_loops_run_on(capsys):
 
     assert cli.main(["info"]) == 0
     line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("cpu"))
+    assert cpu.threading_note() in line
     if cpu.native_threads():  # OpenMP or TBB: the layer, by numba's name for it
         assert f"on numba's {numba.threading_layer()} threads" in line
     else:
