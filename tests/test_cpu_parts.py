@@ -167,7 +167,9 @@ JOINT_CHILD = textwrap.dedent(
     import test_fast_odometry_cases as cases
     from threads_child import on_both_paths  # the tests folder is on the child's path
     from kintinuous_fast.odometry import combined, cpu as odometry
+    from kintinuous_fast.odometry.solve import apply_increment, refine, solve
     from kintinuous_fast.targets import cpu
+    from kintinuous_ref.odometry import solve as reference_solve
     from kintinuous_ref.odometry.rgbd import RgbdProblem
     from kintinuous_ref.preprocess import model_pyramid
 
@@ -200,13 +202,61 @@ JOINT_CHILD = textwrap.dedent(
                 fractions.append((rgbd.inlier_fraction(pose, level), base))
         return {"fused": fused, "separate": separate, "fractions": fractions}
 
-    print(json.dumps(on_both_paths(systems)))
+    def refined(threads):
+        # each level's steps in compiled code (solve.refine, JointLevel.refine) and stepped by
+        # the reference's loop with the compiled step; the second least count fails a step
+        numba.set_num_threads(threads)
+        runs = {"compiled": [], "stepped": [], "levels in compiled code": []}
+        for pose in cases.poses_to_try(previous, current):
+            for least in (6, 10**9):
+                joint = combined.CombinedProblem(*problems(), 0.3, "huber")
+                runs["compiled"].append(refine(pose, joint.system, (4, 3, 3), least, 1e-6))
+                again = combined.CombinedProblem(*problems(), 0.3, "huber")
+                step = (solve, apply_increment)
+                stepped = reference_solve.refine(pose, again.system, (4, 3, 3), least, 1e-6, step)
+                runs["stepped"].append(stepped)
+                levels = joint.icp.__dict__.get("_joint_levels", {}).values()
+                runs["levels in compiled code"].append(sum(level.steps > 0 for level in levels))
+        for name in ("compiled", "stepped"):
+            runs[name] = [(digest_pose(pose), reason) for pose, reason in runs[name]]
+        return {**runs, "native": cpu.native_threads()}
+
+    def digest_pose(pose):
+        return hashlib.sha256(np.ascontiguousarray(pose).tobytes()).hexdigest()
+
+    print(json.dumps({**on_both_paths(systems), "refine": on_both_paths(refined)}))
     """
 )
 
 
-def test_the_joint_loop_gives_the_separate_systems_bits_on_1_2_and_7_threads():
-    runs = run_with_threads(JOINT_CHILD, 7)
+@pytest.fixture(scope="module")
+def joint_child_runs():
+    """JOINT_CHILD's output, run once for the tests that read it."""
+    return run_with_threads(JOINT_CHILD, 7)
+
+
+def test_a_level_in_compiled_code_takes_the_reference_loops_steps(joint_child_runs):
+    """solve.refine over the CPU's joint problem runs each level's steps in one compiled call
+    wherever the joint loop runs on numba's threads or on the calling thread alone, and ends
+    with the pose and the failure (a least count no level reaches) of the reference's loop
+    stepping through the same problem, bit for bit, on every thread count and path."""
+    runs = joint_child_runs["refine"]
+    assert len(runs) == 8
+    first = runs["the helper team, 1 threads"]
+    for name, run in runs.items():
+        assert run["compiled"] == run["stepped"] == first["compiled"], name
+        in_compiled_code = run["native"] or name.endswith(" 1 threads")
+        # every level where each level is reached, the coarsest where its first step fails
+        expected = [3, 1] if in_compiled_code else [0, 0]
+        expected *= len(run["compiled"]) // 2
+        assert run["levels in compiled code"] == expected, name
+    reasons = [reason for _, reason in first["compiled"]]
+    assert reasons[0::2] == [""] * (len(reasons) // 2)
+    assert all(r.startswith("level 2: too few correspondences (") for r in reasons[1::2])
+
+
+def test_the_joint_loop_gives_the_separate_systems_bits_on_1_2_and_7_threads(joint_child_runs):
+    runs = {name: run for name, run in joint_child_runs.items() if name != "refine"}
     assert len(runs) == 8
     first = runs["the helper team, 1 threads"]
     for name, run in runs.items():

@@ -160,3 +160,16 @@ class CombinedProblem(reference.CombinedProblem):
             if system is not None:
                 return system
         return super().system(level, pose)
+
+    def refine_level(
+        self, level: int, pose: np.ndarray, steps: int, min_count: int, converged: float
+    ) -> tuple[np.ndarray, str] | None:
+        """solve.refine's steps at one level over this problem's systems, all in compiled code,
+        where the ICP problem runs them so (the CPU's: IcpProblem.refine_joint_level): (pose,
+        '') or (pose so far, why a step failed). None elsewhere: the caller steps through
+        `system`."""
+        fused = getattr(self.icp, "refine_joint_level", None)
+        if fused is None or type(self).joint_system is not joint_system:
+            return None
+        joint = (self.rgbd_weight, self.weighting, self.degeneracy_threshold)
+        return fused(self.rgbd, level, pose, (steps, min_count, converged), joint)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from numba import cuda
 
+from kintinuous_fast.odometry.solve import TOO_FEW as TOO_FEW  # a value of the STATUS slot
 from kintinuous_fast.odometry.sums import SLOT_COUNT, SLOT_EXTRA
 from kintinuous_fast.odometry.sums.cuda import GATE_DONE_LEVEL, GATE_FAILED
 from kintinuous_fast.targets.cuda import kernel
@@ -18,7 +19,7 @@ from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS
 FAILED = GATE_FAILED
 DONE_LEVEL = GATE_DONE_LEVEL
 MODE = 2  # which system each step solves (JOINT, ICP_ONLY, RGBD_ONLY) or STALE
-STATUS = 3  # solve's status codes (SOLVED, NOT_FINITE, ...) or TOO_FEW
+STATUS = 3  # solve's status codes (SOLVED, NOT_FINITE, ..., TOO_FEW)
 FAIL_LEVEL = 4
 CONDITION = 5
 FAIL_COUNT = 6
@@ -33,7 +34,6 @@ POSE = 16  # 16 slots, row-major
 STATE_SIZE = 32
 
 JOINT, ICP_ONLY, RGBD_ONLY, STALE = range(4)
-TOO_FEW = 10  # a status beside solve's: fewer pairs than tracking.min_correspondences
 # The weightings of combined.joint_system as the solve kernel takes them.
 DISCOUNTED, PAPER, PAPER_METRES, INFORMATION, ORIGINAL_CODE = range(5)
 WEIGHTING_CODES = {

@@ -64,7 +64,6 @@ from kintinuous_fast.odometry.frame_kernels import (  # the state's slots and th
     STALE,
     STATE_SIZE,
     STATUS,
-    TOO_FEW,
     WEIGHTING_CODES,
     begin_kernel,
     finish_kernel,
@@ -82,7 +81,7 @@ from kintinuous_fast.odometry.rgbd.cuda import (
     pair_arguments,
     rows_kernel,
 )
-from kintinuous_fast.odometry.solve import solve_reasons
+from kintinuous_fast.odometry.solve import failure_reason
 from kintinuous_fast.odometry.sums import NV
 from kintinuous_fast.odometry.sums.cuda import (
     ANY_LEVEL,
@@ -387,9 +386,8 @@ def read_record(tracker: Any, record: np.ndarray, previous_pose: np.ndarray) -> 
 def _failure(tracker: Any, record: np.ndarray) -> str:
     """The reason of a failed step (solve.solve's wording)."""
     status, count = int(record[STATUS]), int(round(record[FAIL_COUNT]))
-    if status == TOO_FEW:
-        return f"too few correspondences ({count} < {tracker.config.tracking.min_correspondences})"
-    return solve_reasons(float(record[CONDITION]))[status]
+    least = tracker.config.tracking.min_correspondences
+    return failure_reason(status, float(record[CONDITION]), count, least)
 
 
 def estimate_on_device(

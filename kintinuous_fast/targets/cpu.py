@@ -243,6 +243,16 @@ def work_items(args: tuple) -> int:
     return max((arg.size for arg in args if isinstance(arg, np.ndarray)), default=1)
 
 
+def planned_team(loop: Any, items: int) -> tuple[int, bool]:
+    """(how many threads a call of `loop` over `items` items runs on, whether they are numba's
+    threads): one per MIN_SECONDS_PER_THREAD of its measured work on numba's threads, one per
+    MIN_SECONDS_PER_HELPER on the helper team (`threads_for`, LOOP_COSTS)."""
+    available = threads()
+    native = available > 1 and native_threads()
+    minimum = MIN_SECONDS_PER_THREAD if native else MIN_SECONDS_PER_HELPER
+    return threads_for(LOOP_COSTS.seconds(loop, items), available, minimum), native
+
+
 def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | None = None) -> None:
     """loop(claims, parts, *args) on up to threads() threads, the calling one among them, each
     calling it once; returns once every part (PARTS_PER_THREAD per thread unless told) is done.
@@ -251,10 +261,7 @@ def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | N
     The loops write disjoint parts of their outputs, and their sums go into fixed chunks, so no
     result depends on the number of threads or parts."""
     items = work_items(args) if items is None else items
-    available = threads()
-    native = available > 1 and native_threads()
-    minimum = MIN_SECONDS_PER_THREAD if native else MIN_SECONDS_PER_HELPER
-    team_size = threads_for(LOOP_COSTS.seconds(loop, items), available, minimum)
+    team_size, native = planned_team(loop, items)
     parts = PARTS_PER_THREAD * team_size if parts is None else parts
     team_size = min(parts, team_size)
     claims = np.zeros(3, dtype=np.int64)
@@ -291,7 +298,7 @@ def launcher(loop: Any) -> Any:
     file changes, as it does the loop: a closure over the loop would be keyed to the loop
     object, which is new in every process, and a launcher filed under this file would outlive
     an edit to the loop."""
-    _launch_threads()
+    start_numba_threads()
     body = loop.py_func.__code__
     code = _launch.__code__.replace(
         co_filename=body.co_filename, co_firstlineno=body.co_firstlineno
@@ -402,9 +409,15 @@ def _thread_kernel(
 SPINNING_LAYERS = ("omp", "tbb")
 
 
+def start_numba_threads() -> None:
+    """Start numba's threading layer (once): code that calls `run_on_threads` links its
+    numba_parallel_for, so it must be started before such code compiles."""
+    _launch_threads()
+
+
 @cache
 def _layer_spins() -> bool:
-    _launch_threads()
+    start_numba_threads()
     return numba.threading_layer() in SPINNING_LAYERS
 
 

@@ -46,7 +46,7 @@ from kintinuous_ref.odometry.solve import LinearSystem
 from . import REFERENCE_NAMES, TARGET_NAMES, _IcpProblem, check_maps, icp_constants, robust_terms
 from .cpu_block import OPS as _OPS
 from .cpu_block import _block_work, icp_chunk, kept_pairs
-from .cpu_joint import FUSED_WEIGHTINGS, joint_system
+from .cpu_joint import FUSED_WEIGHTINGS, joint_level, joint_system
 
 # The reference's own objects (REFERENCE_NAMES) and what this target computes (TARGET_NAMES),
 # listed in icp/__init__.py.
@@ -268,6 +268,12 @@ def point_to_plane_rows(
     return jacobian, residuals
 
 
+def _fuses(rgbd: Any, weighting: str) -> bool:
+    """Whether the joint loop (icp/cpu_joint.py) sums the joint system with `rgbd`: the CPU's
+    RgbdProblem and a degeneracy-aware weighting."""
+    return weighting in FUSED_WEIGHTINGS and isinstance(rgbd, RgbdProblem)
+
+
 class IcpProblem(_IcpProblem):
     """kintinuous_ref.odometry.icp.IcpProblem with the CPU loops underneath; each level's valid
     current points are compacted once, on first use, for all of its iterations."""
@@ -300,9 +306,26 @@ class IcpProblem(_IcpProblem):
         """combined.joint_system of this problem's and `rgbd`'s systems at `pose` (the camera
         position pose[:3, 3]) in one parallel call (icp/cpu_joint.py), where `rgbd` is the
         CPU's RgbdProblem and the weighting a degeneracy-aware one; None elsewhere."""
-        if weighting not in FUSED_WEIGHTINGS or not isinstance(rgbd, RgbdProblem):
+        if not _fuses(rgbd, weighting):
             return None
         return joint_system(self, rgbd, level, pose, rgbd_weight, degeneracy_threshold)
+
+    def refine_joint_level(
+        self,
+        rgbd: Any,
+        level: int,
+        pose: np.ndarray,
+        steps: tuple[int, int, float],
+        joint: tuple[float, str, float],
+    ) -> tuple[np.ndarray, str] | None:
+        """solve.refine over one level of the joint system of joint_system_with, every step
+        compiled (JointLevel.refine): (pose, reason); `steps` = (steps, min_count, converged),
+        `joint` = (rgbd_weight, weighting, degeneracy_threshold). None where joint_system_with
+        is, or where the level's loop runs on the helper team."""
+        rgbd_weight, weighting, threshold = joint
+        if not _fuses(rgbd, weighting):
+            return None
+        return joint_level(self, rgbd, level).refine(pose, *steps, (rgbd_weight, threshold))
 
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
         """As the base class, from the pair count alone (_points_pairs): no sums for this one

@@ -12,11 +12,17 @@ cpu.py's second pass, which needs every correspondence chunk's sum: with the ICP
 between, its threads seldom wait), and a level's work arrays are made once for all of its
 iterations. The chunks and the order of every sum are those of the separate calls, so the system is
 the same, bit for bit, on any number of threads.
+
+A whole level runs in one compiled call too (`_refine_level`, JointLevel.refine): each step's
+poses, the joint loop on numba's threads, the sums and solve.refine's step, with no Python
+between the steps: in the pipeline, the Python between two steps took 200-220 microseconds on
+the 2-core VM (about 50 in a loop that repeats one step), at some 14 steps a frame.
 """
 
 from __future__ import annotations
 
 import math
+import time
 
 import numba
 import numpy as np
@@ -28,18 +34,23 @@ from kintinuous_fast.odometry.rgbd.cpu import (
     _rows_chunk,
     _work,
 )
+from kintinuous_fast.odometry.solve import SOLVED, failure_reason, gauss_newton_step
 from kintinuous_fast.odometry.sums import NV, SLOT_B, SLOT_COST, SLOT_COUNT
 from kintinuous_fast.odometry.sums.cpu import ALLOCATING_LOOP, partials
 from kintinuous_fast.targets import pinhole
 from kintinuous_fast.targets.cpu import (
+    LOOP_COSTS,
     NEXT_PART,
     PARTS_DONE,
     SPINS,
     atomic_fetch_add,
     atomic_load,
     claim_slot,
+    planned_team,
+    run_on_threads,
     run_parallel,
     spin_below,
+    start_numba_threads,
 )
 from kintinuous_ref.odometry.combined import MIN_ICP_SCALE
 from kintinuous_ref.odometry.solve import LinearSystem
@@ -47,7 +58,7 @@ from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS
 
 from .cpu_block import icp_chunk
 
-__all__ = ["FUSED_WEIGHTINGS", "JointLevel", "joint_system"]
+__all__ = ["FUSED_WEIGHTINGS", "JointLevel", "joint_level", "joint_system"]
 
 # The weightings whose joint system is computed here: the degeneracy-aware ones (the default
 # among them); the others are a scaling and a sum, left to the reference's joint_system.
@@ -177,6 +188,49 @@ def _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold):
 
 
 # ----------------------------------------------------------------------------------------------
+# A level's iterations
+
+# A status beside solve's (gauss_newton_step): a thread of the joint loop failed.
+THREAD_FAILED = -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine_level(team, steps, min_count, converged, pose, fixed, work, weights):
+    """solve.refine's loop over one level, every step in compiled code: the joint loop on
+    `team` threads (run_on_threads; the calling thread alone for 1), its sums and the
+    degeneracy-aware joint system (_joint_sums), then gauss_newton_step, up to `steps` steps or
+    until one is shorter than `converged`. The poses the loops read are those JointLevel.system
+    passes, computed as NumPy does (np.dot is BLAS's product, as the @ of icp_constants and
+    WarpTerms). `fixed` = (the ICP terms without pose and to_model, the model pose's inverse,
+    the RGB-D columns, WarpTerms' fields, row terms), `work` = the level's work arrays and
+    parts, `weights` = (rgbd_weight, degeneracy threshold). Returns (pose, status, condition,
+    count, the systems computed: the steps taken and a failed one)."""
+    (points, mv, mn, camera, limits, robust), model_inverse, columns, warp, row_terms = fixed
+    to_previous, images, warped, intrinsics, max_change = warp
+    corresponded, icp_out, pairs, sums, warps, rgbd_out, parts = work
+    rgbd_weight, threshold = weights
+    for step in range(steps):
+        icp_terms = (points, pose, np.dot(model_inverse, pose), mv, mn, camera, limits, robust)
+        warp_terms = (np.dot(to_previous, pose), pose, images, warped, intrinsics, max_change)
+        rgbd_terms = (columns, warp_terms, row_terms)
+        corresponded[0] = 0
+        claims = np.zeros(3, dtype=np.int64)
+        args = (corresponded, icp_terms, icp_out, rgbd_terms, pairs, sums, warps, rgbd_out)
+        if team == 1:
+            _joint_loop(claims, parts, *args)
+        elif run_on_threads(team, _joint_loop, claims, parts, args):
+            return pose, THREAD_FAILED, 0.0, 0, step + 1
+        centre = pose[:3, 3].copy()
+        a, b, count, _ = _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold)
+        status, condition, pose, length = gauss_newton_step(a, b, count, min_count, pose)
+        if status != SOLVED:
+            return pose, status, condition, count, step + 1
+        if length < converged:
+            return pose, SOLVED, 0.0, count, step + 1
+    return pose, SOLVED, 0.0, 0, steps
+
+
+# ----------------------------------------------------------------------------------------------
 # Host side
 
 
@@ -199,6 +253,19 @@ class JointLevel:
         self.parts = self.icp_out.shape[0] + 2 * self.sums.shape[0]
         self.corresponded = np.zeros(1, dtype=np.int64)
         self.items = self.points.shape[1] + interest
+        # what _refine_level reads, made once per level; the pair tests' limits are the same
+        # at every pose
+        warp, limits = self.warp_terms, icp.constants(np.eye(4))[2:]
+        self.fixed = (
+            (self.points, *self.model, self.camera, limits, icp.robust),
+            np.ascontiguousarray(icp.model_inverse, dtype=np.float64),
+            self.columns,
+            (warp.to_previous, warp.images, warp.warped, warp.intrinsics, warp.max_change),
+            self.row_terms,
+        )
+        arrays = (self.corresponded, self.icp_out, self.pairs, self.sums, self.warps)
+        self.work = (*arrays, self.rgbd_out, self.parts)
+        self.steps = 0
 
     def system(self, pose: np.ndarray, rgbd_weight: float, threshold: float) -> LinearSystem:
         """The joint system at `pose` (combined.joint_system's degeneracy-aware branch)."""
@@ -231,6 +298,50 @@ class JointLevel:
         )
         return LinearSystem(a, b, count, cost)
 
+    def refine(
+        self,
+        pose: np.ndarray,
+        steps: int,
+        min_count: int,
+        converged: float,
+        weights: tuple[float, float],
+    ) -> tuple[np.ndarray, str] | None:
+        """solve.refine over this level alone, every step compiled (_refine_level): (pose, '')
+        or (pose so far, why its step failed); `weights` = (rgbd_weight, degeneracy threshold).
+        None where the loop would run on the helper team, which only Python joins. The systems
+        computed (the steps taken and a failed one) are kept in `self.steps`."""
+        team, native = planned_team(_joint_loop, self.items)
+        team = min(team, self.parts)
+        if team > 1 and not native:
+            return None
+        start_numba_threads()
+        started = time.perf_counter()
+        pose, status, condition, count, self.steps = _refine_level(
+            team,
+            steps,
+            min_count,
+            float(converged),
+            np.array(pose, dtype=np.float64),
+            self.fixed,
+            self.work,
+            (float(weights[0]), float(weights[1])),
+        )
+        seconds = (time.perf_counter() - started) / max(self.steps, 1)
+        LOOP_COSTS.record(_joint_loop, self.items, seconds * team)
+        if status == THREAD_FAILED:
+            raise RuntimeError("a cpu loop failed on one of its threads; run it on one to see why")
+        if status != SOLVED:
+            return pose, failure_reason(status, condition, count, min_count)
+        return pose, ""
+
+
+def joint_level(icp, rgbd, level: int) -> JointLevel:  # noqa: ANN001 (the CPU's problems)
+    """The JointLevel of `icp` and `rgbd` at `level`, made on first use and kept on `icp`."""
+    levels: dict[int, JointLevel] = icp.__dict__.setdefault("_joint_levels", {})
+    if level not in levels:
+        levels[level] = JointLevel(icp, rgbd, level)
+    return levels[level]
+
 
 def joint_system(
     icp,  # noqa: ANN001 (the CPU's IcpProblem)
@@ -243,7 +354,4 @@ def joint_system(
     """combined.joint_system(icp.system(level, pose), rgbd.system(level, pose), rgbd_weight,
     a degeneracy-aware weighting, camera position pose[:3, 3], threshold), computed in one
     parallel call and one compiled function; the level's JointLevel is kept on `icp`."""
-    levels: dict[int, JointLevel] = icp.__dict__.setdefault("_joint_levels", {})
-    if level not in levels:
-        levels[level] = JointLevel(icp, rgbd, level)
-    return levels[level].system(pose, rgbd_weight, threshold)
+    return joint_level(icp, rgbd, level).system(pose, rgbd_weight, threshold)

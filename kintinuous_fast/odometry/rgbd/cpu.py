@@ -11,6 +11,8 @@ come out in the reference's order.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 
@@ -337,22 +339,33 @@ def _point_columns(points: InterestPoints) -> tuple:
     )
 
 
+@dataclass(frozen=True)
+class WarpTerms:
+    """What _correspond_chunk's warp terms hold at every iteration of a level, and, called with
+    a pose, the terms themselves: (relative pose, pose, images, warped, intrinsics, max
+    change). `to_previous` is relative_pose's inverse, computed once per level; `images` the
+    previous frame's (depth, intensity, dx, dy) as _previous_images stages them."""
+
+    to_previous: np.ndarray
+    images: tuple
+    warped: bool
+    intrinsics: tuple
+    max_change: float
+
+    def __call__(self, pose: np.ndarray) -> tuple:
+        relative = np.ascontiguousarray(self.to_previous @ pose, dtype=np.float64)
+        pose = np.ascontiguousarray(pose, dtype=np.float64)
+        return (relative, pose, self.images, self.warped, self.intrinsics, self.max_change)
+
+
 def _level_terms(points, previous_pose, previous, camera, max_depth_change) -> tuple:
     """What every iteration at a level passes the loops, made once per level: the interest
-    points' columns (_point_columns), and a function of the pose giving the warp terms of
-    _correspond_chunk; `previous` = the previous frame's (depth, intensity, dx, dy), dx and dy
-    None but in "warped" mode."""
+    points' columns (_point_columns) and the WarpTerms of _correspond_chunk; `previous` = the
+    previous frame's (depth, intensity, dx, dy), dx and dy None but in "warped" mode."""
     images, warped = _previous_images(*previous, camera)
-    intrinsics, max_change = pinhole(camera), float(max_depth_change)
-    # relative_pose's inverse, computed once: the same matrix at every iteration
-    to_previous = np.linalg.inv(previous_pose)
-
-    def warp_terms(pose: np.ndarray) -> tuple:
-        relative = np.ascontiguousarray(to_previous @ pose, dtype=np.float64)
-        pose = np.ascontiguousarray(pose, dtype=np.float64)
-        return (relative, pose, images, warped, intrinsics, max_change)
-
-    return _point_columns(points), warp_terms
+    to_previous = np.ascontiguousarray(np.linalg.inv(previous_pose), dtype=np.float64)
+    terms = WarpTerms(to_previous, images, warped, pinhole(camera), float(max_depth_change))
+    return _point_columns(points), terms
 
 
 def _focal(camera: Intrinsics) -> tuple[float, float]:
@@ -465,8 +478,8 @@ class RgbdProblem(reference.RgbdProblem):
 
     def level_terms(self, level: int) -> tuple:
         """(columns, warp_terms, row_terms) of the level, what its iterations share: the interest
-        points' columns (_point_columns), the function of the pose giving _correspond_chunk's
-        warp terms, and (previous pose, focal); made once per level and kept on the problem,
+        points' columns (_point_columns), _correspond_chunk's WarpTerms (which give its warp
+        terms at a pose) and (previous pose, focal); made once per level and kept on the problem,
         which keeps the reference's constructor."""
         levels: dict[int, tuple] = self.__dict__.setdefault("_levels", {})
         if level not in levels:

@@ -34,6 +34,8 @@ _jit = numba.njit(cache=True)
 
 # What _scaled_solution says of a system (kintinuous_ref.odometry.solve.solve's reasons).
 SOLVED, NOT_FINITE, UNCONSTRAINED, ILL_CONDITIONED, NOT_DEFINITE = range(5)
+# A status beside those: fewer pairs than the least count, before any solution is tried.
+TOO_FEW = 10
 # The reference's scalar maths, compiled as it is written (one body for both).
 _so3_coefficients = _jit(se3._so3_coefficients)
 
@@ -104,11 +106,20 @@ def _back_substitution(lower: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 def solve(system: LinearSystem, min_count: int = 6) -> tuple[np.ndarray | None, str]:
     """kintinuous_ref.odometry.solve.solve: the increment xi with A xi = -b, or (None, reason)."""
     if system.count < min_count:
-        return None, f"too few correspondences ({system.count} < {min_count})"
+        return None, failure_reason(TOO_FEW, 0.0, system.count, min_count)
     status, xi, condition = _scaled_solution(system.A, system.b)
     if status == SOLVED:
         return xi, ""
-    return None, solve_reasons(condition)[status]
+    return None, failure_reason(status, condition, system.count, min_count)
+
+
+def failure_reason(status: int, condition: float, count: int, min_count: int) -> str:
+    """The reason, in the reference's words, of a step that failed with `status` (TOO_FEW or
+    one of _scaled_solution's), `condition` its scaled matrix's condition number and `count`
+    its pairs."""
+    if status == TOO_FEW:
+        return f"too few correspondences ({count} < {min_count})"
+    return solve_reasons(condition)[status]
 
 
 def solve_reasons(condition: float) -> dict[int, str]:
@@ -171,6 +182,20 @@ def _determinant(m: np.ndarray) -> float:
     )
 
 
+@_jit
+def gauss_newton_step(a: np.ndarray, b: np.ndarray, count: int, min_count: int, pose: np.ndarray):  # noqa: ANN201 (a tuple numba types)
+    """One step of refine after its system (A, b, count), in compiled code: solve, then
+    apply_increment. (status, condition, the new pose, |xi|): SOLVED, or TOO_FEW or a status of
+    _scaled_solution with the pose unchanged (failure_reason words it)."""
+    if count < min_count:
+        return TOO_FEW, 0.0, pose, 0.0
+    status, xi, condition = _scaled_solution(a, b)
+    if status != SOLVED:
+        return status, condition, pose, 0.0
+    # |xi| as np.linalg.norm computes it: the square root of the dot product
+    return SOLVED, 0.0, _increment(xi, pose), math.sqrt(np.dot(xi, xi))
+
+
 def apply_increment(xi: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """T' = exp(xi) T (eq. 4), re-orthonormalised (kintinuous_ref.odometry.solve's)."""
     return _increment(np.asarray(xi, dtype=np.float64), np.ascontiguousarray(pose, np.float64))
@@ -184,8 +209,25 @@ def refine(
     converged: float = TrackingConfig.converged_step,
     step: tuple[Callable, Callable] | None = None,
 ) -> tuple[np.ndarray, str]:
-    """kintinuous_ref.odometry.solve.refine (its coarse-to-fine loop, written once there) with
-    the compiled step of this module unless `step` names another."""
-    return ref_solve.refine(
-        pose, system_at, iterations, min_count, converged, step or (solve, apply_increment)
-    )
+    """kintinuous_ref.odometry.solve.refine with the compiled step of this module unless `step`
+    names another. Where `system_at` is the `system` of a problem whose levels run whole in
+    compiled code (its `refine_level`: the CPU's joint ICP + RGB-D problem), each level runs
+    there, with no Python between its steps; the levels it declines (None) and any other
+    problem go through the reference's loop, level by level."""
+    step = step or (solve, apply_increment)
+    problem = getattr(system_at, "__self__", None)
+    refine_level = getattr(problem, "refine_level", None)
+    if refine_level is None or step != (solve, apply_increment):
+        return ref_solve.refine(pose, system_at, iterations, min_count, converged, step)
+    for level in reversed(range(len(iterations))):
+        steps = iterations[level]
+        result = refine_level(level, pose, steps, min_count, converged) if steps else None
+        if result is None:
+            only = [steps if at == level else 0 for at in range(len(iterations))]
+            result = ref_solve.refine(pose, system_at, only, min_count, converged, step)
+        elif result[1]:
+            result = (result[0], f"level {level}: {result[1]}")
+        pose, reason = result
+        if reason:
+            return pose, reason
+    return pose, ""
