@@ -4,7 +4,8 @@ threads that ran its parts recorded), one above it shared, each loop's cost meas
 runs; the pipeline's poses and volume the same bits on 1, 2 and 7 threads, and with every
 loop forced onto all 7, on numba's threads and on the helper team; and the joint ICP + RGB-D
 loop (one parallel call per iteration) the same bits as the two problems' separate systems
-summed, on each of those, and close to the reference's joint system."""
+summed, on each of those, and close to the reference's joint system; and solve.refine, which runs
+a level's steps in one compiled call, the poses and failures of the reference's loop."""
 
 import textwrap
 
@@ -24,6 +25,7 @@ from kintinuous_fast.targets.cpu import (
     claim_slot,
     claimed_items,
     parallel_part,
+    planned_team,
     run_parallel,
     spin_below,
     threads_for,
@@ -57,6 +59,21 @@ def test_a_loops_cost_is_its_seconds_per_item_times_the_items():
     assert costs.seconds("loop", 100) == pytest.approx(2e-4)
     assert costs.seconds("loop", 0) == pytest.approx(2e-6)  # never a zero cost for a call
     assert costs.seconds("other", 100) is None
+
+
+def test_a_loops_team_follows_its_measured_work(every_thread):
+    """planned_team, which run_parallel and a level's compiled loop both ask: threads_for of the
+    work last measured, on numba's threads where they spin (else the helper team's minimum)."""
+    native = every_thread > 1 and cpu.native_threads()
+    minimum = MIN_SECONDS_PER_THREAD if native else MIN_SECONDS_PER_HELPER
+
+    def loop():  # a key of its own in LOOP_COSTS
+        pass
+
+    assert planned_team(loop, 100) == (every_thread, native)  # not yet measured: every thread
+    LOOP_COSTS.record(loop, 100, 2.5 * minimum)
+    assert planned_team(loop, 100) == (min(2, every_thread), native)
+    assert planned_team(loop, 1000) == (min(25, every_thread), native)
 
 
 @parallel_part()

@@ -60,12 +60,32 @@ def test_solve_gives_the_reference_reasons() -> None:
         "plane": (LinearSystem(plane, good.b, 400, 0.0), "condition number"),
         "indefinite": (LinearSystem(indefinite, good.b, 400, 0.0), "singular"),
     }
+    pose = se3.exp(np.array([0.1, -0.2, 0.3, 1.0, 2.0, 3.0]))
     for name, (system, words) in cases.items():
         expected = ref.solve(system)
         got = fast.solve(system)
         assert got[0] is None and expected[0] is None, name
         assert got[1] == expected[1], name
         assert words in got[1], name
+        # the same step in compiled code (a level's compiled loop): the pose left as it was
+        step = fast.gauss_newton_step(system.A, system.b, system.count, 6, pose)
+        status, condition, kept, _ = step
+        assert fast.failure_reason(status, condition, system.count, 6) == expected[1], name
+        np.testing.assert_array_equal(kept, pose)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=seeds, weak=st.sampled_from([None, 0, 4]))
+def test_a_compiled_step_is_solve_then_apply_increment(seed: int, weak: int | None) -> None:
+    """gauss_newton_step, the step of a level's compiled loop, against the reference's solve and
+    apply_increment: the new pose to rounding, and the step's length as np.linalg.norm's."""
+    system = random_system(seed, weak_axis=weak)
+    pose = se3.exp(np.random.default_rng(seed).normal(size=6))
+    xi, _ = ref.solve(system)
+    status, _, updated, length = fast.gauss_newton_step(system.A, system.b, system.count, 6, pose)
+    assert status == fast.SOLVED
+    np.testing.assert_allclose(updated, ref.apply_increment(xi, pose), rtol=0, atol=1e-12)
+    assert length == pytest.approx(float(np.linalg.norm(xi)), rel=1e-10)
 
 
 @settings(max_examples=60, deadline=None)
