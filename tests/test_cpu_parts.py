@@ -219,21 +219,31 @@ JOINT_CHILD = textwrap.dedent(
                 fractions.append((rgbd.inlier_fraction(pose, level), base))
         return {"fused": fused, "separate": separate, "fractions": fractions}
 
+    def problem(kind):
+        # (the problem, the one its levels are kept on)
+        if kind == "icp+rgbd":
+            joint = combined.CombinedProblem(*problems(), 0.3, "huber")
+            return joint, joint.icp
+        alone = problems()[0 if kind == "icp" else 1]
+        return alone, alone
+
     def refined(threads):
         # each level's steps in compiled code (solve.refine, JointLevel.refine) and stepped by
-        # the reference's loop with the compiled step; the second least count fails a step
+        # the reference's loop with the compiled step, over the joint problem and each term's
+        # alone; the second least count fails a step
         numba.set_num_threads(threads)
         runs = {"compiled": [], "stepped": [], "levels in compiled code": []}
+        step, steps = (solve, apply_increment), (4, 3, 3)
         for pose in cases.poses_to_try(previous, current):
             for least in (6, 10**9):
-                joint = combined.CombinedProblem(*problems(), 0.3, "huber")
-                runs["compiled"].append(refine(pose, joint.system, (4, 3, 3), least, 1e-6))
-                again = combined.CombinedProblem(*problems(), 0.3, "huber")
-                step = (solve, apply_increment)
-                stepped = reference_solve.refine(pose, again.system, (4, 3, 3), least, 1e-6, step)
-                runs["stepped"].append(stepped)
-                levels = joint.icp.__dict__.get("_joint_levels", {}).values()
-                runs["levels in compiled code"].append(sum(level.steps > 0 for level in levels))
+                for kind in ("icp+rgbd", "icp", "rgbd"):
+                    fresh, owner = problem(kind)
+                    runs["compiled"].append(refine(pose, fresh.system, steps, least, 1e-6))
+                    again, _ = problem(kind)
+                    stepped = reference_solve.refine(pose, again.system, steps, least, 1e-6, step)
+                    runs["stepped"].append(stepped)
+                    levels = owner.__dict__.get("_joint_levels", {}).values()
+                    runs["levels in compiled code"].append(sum(lv.steps > 0 for lv in levels))
         for name in ("compiled", "stepped"):
             runs[name] = [(digest_pose(pose), reason) for pose, reason in runs[name]]
         return {**runs, "native": cpu.native_threads()}
@@ -253,23 +263,27 @@ def joint_child_runs():
 
 
 def test_a_level_in_compiled_code_takes_the_reference_loops_steps(joint_child_runs):
-    """solve.refine over the CPU's joint problem runs each level's steps in one compiled call
-    wherever the joint loop runs on numba's threads or on the calling thread alone, and ends
-    with the pose and the failure (a least count no level reaches) of the reference's loop
-    stepping through the same problem, bit for bit, on every thread count and path."""
+    """solve.refine over the CPU's joint problem and its ICP problem alone runs each level's
+    steps in one compiled call wherever the joint loop runs on numba's threads or on the calling
+    thread alone (the RGB-D problem alone steps from Python), and ends with the pose and the
+    failure (a least count no level reaches) of the reference's loop stepping through the same
+    problem, bit for bit, on every thread count and path."""
     runs = joint_child_runs["refine"]
     assert len(runs) == 8
     first = runs["the helper team, 1 threads"]
     for name, run in runs.items():
         assert run["compiled"] == run["stepped"] == first["compiled"], name
         in_compiled_code = run["native"] or name.endswith(" 1 threads")
-        # every level where each level is reached, the coarsest where its first step fails
-        expected = [3, 1] if in_compiled_code else [0, 0]
-        expected *= len(run["compiled"]) // 2
+        # every level where each level is reached, the coarsest where its first step fails;
+        # the joint, ICP and RGB-D problems for each least count
+        expected = [3, 3, 0, 1, 1, 0] if in_compiled_code else [0] * 6
+        expected *= len(run["compiled"]) // 6
         assert run["levels in compiled code"] == expected, name
     reasons = [reason for _, reason in first["compiled"]]
-    assert reasons[0::2] == [""] * (len(reasons) // 2)
-    assert all(r.startswith("level 2: too few correspondences (") for r in reasons[1::2])
+    for at in range(0, len(reasons), 6):
+        assert reasons[at : at + 3] == ["", "", ""]
+        failed = reasons[at + 3 : at + 6]
+        assert all(r.startswith("level 2: too few correspondences (") for r in failed)
 
 
 def test_the_joint_loop_gives_the_separate_systems_bits_on_1_2_and_7_threads(joint_child_runs):

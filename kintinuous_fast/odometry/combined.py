@@ -167,9 +167,10 @@ class CombinedProblem(reference.CombinedProblem):
         """solve.refine's steps at one level over this problem's systems, all in compiled code,
         where the ICP problem runs them so (the CPU's: IcpProblem.refine_joint_level): (pose,
         '') or (pose so far, why a step failed). None elsewhere: the caller steps through
-        `system`."""
+        `system`, as where a subclass computes a `system` or a joint system of its own."""
         fused = getattr(self.icp, "refine_joint_level", None)
-        if fused is None or type(self).joint_system is not joint_system:
+        own = type(self).system is not CombinedProblem.system
+        if fused is None or own or type(self).joint_system is not joint_system:
             return None
         joint = (self.rgbd_weight, self.weighting, self.degeneracy_threshold)
         return fused(self.rgbd, level, pose, (steps, min_count, converged), joint)

@@ -327,6 +327,18 @@ class IcpProblem(_IcpProblem):
             return None
         return joint_level(self, rgbd, level).refine(pose, *steps, (rgbd_weight, threshold))
 
+    def refine_level(
+        self, level: int, pose: np.ndarray, steps: int, min_count: int, converged: float
+    ) -> tuple[np.ndarray, str] | None:
+        """solve.refine's steps at one level over this problem's system alone, all in compiled
+        code (JointLevel.refine, the joint loop without RGB-D points): (pose, '') or (pose so
+        far, why a step failed); None where the loop runs on the helper team, or where a subclass
+        computes a `system` of its own."""
+        if type(self).system is not IcpProblem.system:
+            return None
+        level_terms = joint_level(self, None, level)
+        return level_terms.refine(pose, steps, min_count, converged, (0.0, 0.0))
+
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
         """As the base class, from the pair count alone (_points_pairs): no sums for this one
         look."""

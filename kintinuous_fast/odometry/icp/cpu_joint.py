@@ -15,8 +15,12 @@ the same, bit for bit, on any number of threads.
 
 A whole level runs in one compiled call too (`_refine_level`, JointLevel.refine): each step's
 poses, the joint loop on numba's threads, the sums and solve.refine's step, with no Python
-between the steps: in the pipeline, the Python between two steps took 200-220 microseconds on
-the 2-core VM (about 50 in a loop that repeats one step), at some 14 steps a frame.
+between the steps. The ICP problem alone runs its levels the same way, through this loop with
+its RGB-D part empty (the RGB-D problem alone, through it, took 20-60 microseconds a step
+longer than its own loop stepped from Python, so it keeps that). In the pipeline the Python
+between two steps took 200-220 microseconds on the 2-core VM, at some 14 steps a frame;
+repeating one level in a loop, the compiled level is 90-360 microseconds a step faster
+(docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import numpy as np
 
 from kintinuous_fast.odometry.combined import _discounted_joint
 from kintinuous_fast.odometry.rgbd.cpu import (
+    WarpTerms,
     _correspond_chunk,
     _robust_scale,
     _rows_chunk,
@@ -169,6 +174,16 @@ def _icp_weight(count, cost):
 
 
 @numba.njit(cache=True)
+def _level_sums(kind, icp_out, sums, rgbd_out, weights, centre):
+    """(A, b, count, cost) of the system a level of `kind` solves: the joint one (_joint_sums,
+    `weights` = (rgbd_weight, degeneracy threshold)), or the ICP system alone, as the ICP
+    problem's own `system` unpacks it."""
+    if kind == ICP_ONLY:
+        return _unpacked(_added_chunks(icp_out))
+    return _joint_sums(icp_out, sums, rgbd_out, weights[0], centre, weights[1])
+
+
+@numba.njit(cache=True)
 def _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold):
     """(A, b, count, cost) of combined.joint_system's degeneracy-aware branch over the two
     loops' partial sums: the ICP system from icp_out, the RGB-D one from rgbd_out (empty where
@@ -192,23 +207,24 @@ def _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold):
 
 # A status beside solve's (gauss_newton_step): a thread of the joint loop failed.
 THREAD_FAILED = -1
+# The system a level solves: both terms', or ICP's alone.
+JOINT, ICP_ONLY = range(2)
 
 
 @numba.njit(cache=True, nogil=True)
-def _refine_level(team, steps, min_count, converged, pose, fixed, work, weights):
+def _refine_level(kind, team, steps, min_count, converged, pose, fixed, work, weights):
     """solve.refine's loop over one level, every step in compiled code: the joint loop on
-    `team` threads (run_on_threads; the calling thread alone for 1), its sums and the
-    degeneracy-aware joint system (_joint_sums), then gauss_newton_step, up to `steps` steps or
-    until one is shorter than `converged`. The poses the loops read are those JointLevel.system
-    passes, computed as NumPy does (np.dot is BLAS's product, as the @ of icp_constants and
-    WarpTerms). `fixed` = (the ICP terms without pose and to_model, the model pose's inverse,
-    the RGB-D columns, WarpTerms' fields, row terms), `work` = the level's work arrays and
-    parts, `weights` = (rgbd_weight, degeneracy threshold). Returns (pose, status, condition,
-    count, the systems computed: the steps taken and a failed one)."""
+    `team` threads (run_on_threads; the calling thread alone for 1), the system of `kind` from
+    its sums (_level_sums), then gauss_newton_step, up to `steps` steps or until one is shorter
+    than `converged`. The poses the loops read are those JointLevel.system passes, computed as
+    NumPy does (np.dot is BLAS's product, as the @ of icp_constants and WarpTerms). `fixed` =
+    (the ICP terms without pose and to_model, the model pose's inverse, the RGB-D columns,
+    WarpTerms' fields, row terms), `work` = the level's work arrays and parts, `weights` =
+    (rgbd_weight, degeneracy threshold). Returns (pose, status, condition, count, the systems
+    computed: the steps taken and a failed one)."""
     (points, mv, mn, camera, limits, robust), model_inverse, columns, warp, row_terms = fixed
     to_previous, images, warped, intrinsics, max_change = warp
     corresponded, icp_out, pairs, sums, warps, rgbd_out, parts = work
-    rgbd_weight, threshold = weights
     for step in range(steps):
         icp_terms = (points, pose, np.dot(model_inverse, pose), mv, mn, camera, limits, robust)
         warp_terms = (np.dot(to_previous, pose), pose, images, warped, intrinsics, max_change)
@@ -220,8 +236,7 @@ def _refine_level(team, steps, min_count, converged, pose, fixed, work, weights)
             _joint_loop(claims, parts, *args)
         elif run_on_threads(team, _joint_loop, claims, parts, args):
             return pose, THREAD_FAILED, 0.0, 0, step + 1
-        centre = pose[:3, 3].copy()
-        a, b, count, _ = _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold)
+        a, b, count, _ = _level_sums(kind, icp_out, sums, rgbd_out, weights, pose[:3, 3].copy())
         status, condition, pose, length = gauss_newton_step(a, b, count, min_count, pose)
         if status != SOLVED:
             return pose, status, condition, count, step + 1
@@ -237,15 +252,18 @@ def _refine_level(team, steps, min_count, converged, pose, fixed, work, weights)
 class JointLevel:
     """What every iteration at one level passes the joint loop: the ICP problem's points, model
     maps and camera, the RGB-D problem's level terms, and the work arrays both write, made once
-    for all of the level's iterations."""
+    for all of the level's iterations. Without an RGB-D problem (None: the ICP system alone,
+    `kind` ICP_ONLY) the loop's RGB-D part has no points, and is given terms of the same types
+    (`_no_rgbd`), so that the loop's compiled code serves both kinds."""
 
     def __init__(self, icp, rgbd, level: int) -> None:  # noqa: ANN001 (the CPU's problems)
         self.level = level  # named in benchmarks/warm_profile.py's per-level loop times
         self.icp = icp
-        self.points = icp.points(level)
-        self.model = icp.model(level)
+        self.kind = JOINT if rgbd is not None else ICP_ONLY
+        self.points, self.model = icp.points(level), icp.model(level)
         self.camera = pinhole(icp.current_levels[level].camera)
-        self.columns, self.warp_terms, self.row_terms = rgbd.level_terms(level)
+        rgbd_terms = rgbd.level_terms(level) if rgbd is not None else _no_rgbd(self.camera)
+        self.columns, self.warp_terms, self.row_terms = rgbd_terms
         self.icp_out = partials(self.points.shape[1])
         interest = self.columns[0].shape[1]
         self.pairs, self.sums, self.warps = _work(interest)
@@ -317,6 +335,7 @@ class JointLevel:
         start_numba_threads()
         started = time.perf_counter()
         pose, status, condition, count, self.steps = _refine_level(
+            self.kind,
             team,
             steps,
             min_count,
@@ -336,11 +355,22 @@ class JointLevel:
 
 
 def joint_level(icp, rgbd, level: int) -> JointLevel:  # noqa: ANN001 (the CPU's problems)
-    """The JointLevel of `icp` and `rgbd` at `level`, made on first use and kept on `icp`."""
-    levels: dict[int, JointLevel] = icp.__dict__.setdefault("_joint_levels", {})
-    if level not in levels:
-        levels[level] = JointLevel(icp, rgbd, level)
-    return levels[level]
+    """The JointLevel of `icp` and `rgbd` (None: the ICP system alone) at `level`, made on first
+    use and kept on `icp`."""
+    levels: dict[tuple, JointLevel] = icp.__dict__.setdefault("_joint_levels", {})
+    key = (level, rgbd is None)
+    if key not in levels:
+        levels[key] = JointLevel(icp, rgbd, level)
+    return levels[key]
+
+
+def _no_rgbd(intrinsics: tuple) -> tuple:
+    """(columns, WarpTerms, row terms) of an RGB-D part without interest points, typed as a
+    frame's: float64 columns, float32 images."""
+    columns = (np.zeros((3, 0)), np.zeros(0), np.zeros((2, 0)))
+    images = tuple(np.zeros((1, 1), np.float32) for _ in range(4))
+    warp = WarpTerms(np.eye(4), images, False, intrinsics, 0.0)
+    return columns, warp, (np.eye(4), (1.0, 1.0))
 
 
 def joint_system(
