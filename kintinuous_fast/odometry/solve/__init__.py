@@ -183,7 +183,9 @@ def _determinant(m: np.ndarray) -> float:
 
 
 @_jit
-def gauss_newton_step(a: np.ndarray, b: np.ndarray, count: int, min_count: int, pose: np.ndarray):  # noqa: ANN201 (a tuple numba types)
+def gauss_newton_step(  # noqa: ANN201 (a tuple of numba's types)
+    a: np.ndarray, b: np.ndarray, count: int, min_count: int, pose: np.ndarray
+):
     """One step of refine after its system (A, b, count), in compiled code: solve, then
     apply_increment. (status, condition, the new pose, |xi|): SOLVED, or TOO_FEW or a status of
     _scaled_solution with the pose unchanged (failure_reason words it)."""
@@ -211,9 +213,9 @@ def refine(
 ) -> tuple[np.ndarray, str]:
     """kintinuous_ref.odometry.solve.refine with the compiled step of this module unless `step`
     names another. Where `system_at` is the `system` of a problem whose levels run whole in
-    compiled code (its `refine_level`: the CPU's joint ICP + RGB-D problem), each level runs
-    there, with no Python between its steps; the levels it declines (None) and any other
-    problem go through the reference's loop, level by level."""
+    compiled code (its `refine_level`: the CPU's joint ICP + RGB-D problem and its ICP problem),
+    each level runs there, with no Python between its steps; the levels it declines (None) and
+    any other problem go through the reference's loop, level by level."""
     step = step or (solve, apply_increment)
     problem = getattr(system_at, "__self__", None)
     refine_level = getattr(problem, "refine_level", None)
