@@ -263,11 +263,11 @@ def joint_child_runs():
 
 
 def test_a_level_in_compiled_code_takes_the_reference_loops_steps(joint_child_runs):
-    """solve.refine over the CPU's joint problem and its ICP problem alone runs each level's
-    steps in one compiled call wherever the joint loop runs on numba's threads or on the calling
-    thread alone (the RGB-D problem alone steps from Python), and ends with the pose and the
-    failure (a least count no level reaches) of the reference's loop stepping through the same
-    problem, bit for bit, on every thread count and path."""
+    """solve.refine over the CPU's joint problem, and over its ICP and RGB-D problems alone,
+    runs each level's steps in one compiled call wherever the loop runs on numba's threads or on
+    the calling thread alone, and ends with the pose and the failure (a least count no level
+    reaches) of the reference's loop stepping through the same problem, bit for bit, on every
+    thread count and path."""
     runs = joint_child_runs["refine"]
     assert len(runs) == 8
     first = runs["the helper team, 1 threads"]
@@ -276,7 +276,7 @@ def test_a_level_in_compiled_code_takes_the_reference_loops_steps(joint_child_ru
         in_compiled_code = run["native"] or name.endswith(" 1 threads")
         # every level where each level is reached, the coarsest where its first step fails;
         # the joint, ICP and RGB-D problems for each least count
-        expected = [3, 3, 0, 1, 1, 0] if in_compiled_code else [0] * 6
+        expected = [3, 3, 3, 1, 1, 1] if in_compiled_code else [0] * 6
         expected *= len(run["compiled"]) // 6
         assert run["levels in compiled code"] == expected, name
     reasons = [reason for _, reason in first["compiled"]]

@@ -16,8 +16,8 @@ the same, bit for bit, on any number of threads.
 A whole level runs in one compiled call too (`_refine_level`, JointLevel.refine): each step's
 poses, the joint loop on numba's threads, the sums and solve.refine's step, with no Python
 between the steps. The ICP problem alone runs its levels the same way, through this loop with
-its RGB-D part empty (the RGB-D problem alone, through it, took 20-60 microseconds a step
-longer than its own loop stepped from Python, so it keeps that). In the pipeline the Python
+its RGB-D part empty, and the RGB-D problem alone through its own two-pass loop. In the
+pipeline the Python
 between two steps took 200-220 microseconds on the 2-core VM, at some 14 steps a frame;
 repeating one level in a loop, the compiled level is 90-360 microseconds a step faster
 (docs/benchmarks.md).
@@ -35,6 +35,7 @@ from kintinuous_fast.odometry.combined import _discounted_joint
 from kintinuous_fast.odometry.rgbd.cpu import (
     WarpTerms,
     _correspond_chunk,
+    _rgbd_system_loop,
     _robust_scale,
     _rows_chunk,
     _work,
@@ -47,6 +48,7 @@ from kintinuous_fast.targets.cpu import (
     LOOP_COSTS,
     NEXT_PART,
     PARTS_DONE,
+    PARTS_PER_THREAD,
     SPINS,
     atomic_fetch_add,
     atomic_load,
@@ -56,11 +58,13 @@ from kintinuous_fast.targets.cpu import (
     run_parallel,
     spin_below,
     start_numba_threads,
+    threads,
 )
 from kintinuous_ref.odometry.combined import MIN_ICP_SCALE
 from kintinuous_ref.odometry.solve import LinearSystem
 from kintinuous_ref.vocabulary import ROBUST_WEIGHTINGS
 
+from . import NO_WEIGHTS
 from .cpu_block import icp_chunk
 
 __all__ = ["FUSED_WEIGHTINGS", "JointLevel", "joint_level", "joint_system"]
@@ -174,12 +178,24 @@ def _icp_weight(count, cost):
 
 
 @numba.njit(cache=True)
+def _rgbd_total(sums, rgbd_out):
+    """The RGB-D system's NV vector from rgbd_out, zeros where the first pass kept no pair
+    (`sums`' counts), as rgbd/cpu.py's _system sums it."""
+    pairs = 0.0
+    for c in range(sums.shape[0]):
+        pairs += sums[c, 1]
+    return _added_chunks(rgbd_out) if pairs != 0.0 else np.zeros(NV)
+
+
+@numba.njit(cache=True)
 def _level_sums(kind, icp_out, sums, rgbd_out, weights, centre):
     """(A, b, count, cost) of the system a level of `kind` solves: the joint one (_joint_sums,
-    `weights` = (rgbd_weight, degeneracy threshold)), or the ICP system alone, as the ICP
-    problem's own `system` unpacks it."""
+    `weights` = (rgbd_weight, degeneracy threshold)), or the ICP or the RGB-D system alone, as
+    the problems' own `system` unpacks it."""
     if kind == ICP_ONLY:
         return _unpacked(_added_chunks(icp_out))
+    if kind == RGBD_ONLY:
+        return _unpacked(_rgbd_total(sums, rgbd_out))
     return _joint_sums(icp_out, sums, rgbd_out, weights[0], centre, weights[1])
 
 
@@ -189,11 +205,7 @@ def _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold):
     loops' partial sums: the ICP system from icp_out, the RGB-D one from rgbd_out (empty where
     the first pass kept no pair: `sums`' counts), as the separate calls unpack them."""
     icp_a, icp_b, icp_count, icp_cost = _unpacked(_added_chunks(icp_out))
-    pairs = 0.0
-    for c in range(sums.shape[0]):
-        pairs += sums[c, 1]
-    rgbd_total = _added_chunks(rgbd_out) if pairs != 0.0 else np.zeros(NV)
-    rgbd_a, rgbd_b, rgbd_count, rgbd_cost = _unpacked(rgbd_total)
+    rgbd_a, rgbd_b, rgbd_count, rgbd_cost = _unpacked(_rgbd_total(sums, rgbd_out))
     icp_weight = _icp_weight(icp_count, icp_cost)
     a, b = _discounted_joint(
         icp_a, icp_b, icp_count, icp_weight, rgbd_a, rgbd_b, rgbd_weight, centre, threshold
@@ -207,42 +219,61 @@ def _joint_sums(icp_out, sums, rgbd_out, rgbd_weight, centre, threshold):
 
 # A status beside solve's (gauss_newton_step): a thread of the joint loop failed.
 THREAD_FAILED = -1
-# The system a level solves: both terms', or ICP's alone.
-JOINT, ICP_ONLY = range(2)
+# The system a level solves: both terms', or one's alone.
+JOINT, ICP_ONLY, RGBD_ONLY = range(3)
 
 
 @numba.njit(cache=True, nogil=True)
 def _refine_level(kind, team, steps, min_count, converged, pose, fixed, work, weights):
-    """solve.refine's loop over one level, every step in compiled code: the joint loop on
-    `team` threads (run_on_threads; the calling thread alone for 1), the system of `kind` from
-    its sums (_level_sums), then gauss_newton_step, up to `steps` steps or until one is shorter
-    than `converged`. The poses the loops read are those JointLevel.system passes, computed as
-    NumPy does (np.dot is BLAS's product, as the @ of icp_constants and WarpTerms). `fixed` =
-    (the ICP terms without pose and to_model, the model pose's inverse, the RGB-D columns,
-    WarpTerms' fields, row terms), `work` = the level's work arrays and parts, `weights` =
-    (rgbd_weight, degeneracy threshold). Returns (pose, status, condition, count, the systems
-    computed: the steps taken and a failed one)."""
-    (points, mv, mn, camera, limits, robust), model_inverse, columns, warp, row_terms = fixed
-    to_previous, images, warped, intrinsics, max_change = warp
-    corresponded, icp_out, pairs, sums, warps, rgbd_out, parts = work
+    """solve.refine's loop over one level, every step in compiled code: the system of `kind` at
+    the pose (_level_system), then gauss_newton_step, up to `steps` steps or until one is
+    shorter than `converged`. Returns (pose, status, condition, count, the systems computed:
+    the steps taken and a failed one)."""
     for step in range(steps):
-        icp_terms = (points, pose, np.dot(model_inverse, pose), mv, mn, camera, limits, robust)
-        warp_terms = (np.dot(to_previous, pose), pose, images, warped, intrinsics, max_change)
-        rgbd_terms = (columns, warp_terms, row_terms)
-        corresponded[0] = 0
-        claims = np.zeros(3, dtype=np.int64)
-        args = (corresponded, icp_terms, icp_out, rgbd_terms, pairs, sums, warps, rgbd_out)
-        if team == 1:
-            _joint_loop(claims, parts, *args)
-        elif run_on_threads(team, _joint_loop, claims, parts, args):
+        failed, a, b, count = _level_system(kind, team, pose, fixed, work, weights)
+        if failed:
             return pose, THREAD_FAILED, 0.0, 0, step + 1
-        a, b, count, _ = _level_sums(kind, icp_out, sums, rgbd_out, weights, pose[:3, 3].copy())
         status, condition, pose, length = gauss_newton_step(a, b, count, min_count, pose)
         if status != SOLVED:
             return pose, status, condition, count, step + 1
         if length < converged:
             return pose, SOLVED, 0.0, count, step + 1
     return pose, SOLVED, 0.0, 0, steps
+
+
+@numba.njit(cache=True, nogil=True)
+def _level_system(kind, team, pose, fixed, work, weights):
+    """(whether a thread failed, A, b, count) of the system of `kind` at `pose`: the joint loop
+    (the RGB-D problem alone: its own two-pass loop) on `team` threads (run_on_threads; the
+    calling thread alone for 1), then _level_sums. The poses the loops read are those
+    JointLevel.system passes, computed as NumPy does (np.dot is BLAS's product, as the @ of
+    icp_constants and WarpTerms). `fixed` = (the ICP terms without pose and to_model, the model
+    pose's inverse, the RGB-D columns, WarpTerms' fields, row terms), `work` = the level's work
+    arrays and parts, `weights` = (rgbd_weight, degeneracy threshold)."""
+    (points, mv, mn, camera, limits, robust), model_inverse, columns, warp, row_terms = fixed
+    to_previous, images, warped, intrinsics, max_change = warp
+    corresponded, icp_out, pairs, sums, warps, rgbd_out, parts = work
+    warp_terms = (np.dot(to_previous, pose), pose, images, warped, intrinsics, max_change)
+    claims = np.zeros(3, dtype=np.int64)
+    failed = False
+    if kind == RGBD_ONLY:
+        interest, intensity, gradient = columns
+        args = (interest, intensity, gradient, warp_terms, row_terms, pairs, sums, warps, rgbd_out)
+        if team == 1:
+            _rgbd_system_loop(claims, parts, *args)
+        else:
+            failed = run_on_threads(team, _rgbd_system_loop, claims, parts, args)
+    else:
+        icp_terms = (points, pose, np.dot(model_inverse, pose), mv, mn, camera, limits, robust)
+        rgbd_terms = (columns, warp_terms, row_terms)
+        corresponded[0] = 0
+        args = (corresponded, icp_terms, icp_out, rgbd_terms, pairs, sums, warps, rgbd_out)
+        if team == 1:
+            _joint_loop(claims, parts, *args)
+        else:
+            failed = run_on_threads(team, _joint_loop, claims, parts, args)
+    a, b, count, _ = _level_sums(kind, icp_out, sums, rgbd_out, weights, pose[:3, 3].copy())
+    return failed, a, b, count
 
 
 # ----------------------------------------------------------------------------------------------
@@ -252,16 +283,21 @@ def _refine_level(kind, team, steps, min_count, converged, pose, fixed, work, we
 class JointLevel:
     """What every iteration at one level passes the joint loop: the ICP problem's points, model
     maps and camera, the RGB-D problem's level terms, and the work arrays both write, made once
-    for all of the level's iterations. Without an RGB-D problem (None: the ICP system alone,
-    `kind` ICP_ONLY) the loop's RGB-D part has no points, and is given terms of the same types
-    (`_no_rgbd`), so that the loop's compiled code serves both kinds."""
+    for all of the level's iterations. Either problem may be None (the other's system alone,
+    `kind` ICP_ONLY or RGBD_ONLY): its terms then have no points and the types of a frame's
+    (`_no_icp`, `_no_rgbd`), so that one compiled level serves all three kinds. The RGB-D
+    problem alone runs its own two-pass loop (rgbd/cpu.py's _rgbd_system_loop): through the
+    joint loop it took 20-60 microseconds a step longer (docs/benchmarks.md)."""
 
     def __init__(self, icp, rgbd, level: int) -> None:  # noqa: ANN001 (the CPU's problems)
         self.level = level  # named in benchmarks/warm_profile.py's per-level loop times
         self.icp = icp
-        self.kind = JOINT if rgbd is not None else ICP_ONLY
-        self.points, self.model = icp.points(level), icp.model(level)
-        self.camera = pinhole(icp.current_levels[level].camera)
+        self.kind = RGBD_ONLY if icp is None else ICP_ONLY if rgbd is None else JOINT
+        self.loop = _rgbd_system_loop if icp is None else _joint_loop
+        icp_terms = _icp_terms(icp, level) if icp is not None else _no_icp()
+        self.points, self.model, limits, robust, model_inverse = icp_terms
+        levels = icp.current_levels if icp is not None else rgbd.previous_levels
+        self.camera = pinhole(levels[level].camera)
         rgbd_terms = rgbd.level_terms(level) if rgbd is not None else _no_rgbd(self.camera)
         self.columns, self.warp_terms, self.row_terms = rgbd_terms
         self.icp_out = partials(self.points.shape[1])
@@ -269,14 +305,15 @@ class JointLevel:
         self.pairs, self.sums, self.warps = _work(interest)
         self.rgbd_out = partials(interest)
         self.parts = self.icp_out.shape[0] + 2 * self.sums.shape[0]
+        if self.kind == RGBD_ONLY:  # as rgbd/cpu.py's _system cuts its two passes
+            self.parts = 2 * PARTS_PER_THREAD * threads()
         self.corresponded = np.zeros(1, dtype=np.int64)
         self.items = self.points.shape[1] + interest
-        # what _refine_level reads, made once per level; the pair tests' limits are the same
-        # at every pose
-        warp, limits = self.warp_terms, icp.constants(np.eye(4))[2:]
+        # what _refine_level reads, made once per level
+        warp = self.warp_terms
         self.fixed = (
-            (self.points, *self.model, self.camera, limits, icp.robust),
-            np.ascontiguousarray(icp.model_inverse, dtype=np.float64),
+            (self.points, *self.model, self.camera, limits, robust),
+            np.ascontiguousarray(model_inverse, dtype=np.float64),
             self.columns,
             (warp.to_previous, warp.images, warp.warped, warp.intrinsics, warp.max_change),
             self.row_terms,
@@ -328,7 +365,7 @@ class JointLevel:
         or (pose so far, why its step failed); `weights` = (rgbd_weight, degeneracy threshold).
         None where the loop would run on the helper team, which only Python joins. The systems
         computed (the steps taken and a failed one) are kept in `self.steps`."""
-        team, native = planned_team(_joint_loop, self.items)
+        team, native = planned_team(self.loop, self.items)
         team = min(team, self.parts)
         if team > 1 and not native:
             return None
@@ -346,7 +383,7 @@ class JointLevel:
             (float(weights[0]), float(weights[1])),
         )
         seconds = (time.perf_counter() - started) / max(self.steps, 1)
-        LOOP_COSTS.record(_joint_loop, self.items, seconds * team)
+        LOOP_COSTS.record(self.loop, self.items, seconds * team)
         if status == THREAD_FAILED:
             raise RuntimeError("a cpu loop failed on one of its threads; run it on one to see why")
         if status != SOLVED:
@@ -355,13 +392,28 @@ class JointLevel:
 
 
 def joint_level(icp, rgbd, level: int) -> JointLevel:  # noqa: ANN001 (the CPU's problems)
-    """The JointLevel of `icp` and `rgbd` (None: the ICP system alone) at `level`, made on first
-    use and kept on `icp`."""
-    levels: dict[tuple, JointLevel] = icp.__dict__.setdefault("_joint_levels", {})
-    key = (level, rgbd is None)
+    """The JointLevel of `icp` and `rgbd` (either may be None: the other's system alone) at
+    `level`, made on first use and kept on the ICP problem, or on the RGB-D problem alone."""
+    owner = icp if icp is not None else rgbd
+    levels: dict[tuple, JointLevel] = owner.__dict__.setdefault("_joint_levels", {})
+    key = (level, icp is None, rgbd is None)
     if key not in levels:
         levels[key] = JointLevel(icp, rgbd, level)
     return levels[key]
+
+
+def _icp_terms(icp, level: int) -> tuple:  # noqa: ANN001 (the CPU's IcpProblem)
+    """(points, model maps, limits, robust terms, model inverse) of the ICP problem at `level`;
+    the pair tests' limits are the same at every pose."""
+    limits = icp.constants(np.eye(4))[2:]
+    return icp.points(level), icp.model(level), limits, icp.robust, icp.model_inverse
+
+
+def _no_icp() -> tuple:
+    """_icp_terms of an ICP part without points, typed as a frame's: float32 columns and maps,
+    least squares."""
+    maps = (np.zeros((1, 1, 3), np.float32), np.zeros((1, 1, 3), np.float32))
+    return np.zeros((6, 0), np.float32), maps, (0.0, 1.0), NO_WEIGHTS, np.eye(4)
 
 
 def _no_rgbd(intrinsics: tuple) -> tuple:

@@ -495,6 +495,21 @@ class RgbdProblem(reference.RgbdProblem):
         columns, warp_terms, row_terms = self.level_terms(level)
         return _system(columns, warp_terms(pose), *row_terms)
 
+    def refine_level(
+        self, level: int, pose: np.ndarray, steps: int, min_count: int, converged: float
+    ) -> tuple[np.ndarray, str] | None:
+        """solve.refine's steps at one level over this problem's system, all in compiled code
+        (JointLevel.refine, this module's two-pass loop): (pose, '') or (pose so far, why a
+        step failed); None where the loop runs on the helper team, or where a subclass computes
+        a `system` of its own."""
+        if type(self).system is not RgbdProblem.system:
+            return None
+        # imported here: the joint loop's module imports this one
+        from kintinuous_fast.odometry.icp.cpu_joint import joint_level
+
+        level_terms = joint_level(None, self, level)
+        return level_terms.refine(pose, steps, min_count, converged, (0.0, 0.0))
+
     def inlier_fraction(self, pose: np.ndarray, level: int = 0) -> float:
         """As the base class, from the correspondences alone (the first pass): the system's
         count is the number of pairs kept there, and its sums are not needed for one look."""

@@ -213,7 +213,7 @@ def refine(
 ) -> tuple[np.ndarray, str]:
     """kintinuous_ref.odometry.solve.refine with the compiled step of this module unless `step`
     names another. Where `system_at` is the `system` of a problem whose levels run whole in
-    compiled code (its `refine_level`: the CPU's joint ICP + RGB-D problem and its ICP problem),
+    compiled code (its `refine_level`: the CPU's joint ICP + RGB-D, ICP and RGB-D problems),
     each level runs there, with no Python between its steps; the levels it declines (None) and
     any other problem go through the reference's loop, level by level."""
     step = step or (solve, apply_increment)
