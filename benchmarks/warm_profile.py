@@ -192,14 +192,14 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
 
     def refined(self, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
         # A level whose steps all run in one compiled call: its time shared out over its steps,
-        # as calls of the joint loop (each with its solve, a few microseconds); no host time
-        # between them to count.
+        # as calls of its loop (each with its solve, a few microseconds); no host time between
+        # them to count.
         started = time.perf_counter()
         result = unrefined(self, *args, **options)
         if result is not None:
             seconds = (time.perf_counter() - started) / max(self.steps, 1)
             for _ in range(self.steps):
-                clock.add(f"odometry._joint_loop L{self.level}", seconds)
+                clock.add(f"odometry.{self.loop.__name__} L{self.level}", seconds)
         return result
 
     def framed(frames, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
