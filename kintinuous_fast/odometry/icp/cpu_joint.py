@@ -17,10 +17,9 @@ A whole level runs in one compiled call too (`_refine_level`, JointLevel.refine)
 poses, the joint loop on numba's threads, the sums and solve.refine's step, with no Python
 between the steps. The ICP problem alone runs its levels the same way, through this loop with
 its RGB-D part empty, and the RGB-D problem alone through its own two-pass loop. In the
-pipeline the Python
-between two steps took 200-220 microseconds on the 2-core VM, at some 14 steps a frame;
-repeating one level in a loop, the compiled level is 90-360 microseconds a step faster
-(docs/benchmarks.md).
+pipeline the Python between two steps took 200-220 microseconds on the 2-core VM, at some 14
+steps a frame; repeating one level in a loop, the compiled level was up to 360 microseconds a
+step faster (docs/benchmarks.md).
 """
 
 from __future__ import annotations
