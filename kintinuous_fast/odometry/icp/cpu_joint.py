@@ -37,6 +37,7 @@ from kintinuous_fast.odometry.rgbd.cpu import (
     _rgbd_system_loop,
     _robust_scale,
     _rows_chunk,
+    _two_pass_parts,
     _work,
 )
 from kintinuous_fast.odometry.solve import SOLVED, failure_reason, gauss_newton_step
@@ -47,7 +48,6 @@ from kintinuous_fast.targets.cpu import (
     LOOP_COSTS,
     NEXT_PART,
     PARTS_DONE,
-    PARTS_PER_THREAD,
     SPINS,
     atomic_fetch_add,
     atomic_load,
@@ -57,7 +57,6 @@ from kintinuous_fast.targets.cpu import (
     run_parallel,
     spin_below,
     start_numba_threads,
-    threads,
 )
 from kintinuous_ref.odometry.combined import MIN_ICP_SCALE
 from kintinuous_ref.odometry.solve import LinearSystem
@@ -303,9 +302,8 @@ class JointLevel:
         interest = self.columns[0].shape[1]
         self.pairs, self.sums, self.warps = _work(interest)
         self.rgbd_out = partials(interest)
-        self.parts = self.icp_out.shape[0] + 2 * self.sums.shape[0]
-        if self.kind == RGBD_ONLY:  # as rgbd/cpu.py's _system cuts its two passes
-            self.parts = 2 * PARTS_PER_THREAD * threads()
+        joint_parts = self.icp_out.shape[0] + 2 * self.sums.shape[0]
+        self.parts = _two_pass_parts() if self.kind == RGBD_ONLY else joint_parts
         self.corresponded = np.zeros(1, dtype=np.int64)
         self.items = self.points.shape[1] + interest
         # what _refine_level reads, made once per level

@@ -389,13 +389,18 @@ def _correspond_all(points, pose, previous_pose, previous, camera, max_depth_cha
     return pairs, sums.sum(axis=0)
 
 
+def _two_pass_parts() -> int:
+    """The parts of one _rgbd_system_loop call: PARTS_PER_THREAD per thread for each pass."""
+    return 2 * PARTS_PER_THREAD * threads()
+
+
 def _system(columns, terms, previous_pose, focal) -> LinearSystem:
     """rgbd_system of the interest points' `columns` (_point_columns) and warp `terms`
     (_correspond_chunk's): both passes in one call of _rgbd_system_loop."""
     n = columns[0].shape[1]
     pairs, sums, warps = _work(n)
     out = partials(n)
-    both_passes = 2 * PARTS_PER_THREAD * threads()
+    both_passes = _two_pass_parts()
     arguments = (*columns, terms, (previous_pose, focal), pairs, sums, warps, out)
     run_parallel(_rgbd_system_loop, *arguments, parts=both_passes, items=n)
     if sums.sum(axis=0)[1] == 0:
