@@ -2,7 +2,8 @@
 # The cpu backend on many cores, for the device machine's 16 (the only machine with that many
 # here; numba's CPU target needs no GPU): what one parallel call costs at 2, 8 and 16 threads on
 # each of run_parallel's paths (benchmarks/parallel_call_overhead.py), then every stage and loop
-# at 1-16 threads on numba's threads (benchmarks/thread_sweep.py), and at 1, 8 and 16 on the
+# at 1-16 threads on numba's threads beside the machine's compute and memory-bandwidth ceilings
+# (benchmarks/thread_sweep.py, machine_scaling.py), and at 1, 8 and 16 on the
 # helper team (numba's workqueue layer asked for: it does not spin, so run_parallel takes the
 # team), and at 8 and 16 on numba's threads with OpenMP's spin shortened. About 5 minutes, the
 # cpu kernels' first compile included.
@@ -24,7 +25,7 @@ done
 NUMBA_NUM_THREADS=16 timeout 60 python3 benchmarks/parallel_call_overhead.py --calls 300 \
     --gaps 100,1000 --at-most 2 | tail -10
 timeout 200 python3 benchmarks/thread_sweep.py "$data" --threads 1,2,4,8,16 --frames 30 \
-    --set volume.moving=false --json "$out/sweep.json" | tail -48
+    --set volume.moving=false --json "$out/sweep.json" | head -64
 NUMBA_THREADING_LAYER=workqueue timeout 120 python3 benchmarks/thread_sweep.py "$data" \
     --threads 1,8,16 --frames 30 --set volume.moving=false --json "$out/sweep_team.json" | head -12
 # OpenMP's threads spin for GOMP_SPINCOUNT (300,000 by default) before they sleep: between two

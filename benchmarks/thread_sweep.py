@@ -9,8 +9,11 @@ Prints per stage the median ms per count and the speed-up against 1 thread (the 
 swept if 1 is not), per loop its ms per frame per count, its calls per frame and ms per call at
 that baseline, and marks the loops that are slower at the largest count than at a smaller one,
 most time lost first: these are the loops where waking and joining the other threads costs
-more than the work they share. Counts above the cores this process may run on are skipped, since
-threads that share a core measure the scheduler, not the loops.
+more than the work they share. Below the stages, the machine's own ceilings at the same counts
+(benchmarks/machine_scaling.py: a compute loop's speed-up and a memory triad's GB/s), so that a
+stage whose speed-up follows the bandwidth rather than the cores shows as limited by memory.
+Counts above the cores this process may run on are skipped, since threads that share a core
+measure the scheduler, not the loops.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from typing import Any
 from kintinuous_ref.program.benchmark import machine_line
 
 WARM_PROFILE = Path(__file__).resolve().with_name("warm_profile.py")
+MACHINE_SCALING = Path(__file__).resolve().with_name("machine_scaling.py")
 
 
 def parse_threads(text: str) -> list[int]:
@@ -50,18 +54,33 @@ def split_counts(counts: list[int], cores: int) -> tuple[list[int], list[int]]:
     return [n for n in counts if n <= cores], [n for n in counts if n > cores]
 
 
-def profile(dataset: str, threads: int, frames: int, options: list[str]) -> dict[str, Any]:
-    """warm_profile.py's loop report from a child process running `threads` numba threads; a
+def child_json(script: Path, arguments: list[str], threads: int) -> dict[str, Any]:
+    """What `script` writes with --json, run in a child process with `threads` numba threads: a
     fresh process per count because numba reads NUMBA_NUM_THREADS once, when it starts."""
     environment = {**os.environ, "NUMBA_NUM_THREADS": str(threads)}
     with tempfile.TemporaryDirectory() as folder:
-        out = Path(folder) / "loops.json"
-        command = [sys.executable, str(WARM_PROFILE), dataset, "--loops"]
-        command += ["--frames", str(frames), "--json", str(out), *options]
+        out = Path(folder) / "report.json"
+        command = [sys.executable, str(script), *arguments, "--json", str(out)]
         done = subprocess.run(command, env=environment, capture_output=True, text=True)
         if done.returncode != 0:
             raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
         return json.loads(out.read_text())
+
+
+def profile(dataset: str, threads: int, frames: int, options: list[str]) -> dict[str, Any]:
+    """warm_profile.py's loop report on `threads` numba threads."""
+    arguments = [dataset, "--loops", "--frames", str(frames), *options]
+    return child_json(WARM_PROFILE, arguments, threads)
+
+
+def machine_ceilings(counts: list[int]) -> dict[str, Any]:
+    """machine_scaling.py's measurement at `counts`, its thread-count keys as integers again."""
+    threads = ",".join(str(n) for n in counts)
+    result = child_json(MACHINE_SCALING, ["--threads", threads], max(counts))
+    result["rows"] = {int(n): row for n, row in result["rows"].items()}
+    ups = result["speedups"]
+    result["speedups"] = {kind: {int(n): v for n, v in ups[kind].items()} for kind in ups}
+    return result
 
 
 def baseline(counts: list[int]) -> int:
@@ -140,6 +159,24 @@ def stage_table(rows: list[dict[str, Any]], counts: list[int]) -> list[str]:
     return lines
 
 
+def ceiling_table(ceilings: dict[str, Any], counts: list[int]) -> list[str]:
+    """The machine's speed-ups (machine_scaling.py) in the stage table's columns: what a stage
+    limited by its cores, or by memory, would reach at each count."""
+    base = baseline(counts)
+    head = "".join(f"{n:>9d}" for n in counts)
+    lines = [f"the machine's ceilings: speed-up against {base} thread(s) (machine_scaling.py)"]
+    lines.append(f"{'':21s}{head}")
+    for kind, label in (
+        ("compute", "compute"),
+        ("frame", "frame-sized triad"),
+        ("volume", "volume-sized triad"),
+    ):
+        ups = ceilings["speedups"][kind]
+        values = "".join(f"{cell(ratio(ups[n], ups[base])):>9s}" for n in counts)
+        lines.append(f"{label:21s}{values}")
+    return lines
+
+
 def loop_table(rows: list[dict[str, Any]], counts: list[int]) -> list[str]:
     """The loop rows as text, '*' marking the loops slower at the largest count."""
     base, largest = baseline(counts), counts[-1]
@@ -198,15 +235,22 @@ def main() -> None:
         print(f"{report['threads']} thread(s) done, {load_line()}", flush=True)
         reports[report["threads"]] = report
     used = sorted(reports)
+    ceilings = machine_ceilings(used)
     stages, loops = stage_rows(reports), loop_rows(reports, args.noise_ms)
     timed = {report["timed_frames"] for report in reports.values()}
     print(f"\n{args.dataset}, threads {used}, medians over {sorted(timed)} timed frames\n")
     print("\n".join(stage_table(stages, used)) + "\n")
+    print("\n".join(ceiling_table(ceilings, used)) + "\n")
     print("\n".join(loop_table(loops, used)) + "\n")
     print(f"before: {start}\nafter:  {machine()}")
     if args.json:
         sweep = {"machine": [start, machine()], "threads": used, "skipped": skipped}
-        sweep |= {"reports": reports, "stages": stages, "loops": loops}
+        sweep |= {
+            "reports": reports,
+            "stages": stages,
+            "loops": loops,
+            "machine_ceilings": ceilings,
+        }
         args.json.write_text(json.dumps(sweep, indent=1) + "\n")
 
 

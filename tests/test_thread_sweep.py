@@ -114,3 +114,23 @@ def test_the_tables_print_every_count_and_the_marks():
     loops = thread_sweep.loop_table(thread_sweep.loop_rows(REPORTS), counts)
     marked = [line.split()[-1] for line in loops if line.startswith("*")]
     assert marked == ["odometry._icp_loop", "odometry._valid_counts"]
+
+
+def test_the_machine_ceilings_print_against_the_same_baseline():
+    # machine_scaling.py's speed-ups against its first count, 2 here: the table rebases them
+    # on the sweep's own baseline, 4 threads in a sweep of 4 and 8
+    ceilings = {
+        "speedups": {
+            "compute": {2: 1.0, 4: 1.9, 8: 3.8},
+            "frame": {2: 1.0, 4: 1.6, 8: 2.4},
+            "volume": {2: 1.0, 4: 1.2, 8: 1.2},
+        }
+    }
+    lines = thread_sweep.ceiling_table(ceilings, [4, 8])
+    assert "against 4 thread(s)" in lines[0]
+    values = {line[:21].strip(): line.split()[-2:] for line in lines[2:]}
+    assert values == {
+        "compute": ["1.00", "2.00"],
+        "frame-sized triad": ["1.00", "1.50"],
+        "volume-sized triad": ["1.00", "1.00"],
+    }
