@@ -319,27 +319,22 @@ class JointLevel:
         self.work = (*arrays, self.rgbd_out, self.parts)
         self.steps = 0
 
-    def system(self, pose: np.ndarray, rgbd_weight: float, threshold: float) -> LinearSystem:
-        """The joint system at `pose` (combined.joint_system's degeneracy-aware branch)."""
+    def arguments(self, pose: np.ndarray) -> tuple:
+        """_joint_loop's arguments after (claims, parts) at `pose`, of the joint kind; its
+        count of correspondence chunks done, `corresponded`, is zeroed before each call."""
         pose, to_model, dist2, cos_min = self.icp.constants(pose)
         limits = (dist2, cos_min)
         icp_terms = (self.points, pose, to_model, *self.model, self.camera, limits, self.icp.robust)
         rgbd_terms = (self.columns, self.warp_terms(pose), self.row_terms)
+        work = (self.pairs, self.sums, self.warps, self.rgbd_out)
+        return (self.corresponded, icp_terms, self.icp_out, rgbd_terms, *work)
+
+    def system(self, pose: np.ndarray, rgbd_weight: float, threshold: float) -> LinearSystem:
+        """The joint system at `pose` (combined.joint_system's degeneracy-aware branch)."""
+        arguments = self.arguments(pose)
         self.corresponded[0] = 0
-        run_parallel(
-            _joint_loop,
-            self.corresponded,
-            icp_terms,
-            self.icp_out,
-            rgbd_terms,
-            self.pairs,
-            self.sums,
-            self.warps,
-            self.rgbd_out,
-            parts=self.parts,
-            items=self.items,
-        )
-        centre = np.ascontiguousarray(pose[:3, 3], dtype=np.float64)
+        run_parallel(_joint_loop, *arguments, parts=self.parts, items=self.items)
+        centre = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, 3])
         a, b, count, cost = _joint_sums(
             self.icp_out,
             self.sums,
