@@ -237,14 +237,9 @@ def main() -> None:
     used = sorted(reports)
     ceilings = machine_ceilings(used)
     stages, loops = stage_rows(reports), loop_rows(reports, args.noise_ms)
-    timed = {report["timed_frames"] for report in reports.values()}
-    print(f"\n{args.dataset}, threads {used}, medians over {sorted(timed)} timed frames\n")
-    print("\n".join(stage_table(stages, used)) + "\n")
-    print("\n".join(ceiling_table(ceilings, used)) + "\n")
-    print("\n".join(loop_table(loops, used)) + "\n")
-    print(f"before: {start}\nafter:  {machine()}")
-    if args.json:
-        sweep = {"machine": [start, machine()], "threads": used, "skipped": skipped}
+    after = machine()
+    if args.json:  # first: a reader that stops early (| head) must not lose it
+        sweep = {"machine": [start, after], "threads": used, "skipped": skipped}
         sweep |= {
             "reports": reports,
             "stages": stages,
@@ -252,6 +247,12 @@ def main() -> None:
             "machine_ceilings": ceilings,
         }
         args.json.write_text(json.dumps(sweep, indent=1) + "\n")
+    timed = {report["timed_frames"] for report in reports.values()}
+    print(f"\n{args.dataset}, threads {used}, medians over {sorted(timed)} timed frames\n")
+    print("\n".join(stage_table(stages, used)) + "\n")
+    print("\n".join(ceiling_table(ceilings, used)) + "\n")
+    print("\n".join(loop_table(loops, used)) + "\n")
+    print(f"before: {start}\nafter:  {after}")
 
 
 if __name__ == "__main__":
