@@ -8,8 +8,10 @@ The pipeline runs `--frames` frames on the cpu backend (the default configuratio
 overrides), and the last call of every loop that `run_parallel` launches, and each level of
 the joint ICP + RGB-D loop, is kept. Each is then called `--calls` times on one thread and on
 numba's N threads, alternated, through the loop's own launcher, wrapped so that each thread
-reads the clock as it enters the loop and as it leaves. Per loop, medians over the calls, in
-microseconds, the time on N threads less the ideal (one thread's time / N), split into:
+reads the clock as it enters the loop and as it leaves; in the parts its caller gave, or where
+it gave none in those run_parallel gives a loop on that many threads. Per loop, medians over
+the calls, in microseconds, the time on N threads less the ideal (one thread's time / N),
+split into:
 - wake-up: from the calling thread's entry to the last thread's;
 - join: from the last thread's exit until the call has returned to Python;
 - imbalance: from the first thread's exit to the last's, while the first waits;
@@ -81,7 +83,8 @@ class Capture:
     each joint level's (the joint loop runs from compiled code, not through run_parallel)."""
 
     def __init__(self) -> None:
-        self.calls: dict[str, tuple[Any, tuple, int, Any]] = {}
+        # name: (loop, arguments, parts as the caller gave them, the joint loop's counter)
+        self.calls: dict[str, tuple[Any, tuple, int | None, Any]] = {}
         self._run_parallel = cpu.run_parallel
         self._refine = joint.JointLevel.refine
 
@@ -89,9 +92,8 @@ class Capture:
         capture = self
 
         def run_parallel(loop: Any, *args: Any, parts: int | None = None, **kw: Any) -> None:
-            team, _ = cpu.planned_team(loop, kw.get("items") or cpu.work_items(args))
             name = f"{loop.py_func.__module__.split('.')[1]}.{loop.py_func.__name__}"
-            capture.calls[name] = (loop, args, parts or cpu.PARTS_PER_THREAD * team, None)
+            capture.calls[name] = (loop, args, parts, None)
             capture._run_parallel(loop, *args, parts=parts, **kw)
 
         def refine(level: joint.JointLevel, pose: np.ndarray, *rest: Any) -> Any:
@@ -115,9 +117,13 @@ class Capture:
         joint.JointLevel.refine = refine
 
 
-def timed_call(loop: Any, args: tuple, parts: int, team: int, counter: Any) -> dict[str, float]:
-    """One call of the traced loop on `team` threads: (call, wake-up, join, imbalance, busy)
+def timed_call(
+    loop: Any, args: tuple, parts: int | None, team: int, counter: Any
+) -> dict[str, float]:
+    """One call of the traced loop on `team` threads, in `parts` parts (None: as run_parallel
+    cuts a loop that runs on `team` threads): its call, wake-up, join, imbalance and busy time
     in microseconds."""
+    parts = cpu.PARTS_PER_THREAD * team if parts is None else parts
     if counter is not None:
         counter[0] = 0  # the joint loop's count of correspondence chunks done
     log, count = np.zeros((team, 2), dtype=np.int64), np.zeros(1, dtype=np.int64)
@@ -139,7 +145,9 @@ def timed_call(loop: Any, args: tuple, parts: int, team: int, counter: Any) -> d
     }
 
 
-def anatomy(loop: Any, args: tuple, parts: int, counter: Any, team: int, calls: int) -> dict:
+def anatomy(
+    loop: Any, args: tuple, parts: int | None, counter: Any, team: int, calls: int
+) -> dict[str, float]:
     """Medians of `calls` traced calls on one thread and on `team`, alternated, after one of
     each (compilation), and the time on `team` less the ideal split as the docstring says."""
     timed_call(loop, args, parts, 1, counter)
