@@ -83,8 +83,8 @@ class Capture:
     each joint level's (the joint loop runs from compiled code, not through run_parallel)."""
 
     def __init__(self) -> None:
-        # name: (loop, arguments, parts as the caller gave them, the joint loop's counter)
-        self.calls: dict[str, tuple[Any, tuple, int | None, Any]] = {}
+        # name: (loop, arguments, parts as the caller gave them, counters and their values)
+        self.calls: dict[str, tuple[Any, tuple, int | None, list]] = {}
         self._run_parallel = cpu.run_parallel
         self._refine = joint.JointLevel.refine
 
@@ -93,14 +93,15 @@ class Capture:
 
         def run_parallel(loop: Any, *args: Any, parts: int | None = None, **kw: Any) -> None:
             name = f"{loop.py_func.__module__.split('.')[1]}.{loop.py_func.__name__}"
-            capture.calls[name] = (loop, args, parts, None)
+            capture.calls[name] = (loop, args, parts, counters(args))
             capture._run_parallel(loop, *args, parts=parts, **kw)
 
         def refine(level: joint.JointLevel, pose: np.ndarray, *rest: Any) -> Any:
             if level.kind == joint.JOINT:
                 args = level.arguments(pose)
                 name = f"odometry._joint_loop L{level.level}"
-                capture.calls[name] = (joint._joint_loop, args, level.parts, level.corresponded)
+                zeroed = [(level.corresponded, np.zeros_like(level.corresponded))]
+                capture.calls[name] = (joint._joint_loop, args, level.parts, zeroed)
             return capture._refine(level, pose, *rest)
 
         self._patch(run_parallel, refine)
@@ -117,15 +118,23 @@ class Capture:
         joint.JointLevel.refine = refine
 
 
+def counters(args: tuple) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The small int64 arrays among a loop's arguments, with their values before the call:
+    counters that the loop's threads advance (threads that painted, chunks done), which a
+    replay sets back, or it would read past what they count."""
+    small = [a for a in args if isinstance(a, np.ndarray) and a.dtype == np.int64 and a.size <= 8]
+    return [(array, array.copy()) for array in small]
+
+
 def timed_call(
-    loop: Any, args: tuple, parts: int | None, team: int, counter: Any
+    loop: Any, args: tuple, parts: int | None, team: int, resets: list
 ) -> dict[str, float]:
     """One call of the traced loop on `team` threads, in `parts` parts (None: as run_parallel
-    cuts a loop that runs on `team` threads): its call, wake-up, join, imbalance and busy time
-    in microseconds."""
+    cuts a loop that runs on `team` threads), each of `resets`' counters set back first: its
+    call, wake-up, join, imbalance and busy time in microseconds."""
     parts = cpu.PARTS_PER_THREAD * team if parts is None else parts
-    if counter is not None:
-        counter[0] = 0  # the joint loop's count of correspondence chunks done
+    for counter, before in resets:
+        counter[:] = before
     log, count = np.zeros((team, 2), dtype=np.int64), np.zeros(1, dtype=np.int64)
     claims = np.zeros(3, dtype=np.int64)
     launch = cpu.launcher(traced(loop))
@@ -146,16 +155,16 @@ def timed_call(
 
 
 def anatomy(
-    loop: Any, args: tuple, parts: int | None, counter: Any, team: int, calls: int
+    loop: Any, args: tuple, parts: int | None, resets: list, team: int, calls: int
 ) -> dict[str, float]:
     """Medians of `calls` traced calls on one thread and on `team`, alternated, after one of
     each (compilation), and the time on `team` less the ideal split as the docstring says."""
-    timed_call(loop, args, parts, 1, counter)
-    timed_call(loop, args, parts, team, counter)
+    timed_call(loop, args, parts, 1, resets)
+    timed_call(loop, args, parts, team, resets)
     one, many = [], []
     for _ in range(calls):
-        one.append(timed_call(loop, args, parts, 1, counter))
-        many.append(timed_call(loop, args, parts, team, counter))
+        one.append(timed_call(loop, args, parts, 1, resets))
+        many.append(timed_call(loop, args, parts, team, resets))
 
     def median(samples: list[dict[str, float]], key: str) -> float:
         return statistics.median(sample[key] for sample in samples)
@@ -204,8 +213,8 @@ def main() -> None:
     with Capture() as capture:
         benchmark(args.dataset, frames=args.frames, backend="cpu", config=config)
     rows = {
-        name: anatomy(loop, loop_args, parts, counter, team, args.calls)
-        for name, (loop, loop_args, parts, counter) in sorted(capture.calls.items())
+        name: anatomy(loop, loop_args, parts, resets, team, args.calls)
+        for name, (loop, loop_args, parts, resets) in sorted(capture.calls.items())
     }
     print(machine_line())
     print("\n".join(table(rows, team, args.top)))

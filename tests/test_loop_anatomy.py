@@ -42,10 +42,10 @@ def test_a_kept_call_replays_the_loop_on_its_own_arguments():
     with loop_anatomy.Capture() as capture:
         points = cpu_icp._valid_points(vertices, normals)
     assert {"odometry._valid_counts", "odometry._compact_loop"} <= set(capture.calls)
-    loop, args, parts, counter = capture.calls["odometry._compact_loop"]
+    loop, args, parts, resets = capture.calls["odometry._compact_loop"]
     args[-1][:] = 0.0  # the compacted columns, written again by the replay
     threads = numba.get_num_threads()
-    timed = loop_anatomy.timed_call(loop, args, parts, threads, counter)
+    timed = loop_anatomy.timed_call(loop, args, parts, threads, resets)
     expected = np.concatenate(valid_points(vertices, normals))
     np.testing.assert_array_equal(args[-1], expected.astype(np.float32))
     np.testing.assert_array_equal(points, args[-1])
@@ -56,8 +56,8 @@ def test_one_thread_neither_waits_to_wake_nor_idles():
     vertices, normals = maps(seed=4)
     with loop_anatomy.Capture() as capture:
         cpu_icp._valid_points(vertices, normals)
-    loop, args, parts, counter = capture.calls["odometry._valid_counts"]
-    timed = loop_anatomy.timed_call(loop, args, parts, 1, counter)
+    loop, args, parts, resets = capture.calls["odometry._valid_counts"]
+    timed = loop_anatomy.timed_call(loop, args, parts, 1, resets)
     assert timed["wake"] == 0.0 and timed["imbalance"] == 0.0
     assert 0.0 < timed["busy"] <= timed["call"]
     assert timed["join"] >= 0.0
