@@ -14,7 +14,13 @@ import numba
 import numpy as np
 
 from kintinuous_fast.raycast.cpu_ops import OPS
-from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
+from kintinuous_fast.targets.cpu import (
+    atomic_fetch_add,
+    claim_slot,
+    claimed_items,
+    parallel_part,
+    run_parallel,
+)
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_fast.tsdf.voxel import FINE
 from kintinuous_ref.camera import Intrinsics
@@ -25,6 +31,10 @@ ray_direction = OPS.ray_direction
 ENTRY_MARGIN = 1e-5
 ENTRY_SLACK = 1e-6
 NEAR_BLOCK = 16  # near_starts looks for the next run of near bricks this many at a time
+# Runs of adjacent slabs per thread that near_starts' threads claim one at a time: with a fixed
+# share of the slabs each, a thread whose slabs held more surface kept the others waiting
+# (0.5-0.6 ms of 4.9-5.0 on two threads; 0.06-0.07 ms with eight runs a thread).
+SLAB_PARTS_PER_THREAD = 8
 
 
 @parallel_part(error_model="numpy", _nrt=True)
@@ -40,14 +50,21 @@ def _near_box_starts(
     inverse,
     longest,
     starts,
+    used,
 ):
-    """starts[c] = per pixel, the least ray distance at which the pixel's ray enters a box of
-    the `near` fine bricks of slabs c, c + C, ... (C = starts.shape[0]), inf where it enters
-    none: chunk c's part of near_starts. `inverse` (3, H, W): 1 / the rays' unit directions.
-    Runs of up to `longest` near bricks along k are taken as one box (the same answer: the
-    ray enters their union where it enters the first of them)."""
-    chunks, height, width = starts.shape
+    """Each thread's image starts[t] = per pixel, the least ray distance at which the pixel's
+    ray enters a box of the `near` fine bricks of the slabs it claims (runs of adjacent slabs,
+    `parts` of them), inf where it enters none; `used[0]` (zero before the call) counts the
+    threads, whose images near_starts' minimum reads. A minimum is exact in any order, so
+    which thread paints which slabs changes nothing; many parts even out the threads' work,
+    and adjacent slabs paint nearby pixels, whose ray directions are still in the cache.
+    `inverse` (3, H, W): 1 / the rays' unit directions. Runs of up to `longest` near bricks
+    along k are taken as one box (the same answer: the ray enters their union where it enters
+    the first of them)."""
     m = near.shape[0]
+    image = starts[claim_slot(claims)]
+    image[:] = np.inf
+    atomic_fetch_add(used, 0)
     size = FINE * voxel_size
     # Camera-frame corner of the volume and camera-frame steps of one fine brick along each axis.
     offset = np.empty(3)
@@ -60,23 +77,19 @@ def _near_box_starts(
         )
         for axis in range(3):
             steps[axis, r] = rotation[axis, r] * size
-    for c in claimed_items(claims, chunks, parts):
-        starts[c] = np.inf
-        for i in range(c, m, chunks):  # slabs dealt round-robin: surfaces spread over them
-            for j in range(m):
-                row = near[i, j]
-                if not _any(row, 0, m):  # most rows: one vectorised OR, no byte-by-byte scan
-                    continue
-                k = _next_near(row, 0)
-                while k < m:  # each run of near bricks along k is one box
-                    end = k + 1
-                    while end < min(m, k + longest) and row[end]:
-                        end += 1
-                    run = (i, j, k, end - k)
-                    _paint_box(
-                        run, offset, steps, camera, origin, volume_origin, size, inverse, starts[c]
-                    )
-                    k = _next_near(row, end)
+    for i in claimed_items(claims, m, parts):
+        for j in range(m):
+            row = near[i, j]
+            if not _any(row, 0, m):  # most rows: one vectorised OR, no byte-by-byte scan
+                continue
+            k = _next_near(row, 0)
+            while k < m:  # each run of near bricks along k is one box
+                end = k + 1
+                while end < min(m, k + longest) and row[end]:
+                    end += 1
+                run = (i, j, k, end - k)
+                _paint_box(run, offset, steps, camera, origin, volume_origin, size, inverse, image)
+                k = _next_near(row, end)
 
 
 @numba.njit(cache=True, inline="always")
@@ -188,12 +201,14 @@ def _enter_row(low, sides, inverse0, inverse1, inverse2, line):
 
 
 @parallel_part()
-def _least_over_chunks(claims, parts, starts, out):
+def _least_over_images(claims, parts, starts, used, out):
+    """out = the per-pixel minimum of the first used[0] images of `starts`."""
+    images = min(used[0], starts.shape[0])
     for v in claimed_items(claims, out.shape[0], parts):
         for u in range(out.shape[1]):
             least = starts[0, v, u]
-            for c in range(1, starts.shape[0]):
-                least = min(least, starts[c, v, u])
+            for t in range(1, images):
+                least = min(least, starts[t, v, u])
             out[v, u] = least
 
 
@@ -210,9 +225,9 @@ def _inverse_directions(claims, parts, camera, rotation, out):
 
 
 @functools.lru_cache(maxsize=2)
-def _chunk_starts(chunks: int, height: int, width: int) -> np.ndarray:
-    """near_starts' per-chunk images, kept from frame to frame (fresh ones cost page faults)."""
-    return np.empty((chunks, height, width), dtype=np.float32)
+def _thread_starts(threads: int, height: int, width: int) -> np.ndarray:
+    """near_starts' per-thread images, kept from frame to frame (fresh ones cost page faults)."""
+    return np.empty((threads, height, width), dtype=np.float32)
 
 
 @functools.lru_cache(maxsize=2)
@@ -237,7 +252,7 @@ def near_starts(
     above float32's rounding of coordinates within ~100 m, far below a sample step). Where a
     ray enters a box, not the camera's distance to it, leaves the fewest jumps after the start
     (docs/benchmarks.md, "Numbers behind the fast stages")."""
-    chunks = _chunk_starts(numba.get_num_threads(), camera.height, camera.width)
+    images = _thread_starts(numba.get_num_threads(), camera.height, camera.width)
     view = view_constants(volume, pose, camera)
     inverse = _inverse_directions_work(camera.height, camera.width)
     run_parallel(_inverse_directions, view[0], view[1], inverse)
@@ -246,7 +261,9 @@ def near_starts(
     rotation = view[1]
     along_sight = abs(rotation[2, 2]) >= max(abs(rotation[0, 2]), abs(rotation[1, 2]))
     longest = near.shape[0] if along_sight else 1
-    run_parallel(_near_box_starts, near, *view, inverse, longest, chunks, parts=len(chunks))
+    used = np.zeros(1, dtype=np.int64)
+    parts = SLAB_PARTS_PER_THREAD * len(images)
+    run_parallel(_near_box_starts, near, *view, inverse, longest, images, used, parts=parts)
     starts = np.empty((camera.height, camera.width), dtype=np.float64)
-    run_parallel(_least_over_chunks, chunks, starts)
+    run_parallel(_least_over_images, images, used, starts)
     return starts
