@@ -29,7 +29,6 @@ import argparse
 import ctypes
 import json
 import statistics
-import sys
 import time
 import warnings
 from functools import cache
@@ -85,16 +84,20 @@ class Capture:
     def __init__(self) -> None:
         # name: (loop, arguments, parts as the caller gave them, counters and their values)
         self.calls: dict[str, tuple[Any, tuple, int | None, list]] = {}
-        self._run_parallel = cpu.run_parallel
         self._refine = joint.JointLevel.refine
+        self._replaced = cpu.run_parallel_replaced(self._keeping)
+
+    def _keeping(self, run_parallel: Any) -> Any:
+        """run_parallel, each loop's call kept in `calls` first."""
+
+        def kept(loop: Any, *args: Any, parts: int | None = None, **kw: Any) -> None:
+            self.calls[cpu.loop_name(loop)] = (loop, args, parts, counters(args))
+            run_parallel(loop, *args, parts=parts, **kw)
+
+        return kept
 
     def __enter__(self) -> Capture:
         capture = self
-
-        def run_parallel(loop: Any, *args: Any, parts: int | None = None, **kw: Any) -> None:
-            name = f"{loop.py_func.__module__.split('.')[1]}.{loop.py_func.__name__}"
-            capture.calls[name] = (loop, args, parts, counters(args))
-            capture._run_parallel(loop, *args, parts=parts, **kw)
 
         def refine(level: joint.JointLevel, pose: np.ndarray, *rest: Any) -> Any:
             if level.kind == joint.JOINT:
@@ -104,18 +107,13 @@ class Capture:
                 capture.calls[name] = (joint._joint_loop, args, level.parts, zeroed)
             return capture._refine(level, pose, *rest)
 
-        self._patch(run_parallel, refine)
+        joint.JointLevel.refine = refine
+        self._replaced.__enter__()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._patch(self._run_parallel, self._refine)
-
-    def _patch(self, run_parallel: Any, refine: Any) -> None:
-        for module in list(sys.modules.values()):
-            if module and module.__name__.startswith("kintinuous_fast"):
-                if getattr(module, "run_parallel", None) is not None:
-                    module.run_parallel = run_parallel
-        joint.JointLevel.refine = refine
+        self._replaced.__exit__(*exc)
+        joint.JointLevel.refine = self._refine
 
 
 def counters(args: tuple) -> list[tuple[np.ndarray, np.ndarray]]:

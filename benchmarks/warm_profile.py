@@ -25,7 +25,6 @@ import itertools
 import json
 import os
 import pstats
-import sys
 import time
 from collections import defaultdict
 from collections.abc import Iterable, Iterator
@@ -168,20 +167,23 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     import kintinuous_fast.targets.cpu as threads
     from kintinuous_ref import pipeline
 
-    untimed, unframed, unlevelled = threads.run_parallel, pipeline.run, joint.JointLevel.system
+    unframed, unlevelled = pipeline.run, joint.JointLevel.system
     unrefined = joint.JointLevel.refine
     clock = LoopClock()
     level: list[int | None] = [None]  # the joint loop's level while its system is computed
 
-    def timed(loop, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
-        started = time.perf_counter()
-        untimed(loop, *args, **options)
-        ended = time.perf_counter()
-        name = f"{loop.__module__.split('.')[1]}.{loop.__name__}"
-        if loop is joint._joint_loop and level[0] is not None:
-            name = f"{name} L{level[0]}"
-            clock.iteration(level[0], started, ended)
-        clock.add(name, ended - started)
+    def timing(untimed):  # noqa: ANN001, ANN202
+        def timed(loop, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
+            started = time.perf_counter()
+            untimed(loop, *args, **options)
+            ended = time.perf_counter()
+            name = threads.loop_name(loop)
+            if loop is joint._joint_loop and level[0] is not None:
+                name = f"{name} L{level[0]}"
+                clock.iteration(level[0], started, ended)
+            clock.add(name, ended - started)
+
+        return timed
 
     def levelled(self, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
         level[0] = self.level
@@ -205,21 +207,16 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     def framed(frames, *args, **options):  # noqa: ANN001, ANN002, ANN003, ANN202
         return unframed(clock.frames(frames), *args, **options)
 
-    modules = [m for n, m in sys.modules.items() if n.startswith("kintinuous_fast.")]
-    patched = [m for m in modules if getattr(m, "run_parallel", None) is untimed]
-    for module in patched:
-        module.run_parallel = timed
     pipeline.run = framed
     joint.JointLevel.system = levelled
     joint.JointLevel.refine = refined
     try:
-        result = benchmark(dataset, frames=frames, **run)
+        with threads.run_parallel_replaced(timing):
+            result = benchmark(dataset, frames=frames, **run)
     finally:
         pipeline.run = unframed
         joint.JointLevel.system = unlevelled
         joint.JointLevel.refine = unrefined
-        for module in patched:
-            module.run_parallel = untimed
     medians = {stage: t["median"] for stage, t in result["timing_ms"].items()}
     # The benchmark's last run is the timed one; its first frame (no model) is left out, as
     # from the stages' statistics.

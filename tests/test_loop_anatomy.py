@@ -11,6 +11,8 @@ import numba
 import numpy as np
 
 from kintinuous_fast.odometry.icp import cpu as cpu_icp
+from kintinuous_fast.odometry.sums import cpu as cpu_sums
+from kintinuous_fast.targets import cpu as targets_cpu
 from kintinuous_ref.odometry.icp import valid_points
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "loop_anatomy.py"
@@ -39,8 +41,11 @@ def maps(seed=3, shape=(30, 40)):
 
 def test_a_kept_call_replays_the_loop_on_its_own_arguments():
     vertices, normals = maps()
+    original = targets_cpu.run_parallel
     with loop_anatomy.Capture() as capture:
+        assert cpu_sums.run_parallel is not original
         points = cpu_icp._valid_points(vertices, normals)
+    assert cpu_sums.run_parallel is original and targets_cpu.run_parallel is original
     assert {"odometry._valid_counts", "odometry._compact_loop"} <= set(capture.calls)
     loop, args, parts, resets = capture.calls["odometry._compact_loop"]
     args[-1][:] = 0.0  # the compacted columns, written again by the replay
