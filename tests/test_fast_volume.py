@@ -44,6 +44,17 @@ def test_equivalence_cpu_raycast(size):
     fe.check_raycast(cpu_tsdf, cpu_raycast, *size)
 
 
+@pytest.mark.parametrize(("rows", "threads"), [(480, 16), (480, 2), (240, 7), (61, 1), (1, 4)])
+def test_raycast_bands_shrink_to_the_least_and_cover_every_row_once(rows, threads):
+    """band_starts: bands in order from row 0 to the last, the first a 2 * threads-th of the
+    rows, then never larger, none but the last under MIN_BAND rows."""
+    starts = cpu_raycast.band_starts(rows, threads)
+    sizes = np.diff(starts)
+    assert starts[0] == 0 and starts[-1] == rows and (sizes > 0).all()
+    assert sizes[0] == min(rows, max(cpu_raycast.MIN_BAND, rows // (2 * threads)))
+    assert (np.diff(sizes) <= 0).all() and (sizes[:-1] >= cpu_raycast.MIN_BAND).all()
+
+
 @pytest.mark.parametrize("offset", [(0, 0, 0), (5, 0, 17)], ids=["fixed", "shifted"])
 def test_equivalence_cpu_gradient_normal(offset):
     """tsdf.voxel.gradient_normal against kintinuous_ref.raycast._gradient_normals on a fused

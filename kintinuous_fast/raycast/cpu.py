@@ -19,7 +19,7 @@ from kintinuous_fast.raycast.cpu_ops import OPS, VOXELS
 from kintinuous_fast.raycast.cpu_skip_maps import empty_space, skip_maps_and_near
 from kintinuous_fast.targets import cpu_jit_numpy_errors, cpu_jit_numpy_errors_called
 from kintinuous_fast.targets.cache import register_slowest
-from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel
+from kintinuous_fast.targets.cpu import claimed_items, parallel_part, run_parallel, threads
 from kintinuous_fast.tsdf.volume import FastTsdfVolume, view_constants
 from kintinuous_ref.camera import Intrinsics
 from kintinuous_ref.raycast import STEP_FRACTION, ModelPrediction, check_stride
@@ -38,7 +38,22 @@ march_start, march_step, surface_at = OPS.march_start, OPS.march_step, OPS.surfa
 raycast_pixel, ray_direction, shade_pixel = OPS.raycast_pixel, OPS.ray_direction, OPS.shade_pixel
 voxel_coordinates, store_hit = OPS.voxel_coordinates, OPS.store_hit
 gradient_normals = VOXELS.gradient_normals
-BAND = 8  # pixel rows handed to a thread at a time
+# The least rows of the image's last bands (band_starts).
+MIN_BAND = 2
+
+
+def band_starts(rows: int, threads: int) -> np.ndarray:
+    """The first of the `rows` cast rows of each band the raycast's threads claim in order, and
+    `rows` last: each band a 2 * threads-th of the rows not yet handed out, at least MIN_BAND
+    (guided scheduling). Rays cost very different amounts; large bands first keep a thread's
+    rays near each other in the volume, small ones last leave a thread that finishes early
+    little to wait for (on two threads, fixed bands of 8 rows kept one thread waiting 0.7-1.0
+    ms of a 45 ms call, these 0.15-0.3 ms: benchmarks/loop_anatomy.py)."""
+    starts = [0]
+    while starts[-1] < rows:
+        left = rows - starts[-1]
+        starts.append(starts[-1] + min(left, max(MIN_BAND, left // (2 * threads))))
+    return np.array(starts, dtype=np.int64)
 
 
 # Two rays at a time: a CPU core overlaps one ray's chain of dependent loads with the other's.
@@ -304,19 +319,19 @@ def _raycast_loop(
     colours,
     stride,
     starts,
+    bands,
 ):
     # Every pixel cast is written once, hit or miss; with a stride, the thread that
     # casts a band first clears its rows (NaN, black) for the pixels left out, so that no
     # single-threaded fill of the three maps comes first.
     height, width = vertices.shape[0], vertices.shape[1]
-    span = BAND * stride
-    for band in claimed_items(claims, -(-height // span), parts):
-        rows = slice(band * span, min((band + 1) * span, height))
+    for band in claimed_items(claims, bands.shape[0] - 1, parts):
+        first, end = bands[band] * stride, min(bands[band + 1] * stride, height)
         if stride > 1:
-            vertices[rows] = np.nan
-            normals[rows] = np.nan
-            colours[rows] = 0
-        for v in range(band * span, min((band + 1) * span, height), stride):
+            vertices[first:end] = np.nan
+            normals[first:end] = np.nan
+            colours[first:end] = 0
+        for v in range(first, end, stride):
             for u in range(0, width, 2 * stride):  # pixels two at a time
                 du = stride if u + stride < width else 0
                 raycast_pixel_pair(
@@ -365,8 +380,7 @@ def raycast(
     else:  # the plain march: maps of 0 skip nothing, every sample is taken
         empty = fine_distance = np.zeros((1, 1, 1), dtype=np.uint8)
         starts = np.zeros(shape, dtype=np.float64)
-    # Rays cost very different amounts: a band of rows at a time, so that a thread that
-    # finishes early, or was descheduled, evens out.
+    bands = band_starts(-(-camera.height // int(stride)), threads())
     run_parallel(
         _raycast_loop,
         volume.tsdf_weight,
@@ -382,7 +396,8 @@ def raycast(
         colours,
         int(stride),
         starts,
-        parts=-(-camera.height // (BAND * int(stride))),
+        bands,
+        parts=len(bands) - 1,
     )
     return ModelPrediction(pose=pose.copy(), vertices=vertices, normals=normals, colours=colours)
 
