@@ -136,7 +136,6 @@ def main() -> None:
         "keeps NUMBA_NUM_THREADS - 1 helpers (a large team, loops that want few of them)",
     )
     args = parser.parse_args()
-    cpu.TEAM_TRIALS = 0  # each call on the team its work plans: what a call costs on it
     if args.at_most:
         numba.set_num_threads(args.at_most)
     spins = cpu.native_threads()  # numba's threading layer started

@@ -21,7 +21,6 @@ from kintinuous_fast.targets.cpu import (
     MIN_SECONDS_PER_THREAD,
     NEXT_PART,
     PARTS_PER_THREAD,
-    TEAM_TUNER,
     LoopCosts,
     claim_slot,
     claimed_items,
@@ -38,7 +37,6 @@ def every_thread():
     """numba's thread count set to the most this process has, and put back."""
     before = numba.get_num_threads()
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-    TEAM_TUNER.forget()  # each test's loops on the teams their work plans
     yield numba.config.NUMBA_NUM_THREADS
     numba.set_num_threads(before)
 
@@ -72,11 +70,10 @@ def test_a_loops_team_follows_its_measured_work(every_thread):
     def loop():  # a key of its own in LOOP_COSTS
         pass
 
-    every = (every_thread, every_thread, native)
-    assert planned_team(loop, 100) == every  # not yet measured: every thread
+    assert planned_team(loop, 100) == (every_thread, native)  # not yet measured: every thread
     LOOP_COSTS.record(loop, 100, 2.5 * minimum)
-    assert planned_team(loop, 100) == (min(2, every_thread),) * 2 + (native,)
-    assert planned_team(loop, 1000) == (min(25, every_thread),) * 2 + (native,)
+    assert planned_team(loop, 100) == (min(2, every_thread), native)
+    assert planned_team(loop, 1000) == (min(25, every_thread), native)
 
 
 @parallel_part()
@@ -113,59 +110,6 @@ def test_a_loop_above_its_work_threshold_is_shared(every_thread):
     assert (thread_of_part[: 2 * PARTS_PER_THREAD] >= 0).all()
     assert (thread_of_part[2 * PARTS_PER_THREAD :] == -1).all()
     assert set(thread_of_part[thread_of_part >= 0]) == {0, 1}  # two threads, each with parts
-
-
-def _tune(tuner: cpu.TeamTuner, planned: int, seconds_on: dict[int, float], calls: int) -> list:
-    """The teams a tuner picks over `calls` calls of one loop (1000 items) whose work plans
-    `planned` threads, where a call on n threads takes seconds_on[n]."""
-    teams = []
-    for _ in range(calls):
-        team = tuner.team("loop", 1000, planned)
-        tuner.record("loop", 1000, planned, team, seconds_on[team])
-        teams.append(team)
-    return teams
-
-
-def test_a_loop_keeps_half_its_team_while_half_is_faster():
-    """TeamTuner: calls alternate between the team and its half, TEAM_TRIALS each; the half
-    becomes the team while it is faster, then the team stays; a smaller plan still caps it."""
-    trials = cpu.TEAM_TRIALS
-    tuner = cpu.TeamTuner()
-    # fastest on 4 of 16: 16 against 8, then 8 against 4, then 4 against 2
-    seconds_on = {16: 3e-4, 8: 2e-4, 4: 1.5e-4, 2: 2.5e-4}
-    teams = _tune(tuner, 16, seconds_on, 6 * trials + 5)
-    assert teams[: 2 * trials] == [16, 8] * trials
-    assert teams[2 * trials : 4 * trials] == [8, 4] * trials
-    assert teams[4 * trials : 6 * trials] == [4, 2] * trials
-    assert teams[6 * trials :] == [4] * 5
-    assert tuner.team("loop", 1000, 3) == 3  # its work plans fewer now
-    assert tuner.team("loop", 100_000, 16) == 16  # another size class is tried on its own
-
-
-def test_a_loop_keeps_its_team_where_half_is_slower(monkeypatch):
-    trials = cpu.TEAM_TRIALS
-    tuner = cpu.TeamTuner()
-    seconds_on = {16: 1e-4, 8: 1.8e-4}
-    # one slow call on 16 (a thread descheduled) does not decide: the fastest of each counts
-    seconds = iter([5e-4] + [1e-4] * 100)
-    teams = []
-    for _ in range(2 * trials + 4):
-        team = tuner.team("loop", 1000, 16)
-        tuner.record("loop", 1000, 16, team, next(seconds) if team == 16 else seconds_on[8])
-        teams.append(team)
-    assert teams == [16, 8] * trials + [16] * 4
-    assert _tune(cpu.TeamTuner(), 1, {1: 1e-4}, 4) == [1] * 4  # one thread: nothing to try
-    monkeypatch.setattr(cpu, "TEAM_TRIALS", 0)  # tuning off: the planned team
-    assert _tune(cpu.TeamTuner(), 16, {16: 1e-4, 8: 1e-5}, 4) == [16] * 4
-
-
-@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs a second thread")
-def test_run_parallel_runs_a_loop_on_the_team_its_tuner_keeps(every_thread):
-    """A loop whose work plans two threads, but which ran faster on one, runs on one."""
-    TEAM_TUNER.ceiling[(_record_threads, (100).bit_length())] = 1
-    thread_of_part = _threads_of_parts(2.5, hold=False)
-    np.testing.assert_array_equal(thread_of_part[:PARTS_PER_THREAD], 0)
-    assert (thread_of_part[PARTS_PER_THREAD:] == -1).all()
 
 
 @parallel_part()

@@ -40,7 +40,6 @@ def on_both_paths(run: Callable[[int], Any]) -> dict[str, Any]:
     from kintinuous_fast.targets import cpu
 
     paths = {"numba's threads": cpu.native_threads(), "the helper team": False}
-    cpu.TEAM_TRIALS = 0  # each loop on the team its work plans, not on half of it
     runs = {}
     for shared in (False, True):
         if shared:

@@ -238,62 +238,6 @@ class LoopCosts:
 
 LOOP_COSTS = LoopCosts()
 
-# Calls a loop makes on its team and on half of it before the faster is kept (TeamTuner); 0
-# turns the tuning off, so that every loop runs on the team its work plans.
-TEAM_TRIALS = 3
-
-
-class TeamTuner:
-    """Whether a loop runs faster on half the team its work plans (threads_for), found as it
-    runs. A loop's work says how many threads could share it, not whether they gain: on 16
-    cores, loops of 0.2-0.6 ms that mostly move memory ran slower on 16 threads than on 8.
-    Per loop and size class (its items to the nearest power of two), calls alternate between
-    the team and half of it until each has run TEAM_TRIALS times; where the half's fastest
-    call per item beats the team's, the half becomes the loop's team and is tried against its
-    own half in turn, else the team is kept. Results do not depend on the team."""
-
-    def __init__(self) -> None:
-        self.ceiling: dict[Any, int] = {}  # the most threads a loop's calls take
-        self.settled: set[Any] = set()
-        self.trials: dict[Any, dict[int, list[float]]] = {}
-
-    def team(self, loop: Any, items: int, planned: int) -> int:
-        """The threads a call of `loop` over `items` items runs on, of the `planned`."""
-        key = (loop, items.bit_length())
-        team = min(planned, self.ceiling.get(key, planned))
-        if not self._tuning(key, team):
-            return team
-        trials = self.trials.setdefault(key, {})
-        behind = len(trials.get(team, ())) > len(trials.get(team // 2, ()))
-        return team // 2 if behind else team
-
-    def record(self, loop: Any, items: int, planned: int, team: int, seconds: float) -> None:
-        """Note that a call of `loop` over `items` items took `seconds` on `team` threads,
-        when its work planned `planned`."""
-        key = (loop, items.bit_length())
-        kept = min(planned, self.ceiling.get(key, planned))
-        if not self._tuning(key, kept) or team not in (kept, kept // 2):
-            return
-        trials = self.trials.setdefault(key, {})
-        trials.setdefault(team, []).append(seconds / max(items, 1))
-        if min(len(trials.get(kept, ())), len(trials.get(kept // 2, ()))) < TEAM_TRIALS:
-            return
-        if min(trials[kept // 2]) < min(trials[kept]):
-            self.ceiling[key] = kept // 2
-        else:
-            self.settled.add(key)
-        del self.trials[key]
-
-    def _tuning(self, key: Any, team: int) -> bool:
-        return team > 1 and key not in self.settled and TEAM_TRIALS > 0
-
-    def forget(self) -> None:
-        """Start again: every loop on the team its work plans until tried."""
-        self.__init__()
-
-
-TEAM_TUNER = TeamTuner()
-
 
 def work_items(args: tuple) -> int:
     """A loop's size where its caller gives none: the elements of its largest array argument
@@ -301,26 +245,14 @@ def work_items(args: tuple) -> int:
     return max((arg.size for arg in args if isinstance(arg, np.ndarray)), default=1)
 
 
-def planned_team(loop: Any, items: int) -> tuple[int, int, bool]:
-    """(how many threads a call of `loop` over `items` items runs on, how many its work plans,
-    whether they are numba's threads): its work plans one per MIN_SECONDS_PER_THREAD of its
-    measured work on numba's threads, one per MIN_SECONDS_PER_HELPER on the helper team
-    (`threads_for`, LOOP_COSTS), all while the work is unknown; it runs on that team or on
-    fewer where they were faster (TEAM_TUNER)."""
+def planned_team(loop: Any, items: int) -> tuple[int, bool]:
+    """(how many threads a call of `loop` over `items` items runs on, whether they are numba's
+    threads): one per MIN_SECONDS_PER_THREAD of its measured work on numba's threads, one per
+    MIN_SECONDS_PER_HELPER on the helper team (`threads_for`, LOOP_COSTS)."""
     available = threads()
     native = available > 1 and native_threads()
     minimum = MIN_SECONDS_PER_THREAD if native else MIN_SECONDS_PER_HELPER
-    seconds = LOOP_COSTS.seconds(loop, items)
-    planned = threads_for(seconds, available, minimum)
-    team = planned if seconds is None else TEAM_TUNER.team(loop, items, planned)
-    return team, planned, native
-
-
-def record_call(loop: Any, items: int, planned: int, team: int, seconds: float) -> None:
-    """Note a call of `loop` over `items` items that took `seconds` (wall) on `team` threads
-    of the `planned` (planned_team): its work (LOOP_COSTS), its team's speed (TEAM_TUNER)."""
-    LOOP_COSTS.record(loop, items, seconds * team)
-    TEAM_TUNER.record(loop, items, planned, team, seconds)
+    return threads_for(LOOP_COSTS.seconds(loop, items), available, minimum), native
 
 
 def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | None = None) -> None:
@@ -331,7 +263,7 @@ def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | N
     The loops write disjoint parts of their outputs, and their sums go into fixed chunks, so no
     result depends on the number of threads or parts."""
     items = work_items(args) if items is None else items
-    team_size, planned, native = planned_team(loop, items)
+    team_size, native = planned_team(loop, items)
     parts = PARTS_PER_THREAD * team_size if parts is None else parts
     team_size = min(parts, team_size)
     claims = np.zeros(3, dtype=np.int64)
@@ -350,7 +282,7 @@ def run_parallel(loop: Any, *args: Any, parts: int | None = None, items: int | N
         _wait_for_parts(job)
     else:
         loop(claims, parts, *args)
-    record_call(loop, items, planned, team_size, time.perf_counter() - started)
+    LOOP_COSTS.record(loop, items, (time.perf_counter() - started) * team_size)
 
 
 def _launch(team: int, claims: Any, parts: int, *args: Any) -> None:

@@ -45,6 +45,7 @@ from kintinuous_fast.odometry.sums import NV, SLOT_B, SLOT_COST, SLOT_COUNT
 from kintinuous_fast.odometry.sums.cpu import ALLOCATING_LOOP, partials
 from kintinuous_fast.targets import pinhole
 from kintinuous_fast.targets.cpu import (
+    LOOP_COSTS,
     NEXT_PART,
     PARTS_DONE,
     SPINS,
@@ -52,7 +53,6 @@ from kintinuous_fast.targets.cpu import (
     atomic_load,
     claim_slot,
     planned_team,
-    record_call,
     run_on_threads,
     run_parallel,
     spin_below,
@@ -357,7 +357,7 @@ class JointLevel:
         or (pose so far, why its step failed); `weights` = (rgbd_weight, degeneracy threshold).
         None where the loop would run on the helper team, which only Python joins. The systems
         computed (the steps taken and a failed one) are kept in `self.steps`."""
-        team, planned, native = planned_team(self.loop, self.items)
+        team, native = planned_team(self.loop, self.items)
         team = min(team, self.parts)
         if team > 1 and not native:
             return None
@@ -375,7 +375,7 @@ class JointLevel:
             (float(weights[0]), float(weights[1])),
         )
         seconds = (time.perf_counter() - started) / max(self.steps, 1)
-        record_call(self.loop, self.items, planned, team, seconds)
+        LOOP_COSTS.record(self.loop, self.items, seconds * team)
         if status == THREAD_FAILED:
             raise RuntimeError("a cpu loop failed on one of its threads; run it on one to see why")
         if status != SOLVED:
