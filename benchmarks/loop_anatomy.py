@@ -40,7 +40,7 @@ import numba
 import numpy as np
 
 import kintinuous_fast.odometry.icp.cpu_joint as joint
-from kintinuous_fast.targets import cpu
+from kintinuous_fast.targets import cpu, cpu_probe
 from kintinuous_ref.config import Config, with_overrides
 from kintinuous_ref.program.benchmark import benchmark, machine_line
 
@@ -85,13 +85,13 @@ class Capture:
         # name: (loop, arguments, parts as the caller gave them, counters and their values)
         self.calls: dict[str, tuple[Any, tuple, int | None, list]] = {}
         self._refine = joint.JointLevel.refine
-        self._replaced = cpu.run_parallel_replaced(self._keeping)
+        self._replaced = cpu_probe.run_parallel_replaced(self._keeping)
 
     def _keeping(self, run_parallel: Any) -> Any:
         """run_parallel, each loop's call kept in `calls` first."""
 
         def kept(loop: Any, *args: Any, parts: int | None = None, **kw: Any) -> None:
-            self.calls[cpu.loop_name(loop)] = (loop, args, parts, counters(args))
+            self.calls[cpu_probe.loop_name(loop)] = (loop, args, parts, counters(args))
             run_parallel(loop, *args, parts=parts, **kw)
 
         return kept

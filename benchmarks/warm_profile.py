@@ -164,7 +164,7 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     from outside the loops includes the other threads' hand-over, which is what a thread count
     changes."""
     import kintinuous_fast.odometry.icp.cpu_joint as joint
-    import kintinuous_fast.targets.cpu as threads
+    import kintinuous_fast.targets.cpu_probe as probe
     from kintinuous_ref import pipeline
 
     unframed, unlevelled = pipeline.run, joint.JointLevel.system
@@ -177,7 +177,7 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
             started = time.perf_counter()
             untimed(loop, *args, **options)
             ended = time.perf_counter()
-            name = threads.loop_name(loop)
+            name = probe.loop_name(loop)
             if loop is joint._joint_loop and level[0] is not None:
                 name = f"{name} L{level[0]}"
                 clock.iteration(level[0], started, ended)
@@ -211,7 +211,7 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     joint.JointLevel.system = levelled
     joint.JointLevel.refine = refined
     try:
-        with threads.run_parallel_replaced(timing):
+        with probe.run_parallel_replaced(timing):
             result = benchmark(dataset, frames=frames, **run)
     finally:
         pipeline.run = unframed

@@ -22,11 +22,9 @@ that more threads never make a stage slower. Its results are the same either way
 import itertools
 import os
 import platform
-import sys
 import threading
 import time
 from collections.abc import Callable
-from contextlib import contextmanager
 from functools import cache, lru_cache
 from types import FunctionType
 from typing import Any
@@ -531,28 +529,6 @@ class _Team:
 @lru_cache(maxsize=1)
 def _team() -> _Team:
     return _Team(max(1, numba.config.NUMBA_NUM_THREADS - 1))
-
-
-def loop_name(loop: Any) -> str:
-    """A loop's name in reports: its stage package and function, e.g. "odometry._joint_loop"."""
-    return f"{loop.__module__.split('.')[1]}.{loop.__name__}"
-
-
-@contextmanager
-def run_parallel_replaced(wrapper: Callable[[Callable[..., None]], Callable[..., None]]) -> Any:
-    """While inside, every kintinuous_fast module's run_parallel (each imports it by name) is
-    wrapper(run_parallel): how benchmarks time the cpu loops or keep their calls."""
-    modules = [m for n, m in sys.modules.items() if n.startswith("kintinuous_fast.")]
-    original = run_parallel
-    patched = [m for m in modules if getattr(m, "run_parallel", None) is original]
-    wrapped = wrapper(original)
-    for module in patched:
-        module.run_parallel = wrapped
-    try:
-        yield
-    finally:
-        for module in patched:
-            module.run_parallel = original
 
 
 def run_parallel_above(minimum: int, loop: Any, count: int, *args: Any) -> None:
