@@ -46,9 +46,9 @@ def test_equivalence_cpu_raycast(size):
 
 @pytest.mark.parametrize(("rows", "threads"), [(480, 16), (480, 2), (240, 7), (61, 1), (1, 4)])
 def test_raycast_bands_shrink_to_the_least_and_cover_every_row_once(rows, threads):
-    """band_starts: bands in order from row 0 to the last, the first a 2 * threads-th of the
+    """_band_starts: bands in order from row 0 to the last, the first a 2 * threads-th of the
     rows, then never larger, none but the last under MIN_BAND rows."""
-    starts = cpu_raycast.band_starts(rows, threads)
+    starts = cpu_raycast._band_starts(rows, threads)
     sizes = np.diff(starts)
     assert starts[0] == 0 and starts[-1] == rows and (sizes > 0).all()
     assert sizes[0] == min(rows, max(cpu_raycast.MIN_BAND, rows // (2 * threads)))

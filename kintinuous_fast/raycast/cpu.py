@@ -38,11 +38,11 @@ march_start, march_step, surface_at = OPS.march_start, OPS.march_step, OPS.surfa
 raycast_pixel, ray_direction, shade_pixel = OPS.raycast_pixel, OPS.ray_direction, OPS.shade_pixel
 voxel_coordinates, store_hit = OPS.voxel_coordinates, OPS.store_hit
 gradient_normals = VOXELS.gradient_normals
-# The least rows of the image's last bands (band_starts).
+# The least rows of the image's last bands (_band_starts).
 MIN_BAND = 2
 
 
-def band_starts(rows: int, threads: int) -> np.ndarray:
+def _band_starts(rows: int, threads: int) -> np.ndarray:
     """The first of the `rows` cast rows of each band the raycast's threads claim in order, and
     `rows` last: each band a 2 * threads-th of the rows not yet handed out, at least MIN_BAND
     (guided scheduling). Rays cost very different amounts; large bands first keep a thread's
@@ -380,7 +380,7 @@ def raycast(
     else:  # the plain march: maps of 0 skip nothing, every sample is taken
         empty = fine_distance = np.zeros((1, 1, 1), dtype=np.uint8)
         starts = np.zeros(shape, dtype=np.float64)
-    bands = band_starts(-(-camera.height // int(stride)), threads())
+    bands = _band_starts(-(-camera.height // int(stride)), threads())
     run_parallel(
         _raycast_loop,
         volume.tsdf_weight,
