@@ -65,7 +65,7 @@ PARALLEL_MIN = 40_000
 @_inline_fma
 def _pair_weights(centre, neighbour, spatial, inv_two_sigma2, w, wd):
     """For one window offset along a row: the bilateral_weight w of each pixel pair (p, q) and
-    wd = w (D(q) - D(p)). Holes hold a far sentinel (bilateral_filter's `work`), so a pair with
+    wd = w (D(q) - D(p)). Holes hold a far sentinel (`_rows_with_holes_far`), so a pair with
     one hole weighs 0 (two holes do weigh, but only into sums of holes)."""
     for i in range(w.shape[0]):
         difference = neighbour[i] - centre[i]
@@ -104,10 +104,22 @@ def _bilateral_finish_row(depth, sum_w, sum_wd, extra_w, extra_wd, out):
         out[u] = bilateral_result(depth[u], w, wd)
 
 
+@_inline
+def _rows_with_holes_far(depth, first, stop, hole):
+    """depth[first:stop] with its holes (depth <= 0, NaN) at `hole`, a depth so far from
+    any valid one that a pair with one hole weighs 0."""
+    rows = np.empty((stop - first, depth.shape[1]), np.float32)
+    for v in range(first, stop):
+        for u in range(depth.shape[1]):
+            d = depth[v, u]
+            rows[v - first, u] = d if d > 0 else hole
+    return rows
+
+
 @register_slowest("preprocess")
 @_parallel_fma
 def _bilateral_rows(
-    claims, parts, work, depth, spatial, radius, inv_two_sigma2, chunk_rows, head, tail, out
+    claims, parts, depth, hole, spatial, radius, inv_two_sigma2, chunk_rows, head, tail, out
 ):
     """The bilateral filter with each pixel pair weighed once.
 
@@ -117,13 +129,16 @@ def _bilateral_rows(
     are cut into chunks, one part each; a chunk keeps the sums of radius + 1 rows in
     a ring (row v is complete once the pairs starting on it are added) and writes finished rows
     at once. Its first `radius` rows also get pairs from the chunk before: their sums go to
-    `head`, the ones it adds below its last row to `tail`, and _bilateral_seams adds the two."""
-    height, width = work.shape
+    `head`, the ones it adds below its last row to `tail`, and _bilateral_seams adds the two.
+    A chunk reads its rows, and the `radius` rows below them, from a copy of its own in which
+    holes hold `hole` (`_rows_with_holes_far`)."""
+    height, width = depth.shape
     slots = radius + 1
     zeros = np.zeros(width, np.float32)
     for chunk in claimed_items(claims, head.shape[0], parts):
         first = chunk * chunk_rows
         last = min(height, first + chunk_rows)
+        work = _rows_with_holes_far(depth, first, min(height, last + radius), hole)
         ring_w = np.zeros((slots, width), np.float32)
         ring_wd = np.zeros((slots, width), np.float32)
         w = np.empty(width, np.float32)
@@ -140,8 +155,8 @@ def _bilateral_rows(
                         continue
                     if dy > 0:
                         _pairs_to_both(
-                            work[v, lo:hi],
-                            work[y, lo + dx : hi + dx],
+                            work[v - first, lo:hi],
+                            work[y - first, lo + dx : hi + dx],
                             spatial[dy + radius, dx + radius],
                             inv_two_sigma2,
                             ring_w[p, lo:hi],
@@ -153,8 +168,8 @@ def _bilateral_rows(
                     # Same row: p's and q's sums overlap, so the weights go through a buffer.
                     count = hi - lo
                     _pair_weights(
-                        work[v, lo:hi],
-                        work[y, lo + dx : hi + dx],
+                        work[v - first, lo:hi],
+                        work[y - first, lo + dx : hi + dx],
                         spatial[dy + radius, dx + radius],
                         inv_two_sigma2,
                         w[:count],
@@ -212,7 +227,6 @@ def bilateral_filter(
     inv_two_sigma2 = inverse_two_variance(sigma_depth)
     # Holes (and NaN) as a depth farther than 12.65 sigma_d from any valid one: x > 80 (weight 0).
     hole = np.float32(-(16.0 * sigma_depth + 1.0))
-    work = np.where(depth > 0, depth, hole).astype(np.float32)
     height, width = depth.shape
     # Chunks of a fixed height, not a number per thread: a seam row's sums are added in another
     # order than an inner row's, so chunks that followed the thread count would make the result
@@ -224,8 +238,8 @@ def bilateral_filter(
     tail = np.empty((chunks, 2, radius, width), np.float32)
     run_parallel(
         _bilateral_rows,
-        work,
         depth,
+        hole,
         spatial,
         radius,
         inv_two_sigma2,
