@@ -55,6 +55,20 @@ def test_raycast_bands_shrink_to_the_least_and_cover_every_row_once(rows, thread
     assert (np.diff(sizes) <= 0).all() and (sizes[:-1] >= cpu_raycast.MIN_BAND).all()
 
 
+@pytest.mark.parametrize("holes", ["zeros", "nan", "negative", "all holes"])
+def test_the_largest_depth_is_the_largest_positive_one(holes):
+    """integrate's far limit: _largest_depth equals NumPy's depth[depth > 0].max(), and 0 with no
+    positive depth; NaN and negative depths are holes."""
+    rng = np.random.default_rng(7)
+    depth = (rng.random((120, 160)) * 4.0).astype(np.float32)
+    hole = {"zeros": 0.0, "nan": np.nan, "negative": -5.0, "all holes": np.nan}[holes]
+    depth[rng.random(depth.shape) < (1.0 if holes == "all holes" else 0.3)] = hole
+    positive = depth[depth > 0]
+    expected = float(positive.max()) if positive.size else 0.0
+    assert float(cpu_tsdf._largest_depth(depth)) == expected
+    assert holes != "all holes" or expected == 0.0
+
+
 @pytest.mark.parametrize("offset", [(0, 0, 0), (5, 0, 17)], ids=["fixed", "shifted"])
 def test_equivalence_cpu_gradient_normal(offset):
     """tsdf.voxel.gradient_normal against kintinuous_ref.raycast._gradient_normals on a fused

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from kintinuous_fast.targets import cpu_jit_numpy_errors, pinhole
+from kintinuous_fast.targets import cpu_jit, cpu_jit_numpy_errors, pinhole
 from kintinuous_fast.targets.cache import register_slowest
 from kintinuous_fast.targets.cpu import (
     claim_slot,
@@ -353,6 +353,18 @@ def make_volume(
     )
 
 
+@cpu_jit
+def _largest_depth(depth):  # noqa: ANN001, ANN202 (numba: types from the call)
+    """The largest depth of the image, 0 where none is positive (NaN never is): what
+    depth[depth > 0].max() gives, in one pass that copies nothing."""
+    largest = np.float32(0.0)
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            if depth[v, u] > largest:
+                largest = depth[v, u]
+    return largest
+
+
 def integrate(
     volume: FastTsdfVolume,
     depth: np.ndarray,
@@ -365,8 +377,7 @@ def integrate(
     the update rule is kintinuous_ref.tsdf.integrate's, rounded to the stored types."""
     check_depth(depth, camera)
     depth = np.ascontiguousarray(depth, dtype=np.float32)
-    valid = depth[depth > 0]
-    largest = float(valid.max()) if valid.size else 0.0
+    largest = float(_largest_depth(depth))
     box = frustum_box(volume, largest, pose, camera)
     if box is None:
         return
