@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 
 import numba
 import numpy as np
@@ -289,7 +290,11 @@ class JointLevel:
 
     def __init__(self, icp, rgbd, level: int) -> None:  # noqa: ANN001 (the CPU's problems)
         self.level = level  # named in benchmarks/warm_profile.py's per-level loop times
-        self.icp = icp
+        # Held weakly: the ICP problem keeps its levels (joint_level), and a reference back
+        # would make a cycle that only Python's cyclic collector frees, so that every frame's
+        # problems and arrays (about 40 MB at 640x480) would stay until it ran, each frame's
+        # on fresh pages (docs/benchmarks.md).
+        self.icp = None if icp is None else weakref.proxy(icp)
         self.kind = RGBD_ONLY if icp is None else ICP_ONLY if rgbd is None else JOINT
         self.loop = _rgbd_system_loop if icp is None else _joint_loop
         icp_terms = _icp_terms(icp, level) if icp is not None else _no_icp()
