@@ -159,6 +159,19 @@ def stage_table(rows: list[dict[str, Any]], counts: list[int]) -> list[str]:
     return lines
 
 
+def fault_line(reports: dict[int, dict[str, Any]], counts: list[int]) -> str:
+    """The minor page faults a frame per count (warm_profile's fault_summary): the median,
+    and the first half's and second half's of the frames, '-' where a report has none."""
+    cells = []
+    for n in counts:
+        faults = reports[n].get("minor_faults")
+        keys = ("median", "first_half", "second_half")
+        cells.append("/".join(f"{faults[key]:.0f}" for key in keys) if faults else "-")
+    return "page faults a frame (median/first half/second half): " + ", ".join(
+        f"{n}: {cell}" for n, cell in zip(counts, cells, strict=True)
+    )
+
+
 def ceiling_table(ceilings: dict[str, Any], counts: list[int]) -> list[str]:
     """The machine's speed-ups (machine_scaling.py) in the stage table's columns: what a stage
     limited by its cores, or by memory, would reach at each count."""
@@ -249,7 +262,8 @@ def main() -> None:
         args.json.write_text(json.dumps(sweep, indent=1) + "\n")
     timed = {report["timed_frames"] for report in reports.values()}
     print(f"\n{args.dataset}, threads {used}, medians over {sorted(timed)} timed frames\n")
-    print("\n".join(stage_table(stages, used)) + "\n")
+    print("\n".join(stage_table(stages, used)))
+    print(fault_line(reports, used) + "\n")
     print("\n".join(ceiling_table(ceilings, used)) + "\n")
     print("\n".join(loop_table(loops, used)) + "\n")
     print(f"before: {start}\nafter:  {after}")

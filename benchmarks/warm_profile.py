@@ -12,9 +12,10 @@ Prints the stages' medians, the functions with the most time of their own and th
 functions by cumulative time, per frame; `--out` keeps the profile for pstats or snakeviz.
 `--loops` (cpu backend) runs without the profiler and times every parallel loop instead: its
 wall time per frame (the other threads' hand-over included; the median over the frames the
-stages' medians cover) and, per stage, the time outside the loops, which is what the host's
-Python costs; `--json` writes the same numbers, with the thread count numba used, for
-benchmarks/thread_sweep.py.
+stages' medians cover), per stage the time outside the loops, which is what the host's
+Python costs, and the minor page faults of each frame's work (a frame whose arrays land on
+fresh pages pays for each, in whatever loop first writes them); `--json` writes the same
+numbers, with the thread count numba used, for benchmarks/thread_sweep.py.
 """
 
 from __future__ import annotations
@@ -25,9 +26,10 @@ import itertools
 import json
 import os
 import pstats
+import resource
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -132,6 +134,7 @@ class LoopClock:
 
     def __init__(self) -> None:
         self.runs: list[list[dict[str, list[float]]]] = []
+        self.faults: list[list[int]] = []  # per run, the minor page faults of each frame's work
         # the time between iterations of a level: (level, seconds), the last call's (level, end)
         self.between: list[tuple[int, float]] = []
         self.last_iteration: tuple[int, float] | None = None
@@ -140,9 +143,12 @@ class LoopClock:
         """`frames`, opening a new record for each: the loops called until the pipeline asks
         for the next frame are that frame's."""
         self.runs.append([])
+        self.faults.append([])
         for frame in frames:
             self.runs[-1].append(defaultdict(list))
-            yield frame
+            before = minor_faults()
+            yield frame  # back here when the pipeline asks for the next frame
+            self.faults[-1].append(minor_faults() - before)
 
     def iteration(self, level: int, started: float, ended: float) -> None:
         """Count a joint-loop call of `level` from `started` to `ended` (perf_counter): the
@@ -220,7 +226,7 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     medians = {stage: t["median"] for stage, t in result["timing_ms"].items()}
     # The benchmark's last run is the timed one; its first frame (no model) is left out, as
     # from the stages' statistics.
-    report = loop_report(medians, clock.runs[-1][1:])
+    report = loop_report(medians, clock.runs[-1][1:], clock.faults[-1][1:])
     report["between_iterations_us"] = {
         f"L{lv}": float(np.median([1e6 * s for at, s in clock.between if at == lv]))
         for lv in sorted({at for at, _ in clock.between})
@@ -228,11 +234,14 @@ def time_loops(dataset: str, frames: int, run: dict) -> dict[str, Any]:
     return report
 
 
-def loop_report(medians: dict[str, float], frames: list[dict[str, list[float]]]) -> dict[str, Any]:
+def loop_report(
+    medians: dict[str, float], frames: list[dict[str, list[float]]], faults: Sequence[int] = ()
+) -> dict[str, Any]:
     """Per loop, the median ms per frame and the mean calls per frame over `frames` (each a
     record of seconds per call per loop), each stage's median split into its loops and the time
-    outside them (the host's Python), and the thread count numba ran with, since
-    NUMBA_NUM_THREADS above the machine's cores is not honoured as asked."""
+    outside them (the host's Python), the page faults of the same frames (`fault_summary` of
+    `faults`), and the thread count numba ran with, since NUMBA_NUM_THREADS above the machine's
+    cores is not honoured as asked."""
     import numba
 
     names = {name for frame in frames for name in frame}
@@ -263,6 +272,26 @@ def loop_report(medians: dict[str, float], frames: list[dict[str, list[float]]])
         "loops": loops,
         "stages": stages,
         "loops_ms": sum(loop["ms_per_frame"] for loop in loops.values()),
+        "minor_faults": fault_summary(list(faults)),
+    }
+
+
+def minor_faults() -> int:
+    """The minor page faults this process has taken so far (getrusage)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
+def fault_summary(faults: list[int]) -> dict[str, float] | None:
+    """The median faults a frame over all frames, over the first half and over the second: a
+    pipeline's heap grows over its first frames (docs/benchmarks.md), so the halves tell the
+    growing frames from the steady ones. None without frames."""
+    if not faults:
+        return None
+    half = len(faults) // 2
+    return {
+        "median": float(np.median(faults)),
+        "first_half": float(np.median(faults[: max(half, 1)])),
+        "second_half": float(np.median(faults[half:])),
     }
 
 
@@ -290,6 +319,12 @@ def print_loop_report(report: dict[str, Any]) -> None:
         print(f"{stage:12s} loops {split['loops_ms']:7.2f}  outside {split['outside_ms']:7.2f}")
     total = medians["total"]
     print(f"all loops {report['loops_ms']:.2f} ms of a median frame of {total:.2f} ms")
+    faults = report.get("minor_faults")
+    if faults:
+        print(
+            f"minor page faults a frame: median {faults['median']:.0f} (first half of the frames "
+            f"{faults['first_half']:.0f}, second half {faults['second_half']:.0f})"
+        )
     between = report.get("between_iterations_us", {})
     if between:
         print(

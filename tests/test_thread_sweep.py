@@ -134,3 +134,36 @@ def test_the_machine_ceilings_print_against_the_same_baseline():
         "frame-sized triad": ["1.00", "1.50"],
         "volume-sized triad": ["1.00", "1.00"],
     }
+
+
+WARM_PROFILE = SCRIPT.with_name("warm_profile.py")
+warm_spec = importlib.util.spec_from_file_location("warm_profile", WARM_PROFILE)
+warm_profile = importlib.util.module_from_spec(warm_spec)
+warm_spec.loader.exec_module(warm_profile)
+
+
+def test_each_frame_counts_the_faults_of_its_own_work(monkeypatch):
+    """LoopClock.frames: a frame's faults are those taken from when the pipeline gets it until
+    it asks for the next (here the work of frame k takes 10 k faults, reading one takes 1)."""
+    taken = [0]
+    monkeypatch.setattr(warm_profile, "minor_faults", lambda: taken[0])
+    clock = warm_profile.LoopClock()
+
+    def read():
+        for index in range(4):
+            taken[0] += 1  # reading a frame: not its work
+            yield index
+
+    for index in clock.frames(read()):
+        taken[0] += 10 * index
+    assert clock.faults == [[0, 10, 20, 30]]
+
+
+def test_the_fault_summary_splits_the_growing_frames_from_the_steady_ones():
+    summary = warm_profile.fault_summary([100, 90, 10, 0, 2, 4])
+    assert summary == {"median": 7.0, "first_half": 90.0, "second_half": 2.0}
+    assert warm_profile.fault_summary([5]) == {"median": 5.0, "first_half": 5.0, "second_half": 5.0}
+    assert warm_profile.fault_summary([]) is None
+    reports = {1: {"minor_faults": summary}, 4: {}}
+    line = thread_sweep.fault_line(reports, [1, 4])
+    assert line.endswith("1: 7/90/2, 4: -")
