@@ -3,10 +3,9 @@ replayed on the same arguments (the replay writes what the reference computes), 
 call's parts add up: one thread neither waits to wake nor idles, and busy time fits in the
 call."""
 
-import importlib.util
 import time
-from pathlib import Path
 
+import benchmark_scripts
 import numba
 import numpy as np
 
@@ -15,10 +14,7 @@ from kintinuous_fast.odometry.sums import cpu as cpu_sums
 from kintinuous_fast.targets import cpu as targets_cpu
 from kintinuous_ref.odometry.icp import valid_points
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "loop_anatomy.py"
-spec = importlib.util.spec_from_file_location("loop_anatomy", SCRIPT)
-loop_anatomy = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(loop_anatomy)
+loop_anatomy = benchmark_scripts.load("loop_anatomy")
 
 
 def test_the_threads_clock_is_pythons_monotonic_clock():

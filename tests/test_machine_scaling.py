@@ -1,18 +1,14 @@
 """benchmarks/machine_scaling.py's loops and arithmetic against NumPy and closed forms: the
 triad's values and GB/s, the compute chain's values, the speed-ups and their table."""
 
-import importlib.util
 import math
-from pathlib import Path
 
+import benchmark_scripts
 import numba
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "machine_scaling.py"
-spec = importlib.util.spec_from_file_location("machine_scaling", SCRIPT)
-machine_scaling = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(machine_scaling)
+machine_scaling = benchmark_scripts.load("machine_scaling")
 
 
 @pytest.mark.parametrize("threads", [1, numba.config.NUMBA_NUM_THREADS])

@@ -2,15 +2,11 @@
 stages' speed-ups against 1 thread, the loops slower at 4 threads marked and sorted by the time
 they lose, the counts above the cores skipped."""
 
-import importlib.util
-from pathlib import Path
-
+import benchmark_scripts
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "thread_sweep.py"
-spec = importlib.util.spec_from_file_location("thread_sweep", SCRIPT)
-thread_sweep = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(thread_sweep)
+thread_sweep = benchmark_scripts.load("thread_sweep")
+warm_profile = benchmark_scripts.load("warm_profile")
 
 
 def report(threads, medians, loops, outside):
@@ -134,12 +130,6 @@ def test_the_machine_ceilings_print_against_the_same_baseline():
         "frame-sized triad": ["1.00", "1.50"],
         "volume-sized triad": ["1.00", "1.00"],
     }
-
-
-WARM_PROFILE = SCRIPT.with_name("warm_profile.py")
-warm_spec = importlib.util.spec_from_file_location("warm_profile", WARM_PROFILE)
-warm_profile = importlib.util.module_from_spec(warm_spec)
-warm_spec.loader.exec_module(warm_profile)
 
 
 def test_each_frame_counts_the_faults_of_its_own_work(monkeypatch):
